@@ -1,0 +1,386 @@
+"""Expectation-maximisation for ETAR as pure functions over arrays.
+
+E-step: forward-backward per demonstration (``etar.inference``; thesis 4.3.1,
+4.5).  M-step (thesis 4.3.2, 4.5), all demonstrations pooled:
+
+- [A_j B_j]: weighted least squares (eq. 58/72), with a weak matrix-normal
+  prior (precision ``ab_strength``) centred on A = I, B = 0 so that a phase
+  with no data keeps a well-posed regression.  The regression is solved in
+  "difference" coordinates (target s_{t+1} - s_t, states centred on their
+  mean), which is the same model but far better conditioned.
+- Sigma_j: weighted residual covariance (eq. 63/76) under a weak
+  inverse-Wishart prior (``sigma_weight`` pseudo-samples of covariance
+  ``sigma_scale``), so that a phase with little data cannot collapse.
+- W: weighted softmax regression (eq. 67) by gradient descent with Armijo
+  backtracking (eq. 68, 73-74).  The gradient is preconditioned by Boehning's
+  bound on the softmax Hessian, so one step length suits every feature scale
+  (newtons next to a constant 1) and the first trial step always satisfies
+  Armijo.  ``solver="lbfgs"`` uses scipy's L-BFGS-B instead.
+
+Every M-step is exact or a descent step on the penalised objective, so the
+objective (log-likelihood + log-prior) never decreases.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import optimize
+
+from etar import inference
+from etar.demonstrations import StepArrays
+
+LOG_2PI = math.log(2.0 * math.pi)
+
+
+@dataclass(frozen=True)
+class Priors:
+    """Weak priors that keep every phase finite (see the module docstring)."""
+
+    sigma_weight: float  # nu0: pseudo-samples of the covariance prior
+    sigma_scale: np.ndarray  # Psi (n, n)
+    ab_strength: float  # lambda: precision of the prior on [A - I, B]
+    w_l2: float  # L2 penalty on W
+
+
+@dataclass
+class ConvergenceMonitor:
+    """EM stopping rule measured per sample, with the objective's history.
+
+    Converged when the objective gained less than ``tol`` nats per sample per
+    iteration, averaged over the last ``window`` iterations: EM on this model has
+    long plateaus, so one small step is not taken for convergence.  Warns when
+    the objective falls (it must not).
+    """
+
+    tol: float
+    max_iter: int
+    n_samples: int
+    window: int = 10
+    history: list = field(default_factory=list)
+
+    def report(self, objective: float) -> None:
+        if self.history:
+            drop = self.history[-1] - objective
+            if drop > 1e-9 * max(1.0, abs(objective)):
+                warnings.warn(
+                    f"EM objective decreased by {drop:.3g} nats at iteration {len(self.history)}",
+                    RuntimeWarning,
+                    stacklevel=3,
+                )
+        self.history.append(float(objective))
+
+    @property
+    def n_iter(self) -> int:
+        """M-steps done so far (the first report scores the initial parameters)."""
+        return max(len(self.history) - 1, 0)
+
+    @property
+    def converged(self) -> bool:
+        if len(self.history) <= self.window:
+            return False
+        gain = self.history[-1] - self.history[-1 - self.window]
+        return gain / (self.window * self.n_samples) < self.tol
+
+    @property
+    def done(self) -> bool:
+        return self.converged or self.n_iter >= self.max_iter
+
+
+# --------------------------------------------------------------------------
+# demonstrations stacked once per fit
+# --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class StackedSteps:
+    """All demonstrations' steps stacked along the first axis (see inference)."""
+
+    regressors: np.ndarray  # (N, p)
+    next_states: np.ndarray  # (N, n)
+    features: np.ndarray  # (N, d+1)
+    starts: np.ndarray  # (D+1,) first step of each demonstration, then N
+    center: np.ndarray  # (n,) mean state, for the difference coordinates
+    xx: np.ndarray  # (N, p*p) outer products of centred regressors
+    yx: np.ndarray  # (N, n*p) state differences times centred regressors
+    yy: np.ndarray  # (N, n*n) outer products of state differences
+
+    @classmethod
+    def from_steps(cls, all_steps: list[StepArrays]) -> "StackedSteps":
+        X = np.ascontiguousarray(np.vstack([s.regressors for s in all_steps]))
+        Y = np.ascontiguousarray(np.vstack([s.next_states for s in all_steps]))
+        F = np.ascontiguousarray(np.vstack([s.features for s in all_steps]))
+        lengths = [s.regressors.shape[0] for s in all_steps]
+        starts = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
+        n = Y.shape[1]
+        center = X[:, :n].mean(axis=0)
+        Xc = X.copy()
+        Xc[:, :n] -= center
+        dY = Y - X[:, :n]
+        N, p = X.shape
+        return cls(
+            regressors=X, next_states=Y, features=F, starts=starts, center=center,
+            xx=(Xc[:, :, None] * Xc[:, None, :]).reshape(N, p * p),
+            yx=(dY[:, :, None] * Xc[:, None, :]).reshape(N, n * p),
+            yy=(dY[:, :, None] * dY[:, None, :]).reshape(N, n * n),
+        )
+
+    @property
+    def n_samples(self) -> int:
+        return self.regressors.shape[0]
+
+
+def to_difference_coordinates(C: np.ndarray, center: np.ndarray) -> np.ndarray:
+    """[A B] -> [A - I, B_f, b + (A - I) mu]: the map from centred regressors to s_{t+1} - s_t."""
+    K, n, p = C.shape
+    D = C.copy()
+    D[:, :, :n] -= np.eye(n)
+    D[:, :, p - 1] += D[:, :, :n] @ center
+    return D
+
+
+def from_difference_coordinates(D: np.ndarray, center: np.ndarray) -> np.ndarray:
+    K, n, p = D.shape
+    C = D.copy()
+    C[:, :, p - 1] -= D[:, :, :n] @ center
+    C[:, :, :n] += np.eye(n)
+    return C
+
+
+# --------------------------------------------------------------------------
+# E-step
+# --------------------------------------------------------------------------
+
+
+def emission_arrays(Sigma: np.ndarray):
+    """Cholesky inverses and log normalisers of every phase's covariance."""
+    K, n, _ = Sigma.shape
+    chol_inv = np.empty_like(Sigma)
+    log_norm = np.empty(K)
+    for j in range(K):
+        try:
+            L = np.linalg.cholesky(Sigma[j])
+        except np.linalg.LinAlgError:
+            raise ValueError(f"Sigma[{j}] is not symmetric positive definite: {Sigma[j].tolist()}") from None
+        chol_inv[j] = np.linalg.inv(L)
+        log_norm[j] = -0.5 * n * LOG_2PI - np.log(np.diag(L)).sum()
+    return np.ascontiguousarray(chol_inv), log_norm
+
+
+@dataclass
+class Expectations:
+    log_likelihoods: np.ndarray  # (D,) per demonstration
+    gamma: np.ndarray  # (N, K)
+    xi: np.ndarray  # (N, K, K); the first row of every demonstration is 0
+    trans: np.ndarray | None = None  # (N, K, K) transitions under the W that produced them
+    log_trans: np.ndarray | None = None
+
+    @property
+    def log_likelihood(self) -> float:
+        return float(self.log_likelihoods.sum())
+
+
+def e_step(stacked: StackedSteps, C, Sigma, W) -> Expectations:
+    chol_inv, log_norm = emission_arrays(Sigma)
+    ll, gamma, xi, trans, log_trans = inference.e_step_stacked(
+        stacked.regressors, stacked.next_states, stacked.features, stacked.starts,
+        np.ascontiguousarray(C), chol_inv, log_norm, np.ascontiguousarray(W),
+    )
+    return Expectations(ll, gamma, xi, trans, log_trans)
+
+
+def log_prior(C, Sigma, W, priors: Priors, center) -> float:
+    """Log density (up to a constant) of the weak priors at the parameters."""
+    K, n, p = C.shape
+    D = to_difference_coordinates(C, center)
+    lam = priors.ab_strength
+    value = 0.0
+    for j in range(K):
+        _, logdet = np.linalg.slogdet(Sigma[j])
+        scatter = priors.sigma_weight * priors.sigma_scale + lam * D[j] @ D[j].T
+        dof = priors.sigma_weight + (p if lam > 0 else 0)
+        value += -0.5 * dof * logdet - 0.5 * np.trace(np.linalg.solve(Sigma[j], scatter))
+    value -= 0.5 * priors.w_l2 * float(np.sum(W * W))
+    return float(value)
+
+
+# --------------------------------------------------------------------------
+# M-step
+# --------------------------------------------------------------------------
+
+
+def m_step_dynamics(stacked: StackedSteps, gamma: np.ndarray, priors: Priors):
+    """[A_j B_j] and Sigma_j of every phase from the phase weights gamma (N, K)."""
+    N, p = stacked.regressors.shape
+    n = stacked.next_states.shape[1]
+    K = gamma.shape[1]
+    lam = priors.ab_strength
+    Sxx = (gamma.T @ stacked.xx).reshape(K, p, p)
+    Syx = (gamma.T @ stacked.yx).reshape(K, n, p)
+    Syy = (gamma.T @ stacked.yy).reshape(K, n, n)
+    Nk = gamma.sum(axis=0)
+    D = np.empty((K, n, p))
+    Sigma = np.empty((K, n, n))
+    for j in range(K):
+        # (Sxx + lam I) D^T = Syx^T; lstsq tolerates regressors that do not span
+        # every direction when lam == 0
+        D[j] = np.linalg.lstsq(Sxx[j] + lam * np.eye(p), Syx[j].T, rcond=None)[0].T
+        cross = D[j] @ Syx[j].T
+        residual = Syy[j] - cross - cross.T + D[j] @ Sxx[j] @ D[j].T
+        scatter = residual + lam * D[j] @ D[j].T + priors.sigma_weight * priors.sigma_scale
+        dof = Nk[j] + priors.sigma_weight + (p if lam > 0 else 0)
+        S = scatter / dof
+        Sigma[j] = 0.5 * (S + S.T)
+    return from_difference_coordinates(D, stacked.center), Sigma
+
+
+def _bohning_factors(features, targets, l2):
+    """Cholesky factors of kron(1/2 (I - 11'/(K+1)), sum_t q_t phi_t phi_t') + l2 I
+    per block: an upper bound on each block's Hessian (Boehning 1992)."""
+    N, R, K = targets.shape
+    q = targets.sum(axis=2)  # (N, R)
+    A = 0.5 * (np.eye(K) - np.ones((K, K)) / (K + 1))
+    out = []
+    for r in range(R):
+        S = features.T @ (features * q[:, r : r + 1])
+        ridge = max(l2, 1e-12 * (np.trace(S) + 1.0))
+        out.append(np.linalg.cholesky(np.kron(A, S) + ridge * np.eye(K * S.shape[0])))
+    return out
+
+
+def fit_softmax_blocks(w, features, targets, l2, solver="gd", max_steps=1, at_w=None):
+    """Improve weight blocks w (R, K, d+1) of the softmax transition model.
+
+    ``targets`` (N, R, K) are the expected transition counts of each step.
+    Minimises the weighted cross-entropy (``inference.softmax_regression_objective``)
+    starting from ``w``; never returns a worse block than it was given.
+    ``at_w``: (values, grads) at ``w`` if the caller already has them.
+    """
+    R, K, d1 = w.shape
+    if K == 1 or features.shape[0] == 0:
+        return w.copy()
+    if solver == "lbfgs":
+        out = w.copy()
+        for r in range(R):
+            tr = np.ascontiguousarray(targets[:, r : r + 1, :])
+
+            def fun(flat, tr=tr):
+                v, g = inference.softmax_regression_objective(flat.reshape(1, K, d1), features, tr, l2)
+                return v[0], g.ravel()
+
+            v0 = fun(w[r].ravel())[0]
+            res = optimize.minimize(fun, w[r].ravel(), jac=True, method="L-BFGS-B",
+                                    options=dict(maxiter=max_steps))
+            if res.fun <= v0:
+                out[r] = res.x.reshape(K, d1)
+        return out
+    if solver != "gd":
+        raise ValueError(f"solver must be 'gd' or 'lbfgs', got {solver!r}")
+    factors = _bohning_factors(features, targets, l2)
+    w = w.copy()
+    if at_w is None:
+        value, grad = inference.softmax_regression_objective(w, features, targets, l2)
+    else:
+        value, grad = (a.copy() for a in at_w)
+    active = np.ones(R, dtype=bool)
+    for _ in range(max_steps):
+        direction = np.zeros_like(w)
+        slope = np.zeros(R)
+        for r in range(R):
+            if not active[r]:
+                continue
+            g = grad[r].ravel()
+            L = factors[r]
+            direction[r] = np.linalg.solve(L.T, np.linalg.solve(L, g)).reshape(K, d1)
+            slope[r] = g @ direction[r].ravel()
+            if slope[r] <= 1e-14 * max(1.0, abs(value[r])):
+                active[r] = False
+        if not active.any():
+            break
+        step = np.where(active, 1.0, 0.0)
+        accepted = ~active
+        cand_w = w.copy()
+        for _ in range(40):  # Armijo backtracking, per block
+            todo = ~accepted
+            cand_w[todo] = w[todo] - step[todo, None, None] * direction[todo]
+            cv, cg = inference.softmax_regression_objective(cand_w, features, targets, l2)
+            ok = cv <= value - 1e-4 * step * slope
+            newly = todo & ok
+            accepted |= newly
+            if accepted.all():
+                break
+            step[~accepted] *= 0.5
+        gain = np.where(accepted & active, value - cv, 0.0)
+        keep = accepted & active
+        w[keep] = cand_w[keep]
+        value[keep] = cv[keep]
+        grad[keep] = cg[keep]
+        active &= keep & (gain > 1e-11 * np.maximum(1.0, np.abs(value)))
+        if not active.any():
+            break
+    return w
+
+
+def m_step(stacked: StackedSteps, ex: Expectations, W, priors: Priors, solver="gd", w_steps=1):
+    """New (C, Sigma, W) from the expectations of every demonstration."""
+    C, Sigma = m_step_dynamics(stacked, ex.gamma, priors)
+    K = ex.gamma.shape[1]
+    W_new = W.copy()
+    if K > 1:
+        first = stacked.starts[:-1]
+        W_new[:1] = fit_softmax_blocks(
+            W[:1], np.ascontiguousarray(stacked.features[first]),
+            np.ascontiguousarray(ex.gamma[first][:, None, :]), priors.w_l2, solver, w_steps,
+        )
+        at_w = None
+        if ex.trans is not None:
+            at_w = inference.softmax_regression_at(W[1:], stacked.features, ex.xi, ex.trans, ex.log_trans,
+                                                   priors.w_l2)
+        W_new[1:] = fit_softmax_blocks(W[1:], stacked.features, ex.xi, priors.w_l2, solver, w_steps, at_w)
+    return C, Sigma, W_new
+
+
+# --------------------------------------------------------------------------
+# initialisation from segments
+# --------------------------------------------------------------------------
+
+
+def hard_expectations(labels: np.ndarray, starts: np.ndarray, K: int) -> Expectations:
+    """One-hot gamma and xi from stacked phase labels (N,)."""
+    N = labels.shape[0]
+    gamma = np.zeros((N, K))
+    gamma[np.arange(N), labels] = 1.0
+    xi = np.zeros((N, K, K))
+    later = np.ones(N, dtype=bool)
+    later[starts[:-1]] = False
+    t = np.flatnonzero(later)
+    xi[t, labels[t - 1], labels[t]] = 1.0
+    return Expectations(np.zeros(len(starts) - 1), gamma, xi)
+
+
+def segment_labels(starts: np.ndarray, K: int, rng: np.random.Generator | None) -> np.ndarray:
+    """Contiguous left-to-right segments in every demonstration, stacked (N,).
+
+    ``rng=None`` gives equal-length segments; otherwise random cut points with
+    every segment at least a fifth of the equal length.
+    """
+    out = []
+    for a, b in zip(starts[:-1], starts[1:]):
+        N = int(b - a)
+        if K == 1 or N < K:
+            out.append(np.minimum(np.arange(N) * K // max(N, 1), K - 1).astype(np.int64))
+            continue
+        if rng is None:
+            cuts = [round(N * k / K) for k in range(1, K)]
+        else:
+            min_len = max(1, N // (5 * K))
+            raw = np.sort(rng.uniform(0, N - K * min_len, size=K - 1))
+            cuts = [int(raw[k]) + (k + 1) * min_len for k in range(K - 1)]
+        labels = np.zeros(N, dtype=np.int64)
+        for c in cuts:
+            labels[c:] += 1
+        out.append(labels)
+    return np.concatenate(out)

@@ -1,0 +1,169 @@
+"""Per-phase Cartesian impedance from demonstration data.
+
+The geometric approach of Suomalainen & Kyrki (Humanoids 2017): the robot is
+driven along a desired direction d by an impedance controller; where a surface
+is touched, the contact force f deflects the motion, so the measured velocity v
+lies in the plane spanned by d and f.  Every in-contact sample therefore
+constrains d to be orthogonal to n_t = v_t x f_t, and d is the direction most
+orthogonal to all n_t (smallest right singular vector).  Motion not along d is
+attributed to contact: the directions of the contact force orthogonal to d are
+the compliant axes (0 in free space, 1 on a plane, 2 in a groove), and the
+stiffness is K = R V R^T with R = [d, c_1, c_2] and V = diag(stiff, soft/stiff...).
+(Thesis eq. 77-78.)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class PhaseImpedance:
+    direction: np.ndarray  # (3,) unit desired direction of motion d
+    n_compliant: int  # 0, 1 or 2
+    compliant_axes: np.ndarray  # (n_compliant, 3) unit vectors orthogonal to d
+    rotation: np.ndarray  # (3, 3) R = [d, c_1, c_2] (columns), right-handed
+    stiffness: np.ndarray  # (3, 3) K = R V R^T, N/m
+    mean_force: np.ndarray  # (3,) mean measured contact force of the phase, N
+    mean_speed: float  # m/s along d
+    n_samples: int
+    n_contact_samples: int
+
+    def to_dict(self) -> dict:
+        return dict(
+            direction=self.direction.tolist(), n_compliant=self.n_compliant,
+            compliant_axes=self.compliant_axes.tolist(), rotation=self.rotation.tolist(),
+            stiffness=self.stiffness.tolist(), mean_force=self.mean_force.tolist(),
+            mean_speed=self.mean_speed, n_samples=self.n_samples, n_contact_samples=self.n_contact_samples,
+        )
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "PhaseImpedance":
+        arr = lambda k, shape=None: np.asarray(data[k], dtype=np.float64).reshape(shape) if shape else np.asarray(data[k], dtype=np.float64)  # noqa: E731
+        return cls(
+            direction=arr("direction"), n_compliant=int(data["n_compliant"]),
+            compliant_axes=arr("compliant_axes", (int(data["n_compliant"]), 3)),
+            rotation=arr("rotation"), stiffness=arr("stiffness"), mean_force=arr("mean_force"),
+            mean_speed=float(data["mean_speed"]), n_samples=int(data["n_samples"]),
+            n_contact_samples=int(data["n_contact_samples"]),
+        )
+
+
+def _complete_basis(d: np.ndarray, hint: np.ndarray | None = None) -> np.ndarray:
+    """Right-handed orthonormal [d, c1, c2]; c1 follows ``hint`` where given."""
+    if hint is None or np.linalg.norm(hint - (hint @ d) * d) < 1e-9:
+        hint = np.eye(3)[np.argmin(np.abs(d))]
+    c1 = hint - (hint @ d) * d
+    c1 /= np.linalg.norm(c1)
+    c2 = np.cross(d, c1)
+    return np.column_stack([d, c1, c2])
+
+
+def derive_impedance(
+    velocities,
+    forces,
+    *,
+    contact_force: float = 2.0,
+    min_speed_fraction: float = 0.2,
+    compliance_ratio: float = 0.25,
+    stiffness: float = 2000.0,
+    compliant_stiffness: float = 100.0,
+) -> PhaseImpedance:
+    """Desired direction, compliant axes and K = R V R^T of one phase.
+
+    ``velocities`` (T, 3) m/s and ``forces`` (T, 3) N (the force the environment
+    exerts on the tool, as an F/T sensor measures it), same frame.
+    Samples with |f| < ``contact_force`` count as free motion; samples slower
+    than ``min_speed_fraction`` of the median speed carry no direction.  A
+    second compliant axis is kept when its singular value is at least
+    ``compliance_ratio`` of the first.  Stiffness: ``stiffness`` along d and the
+    non-compliant axes, ``compliant_stiffness`` along compliant axes.
+    """
+    v = np.asarray(velocities, dtype=np.float64)
+    f = np.asarray(forces, dtype=np.float64)
+    if v.ndim != 2 or v.shape[1] != 3 or f.shape != v.shape:
+        raise ValueError(f"velocities and forces must both be (T, 3), got {v.shape} and {f.shape}")
+    if v.shape[0] < 2:
+        raise ValueError(f"a phase needs at least 2 samples to derive an impedance, got {v.shape[0]}")
+    if not (np.all(np.isfinite(v)) and np.all(np.isfinite(f))):
+        raise ValueError("velocities and forces must be finite")
+    speed = np.linalg.norm(v, axis=1)
+    fnorm = np.linalg.norm(f, axis=1)
+    moving = speed > min_speed_fraction * max(np.median(speed), 1e-12)
+    contact = (fnorm > contact_force) & moving
+    mean_v = v[moving].mean(axis=0) if moving.any() else v.mean(axis=0)
+    if np.linalg.norm(mean_v) < 1e-12:
+        raise ValueError("the phase does not move: no direction of motion can be derived")
+    v_hat = mean_v / np.linalg.norm(mean_v)
+    d = v_hat
+    if contact.sum() >= 3:
+        vn = v[contact] / speed[contact, None]
+        fn = f[contact] / fnorm[contact, None]
+        normals = np.cross(vn, fn)
+        _, sv, vt = np.linalg.svd(normals, full_matrices=True)
+        sv = np.concatenate([sv, np.zeros(3 - len(sv))])
+        # when every sample spans the same plane (straight sliding on one
+        # surface) the two smallest singular values are both ~0 and d is only
+        # known to lie in that plane: keep the mean velocity, which does
+        if sv[1] > 0.1 * max(sv[0], 1e-12):
+            d = vt[2]
+            if d @ v_hat < 0:
+                d = -d
+    # compliant axes: the contact force directions orthogonal to d
+    axes = np.zeros((0, 3))
+    if contact.sum() >= 3:
+        fp = f[contact] - np.outer(f[contact] @ d, d)
+        fp_norm = np.linalg.norm(fp, axis=1)
+        keep = fp_norm > 0.25 * contact_force
+        if keep.sum() >= 3:
+            u = fp[keep] / fp_norm[keep, None]
+            _, sv, vt = np.linalg.svd(u, full_matrices=False)
+            k = 1 + int(len(sv) > 1 and sv[1] >= compliance_ratio * sv[0])
+            axes = vt[:k]
+            # orthogonalise against d (numerical hygiene; they already are)
+            axes = axes - np.outer(axes @ d, d)
+            axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+            mean_fp = fp[keep].mean(axis=0)
+            if axes[0] @ mean_fp < 0:
+                axes[0] = -axes[0]
+    R = _complete_basis(d, axes[0] if len(axes) else None)
+    V = np.full(3, stiffness)
+    V[1 : 1 + len(axes)] = compliant_stiffness
+    K = R @ np.diag(V) @ R.T
+    return PhaseImpedance(
+        direction=d, n_compliant=len(axes), compliant_axes=R[:, 1 : 1 + len(axes)].T.copy(), rotation=R,
+        stiffness=0.5 * (K + K.T), mean_force=f[fnorm > contact_force].mean(axis=0) if (fnorm > contact_force).any()
+        else np.zeros(3), mean_speed=float(np.mean(v[moving] @ d)) if moving.any() else 0.0,
+        n_samples=int(v.shape[0]), n_contact_samples=int(contact.sum()),
+    )
+
+
+def phase_impedances(model, demos, dt: float, *, position_columns=slice(0, 3), force_columns=slice(0, 3),
+                     **options) -> list:
+    """``derive_impedance`` for every phase of a fitted model.
+
+    Steps are assigned to phases by Viterbi; velocities are finite differences
+    of the position columns of the state, forces the force columns.  A phase
+    with fewer than 2 steps gets ``None``.
+    """
+    vel, frc, lab = [], [], []
+    for states, forces in demos:
+        states = np.asarray(states, dtype=np.float64)
+        forces = np.asarray(forces, dtype=np.float64)
+        lab.append(model.viterbi(states, forces))
+        vel.append(np.diff(states[:, position_columns], axis=0) / dt)
+        frc.append(forces[:-1, force_columns])
+    lab, vel, frc = np.concatenate(lab), np.vstack(vel), np.vstack(frc)
+    out = []
+    for j in range(model.n_phases):
+        sel = lab == j
+        if sel.sum() < 2:
+            out.append(None)
+            continue
+        try:
+            out.append(derive_impedance(vel[sel], frc[sel], **options))
+        except ValueError:
+            out.append(None)
+    return out
