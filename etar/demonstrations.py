@@ -49,7 +49,7 @@ def check_demonstration(states, forces, *, index: int = 0, n: int | None = None,
         if bad.size:
             t, c = bad[0]
             raise DemonstrationError(
-                f"{where}: {name}[{t}, {c}] is {arr[t, c]!r}; "
+                f"{where}: {name}[{t}, {c}] is {float(arr[t, c])}; "
                 f"{len(bad)} non-finite value(s) in all (sensor dropout? remove or interpolate them)"
             )
         arrays.append(arr)

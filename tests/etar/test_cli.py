@@ -1,0 +1,57 @@
+"""The ``etar`` command line: synth -> learn -> inspect, and its errors."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+
+from etar.cli import main
+
+
+def test_synth_learn_inspect(tmp_path, capsys):
+    assert main(["synth", "--out", str(tmp_path), "--demos", "3", "--length", "300", "--phases", "2",
+                 "--seed", "3"]) == 0
+    demos = sorted(str(p) for p in tmp_path.glob("demo_*.npz"))
+    assert len(demos) == 3
+    model = tmp_path / "model.json"
+    assert main(["learn", *demos, "--phases", "auto", "--max-phases", "3", "--out", str(model),
+                 "--restarts", "2"]) == 0
+    data = json.loads(model.read_text())
+    assert data["n_phases"] == 2
+    assert data["metadata"]["selection"]["best"] == 2
+    assert set(data["metadata"]["selection"]["scores"]) == {"1", "2", "3"}
+    assert len(data["metadata"]["impedance"]) == 2
+    capsys.readouterr()
+    assert main(["inspect", str(model), "--demos", *demos]) == 0
+    out = capsys.readouterr().out
+    assert "2 phases" in out and "BIC" in out and "accuracy" in out
+
+
+def test_learn_fixed_number_of_phases(tmp_path):
+    main(["synth", "--out", str(tmp_path), "--demos", "2", "--length", "200", "--phases", "2"])
+    model = tmp_path / "m.json"
+    assert main(["learn", *map(str, tmp_path.glob("*.npz")), "--phases", "3", "--out", str(model),
+                 "--restarts", "1", "--max-iter", "10"]) == 0
+    assert json.loads(model.read_text())["n_phases"] == 3
+
+
+def test_errors_name_the_file_and_field(tmp_path, capsys):
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, states=np.zeros((10, 3)))
+    assert main(["learn", str(bad), "--out", str(tmp_path / "m.json")]) == 2
+    err = capsys.readouterr().err
+    assert str(bad) in err and "'forces' is missing" in err
+    nan = tmp_path / "nan.npz"
+    f = np.zeros((10, 3))
+    f[4, 1] = np.nan
+    np.savez(nan, states=np.zeros((10, 3)), forces=f)
+    assert main(["learn", str(nan), "--out", str(tmp_path / "m.json")]) == 2
+    assert "forces[4, 1] is nan" in capsys.readouterr().err
+    assert main(["learn", str(tmp_path / "missing.npz"), "--out", str(tmp_path / "m.json")]) == 2
+    assert "no such file" in capsys.readouterr().err
+
+
+def test_console_script_help():
+    out = subprocess.run([sys.executable, "-m", "etar.cli", "learn", "--help"], capture_output=True, text=True)
+    assert out.returncode == 0 and "--phases" in out.stdout

@@ -1,0 +1,135 @@
+"""The model's public surface: assigned parameters, file format, bad input."""
+
+import json
+
+import numpy as np
+import pytest
+
+from etar import ETAR, DemonstrationError
+from etar.synthetic import make_task, sample_demonstrations
+
+
+@pytest.fixture(scope="module")
+def task_and_demos():
+    task = make_task(3, seed=0)
+    data = sample_demonstrations(task, 3, 300, seed=1)
+    return task, [(s, f) for s, f, _ in data]
+
+
+def test_assigned_parameters_work_without_fit(task_and_demos):
+    task, demos = task_and_demos
+    model = ETAR(3)
+    model.A, model.B, model.Sigma, model.W = (getattr(task.model, k).copy() for k in ("A", "B", "Sigma", "W"))
+    s, f = demos[0]
+    assert np.isfinite(model.log_likelihood(demos))
+    assert model.posterior(s, f).shape == (len(s) - 1, 3)
+    assert model.viterbi(s, f).dtype.kind == "i"
+    assert model.filter().update(s[0], f[0]).shape == (3,)
+
+
+def test_no_parameters_is_a_clear_error(task_and_demos):
+    _, demos = task_and_demos
+    with pytest.raises(RuntimeError, match="no parameters"):
+        ETAR(2).log_likelihood(demos)
+
+
+def test_wrongly_shaped_assigned_parameters_are_named(task_and_demos):
+    task, demos = task_and_demos
+    model = ETAR(3)
+    model.A, model.B, model.Sigma = task.model.A, task.model.B, task.model.Sigma
+    model.W = np.zeros((3, 3, 4))
+    with pytest.raises(ValueError, match=r"W must have shape \(K\+1=4"):
+        model.posterior(*demos[0])
+    model.W = task.model.W
+    model.Sigma = -task.model.Sigma
+    with pytest.raises(ValueError, match=r"Sigma\[0\] is not symmetric positive definite"):
+        model.posterior(*demos[0])
+
+
+def test_save_load_round_trip_is_exact(tmp_path, task_and_demos):
+    _, demos = task_and_demos
+    model = ETAR(3).fit(demos, max_iter=20)
+    model.metadata["note"] = "round trip"
+    path = tmp_path / "model.json"
+    model.save(path)
+    data = json.loads(path.read_text())  # human-readable JSON
+    assert data["format"] == "etar-model" and data["version"] == 1
+    assert np.array(data["parameters"]["W"]).shape == (4, 3, 4)
+    loaded = ETAR.load(path)
+    for name in ("A", "B", "Sigma", "W"):
+        np.testing.assert_array_equal(getattr(loaded, name), getattr(model, name))
+    assert loaded.metadata["note"] == "round trip"
+    assert loaded.log_likelihood(demos) == model.log_likelihood(demos)
+
+
+@pytest.mark.parametrize(
+    "mutate,match",
+    [
+        (lambda d: d.pop("parameters"), "field 'parameters' is missing"),
+        (lambda d: d["parameters"].pop("Sigma"), r"field 'parameters.Sigma' is missing"),
+        (lambda d: d.update(format="other"), "field 'format'"),
+        (lambda d: d.update(version=99), "field 'version'"),
+        (lambda d: d["parameters"].update(A="abc"), r"parameters.A"),
+        (lambda d: d["parameters"].update(W=[[0.0]]), "W must have shape"),
+    ],
+)
+def test_corrupt_model_file_names_file_and_field(tmp_path, task_and_demos, mutate, match):
+    task, _ = task_and_demos
+    data = task.model.to_dict()
+    mutate(data)
+    path = tmp_path / "bad.json"
+    path.write_text(json.dumps(data))
+    with pytest.raises(ValueError, match=match) as info:
+        ETAR.load(path)
+    assert str(path) in str(info.value)
+
+
+def test_not_json_is_a_clear_error(tmp_path):
+    path = tmp_path / "model.json"
+    path.write_text("{ truncated")
+    with pytest.raises(ValueError, match="not a JSON model file"):
+        ETAR.load(path)
+
+
+def test_bad_demonstrations_are_clear_errors(task_and_demos):
+    _, demos = task_and_demos
+    s, f = demos[0]
+    model = ETAR(2)
+    with pytest.raises(DemonstrationError, match=r"demonstration 1: forces has 299 samples|states has 300 samples but forces has 299"):
+        model.fit([demos[0], (s, f[:-1])])
+    bad = f.copy()
+    bad[17, 2] = np.nan
+    with pytest.raises(DemonstrationError, match=r"demonstration 0: forces\[17, 2\] is nan"):
+        model.fit([(s, bad)])
+    with pytest.raises(DemonstrationError, match="must be 2-D"):
+        model.fit([(s[:, 0], f)])
+    with pytest.raises(DemonstrationError, match="states has 2 columns, expected 3"):
+        model.fit([demos[0], (s[:, :2], f)])
+    with pytest.raises(DemonstrationError, match="single"):
+        model.fit((s, f))
+    with pytest.raises(DemonstrationError, match="no demonstrations"):
+        model.fit([])
+    with pytest.raises(DemonstrationError, match="at least 2 samples"):
+        model.fit([(s[:1], f[:1])])
+    with pytest.raises(DemonstrationError, match="fewer than the .* free parameters"):
+        ETAR(3).fit([(s[:40], f[:40])])
+    with pytest.raises(DemonstrationError, match="expected a \\(states, forces\\) pair"):
+        model.fit([s])
+
+
+def test_bad_hyperparameters_are_clear_errors():
+    with pytest.raises(ValueError, match="n_phases"):
+        ETAR(0)
+    with pytest.raises(ValueError, match="transitions"):
+        ETAR(2, transitions="force")
+    with pytest.raises(ValueError, match="solver"):
+        ETAR(2, solver="adam")
+    with pytest.raises(ValueError, match="w_l2"):
+        ETAR(2, w_l2=float("nan"))
+
+
+def test_inference_checks_dimensions_against_the_model(task_and_demos):
+    task, demos = task_and_demos
+    s, f = demos[0]
+    with pytest.raises(DemonstrationError, match="forces has 2 columns, expected 3"):
+        task.model.posterior(s, f[:, :2])
