@@ -1,0 +1,151 @@
+"""One simulated work cell: the LWR4+ behind its KRC/FRI link, the ATI sensor, a world.
+
+A cycle is one FRI cycle (1 ms) and one physics step, in the fixed order
+
+    m = cell.begin_cycle()            # KRC measures and sends (FRI measurement packet)
+    cell.receive(command, t_arrival)  # the remote's answer, if any (any number of calls)
+    out = cell.end_cycle(hand)        # KRC closes the cycle, applies the command,
+                                      # physics steps, the F/T sensor samples
+
+so the same cell serves the realtime and lockstep clocks: only who supplies the
+answers, and when, differs.  Time is the integer cycle count times the cycle.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+
+from robot_sim.ati import AtiConfig, AtiSensor, RdtRecord
+from robot_sim.fri import CommandPacket, ControlMode, CycleOutcome, FriConfig, FriLink, LinkFaults, MeasurementPacket
+from robot_sim.kinematics import READY, ArmKinematics
+from robot_sim.krc import ImpedanceCommand, KrcConfig, KrcController, pose_to_cart_pos
+from robot_sim.physics import Simulation
+from robot_sim.worlds import TIMESTEP, WorldSpec
+
+# FRI orders torques Tz, Ty, Tx; the physics and the law use Tx, Ty, Tz
+FRI_FT_ORDER = np.array([0, 1, 2, 5, 4, 3])
+
+
+def fri_to_standard(ft) -> np.ndarray:
+    return np.asarray(ft, dtype=np.float64)[FRI_FT_ORDER]
+
+
+standard_to_fri = fri_to_standard  # the permutation is its own inverse
+
+
+@dataclass
+class CycleResult:
+    outcome: CycleOutcome
+    ft: RdtRecord  # the ATI record sampled at the end of the cycle
+    contact_force: np.ndarray  # (3,) true environment force on the tip, world axes
+    touching: list  # geom names the tip touches
+    tau: np.ndarray  # (7,) joint torques applied
+    t_ns: int  # simulation time after the step
+
+
+class RobotCell:
+    def __init__(self, world: WorldSpec, *, seed: int = 0, fri_config: FriConfig | None = None,
+                 ati_config: AtiConfig | None = None, krc_config: KrcConfig | None = None,
+                 faults: LinkFaults | None = None):
+        self.world = world
+        self.sim = Simulation(world)
+        self.kin = ArmKinematics()
+        self.krc = KrcController(self.kin, krc_config or KrcConfig())
+        self.fri = FriLink(fri_config, faults)
+        if self.fri.config.cycle_ns != round(TIMESTEP * 1e9):
+            raise ValueError(f"FRI cycle {self.fri.config.cycle_ns} ns must equal the physics step "
+                             f"{TIMESTEP * 1e9:.0f} ns (one physics step per cycle)")
+        self.ati_config = ati_config or AtiConfig.mini45()
+        self.ati = AtiSensor(self.ati_config, seed)
+        self.cycle_ns = self.fri.config.cycle_ns
+        self.cycle = 0
+        self._q = np.zeros(7)
+        self._qd = np.zeros(7)
+        self._tau_ext = np.zeros(7)
+        self._true_wrench = np.zeros(6)
+        self._last_measurement: MeasurementPacket | None = None
+        self.place(READY)
+
+    @property
+    def t_ns(self) -> int:
+        return self.cycle * self.cycle_ns
+
+    # ------------------------------------------------------------- set-up
+
+    def place(self, q: np.ndarray) -> None:
+        """Put the arm at joint positions q, at rest (between runs: the lab
+        would drive it there in POSITION mode; ``move_to`` does that)."""
+        self.sim.reset(np.asarray(q, dtype=np.float64))
+        self.krc.reset_safety()
+
+    def place_tcp(self, position, rotation, seed_q=READY) -> np.ndarray:
+        q = self.kin.inverse_kinematics(pin.SE3(np.asarray(rotation, float), np.asarray(position, float)), seed_q)
+        self.place(q)
+        return q
+
+    def start(self) -> None:
+        """Open the FRI link (OFF -> MON)."""
+        self.fri.start(self.t_ns)
+
+    # --------------------------------------------------------------- cycle
+
+    def measured_pose(self) -> pin.SE3:
+        self.sim.joint_positions(self._q)
+        return self.kin.forward(self._q, "tcp")
+
+    def begin_cycle(self) -> MeasurementPacket:
+        sim, kin = self.sim, self.kin
+        sim.joint_positions(self._q)
+        sim.joint_velocities(self._qd)
+        kin.update(self._q)
+        oMtcp = kin.placement("tcp")
+        m = self.fri.measurement(self.t_ns, self._q, pose_to_cart_pos(oMtcp), standard_to_fri(self.external_wrench_tcp()))
+        self._last_measurement = m
+        return m
+
+    def external_wrench_tcp(self) -> np.ndarray:
+        """The KRC's estimate of the external wrench at the tcp, tcp axes,
+        [F; T] (from joint torques: F = (J^T)^+ tau_ext)."""
+        self.sim.external_joint_torques(self._tau_ext)
+        J = self.kin.jacobian("tcp", pin.ReferenceFrame.LOCAL)
+        return np.linalg.lstsq(J.T, self._tau_ext, rcond=None)[0]
+
+    def receive(self, command: CommandPacket, t_arrival_ns: int) -> bool:
+        return self.fri.receive(command, t_arrival_ns)
+
+    def end_cycle(self, hand_wrench: np.ndarray | None = None) -> CycleResult:
+        outcome = self.fri.end_cycle(self.t_ns + self.cycle_ns)
+        cmd = outcome.command
+        impedance = None
+        if cmd is not None and not outcome.hold:
+            if self.krc.mode == ControlMode.POSITION and cmd.jnt_pos is not None:
+                self.krc.set_joint_target(cmd.jnt_pos)
+            impedance = ImpedanceCommand(cmd.cart_pos, cmd.cart_stiffness, cmd.cart_damping,
+                                         fri_to_standard(cmd.add_tcp_ft))
+        force_estimate = None
+        if self._last_measurement is not None:
+            force_estimate = fri_to_standard(self._last_measurement.est_ext_tcp_ft)[:3]
+        tau = self.krc.compute(self._q, self._qd, impedance, hold=impedance is None, external_force=force_estimate)
+        self.sim.apply(tau, hand_wrench)
+        self.sim.step()
+        self.cycle += 1
+        self.sim.sensor_wrench(self._true_wrench)
+        record = self.ati.read(self._true_wrench, self.t_ns)
+        contact, _ = self.sim.contact_wrench()
+        return CycleResult(outcome, record, contact, self.sim.touching(), tau.copy(), self.t_ns)
+
+    # ------------------------------------------------------------ helpers
+
+    def tcp_twist(self) -> np.ndarray:
+        """(6,) [v; w] of the tcp in world axes (from the last begin_cycle state)."""
+        return self.kin.jacobian("tcp") @ self._qd
+
+    def switch_control_mode(self, mode: ControlMode) -> bool:
+        """Switch the KRC's control mode (FRI allows it only in MON)."""
+        if not self.fri.switch_control_mode(mode):
+            return False
+        self.krc.switch_mode(mode)
+        return True

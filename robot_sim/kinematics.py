@@ -1,0 +1,98 @@
+"""The KRC's own model of the arm: Pinocchio Model/Data built from the URDF.
+
+Frames are named in the arguments and results: ``oMtcp`` is the pose of the tcp
+frame in the base (world) frame; Jacobians are taken in
+``LOCAL_WORLD_ALIGNED`` (origin at the frame, axes of the base) unless stated.
+All results are copies; nothing hands out views of ``data``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+
+from robot_sim.lwr4.description import LWR4, ArmDescription
+
+FRAMES = ("flange", "ati_sensor", "tool", "tcp")
+
+# elbow up, tool pointing down, tcp about 0.6 m in front of the base at table height
+READY = np.array([0.0, -0.5, 0.0, 1.5, 0.0, -1.1, 0.0])
+
+
+class ArmKinematics:
+    """Forward kinematics, Jacobians, dynamics terms and IK of the LWR4+."""
+
+    def __init__(self, description: ArmDescription = LWR4):
+        self.description = description
+        self.model = pin.buildModelFromXML(description.to_urdf())
+        self.data = self.model.createData()
+        if self.model.nq != description.n_joints:
+            raise ValueError(f"URDF gave {self.model.nq} joints, expected {description.n_joints}")
+        self.frame_ids = {name: self.model.getFrameId(name) for name in FRAMES}
+        self.q_min = np.array(description.q_min)
+        self.q_max = np.array(description.q_max)
+        self._J = np.zeros((6, self.model.nv))
+
+    def update(self, q: np.ndarray, qd: np.ndarray | None = None) -> None:
+        """Kinematics (and Jacobians) at q; call before the frame queries below."""
+        if qd is None:
+            pin.forwardKinematics(self.model, self.data, q)
+        else:
+            pin.forwardKinematics(self.model, self.data, q, qd)
+        pin.computeJointJacobians(self.model, self.data, q)
+        pin.updateFramePlacements(self.model, self.data)
+
+    def placement(self, frame: str = "tcp") -> pin.SE3:
+        """oMframe after ``update`` (a copy)."""
+        return pin.SE3(self.data.oMf[self.frame_ids[frame]])
+
+    def jacobian(self, frame: str = "tcp", reference=pin.ReferenceFrame.LOCAL_WORLD_ALIGNED) -> np.ndarray:
+        """(6, 7) frame Jacobian [linear; angular] after ``update``."""
+        return pin.getFrameJacobian(self.model, self.data, self.frame_ids[frame], reference).copy()
+
+    def forward(self, q: np.ndarray, frame: str = "tcp") -> pin.SE3:
+        pin.framesForwardKinematics(self.model, self.data, q)
+        return pin.SE3(self.data.oMf[self.frame_ids[frame]])
+
+    def nonlinear_effects(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
+        """Gravity + Coriolis/centrifugal torques: what f_dynamics compensates (eq. 79)."""
+        return pin.nonLinearEffects(self.model, self.data, q, qd).copy()
+
+    def gravity(self, q: np.ndarray) -> np.ndarray:
+        return pin.computeGeneralizedGravity(self.model, self.data, q).copy()
+
+    def cartesian_mass(self, q: np.ndarray, frame: str = "tcp") -> np.ndarray:
+        """(6, 6) operational-space inertia Lambda = (J M^-1 J^T)^-1 at the frame."""
+        Minv = pin.computeMinverse(self.model, self.data, q)
+        Minv = np.triu(Minv) + np.triu(Minv, 1).T
+        pin.computeJointJacobians(self.model, self.data, q)
+        pin.updateFramePlacements(self.model, self.data)
+        J = self.jacobian(frame)
+        return np.linalg.inv(J @ Minv @ J.T + 1e-9 * np.eye(6))
+
+    def inverse_kinematics(self, oMdes: pin.SE3, q0: np.ndarray, frame: str = "tcp", *,
+                           tol: float = 1e-6, max_iter: int = 500, damping: float = 1e-6) -> np.ndarray:
+        """Joint positions reaching ``oMdes`` from ``q0`` (damped least squares,
+        clamped to 0.98 of the joint limits).  Raises ValueError if unreachable."""
+        q = np.array(q0, dtype=np.float64)
+        posture = q.copy()
+        fid = self.frame_ids[frame]
+        lo, hi = 0.98 * self.q_min, 0.98 * self.q_max
+        err = None
+        for _ in range(max_iter):
+            pin.framesForwardKinematics(self.model, self.data, q)
+            iMd = self.data.oMf[fid].actInv(oMdes)
+            err = pin.log(iMd).vector
+            if np.linalg.norm(err) < tol:
+                return q
+            pin.computeJointJacobians(self.model, self.data, q)
+            J = pin.getFrameJacobian(self.model, self.data, fid, pin.ReferenceFrame.LOCAL)
+            J = -pin.Jlog6(iMd.inverse()) @ J
+            Jpinv = J.T @ np.linalg.inv(J @ J.T + damping * np.eye(6))
+            # the seven-joint arm is redundant: stay near the seed posture in the null space
+            # (faded out near the goal so it cannot hold the iteration off it)
+            gain = 0.1 * min(1.0, 100.0 * float(np.linalg.norm(err)))
+            v = -Jpinv @ err + gain * (np.eye(7) - Jpinv @ J) @ (posture - q)
+            q = np.clip(pin.integrate(self.model, q, 0.5 * v), lo, hi)
+        raise ValueError(f"inverse kinematics did not converge: residual {np.linalg.norm(err):.3g} "
+                         f"for target {oMdes.translation.tolist()}")

@@ -1,0 +1,206 @@
+"""A simulated human teacher guiding the arm in gravity compensation.
+
+The hand is an impedance towards a moving target (what a person's arm does
+when guiding a tool): F = K_h (x_target - x) - D_h v, with a rotational
+impedance keeping the tool pointing down (or turning it, for the coupler).
+The target follows the task's script, with human-like variability drawn from
+an explicit generator: speed (+-20 %), pressing force (N(8, 2) N, within
+4-14 N), smooth path noise (an Ornstein-Uhlenbeck wander of 1.5 mm, 0.3 s),
+and a gentle speed ramp at the start.
+
+The teacher also labels the true phase of every sample from the physics
+(``true_phase``), apart from its own script (``phase``): for the valley
+0 = free motion (the tip has touched nothing yet), 1 = sliding along a plate
+(from the first touch of a plate), 2 = sliding along the groove (from the
+first touch of the other plate, which only the groove's bottom allows); for
+the hose coupler 0 = approach, 1 = coupling (from the first touch of the
+coupler).  Labels never go back within a demonstration (a tip lifting off a
+plate for a millisecond is still sliding along it).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+
+from robot_sim.lwr4.description import LWR4
+from robot_sim.worlds import HoseCoupler, Valley
+
+DOWN = np.diag([-1.0, 1.0, -1.0])  # tcp z pointing down, x against the base x (the READY posture)
+
+
+@dataclass(frozen=True)
+class TeacherConfig:
+    hand_stiffness: float = 400.0  # N/m
+    hand_damping: float = 60.0  # N s/m
+    hand_rot_stiffness: float = 20.0  # N m/rad
+    hand_rot_damping: float = 1.5  # N m s/rad
+    speed: float = 0.05  # m/s, nominal
+    speed_variation: float = 0.2
+    press_force: float = 8.0  # N, nominal
+    press_force_std: float = 2.0
+    path_noise: float = 0.0015  # m
+    path_noise_time: float = 0.3  # s
+    contact_threshold: float = 1.0  # N, the hand "feels" contact
+    ramp_time: float = 0.3  # s
+
+
+class Teacher:
+    """Base: the hand impedance, variability and bookkeeping; tasks define the script."""
+
+    n_phases = 1
+
+    def __init__(self, rng: np.random.Generator, config: TeacherConfig = TeacherConfig()):
+        self.config = config
+        self.rng = rng
+        self.speed = config.speed * rng.uniform(1 - config.speed_variation, 1 + config.speed_variation)
+        self.press = float(np.clip(rng.normal(config.press_force, config.press_force_std), 4.0, 14.0))
+        self.phase = 0  # the script's phase
+        self.true_phase = 0  # the physical phase label (monotone)
+        self.done = False
+        self.time = 0.0
+        self._noise = np.zeros(3)
+        self._wrench = np.zeros(6)
+        self.target = None
+        self.R_target = DOWN.copy()
+
+    def _advance_noise(self, dt: float) -> np.ndarray:
+        c = self.config
+        a = math.exp(-dt / c.path_noise_time)
+        self._noise = a * self._noise + math.sqrt(1 - a * a) * c.path_noise * self.rng.normal(size=3)
+        return self._noise
+
+    def _ramp(self) -> float:
+        return min(1.0, self.time / self.config.ramp_time) if self.config.ramp_time > 0 else 1.0
+
+    def _hand(self, x, v, R, w) -> np.ndarray:
+        """The hand's wrench (world axes) towards the current target."""
+        c = self.config
+        out = self._wrench
+        out[:3] = c.hand_stiffness * (self.target - x) - c.hand_damping * v
+        out[3:] = c.hand_rot_stiffness * pin.log3(self.R_target @ R.T) - c.hand_rot_damping * w
+        return out.copy()
+
+    def step(self, dt, x, v, R, w, contact_force, touching) -> np.ndarray:
+        """Advance by dt seconds and return the hand wrench [F; T] (world)."""
+        raise NotImplementedError
+
+
+class ValleyTeacher(Teacher):
+    """Free motion down to one plate, slide down it to the groove, slide along the groove."""
+
+    n_phases = 3
+
+    def __init__(self, valley: Valley, start: np.ndarray, goal_x: float, rng: np.random.Generator,
+                 config: TeacherConfig = TeacherConfig(), tip_radius: float = LWR4.tool.tip_radius):
+        super().__init__(rng, config)
+        self.valley = valley
+        self.side = -1 if start[1] < 0 else 1
+        self.goal_x = goal_x
+        self.tip = tip_radius
+        self.start = np.array(start, dtype=np.float64)
+        self.target = self.start.copy()
+        self._path = self.start.copy()  # the intended (noise-free) path point
+
+    def step(self, dt, x, v, R, w, contact_force, touching) -> np.ndarray:
+        self.time += dt
+        g = self.valley
+        plates = {name for name in touching if name.startswith("plate")}
+        feels = np.linalg.norm(contact_force) > self.config.contact_threshold
+        # the script advances on what the hand feels and where it is
+        if self.phase == 0 and plates and feels:
+            self.phase = 1
+            self._path = x.copy()
+        speed = self.speed * self._ramp()
+        noise = self._advance_noise(dt)
+        if self.phase == 0:
+            self._path[2] -= speed * dt
+            self.target = self._path + noise * np.array([1.0, 1.0, 0.0])
+        elif self.phase == 1:
+            n = g.plate_normal(self.side)
+            downhill = np.array([0.0, -self.side * math.cos(g.angle), -math.sin(g.angle)])
+            self._path += speed * dt * downhill
+            # the intended path rides on the plate, tip centre one radius off it
+            self._path[2] = g.surface_z(self._path[1]) + self.tip / math.cos(g.angle)
+            lateral = noise - (noise @ n) * n
+            self.target = self._path + lateral - n * self.press / self.config.hand_stiffness
+            if self.side * self._path[1] <= 0.0:  # the path has reached the groove line
+                self.phase = 2
+                self._path[1] = 0.0
+        else:
+            self._path[0] -= speed * dt
+            self._path[1] = 0.0
+            self._path[2] = g.groove_z + self.tip / math.cos(g.angle)
+            self.target = self._path + np.array([0.0, 0.0, -self.press / self.config.hand_stiffness]) \
+                + noise * np.array([0.0, 0.3, 0.0])
+            if x[0] <= self.goal_x:
+                self.done = True
+        self._update_label(plates)
+        return self._hand(x, v, R, w)
+
+    def _update_label(self, plates: set) -> None:
+        # 0 until the tip first touches a plate, 1 while on that plate, 2 from
+        # the first touch of the other plate on (the tip is in the groove)
+        if plates:
+            if self.true_phase == 0:
+                self.true_phase = 1
+                self._first_plate = next(iter(plates))
+            if self.true_phase == 1 and plates - {self._first_plate}:
+                self.true_phase = 2
+
+
+class HoseCouplerTeacher(Teacher):
+    """Approach over the coupler, enter it, press and turn the hose end a quarter turn."""
+
+    n_phases = 2
+
+    def __init__(self, coupler: HoseCoupler, start: np.ndarray, rng: np.random.Generator,
+                 config: TeacherConfig = TeacherConfig(), tip_radius: float = LWR4.tool.tip_radius,
+                 turn: float = math.pi / 2, turn_rate: float = math.radians(40.0)):
+        super().__init__(rng, config)
+        self.coupler = coupler
+        self.tip = tip_radius
+        self.start = np.array(start, dtype=np.float64)
+        self.target = self.start.copy()
+        self._path = self.start.copy()
+        self.turn = turn
+        self.turn_rate = turn_rate * rng.uniform(0.8, 1.2)
+        self.turned = 0.0
+        c = np.array(coupler.center)
+        self._above = c + np.array([0.0, 0.0, coupler.depth + 0.03])
+
+    def step(self, dt, x, v, R, w, contact_force, touching) -> np.ndarray:
+        self.time += dt
+        c = np.array(self.coupler.center)
+        feels = np.linalg.norm(contact_force) > self.config.contact_threshold
+        if any(t.startswith("coupler") for t in touching):
+            self.true_phase = 1
+        if self.phase == 0 and feels and any(t.startswith("coupler") for t in touching):
+            self.phase = 1
+            self._path = np.array([c[0], c[1], c[2] + self.tip])
+        speed = self.speed * self._ramp()
+        if self.phase == 0:
+            to_above = self._above - self._path
+            dist = np.linalg.norm(to_above[:2])
+            if dist > 1e-3:
+                # over the coupler first, at the approach height
+                step = to_above / max(np.linalg.norm(to_above), 1e-9) * min(speed * dt, np.linalg.norm(to_above))
+                self._path += step
+            else:
+                self._path[:2] = self._above[:2]
+                self._path[2] -= speed * dt
+            self.target = self._path + self._advance_noise(dt) * np.array([0.2, 0.2, 0.0])
+        else:
+            self.target = self._path + np.array([0.0, 0.0, -self.press / self.config.hand_stiffness])
+            if self.turned < self.turn:
+                self.turned = min(self.turn, self.turned + self.turn_rate * self._ramp() * dt)
+            self.R_target = pin.exp3(np.array([0.0, 0.0, self.turned])) @ DOWN
+        return self._hand(x, v, R, w)
+
+    def rotation_done(self, R: np.ndarray, tolerance: float = math.radians(5.0)) -> bool:
+        """The tool has turned (nearly) the full quarter turn about the vertical."""
+        err = pin.log3(R @ (pin.exp3(np.array([0.0, 0.0, self.turn])) @ DOWN).T)
+        return self.turned >= self.turn and np.linalg.norm(err) < tolerance
