@@ -68,6 +68,7 @@ def record_demonstration(cell: RobotCell, teacher: Teacher, *, sample_every: int
         hand = teacher.step(dt_cycle, pose[:, 3], twist[:3], pose[:, :3], twist[3:],
                             cell.sim.contact_wrench()[0], cell.sim.touching())
         out = cell.end_cycle(hand)
+        teacher.update_label(out.touching)
         if k % sample_every == 0:
             w = out.ft.wrench(cell.ati_config)
             R = pose[:, :3]

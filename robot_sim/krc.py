@@ -90,6 +90,8 @@ class KrcController:
         self.tau_max = np.array(d.tau_max)
         self.qd_max = np.array(d.qd_max)
         self.q_min, self.q_max = np.array(d.q_min), np.array(d.q_max)
+        self._q_low = self.q_min + config.joint_limit_margin
+        self._q_high = self.q_max - config.joint_limit_margin
         self.kp = np.array(config.position_kp)
         self.kd = np.array(config.position_kd)
         self.mode = CART_IMP
@@ -220,10 +222,7 @@ class KrcController:
     # --------------------------------------------------------------- safety
 
     def _check_limits(self, q, qd, external_force):
-        m = self.config.joint_limit_margin
-        low = (q < self.q_min + m) & (qd < 0)
-        high = (q > self.q_max - m) & (qd > 0)
-        if np.any(low | high):
+        if ((q < self._q_low) & (qd < 0)).any() or ((q > self._q_high) & (qd > 0)).any():
             self._stop(SafetyReason.JOINT_LIMIT, q)
         elif external_force is not None and np.linalg.norm(external_force) > self.config.cartesian_force_limit:
             self._stop(SafetyReason.CARTESIAN_FORCE, q)

@@ -6,7 +6,8 @@ impedance keeping the tool pointing down (or turning it, for the coupler).
 The target follows the task's script, with human-like variability drawn from
 an explicit generator: speed (+-20 %), pressing force (N(8, 2) N, within
 4-14 N), smooth path noise (an Ornstein-Uhlenbeck wander of 1.5 mm, 0.3 s),
-and a gentle speed ramp at the start.
+physiological tremor (a 10 Hz resonant force of 1.5 N per axis; physiological
+tremor is 8-12 Hz), and a gentle speed ramp at the start.
 
 The teacher also labels the true phase of every sample from the physics
 (``true_phase``), apart from its own script (``phase``): for the valley
@@ -46,6 +47,8 @@ class TeacherConfig:
     path_noise_time: float = 0.3  # s
     contact_threshold: float = 1.0  # N, the hand "feels" contact
     ramp_time: float = 0.3  # s
+    tremor_force: float = 1.5  # N, standard deviation per axis of the hand's physiological tremor
+    tremor_hz: float = 10.0  # physiological tremor: 8-12 Hz
 
 
 class Teacher:
@@ -64,6 +67,14 @@ class Teacher:
         self.time = 0.0
         self._noise = np.zeros(3)
         self._wrench = np.zeros(6)
+        # tremor: a resonant AR(2) process around tremor_hz, scaled to unit variance
+        dt = 0.001
+        r = math.exp(-0.3 * 2 * math.pi * config.tremor_hz * dt)
+        self._a1 = 2 * r * math.cos(2 * math.pi * config.tremor_hz * dt)
+        self._a2 = -r * r
+        var = (1 - self._a2) / ((1 + self._a2) * ((1 - self._a2) ** 2 - self._a1**2))
+        self._tremor_gain = config.tremor_force / math.sqrt(var)
+        self._tremor = np.zeros((2, 3))
         self.target = None
         self.R_target = DOWN.copy()
 
@@ -76,16 +87,26 @@ class Teacher:
     def _ramp(self) -> float:
         return min(1.0, self.time / self.config.ramp_time) if self.config.ramp_time > 0 else 1.0
 
+    def _advance_tremor(self) -> np.ndarray:
+        new = self._a1 * self._tremor[0] + self._a2 * self._tremor[1] + self.rng.normal(size=3)
+        self._tremor[1] = self._tremor[0]
+        self._tremor[0] = new
+        return self._tremor_gain * new
+
     def _hand(self, x, v, R, w) -> np.ndarray:
-        """The hand's wrench (world axes) towards the current target."""
+        """The hand's wrench (world axes) towards the current target, with tremor."""
         c = self.config
         out = self._wrench
-        out[:3] = c.hand_stiffness * (self.target - x) - c.hand_damping * v
+        out[:3] = c.hand_stiffness * (self.target - x) - c.hand_damping * v + self._advance_tremor()
         out[3:] = c.hand_rot_stiffness * pin.log3(self.R_target @ R.T) - c.hand_rot_damping * w
         return out.copy()
 
     def step(self, dt, x, v, R, w, contact_force, touching) -> np.ndarray:
         """Advance by dt seconds and return the hand wrench [F; T] (world)."""
+        raise NotImplementedError
+
+    def update_label(self, touching) -> int:
+        """Update the physical phase label from what the tip touches after a step."""
         raise NotImplementedError
 
 
@@ -138,18 +159,19 @@ class ValleyTeacher(Teacher):
                 + noise * np.array([0.0, 0.3, 0.0])
             if x[0] <= self.goal_x:
                 self.done = True
-        self._update_label(plates)
         return self._hand(x, v, R, w)
 
-    def _update_label(self, plates: set) -> None:
+    def update_label(self, touching) -> int:
         # 0 until the tip first touches a plate, 1 while on that plate, 2 from
         # the first touch of the other plate on (the tip is in the groove)
+        plates = {name for name in touching if name.startswith("plate")}
         if plates:
             if self.true_phase == 0:
                 self.true_phase = 1
                 self._first_plate = next(iter(plates))
             if self.true_phase == 1 and plates - {self._first_plate}:
                 self.true_phase = 2
+        return self.true_phase
 
 
 class HoseCouplerTeacher(Teacher):
@@ -176,8 +198,6 @@ class HoseCouplerTeacher(Teacher):
         self.time += dt
         c = np.array(self.coupler.center)
         feels = np.linalg.norm(contact_force) > self.config.contact_threshold
-        if any(t.startswith("coupler") for t in touching):
-            self.true_phase = 1
         if self.phase == 0 and feels and any(t.startswith("coupler") for t in touching):
             self.phase = 1
             self._path = np.array([c[0], c[1], c[2] + self.tip])
@@ -199,6 +219,11 @@ class HoseCouplerTeacher(Teacher):
                 self.turned = min(self.turn, self.turned + self.turn_rate * self._ramp() * dt)
             self.R_target = pin.exp3(np.array([0.0, 0.0, self.turned])) @ DOWN
         return self._hand(x, v, R, w)
+
+    def update_label(self, touching) -> int:
+        if any(t.startswith("coupler") for t in touching):
+            self.true_phase = 1
+        return self.true_phase
 
     def rotation_done(self, R: np.ndarray, tolerance: float = math.radians(5.0)) -> bool:
         """The tool has turned (nearly) the full quarter turn about the vertical."""

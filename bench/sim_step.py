@@ -1,0 +1,91 @@
+"""Cost of one simulated FRI cycle (1 ms of physics) on this machine.
+
+    python bench/sim_step.py [--cycles 5000]
+
+Times, per 1 ms step: MuJoCo alone; MuJoCo + the KRC's Cartesian impedance law
+(Pinocchio); and the whole cell cycle (FRI link bookkeeping, impedance law,
+physics, ATI sensor), arm pressed against a valley plate (one contact).
+Target (issue 3): under 100 us per step with the impedance law, i.e. the
+simulation runs at least 10x faster than real time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import pinocchio as pin
+
+from robot_sim.cell import RobotCell
+from robot_sim.fri import CommandPacket
+from robot_sim.kinematics import READY
+from robot_sim.krc import ImpedanceCommand, pose_to_cart_pos
+from robot_sim.teacher import DOWN
+from robot_sim.worlds import Valley, valley
+
+
+def per_step(fn, cycles):
+    fn(200)  # warm up
+    t = time.perf_counter()
+    fn(cycles)
+    return (time.perf_counter() - t) / cycles * 1e6
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--cycles", type=int, default=5000)
+    args = parser.parse_args()
+    g = Valley()
+    cell = RobotCell(valley(g), seed=0)
+    n = g.plate_normal(-1)
+    y = -0.08
+    contact = np.array([0.6, y, g.surface_z(y)]) + n * cell.kin.description.tool.tip_radius
+    q0 = cell.place_tcp(contact + 0.002 * n, DOWN)
+    setpoint = pin.SE3(DOWN, contact - 0.01 * n)
+    stiffness = np.array([1000.0] * 3 + [150.0] * 3)
+    cmd = ImpedanceCommand(pose_to_cart_pos(setpoint), stiffness, np.full(6, 0.7), np.zeros(6))
+    sim, krc = cell.sim, cell.krc
+    q, qd = np.empty(7), np.empty(7)
+
+    def physics_only(k):
+        for _ in range(k):
+            sim.apply(np.zeros(7))
+            sim.step()
+
+    def with_law(k):
+        for _ in range(k):
+            sim.joint_positions(q)
+            sim.joint_velocities(qd)
+            tau = krc.compute(q, qd, cmd, hold=False)
+            sim.apply(tau)
+            sim.step()
+
+    cell.start()
+
+    def whole_cycle(k):
+        for _ in range(k):
+            m = cell.begin_cycle()
+            cell.receive(CommandPacket(m.seq, cmd.cart_pos, stiffness, np.full(6, 0.7)), m.stamp_ns + 100_000)
+            cell.end_cycle()
+
+    cell.place(q0)
+    t_phys = per_step(physics_only, args.cycles)
+    cell.place(q0)
+    t_law = per_step(with_law, args.cycles)
+    cell.place(q0)
+    cell.fri.request_command_mode()
+    whole_cycle(700)  # quality PERFECT for 500 cycles, then CMD: the arm presses on the plate
+    assert cell.fri.state == 2, cell.fri.state
+    t_cell = per_step(whole_cycle, args.cycles)
+    touching = cell.sim.touching()
+    print(f"{'what':<52} {'us/step':>8} {'x real time':>12}")
+    for name, t in (("MuJoCo step alone (arm + contact)", t_phys),
+                    ("+ KRC Cartesian impedance law (Pinocchio)", t_law),
+                    ("whole cell cycle: FRI + law + physics + ATI", t_cell)):
+        print(f"{name:<52} {t:>8.1f} {1000.0 / t:>12.1f}")
+    print(f"contact during the run: {touching}; target: < 100 us per step with the law")
+
+
+if __name__ == "__main__":
+    main()

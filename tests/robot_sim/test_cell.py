@@ -1,0 +1,86 @@
+"""The cell's FRI cycle: quality drops and CMD falls back to MON on late or missing
+answers, the arm holds meanwhile, and everything recovers."""
+
+import numpy as np
+
+from robot_sim.cell import RobotCell, fri_to_standard, standard_to_fri
+from robot_sim.fri import CommandPacket, ControlMode, FriQuality, FriState
+from robot_sim.worlds import free_space
+
+STIFF = np.array([2000.0] * 3 + [150.0] * 3)
+
+
+def cycle(cell, delay_ns=None):
+    m = cell.begin_cycle()
+    if delay_ns is not None:
+        cmd = CommandPacket.from_measurement(m, cart_stiffness=STIFF, cart_damping=np.full(6, 0.7))
+        cell.receive(cmd, m.stamp_ns + delay_ns)
+    return cell.end_cycle()
+
+
+def test_quality_and_command_mode_follow_the_answers():
+    cell = RobotCell(free_space(), seed=0)
+    cell.start()
+    x0 = cell.sim.tcp_position()
+    for _ in range(600):
+        out = cycle(cell, 200_000)  # answered after 0.2 ms
+    assert out.outcome.quality == FriQuality.PERFECT and out.outcome.state == FriState.MON
+    assert cell.fri.request_command_mode()
+    out = cycle(cell, 200_000)
+    assert out.outcome.state == FriState.CMD and not out.outcome.hold
+    for _ in range(200):
+        out = cycle(cell, 200_000)
+    assert out.outcome.command is not None
+    # a single missing answer is bridged by repeating the last command
+    out = cycle(cell, None)
+    assert out.outcome.bridged and out.outcome.state == FriState.CMD
+    # answers arriving after the deadline: misses, quality falls, back to MON and hold
+    states, qualities = [], []
+    for _ in range(30):
+        out = cycle(cell, 1_500_000)
+        states.append(out.outcome.state)
+        qualities.append(out.outcome.quality)
+    assert states[-1] == FriState.MON and out.outcome.hold
+    assert min(qualities) <= FriQuality.BAD
+    assert cell.fri.statistics().late >= 30
+    # the arm held its pose all along (Cartesian hold in MON)
+    assert np.linalg.norm(cell.sim.tcp_position() - x0) < 2e-3
+    assert cell.krc.safety == 0
+    # answers in time again: quality recovers; CMD needs a new request
+    for _ in range(700):
+        out = cycle(cell, 200_000)
+    assert out.outcome.quality == FriQuality.PERFECT and out.outcome.state == FriState.MON
+    cell.fri.request_command_mode()
+    out = cycle(cell, 200_000)
+    assert out.outcome.state == FriState.CMD
+
+
+def test_control_mode_switch_only_in_monitor_mode():
+    cell = RobotCell(free_space(), seed=0)
+    cell.start()
+    for _ in range(600):
+        cycle(cell, 100_000)
+    cell.fri.request_command_mode()
+    cycle(cell, 100_000)
+    assert cell.fri.state == FriState.CMD
+    assert not cell.switch_control_mode(ControlMode.POSITION)
+    assert cell.krc.mode == ControlMode.CART_IMP
+    cell.fri.request_monitor_mode()
+    assert cell.switch_control_mode(ControlMode.POSITION)
+    assert cell.krc.mode == ControlMode.POSITION
+
+
+def test_measurement_carries_the_state_and_the_external_force():
+    cell = RobotCell(free_space(), seed=0)
+    cell.start()
+    cell.krc.gravity_compensation = True
+    push = np.array([0.0, 0.0, -10.0, 0.0, 0.0, 0.0])  # 10 N down at the flange
+    for _ in range(3):
+        m = cell.begin_cycle()
+        cell.end_cycle(push)
+    m = cell.begin_cycle()
+    R = m.msr_cart_pos.reshape(3, 4)[:, :3]
+    est = fri_to_standard(m.est_ext_tcp_ft)
+    np.testing.assert_allclose(R @ est[:3], push[:3], atol=0.2)  # force in tcp axes -> world
+    np.testing.assert_allclose(m.msr_jnt_pos, cell.sim.joint_positions())
+    np.testing.assert_array_equal(standard_to_fri(fri_to_standard(np.arange(6.0))), np.arange(6.0))
