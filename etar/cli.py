@@ -41,14 +41,20 @@ def load_npz_demonstration(path) -> dict:
     return out
 
 
+# suffix -> function(path) -> list of demonstration dicts; other layers register
+# their formats here (services adds .mcap recordings) so etar stays format-agnostic
+LOADERS = {".npz": lambda p: [load_npz_demonstration(p)]}
+
+
 def load_demonstrations(paths) -> list[dict]:
     demos = []
     for p in paths:
         p = Path(p)
-        if p.suffix == ".npz":
-            demos.append(load_npz_demonstration(p))
-        else:
-            raise DemonstrationError(f"{p}: unsupported demonstration file type '{p.suffix}' (expected .npz)")
+        loader = LOADERS.get(p.suffix)
+        if loader is None:
+            raise DemonstrationError(
+                f"{p}: unsupported demonstration file type '{p.suffix}' (expected one of {sorted(LOADERS)})")
+        demos.extend(loader(p))
     return demos
 
 

@@ -1,0 +1,1 @@
+"""The shared runtime of the services: Zenoh sessions, messages, topics, clocks, loops."""

@@ -1,0 +1,289 @@
+"""Every message, defined once.
+
+A ``MessageType`` is the single definition from which the wire encoding (JSON,
+UTF-8), the MCAP schema (JSON Schema, which Foxglove plots out of the box) and
+the documentation (``docs/messages.md``, ``python -m services.runtime.messages``)
+all come.  Every message starts with the header
+
+    seq       int  sequence number (for robot-cycle messages: the FRI cycle it belongs to)
+    stamp_ns  int  simulation time, ns
+    sent_ns   int  CLOCK_MONOTONIC at publish, ns (one-way latency on one host)
+
+``decode`` checks types, array lengths and finiteness and raises
+``MessageError`` naming the field: a service that receives garbage drops the
+message and counts it; it never crashes.  ``encode`` refuses NaN and infinity
+(JSON has no NaN; a NaN from a sensor must be caught where it appears).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+
+HEADER = (
+    ("seq", "int", "sequence number; robot-cycle messages carry the FRI cycle they belong to"),
+    ("stamp_ns", "int", "simulation time, ns"),
+    ("sent_ns", "int", "CLOCK_MONOTONIC when published, ns"),
+)
+
+
+class MessageError(ValueError):
+    """A message that does not decode or does not match its definition."""
+
+
+@dataclass(frozen=True)
+class Field:
+    name: str
+    type: str  # int | float | bool | str | float[N] | float[] | int[N] | str[] | object
+    doc: str
+    optional: bool = False
+
+    @property
+    def length(self) -> int | None:
+        if "[" in self.type and not self.type.endswith("[]"):
+            return int(self.type[self.type.index("[") + 1 : -1])
+        return None
+
+    @property
+    def base(self) -> str:
+        return self.type.split("[")[0]
+
+    def schema(self) -> dict:
+        scalar = {"int": {"type": "integer"}, "float": {"type": "number"}, "bool": {"type": "boolean"},
+                  "str": {"type": "string"}, "object": {"type": "object"}}
+        if "[" in self.type:
+            out = {"type": "array", "items": scalar[self.base], "description": self.doc}
+            if self.length is not None:
+                out["minItems"] = out["maxItems"] = self.length
+            return out
+        return dict(scalar[self.base], description=self.doc)
+
+
+class MessageType:
+    def __init__(self, name: str, topic: str, doc: str, fields: tuple):
+        self.name = name
+        self.topic = topic  # relative to the run prefix etar/<run_id>/
+        self.doc = doc
+        self.fields = tuple(Field(*h) for h in HEADER) + tuple(f if isinstance(f, Field) else Field(*f) for f in fields)
+        self._required = [f for f in self.fields if not f.optional]
+
+    # -------------------------------------------------------------- wire
+
+    def encode(self, **values) -> bytes:
+        """JSON bytes of one message; every required field must be given."""
+        out = {}
+        for f in self.fields:
+            if f.name not in values:
+                if f.optional:
+                    continue
+                raise MessageError(f"{self.name}: field '{f.name}' is missing")
+            v = values[f.name]
+            if hasattr(v, "tolist"):
+                v = v.tolist()
+            out[f.name] = v
+        extra = set(values) - {f.name for f in self.fields}
+        if extra:
+            raise MessageError(f"{self.name}: unknown field(s) {sorted(extra)}")
+        try:
+            return json.dumps(out, allow_nan=False, separators=(",", ":")).encode()
+        except ValueError as exc:
+            bad = [k for k, v in out.items() if _has_non_finite(v)]
+            raise MessageError(f"{self.name}: non-finite value in field(s) {bad} ({exc})") from None
+
+    def decode(self, data: bytes) -> dict:
+        """Parse and check one message; raises MessageError naming the field."""
+        try:
+            msg = json.loads(data)
+        except (UnicodeDecodeError, json.JSONDecodeError, TypeError) as exc:
+            raise MessageError(f"{self.name}: not JSON ({exc})") from None
+        if not isinstance(msg, dict):
+            raise MessageError(f"{self.name}: expected a JSON object, got {type(msg).__name__}")
+        for f in self._required:
+            if f.name not in msg:
+                raise MessageError(f"{self.name}: field '{f.name}' is missing")
+        for f in self.fields:
+            if f.name in msg:
+                _check(self.name, f, msg[f.name])
+        return msg
+
+    # ---------------------------------------------------------- schema/doc
+
+    def json_schema(self) -> dict:
+        return {
+            "$schema": "https://json-schema.org/draft/2020-12/schema",
+            "title": self.name,
+            "description": self.doc,
+            "type": "object",
+            "properties": {f.name: f.schema() for f in self.fields},
+            "required": [f.name for f in self._required],
+        }
+
+    def markdown(self) -> str:
+        lines = [f"### `{self.name}` — `etar/<run_id>/{self.topic}`", "", self.doc, "",
+                 "| field | type | meaning |", "|---|---|---|"]
+        for f in self.fields:
+            lines.append(f"| `{f.name}` | `{f.type}`{' (optional)' if f.optional else ''} | {f.doc} |")
+        return "\n".join(lines)
+
+
+def _has_non_finite(v) -> bool:
+    if isinstance(v, float):
+        return not math.isfinite(v)
+    if isinstance(v, (list, tuple)):
+        return any(_has_non_finite(x) for x in v)
+    return False
+
+
+def _check(msg_name: str, f: Field, v) -> None:
+    where = f"{msg_name}: field '{f.name}'"
+    if "[" in f.type:
+        if not isinstance(v, list):
+            raise MessageError(f"{where} must be a list, got {type(v).__name__}")
+        if f.length is not None and len(v) != f.length:
+            raise MessageError(f"{where} must have {f.length} entries, got {len(v)}")
+        for i, x in enumerate(v):
+            _check_scalar(f"{where}[{i}]", f.base, x)
+    else:
+        _check_scalar(where, f.base, v)
+
+
+def _check_scalar(where: str, base: str, x) -> None:
+    if base == "int":
+        if isinstance(x, bool) or not isinstance(x, int):
+            raise MessageError(f"{where} must be an integer, got {x!r}")
+    elif base == "float":
+        if isinstance(x, bool) or not isinstance(x, (int, float)):
+            raise MessageError(f"{where} must be a number, got {x!r}")
+        if not math.isfinite(x):
+            raise MessageError(f"{where} is {x!r}")
+    elif base == "bool":
+        if not isinstance(x, bool):
+            raise MessageError(f"{where} must be true or false, got {x!r}")
+    elif base == "str":
+        if not isinstance(x, str):
+            raise MessageError(f"{where} must be a string, got {x!r}")
+    elif base == "object":
+        if not isinstance(x, dict):
+            raise MessageError(f"{where} must be an object, got {x!r}")
+
+
+# ---------------------------------------------------------------------------
+# the messages
+# ---------------------------------------------------------------------------
+
+ROBOT_STATE = MessageType(
+    "robot_state", "robot/state",
+    "FRI measurement packet of one KRC cycle (1 kHz): sent at the start of the cycle; the "
+    "impedance commander answers it with a robot_command echoing `seq`.",
+    (
+        ("reflected_seq", "int", "seq of the last command packet the KRC received (-1: none)"),
+        ("fri_state", "int", "FRI state: 0 OFF, 1 MON, 2 CMD"),
+        ("fri_quality", "int", "FRI quality: 0 UNACCEPTABLE, 1 BAD, 2 OK, 3 PERFECT"),
+        ("control_mode", "int", "1 POSITION, 2 CART_IMP, 3 JNT_IMP"),
+        ("msr_jnt_pos", "float[7]", "measured joint positions, rad"),
+        ("msr_cart_pos", "float[12]", "measured tcp pose, 3x4 row-major [R | p], base frame, m"),
+        ("est_ext_tcp_ft", "float[6]", "estimated external wrench at the tcp [Fx Fy Fz Tz Ty Tx], tcp frame"),
+        ("answer_rate", "float", "answered cycles over the last 100"),
+        ("latency_s", "float", "mean answer latency over the last 100 cycles, s"),
+        ("jitter_s", "float", "standard deviation of the answer latency, s"),
+        ("miss_rate", "float", "missed cycles over the last 100"),
+        ("safety", "int", "KRC safety stop: 0 none, 1 joint limit, 2 Cartesian force, 3 torque saturation, 4 non-finite"),
+        ("gravity_compensation", "bool", "the KRC runs gravity compensation (kinesthetic teaching)"),
+        ("episode", "int", "demonstration/reproduction index (-1: none)"),
+    ),
+)
+
+ROBOT_CONTACT = MessageType(
+    "robot_contact", "robot/contact",
+    "The physics' truth for the cycle: the wrench the tool transmits to the F/T sensor (what the ATI "
+    "model samples), the contact force on the tip and the true phase label.",
+    (
+        ("wrench", "float[6]", "[Fx Fy Fz Tx Ty Tz] the tool exerts on the sensor, sensor frame, N / N m"),
+        ("contact_force", "float[3]", "force the environment exerts on the tip, base frame, N"),
+        ("touching", "str[]", "geoms the tip touches"),
+        ("true_phase", "int", "physical phase label (valley: 0 free, 1 plate, 2 groove; coupler: 0 approach, 1 coupling)"),
+        ("episode", "int", "demonstration/reproduction index"),
+    ),
+)
+
+FT_WRENCH = MessageType(
+    "ft_wrench", "ft/wrench",
+    "ATI Net F/T RDT-like record, sampled once per robot cycle.",
+    (
+        ("rdt_sequence", "int", "RDT packet counter (gaps: lost packets)"),
+        ("ft_sequence", "int", "internal sample counter"),
+        ("status", "int", "status bits (0: ok; see robot_sim.ati.AtiStatus)"),
+        ("counts", "int[6]", "Fx Fy Fz Tx Ty Tz in counts"),
+        ("counts_per_force", "float", "counts per N"),
+        ("counts_per_torque", "float", "counts per N m"),
+        ("wrench", "float[6]", "counts converted: [Fx Fy Fz Tx Ty Tz], sensor frame, N / N m"),
+    ),
+)
+
+TEACHER_WRENCH = MessageType(
+    "teacher_wrench", "teacher/wrench",
+    "The simulated teacher's hand wrench on the flange for robot cycle `seq` (world axes).",
+    (
+        ("wrench", "float[6]", "[Fx Fy Fz Tx Ty Tz], base axes, N / N m"),
+        ("script_phase", "int", "where the teacher's script is"),
+        ("done", "bool", "the demonstration is complete"),
+        ("episode", "int", "demonstration index"),
+    ),
+)
+
+ESTIMATOR_PHASE = MessageType(
+    "estimator_phase", "estimator/phase",
+    "Online ETAR forward filter output (100 Hz): p(phase | inputs so far).",
+    (
+        ("posterior", "float[]", "normalised forward message, one entry per phase"),
+        ("phase", "int", "most likely phase"),
+        ("input_seq", "int", "robot cycle of the newest state used"),
+        ("ft_seq", "int", "robot cycle of the newest wrench used"),
+        ("episode", "int", "reproduction index"),
+    ),
+)
+
+ROBOT_COMMAND = MessageType(
+    "robot_command", "robot/command",
+    "FRI command packet: the answer to robot_state `seq` (the echo).",
+    (
+        ("cart_pos", "float[12]", "commanded tcp pose, 3x4 row-major, base frame"),
+        ("cart_stiffness", "float[6]", "[N/m x3, N m/rad x3] along tcp axes"),
+        ("cart_damping", "float[6]", "normalised damping 0..1"),
+        ("add_tcp_ft", "float[6]", "superposed wrench [Fx Fy Fz Tz Ty Tx], tcp frame"),
+        ("requested_mode", "int", "control mode this command is for (2 CART_IMP)"),
+        ("phase", "int", "phase whose impedance this command applies (-1: none)"),
+        ("goal_reached", "bool", "the commander judges the task complete"),
+        ("episode", "int", "reproduction index"),
+    ),
+)
+
+RUNNER_EVENT = MessageType(
+    "runner_event", "runner/event",
+    "Stage and episode control from the scenario runner.",
+    (
+        ("event", "str", "stage_begin | stage_end | episode_begin | episode_end | run_end"),
+        ("stage", "str", "demonstrate | learn | reproduce"),
+        ("episode", "int", "episode index within the stage (-1: none)"),
+        ("info", "object", "anything else (start pose, seeds, ...)"),
+    ),
+)
+
+MESSAGES = {m.name: m for m in (ROBOT_STATE, ROBOT_CONTACT, FT_WRENCH, TEACHER_WRENCH, ESTIMATOR_PHASE,
+                                ROBOT_COMMAND, RUNNER_EVENT)}
+BY_TOPIC = {m.topic: m for m in MESSAGES.values()}
+
+
+def documentation() -> str:
+    parts = ["# Messages", "", "Generated from `services/runtime/messages.py` "
+             "(`python -m services.runtime.messages > docs/messages.md`).", "",
+             "All key expressions live under `etar/<run_id>/`.  Encoding: JSON (UTF-8); MCAP schema: "
+             "JSON Schema (draft 2020-12).", ""]
+    for m in MESSAGES.values():
+        parts += [m.markdown(), ""]
+    return "\n".join(parts)
+
+
+if __name__ == "__main__":
+    print(documentation())
