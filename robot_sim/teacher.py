@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
+from robot_sim.labels import CouplerLabeler, ValleyLabeler
 from robot_sim.lwr4.description import LWR4
 from robot_sim.worlds import HoseCoupler, Valley
 
@@ -118,6 +119,7 @@ class ValleyTeacher(Teacher):
     def __init__(self, valley: Valley, start: np.ndarray, goal_x: float, rng: np.random.Generator,
                  config: TeacherConfig = TeacherConfig(), tip_radius: float = LWR4.tool.tip_radius):
         super().__init__(rng, config)
+        self._labeler = ValleyLabeler()
         self.valley = valley
         self.side = -1 if start[1] < 0 else 1
         self.goal_x = goal_x
@@ -162,15 +164,7 @@ class ValleyTeacher(Teacher):
         return self._hand(x, v, R, w)
 
     def update_label(self, touching) -> int:
-        # 0 until the tip first touches a plate, 1 while on that plate, 2 from
-        # the first touch of the other plate on (the tip is in the groove)
-        plates = {name for name in touching if name.startswith("plate")}
-        if plates:
-            if self.true_phase == 0:
-                self.true_phase = 1
-                self._first_plate = next(iter(plates))
-            if self.true_phase == 1 and plates - {self._first_plate}:
-                self.true_phase = 2
+        self.true_phase = self._labeler.update(touching)
         return self.true_phase
 
 
@@ -183,6 +177,7 @@ class HoseCouplerTeacher(Teacher):
                  config: TeacherConfig = TeacherConfig(), tip_radius: float = LWR4.tool.tip_radius,
                  turn: float = math.pi / 2, turn_rate: float = math.radians(40.0)):
         super().__init__(rng, config)
+        self._labeler = CouplerLabeler()
         self.coupler = coupler
         self.tip = tip_radius
         self.start = np.array(start, dtype=np.float64)
@@ -221,8 +216,7 @@ class HoseCouplerTeacher(Teacher):
         return self._hand(x, v, R, w)
 
     def update_label(self, touching) -> int:
-        if any(t.startswith("coupler") for t in touching):
-            self.true_phase = 1
+        self.true_phase = self._labeler.update(touching)
         return self.true_phase
 
     def rotation_done(self, R: np.ndarray, tolerance: float = math.radians(5.0)) -> bool:

@@ -270,8 +270,28 @@ RUNNER_EVENT = MessageType(
     ),
 )
 
+EPISODE_SUMMARY = MessageType(
+    "episode_summary", "robot/episode",
+    "Published by the robot when an episode (demonstration or reproduction) ends.",
+    (
+        ("episode", "int", "episode index"),
+        ("kind", "str", "demonstration | reproduction"),
+        ("reason", "str", "why it ended: teacher_done | goal_reached | timeout | safety | stopped"),
+        ("first_seq", "int", "first robot cycle of the episode"),
+        ("last_seq", "int", "last robot cycle of the episode"),
+        ("sim_seconds", "float", "simulated duration, s"),
+        ("wall_seconds", "float", "wall-clock duration, s"),
+        ("final_position", "float[3]", "tcp position at the end, m"),
+        ("peak_contact_force", "float", "largest contact force on the tip during the episode, N"),
+        ("safety", "int", "KRC safety state at the end (0: none)"),
+        ("missed_answers", "int", "lockstep: cycles whose awaited answers did not come in time"),
+        ("fri", "object", "FRI link statistics at the end"),
+        ("loop", "object", "timing statistics of the robot's 1 kHz loop"),
+    ),
+)
+
 MESSAGES = {m.name: m for m in (ROBOT_STATE, ROBOT_CONTACT, FT_WRENCH, TEACHER_WRENCH, ESTIMATOR_PHASE,
-                                ROBOT_COMMAND, RUNNER_EVENT)}
+                                ROBOT_COMMAND, RUNNER_EVENT, EPISODE_SUMMARY)}
 BY_TOPIC = {m.topic: m for m in MESSAGES.values()}
 
 

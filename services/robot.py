@@ -1,0 +1,320 @@
+"""robot: the simulated LWR4+ behind its KRC/FRI link, one process, 1 kHz.
+
+Every FRI cycle it publishes ``robot/state`` (the FRI measurement) and
+``robot/contact`` (the physics' truth for the F/T sensor and the labels),
+applies the impedance commander's answer (``robot/command``, echoing the
+measurement's seq) and the teacher's hand (``teacher/wrench``), and steps the
+physics.  Clocks:
+
+- ``realtime``: cycles on absolute 1 ms deadlines; an answer counts for the
+  FRI link if it arrived before the cycle's deadline (its simulated arrival
+  time is the measured latency after the measurement).
+- ``lockstep``: a cycle ends only when every participant named in the run
+  request has answered it (or ``answer_timeout`` passes: then the FRI link
+  counts a miss); answers are taken to arrive 0.1 ms after the measurement.
+  Simulated time runs as fast as the slowest participant; same seed, same run.
+
+Episodes are driven by the runner through control requests: ``reset``,
+``settle``, ``run``, ``stop``, ``shutdown`` (see ``RobotProcess.handle``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from robot_sim.cell import RobotCell
+from robot_sim.fri import CommandPacket, ControlMode
+from robot_sim.labels import LABELERS
+from robot_sim.teacher import DOWN
+from robot_sim.worlds import WORLDS
+from services.runtime.loop import AbsoluteDeadlineTimer, LoopTiming, set_timer_slack, try_sched_fifo
+from services.runtime.messages import EPISODE_SUMMARY, ROBOT_CONTACT, ROBOT_STATE
+from services.runtime.service import Service, now_ns
+from services.runtime.session import ZenohOptions, add_zenoh_arguments, zenoh_options
+
+LOCKSTEP_LATENCY_NS = 100_000
+ANSWER_TOPICS = {"command": "robot/command", "teacher": "teacher/wrench", "ft": "ft/wrench",
+                 "phase": "estimator/phase"}
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    run_id: str
+    zenoh: ZenohOptions
+    clock: str = "lockstep"
+    world: str = "valley"
+    seed: int = 0
+    answer_timeout_s: float = 5.0
+    sched_fifo: bool = False
+    stall_every_s: float = 0.0  # fault injection (issue 5): stall the loop periodically
+    stall_ms: float = 0.0
+
+
+class RobotProcess:
+    def __init__(self, config: RobotConfig, service: Service):
+        if config.clock not in ("lockstep", "realtime"):
+            raise ValueError(f"clock must be lockstep or realtime, got {config.clock!r}")
+        if config.world not in WORLDS:
+            raise ValueError(f"world {config.world!r} unknown (known: {sorted(WORLDS)})")
+        self.config = config
+        self.svc = service
+        self.cell = RobotCell(WORLDS[config.world](), seed=config.seed)
+        self.labeler = LABELERS[config.world]()
+        self.episode = -1
+        self.kind = "none"
+        self._cond = threading.Condition()
+        self._answers: dict[str, dict] = {name: {} for name in ANSWER_TOPICS}
+        self._latest_teacher = None
+        self._pub_state = service.publisher("robot/state")
+        self._pub_contact = service.publisher("robot/contact")
+        self._pub_episode = service.publisher("robot/episode", realtime=False)
+        for name, topic in ANSWER_TOPICS.items():
+            service.subscribe(topic, self._on_answer(name))
+        self.fifo = try_sched_fifo() if config.sched_fifo else False
+        set_timer_slack(1)
+
+    # ------------------------------------------------------------- arrivals
+
+    def _on_answer(self, name):
+        def handler(msg, recv_ns, raw):
+            with self._cond:
+                store = self._answers[name]
+                store[msg["seq"]] = (msg, recv_ns)
+                if len(store) > 4000:  # keep memory bounded on long realtime runs
+                    for k in sorted(store)[:2000]:
+                        del store[k]
+                if name == "teacher":
+                    self._latest_teacher = msg
+                self._cond.notify_all()
+        return handler
+
+    def _wait_for(self, names, seq) -> bool:
+        deadline = time.monotonic() + self.config.answer_timeout_s
+        with self._cond:
+            while True:
+                missing = [n for n in names if seq not in self._answers[n]]
+                if not missing:
+                    return True
+                left = deadline - time.monotonic()
+                if left <= 0 or self.svc.stop.is_set():
+                    return False
+                self._cond.wait(min(left, 0.05))
+
+    # ------------------------------------------------------------- control
+
+    def serve(self) -> None:
+        while not self.svc.stop.is_set():
+            req = self.svc.next_control(timeout=0.05)
+            if req is None:
+                continue
+            try:
+                if self.handle(req) == "shutdown":
+                    return
+            except Exception as exc:  # a bad request must not kill the robot
+                self.svc.log(f"control '{req.cmd}' failed: {type(exc).__name__}: {exc}")
+                req.fail(f"{type(exc).__name__}: {exc}")
+
+    def handle(self, req):
+        p = req.payload
+        if req.cmd == "reset":
+            start = np.asarray(p["start"], dtype=np.float64)
+            if start.shape != (3,) or not np.all(np.isfinite(start)):
+                raise ValueError(f"start must be 3 finite numbers, got {p['start']!r}")
+            self.episode = int(p.get("episode", -1))
+            self.kind = p.get("kind", "demonstration")
+            cell = self.cell
+            q = cell.place_tcp(start, DOWN)
+            cell.krc.gravity_compensation = self.kind == "demonstration"
+            if cell.fri.state == 0:
+                cell.start()
+            if self.kind == "reproduction":
+                cell.fri.request_command_mode()
+            else:
+                cell.fri.request_monitor_mode()
+            self.labeler = LABELERS[self.config.world]()
+            with self._cond:
+                for store in self._answers.values():
+                    store.clear()
+            req.reply(q=q.tolist(), seq=cell.fri.seq)
+        elif req.cmd == "settle":
+            n = int(p.get("cycles", 200))
+            summary = self.run_cycles(n, list(p.get("wait_for", [])), stop_on=None, max_cycles=n)
+            req.reply(**summary)
+        elif req.cmd == "run":
+            wait_for = list(p.get("wait_for", []))
+            unknown = set(wait_for) - set(ANSWER_TOPICS)
+            if unknown:
+                raise ValueError(f"wait_for: unknown participants {sorted(unknown)}")
+            max_cycles = int(float(p.get("max_seconds", 40.0)) * 1000)
+            req.reply(started=True, seq=self.cell.fri.seq + 1)
+            summary = self.run_cycles(None, wait_for, stop_on=p.get("stop_on"), max_cycles=max_cycles)
+            self._pub_episode.put(EPISODE_SUMMARY.encode(**summary))
+        elif req.cmd == "shutdown":
+            req.reply()
+            return "shutdown"
+        elif req.cmd == "status":
+            req.reply(episode=self.episode, seq=self.cell.fri.seq, fri_state=int(self.cell.fri.state),
+                      safety=int(self.cell.krc.safety), fifo=self.fifo, links={k: v.to_dict() for k, v in
+                                                                               self.svc.links.items()})
+        else:
+            raise ValueError(f"unknown command {req.cmd!r} (reset, settle, run, status, shutdown)")
+        return None
+
+    def _stop_requested(self) -> bool:
+        """During an episode only 'stop' (and 'status') are served; the rest wait."""
+        req = self.svc.next_control()
+        if req is None:
+            return False
+        if req.cmd == "stop":
+            req.reply()
+            return True
+        if req.cmd == "status":
+            req.reply(episode=self.episode, seq=self.cell.fri.seq, running=True)
+        else:
+            req.fail(f"busy running episode {self.episode}: only 'stop' and 'status' are served now")
+        return False
+
+    # --------------------------------------------------------------- cycles
+
+    def run_cycles(self, n, wait_for, stop_on, max_cycles) -> dict:
+        cell = self.cell
+        lockstep = self.config.clock == "lockstep"
+        timing = LoopTiming(cell.cycle_ns)
+        timer = None if lockstep else AbsoluteDeadlineTimer(cell.cycle_ns)
+        first_seq = cell.fri.seq + 1
+        peak = 0.0
+        missed_answers = 0
+        reason = "timeout"
+        wall0 = time.monotonic()
+        stall_every = int(self.config.stall_every_s * 1000) if self.config.stall_ms > 0 else 0
+        k = 0
+        while k < max_cycles:
+            if self.svc.stop.is_set():
+                reason = "stopped"
+                break
+            if timer is not None:
+                deadline, wake = timer.wait()
+            else:
+                deadline = wake = now_ns()
+            t_start = now_ns()
+            m = cell.begin_cycle()
+            seq = m.seq
+            sent_state = now_ns()
+            self._pub_state.put(ROBOT_STATE.encode(
+                seq=seq, stamp_ns=m.stamp_ns, sent_ns=sent_state, reflected_seq=m.reflected_seq,
+                fri_state=int(m.state), fri_quality=int(m.quality), control_mode=int(m.control_mode),
+                msr_jnt_pos=m.msr_jnt_pos, msr_cart_pos=m.msr_cart_pos, est_ext_tcp_ft=m.est_ext_tcp_ft,
+                answer_rate=m.answer_rate, latency_s=m.latency_s, jitter_s=m.jitter_s, miss_rate=m.miss_rate,
+                safety=int(cell.krc.safety), gravity_compensation=bool(cell.krc.gravity_compensation),
+                episode=self.episode))
+            wrench = cell.sim.sensor_wrench()
+            contact, _ = cell.sim.contact_wrench()
+            touching = cell.sim.touching()
+            true_phase = self.labeler.update(touching)
+            peak = max(peak, float(np.linalg.norm(contact)))
+            self._pub_contact.put(ROBOT_CONTACT.encode(
+                seq=seq, stamp_ns=m.stamp_ns, sent_ns=now_ns(), wrench=wrench, contact_force=contact,
+                touching=touching, true_phase=true_phase, episode=self.episode))
+            if stall_every and k > 0 and k % stall_every == 0:
+                time.sleep(self.config.stall_ms / 1e3)
+            if lockstep:
+                needed = [w for w in wait_for if w != "phase" or seq % 10 == 0]
+                if needed and not self._wait_for(needed, seq):
+                    missed_answers += 1
+            else:
+                end = deadline + cell.cycle_ns
+                now = now_ns()
+                if end > now:
+                    time.sleep((end - now) / 1e9)
+            goal_reached = False
+            teacher_done = False
+            with self._cond:
+                cmd_entry = self._answers["command"].pop(seq, None)
+                teacher_entry = self._answers["teacher"].pop(seq, None)
+                latest_teacher = self._latest_teacher
+            if cmd_entry is not None:
+                msg, recv = cmd_entry
+                arrival = m.stamp_ns + (LOCKSTEP_LATENCY_NS if lockstep else recv - sent_state)
+                cell.receive(CommandPacket(seq=msg["seq"], cart_pos=np.array(msg["cart_pos"]),
+                                           cart_stiffness=np.array(msg["cart_stiffness"]),
+                                           cart_damping=np.array(msg["cart_damping"]),
+                                           add_tcp_ft=np.array(msg["add_tcp_ft"]),
+                                           requested_mode=ControlMode(msg["requested_mode"])), arrival)
+                goal_reached = bool(msg["goal_reached"])
+            teacher_msg = teacher_entry[0] if teacher_entry is not None else (None if lockstep else latest_teacher)
+            hand = None
+            if teacher_msg is not None and teacher_msg["episode"] == self.episode:
+                hand = np.array(teacher_msg["wrench"])
+                teacher_done = bool(teacher_msg["done"])
+            cell.end_cycle(hand)
+            t_end = now_ns()
+            timing.record(wake - deadline, t_end - t_start,
+                          missed=(not lockstep) and t_end > deadline + cell.cycle_ns)
+            k += 1
+            if n is not None and k >= n:
+                reason = "settled"
+                break
+            if stop_on == "teacher_done" and teacher_done:
+                reason = "teacher_done"
+                break
+            if stop_on == "goal_reached" and goal_reached:
+                reason = "goal_reached"
+                break
+            if cell.krc.safety != 0:
+                reason = "safety"
+                break
+            if k % 100 == 0 and self._stop_requested():
+                reason = "stopped"
+                break
+        stats = cell.fri.statistics()
+        return dict(
+            seq=cell.fri.seq, stamp_ns=cell.t_ns, sent_ns=now_ns(), episode=self.episode, kind=self.kind,
+            reason=reason, first_seq=first_seq, last_seq=cell.fri.seq, sim_seconds=k * cell.cycle_ns / 1e9,
+            wall_seconds=time.monotonic() - wall0, final_position=cell.sim.tcp_position(),
+            peak_contact_force=peak, safety=int(cell.krc.safety), missed_answers=missed_answers,
+            fri={"answered": stats.answered, "missed": stats.missed, "late": stats.late, "corrupt": stats.corrupt,
+                 "longest_miss_run": stats.longest_miss_run, "state": int(stats.state),
+                 "quality": int(stats.quality)},
+            loop=dict(timing.summary(), clock=self.config.clock, sched_fifo=self.fifo),
+        )
+
+
+def main(config: RobotConfig) -> int:
+    with Service("robot", config.run_id, config.zenoh) as svc:
+        robot = RobotProcess(config, svc)
+        svc.log(f"ready: world {config.world}, clock {config.clock}, SCHED_FIFO {'on' if robot.fifo else 'off'}")
+        robot.serve()
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="etar-robot", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--run-id", required=True, help="run id: topics live under etar/<run-id>/")
+    parser.add_argument("--clock", choices=("lockstep", "realtime"), default="lockstep")
+    parser.add_argument("--world", choices=sorted(WORLDS), default="valley")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the F/T model inside the cell")
+    parser.add_argument("--answer-timeout", type=float, default=5.0,
+                        help="lockstep: seconds to wait for a cycle's answers before counting a miss")
+    parser.add_argument("--sched-fifo", action="store_true", help="run the 1 kHz loop under SCHED_FIFO if permitted")
+    parser.add_argument("--stall-every", type=float, default=0.0, help="fault injection: stall every N s")
+    parser.add_argument("--stall-ms", type=float, default=0.0, help="fault injection: stall length, ms")
+    add_zenoh_arguments(parser)
+    return parser
+
+
+def cli(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    return main(RobotConfig(run_id=args.run_id, zenoh=zenoh_options(args), clock=args.clock, world=args.world,
+                            seed=args.seed, answer_timeout_s=args.answer_timeout, sched_fifo=args.sched_fifo,
+                            stall_every_s=args.stall_every, stall_ms=args.stall_ms))
+
+
+if __name__ == "__main__":
+    sys.exit(cli())

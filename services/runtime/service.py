@@ -1,0 +1,187 @@
+"""What every service process shares: a Zenoh session under the run prefix, a
+liveliness token, a control queryable, publishers and decoding subscribers,
+and a clean stop on SIGINT/SIGTERM.
+
+Control requests are JSON objects ``{"cmd": ..., ...}`` sent with a Zenoh
+``get`` to ``etar/<run_id>/<service>/control``; the service answers
+``{"ok": true, ...}`` or ``{"ok": false, "error": ...}`` from its own thread
+(``next_control``), so control never races the service's loop.
+"""
+
+from __future__ import annotations
+
+import json
+import queue
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+
+import zenoh
+
+from services.runtime import topics
+from services.runtime.messages import BY_TOPIC, MessageError, MessageType
+from services.runtime.session import ZenohOptions, open_session
+
+
+def now_ns() -> int:
+    return time.monotonic_ns()
+
+
+@dataclass
+class LinkCounters:
+    """Per subscribed topic: what arrived, what was garbage, latency samples."""
+
+    received: int = 0
+    bad: int = 0
+    last_error: str = ""
+    latencies_ns: list = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return {"received": self.received, "bad": self.bad, "last_error": self.last_error}
+
+
+def _plain(value):
+    """JSON for numpy arrays and scalars in control replies."""
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
+
+
+class ControlRequest:
+    def __init__(self, query: zenoh.Query, payload: dict):
+        self._query = query
+        self.payload = payload
+        self.cmd = payload.get("cmd")
+
+    def reply(self, **values) -> None:
+        body = dict({"ok": True}, **values)
+        self._query.reply(self._query.key_expr, json.dumps(body, default=_plain).encode())
+        self._query.drop()
+
+    def fail(self, error: str) -> None:
+        self._query.reply(self._query.key_expr, json.dumps({"ok": False, "error": error}).encode())
+        self._query.drop()
+
+
+class Service:
+    """Context manager around one service's Zenoh session."""
+
+    def __init__(self, name: str, run_id: str, zenoh_options: ZenohOptions, *, log=None):
+        self.name = name
+        self.run_id = topics.check_run_id(run_id)
+        self.zenoh_options = zenoh_options
+        self.stop = threading.Event()
+        self.links: dict[str, LinkCounters] = {}
+        self._control: queue.Queue = queue.Queue()
+        self._publishers = {}
+        self._subscribers = []
+        self._log = log or (lambda msg: print(f"[{name}] {msg}", file=sys.stderr, flush=True))
+        self.session = None
+
+    def log(self, msg: str) -> None:
+        self._log(msg)
+
+    def __enter__(self) -> "Service":
+        self.session = open_session(self.zenoh_options)
+        self._queryable = self.session.declare_queryable(topics.control(self.run_id, self.name), self._on_query)
+        self._token = self.session.liveliness().declare_token(topics.alive(self.run_id, self.name))
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(sig, self._on_signal)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop.set()
+        for sub in self._subscribers:
+            sub.undeclare()
+        self._token.undeclare()
+        self._queryable.undeclare()
+        self.session.close()
+
+    def _on_signal(self, signum, frame) -> None:
+        self.log(f"signal {signal.Signals(signum).name}: stopping")
+        self.stop.set()
+
+    # --------------------------------------------------------------- control
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        try:
+            payload = json.loads(query.payload.to_bytes()) if query.payload is not None else {}
+            if not isinstance(payload, dict):
+                raise ValueError("control request must be a JSON object")
+        except (ValueError, UnicodeDecodeError) as exc:
+            query.reply(query.key_expr, json.dumps({"ok": False, "error": f"bad request: {exc}"}).encode())
+            query.drop()
+            return
+        self._control.put(ControlRequest(query, payload))
+
+    def next_control(self, timeout: float | None = None) -> ControlRequest | None:
+        try:
+            return self._control.get(timeout=timeout) if timeout else self._control.get_nowait()
+        except queue.Empty:
+            return None
+
+    # ------------------------------------------------------------ publishing
+
+    def publisher(self, topic: str, *, realtime: bool = True):
+        """A publisher on etar/<run_id>/<topic>; 1 kHz control topics use express
+        delivery and REAL_TIME priority (DESIGN.md)."""
+        key = topics.key(self.run_id, topic)
+        if realtime:
+            pub = self.session.declare_publisher(key, express=True, priority=zenoh.Priority.REAL_TIME,
+                                                 congestion_control=zenoh.CongestionControl.BLOCK)
+        else:
+            pub = self.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+        self._publishers[topic] = pub
+        return pub
+
+    def subscribe(self, topic: str, on_message, *, decode: bool = True) -> None:
+        """Deliver (message dict, receive time ns, raw bytes) for every valid
+        sample on etar/<run_id>/<topic>; garbage is counted in ``links``, never raised."""
+        message_type: MessageType | None = BY_TOPIC.get(topic)
+        counters = self.links.setdefault(topic, LinkCounters())
+
+        def callback(sample: zenoh.Sample) -> None:
+            recv = now_ns()
+            raw = sample.payload.to_bytes()
+            counters.received += 1
+            msg = None
+            if decode and message_type is not None:
+                try:
+                    msg = message_type.decode(raw)
+                except MessageError as exc:
+                    counters.bad += 1
+                    counters.last_error = str(exc)
+                    return
+                counters.latencies_ns.append(recv - msg["sent_ns"])
+            try:
+                on_message(msg, recv, raw)
+            except Exception as exc:  # a bad message must not kill the subscriber thread
+                counters.bad += 1
+                counters.last_error = f"{type(exc).__name__}: {exc}"
+
+        self._subscribers.append(self.session.declare_subscriber(topics.key(self.run_id, topic), callback))
+
+
+def request(session: zenoh.Session, run_id: str, service: str, cmd: str, *, timeout: float = 10.0,
+            **args) -> dict:
+    """Send a control request and return the service's reply; raise on failure."""
+    payload = json.dumps(dict(args, cmd=cmd)).encode()
+    replies = list(session.get(topics.control(run_id, service), payload=payload, timeout=timeout))
+    for r in replies:
+        if r.ok is not None:
+            body = json.loads(r.ok.payload.to_bytes())
+            if not body.get("ok"):
+                raise RuntimeError(f"{service} refused '{cmd}': {body.get('error')}")
+            return body
+    raise TimeoutError(f"{service} did not answer '{cmd}' within {timeout} s")
+
+
+def alive_services(session: zenoh.Session, run_id: str, timeout: float = 1.0) -> set[str]:
+    names = set()
+    for r in session.liveliness().get(topics.key(run_id, "alive/*"), timeout=timeout):
+        if r.ok is not None:
+            names.add(str(r.ok.key_expr).rsplit("/", 1)[-1])
+    return names

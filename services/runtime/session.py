@@ -1,0 +1,84 @@
+"""Zenoh session configuration shared by every service (one helper, as zenoh-python's examples do).
+
+Embedded default: a peer on loopback, multicast scouting off, listening on its
+own ``tcp/127.0.0.1:0`` and connecting to the endpoints given (the runner's):
+Zenoh peers do not relay for one another, so every peer listens and gossip
+links them directly (DESIGN.md).  ``--mode client --connect tcp/HOST:PORT``
+joins a Zenoh router instead (docker-compose).  ``--cfg KEY:VALUE`` sets any
+other Zenoh configuration key (a misspelt key is refused by Zenoh).
+The environment variable ``ETAR_ZENOH_CONNECT`` (comma-separated) is the default
+for ``--connect``, ``ETAR_ZENOH_MODE`` for ``--mode``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from dataclasses import dataclass
+
+import zenoh
+
+
+@dataclass(frozen=True)
+class ZenohOptions:
+    mode: str = "peer"
+    connect: tuple = ()
+    listen: tuple = ("tcp/127.0.0.1:0",)
+    cfg: tuple = ()  # (key, json5 value) pairs
+
+    def config(self) -> zenoh.Config:
+        conf = zenoh.Config()
+        conf.insert_json5("mode", json.dumps(self.mode))
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        if self.listen:
+            conf.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
+        if self.connect:
+            conf.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
+        for key, value in self.cfg:
+            conf.insert_json5(key, value)
+        return conf
+
+    def to_args(self) -> list[str]:
+        """The same options as command-line flags (for spawning a service)."""
+        out = ["--mode", self.mode]
+        for e in self.connect:
+            out += ["--connect", e]
+        for e in self.listen:
+            out += ["--listen", e]
+        for k, v in self.cfg:
+            out += ["--cfg", f"{k}:{v}"]
+        return out
+
+
+def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
+    g = parser.add_argument_group("zenoh")
+    g.add_argument("--mode", choices=("peer", "client", "router"),
+                   default=os.environ.get("ETAR_ZENOH_MODE", "peer"), help="Zenoh session mode (default peer)")
+    g.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
+                   help="endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable; default $ETAR_ZENOH_CONNECT)")
+    g.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
+                   help="endpoint to listen on (repeatable; default tcp/127.0.0.1:0 for peers, none for clients)")
+    g.add_argument("--cfg", action="append", default=[], metavar="KEY:VALUE",
+                   help="any Zenoh configuration key with a JSON5 value, e.g. transport/unicast/lowlatency:true")
+
+
+def zenoh_options(args: argparse.Namespace) -> ZenohOptions:
+    connect = args.connect
+    if connect is None:
+        env = os.environ.get("ETAR_ZENOH_CONNECT", "")
+        connect = [e for e in env.split(",") if e]
+    listen = args.listen
+    if listen is None:
+        listen = [] if args.mode == "client" else ["tcp/127.0.0.1:0"]
+    cfg = []
+    for item in args.cfg:
+        if ":" not in item:
+            raise SystemExit(f"--cfg expects KEY:VALUE, got {item!r}")
+        k, v = item.split(":", 1)
+        cfg.append((k, v))
+    return ZenohOptions(args.mode, tuple(connect), tuple(listen), tuple(cfg))
+
+
+def open_session(options: ZenohOptions) -> zenoh.Session:
+    return zenoh.open(options.config())

@@ -1,0 +1,35 @@
+"""Key expressions: everything of a run lives under ``etar/<run_id>/``."""
+
+from __future__ import annotations
+
+import re
+
+_RUN_ID = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
+
+
+def check_run_id(run_id: str) -> str:
+    if not _RUN_ID.match(run_id or ""):
+        raise ValueError(f"run id {run_id!r}: use 1-64 letters, digits, '-' or '_' (it becomes a key expression)")
+    return run_id
+
+
+def prefix(run_id: str) -> str:
+    return f"etar/{check_run_id(run_id)}"
+
+
+def key(run_id: str, topic: str) -> str:
+    return f"{prefix(run_id)}/{topic}"
+
+
+def control(run_id: str, service: str) -> str:
+    return key(run_id, f"{service}/control")
+
+
+def alive(run_id: str, service: str) -> str:
+    return key(run_id, f"alive/{service}")
+
+
+def topic_of(run_id: str, key_expr: str) -> str:
+    """The topic part of a key expression of this run ('robot/state')."""
+    p = prefix(run_id) + "/"
+    return key_expr[len(p):] if key_expr.startswith(p) else key_expr
