@@ -308,6 +308,10 @@ def read_episode(path) -> Episode:
             # the writer finished this file, so it is damaged, not cut short
             raise RecordingError(f"{path}: corrupt MCAP file ({_describe(error)}); {scan.chunks} chunk(s), "
                                  f"{len(scan.rows)} message(s) read before the damage") from error
+        if not scan.metadata:
+            # not even which run and episode it was: nothing worth returning
+            raise RecordingError(f"{path}: truncated MCAP file, cut before its {METADATA_NAME!r} metadata record "
+                                 f"({_describe(error)})") from error
         recovered = ("the data section is complete: every message was recovered, only the summary is lost"
                      if scan.data_end else f"{scan.chunks} complete chunk(s) recovered; the messages of the "
                      "chunk being written when the file ended are lost")
@@ -453,13 +457,18 @@ def load_demonstration(path, *, state: str = "position", features: str = "force"
         ranges = "; ".join(f"{t} seq {min(v)}..{max(v)}" for t, v in by_seq.items())
         raise RecordingError(f"{path}: no robot cycle has all of /robot/state, /ft/wrench and /robot/contact "
                              f"({ranges})")
+    # the robot cycle, from consecutive cycles: a sample period that is not a
+    # multiple of it would pick instants at uneven intervals
+    steps = [states_by_seq[b]["stamp_ns"] - states_by_seq[a]["stamp_ns"]
+             for a, b in zip(cycles, cycles[1:]) if b == a + 1]
+    cycle_ns = int(np.median(steps)) if steps else 0
+    if cycle_ns <= 0 or period_ns % cycle_ns:
+        raise RecordingError(f"{path}: the sample period {period_ns} ns ({rate_hz} Hz) must be a multiple of the "
+                             f"robot cycle ({cycle_ns} ns, from {len(steps)} consecutive cycles)")
     chosen = [s for s in cycles if states_by_seq[s]["stamp_ns"] % period_ns == 0]
     if len(chosen) < 2:
-        stamps = np.array([states_by_seq[s]["stamp_ns"] for s in cycles], dtype=np.int64)
-        cycle = int(np.median(np.diff(stamps))) if len(stamps) > 1 else 0
-        raise RecordingError(f"{path}: {len(chosen)} sample(s) at {rate_hz} Hz from {len(cycles)} complete robot "
-                             f"cycles (cycle period {cycle} ns; the sample period {period_ns} ns must be a "
-                             f"multiple of it)")
+        raise RecordingError(f"{path}: {len(chosen)} sample(s) at {rate_hz} Hz from {len(cycles)} complete "
+                             "robot cycles; a demonstration needs at least 2")
 
     stamp_ns = np.array([states_by_seq[s]["stamp_ns"] for s in chosen], dtype=np.int64)
     if np.any(np.diff(stamp_ns) <= 0):

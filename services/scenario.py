@@ -268,7 +268,7 @@ class _MotionStage:
                 raise ScenarioError("the hose_coupler world has one side: omit sides or use [left]",
                                     path="sides", value=list(self.sides))
             if self.goal_x is not None:
-                raise ScenarioError("goal_x applies to the valley world only: omit it",
+                raise ScenarioError("applies to the valley world only: omit it",
                                     path="goal_x", value=self.goal_x)
             goal_x = None
         else:
@@ -555,7 +555,7 @@ def _construct_args(cls: type, data: Mapping, path: str, source: str, exclude=fr
 
 
 def _parse_stages(value: Any, source: str) -> tuple[Stage, ...]:
-    if not isinstance(value, list) or not value:
+    if not isinstance(value, (list, tuple)) or not value:
         raise ScenarioError("expected a non-empty list of stages (demonstrate, learn, reproduce)",
                             path="stages", value=value, source=source)
     return tuple(_parse_stage(item, i, source) for i, item in enumerate(value))
@@ -632,7 +632,12 @@ def load_scenario(path: str | PathLike) -> Scenario:
         mark = err.problem_mark or err.context_mark
         problem = err.problem or err.context or "invalid YAML"
         column = f" (column {mark.column + 1})" if mark is not None else ""
-        raise ScenarioError(f"invalid YAML: {problem}{column}", source=source,
+        # An unclosed bracket is noticed lines later: say where the construct began.
+        began = ""
+        if err.problem and err.context and err.context_mark is not None and mark is not None \
+                and err.context_mark.line != mark.line:
+            began = f", {err.context} on line {err.context_mark.line + 1}"
+        raise ScenarioError(f"invalid YAML: {problem}{column}{began}", source=source,
                             line=mark.line + 1 if mark is not None else None) from None
     except yaml.YAMLError as err:
         raise ScenarioError(f"invalid YAML: {err}", source=source) from None

@@ -1,0 +1,44 @@
+"""What ETAR sees of the robot: the state and force vectors built from messages.
+
+One definition, used offline (``services.recording.load_demonstration``, the
+learner's input) and online (the phase estimator), so both see the same numbers.
+
+- state ``position``: tcp position, base frame (3,);
+  ``pose``: position and the orientation as a rotation vector relative to the
+  episode's first orientation (6,).
+- features ``force``: the F/T force rotated into base axes (3,) - the sensor
+  frame has the tcp's orientation; ``force_torque``: force and torque (6,).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+
+STATES = ("position", "pose")
+FEATURES = ("force", "force_torque")
+
+
+def pose_of(msr_cart_pos) -> tuple[np.ndarray, np.ndarray]:
+    m = np.asarray(msr_cart_pos, dtype=np.float64).reshape(3, 4)
+    return m[:, :3], m[:, 3]
+
+
+def state_vector(msr_cart_pos, kind: str = "position", R0: np.ndarray | None = None) -> np.ndarray:
+    R, p = pose_of(msr_cart_pos)
+    if kind == "position":
+        return p.copy()
+    if kind == "pose":
+        ref = R if R0 is None else R0
+        return np.concatenate([p, pin.log3(ref.T @ R)])
+    raise ValueError(f"state must be one of {STATES}, got {kind!r}")
+
+
+def force_vector(wrench, msr_cart_pos, kind: str = "force") -> np.ndarray:
+    R, _ = pose_of(msr_cart_pos)
+    w = np.asarray(wrench, dtype=np.float64)
+    if kind == "force":
+        return R @ w[:3]
+    if kind == "force_torque":
+        return np.concatenate([R @ w[:3], R @ w[3:]])
+    raise ValueError(f"features must be one of {FEATURES}, got {kind!r}")

@@ -1,0 +1,251 @@
+"""impedance_commander: per-phase Cartesian impedance from the learned model, 1 kHz.
+
+Answers every FRI measurement (``robot/state``) with a command echoing its
+seq (``robot/command``).  The phase is the estimator's most likely phase
+(``estimator/phase``, 100 Hz; in lockstep the commander waits for the
+estimate of the same cycle every tenth cycle).
+
+The impedance of each phase is the one derived from its demonstration data
+(``etar.impedance``: direction d, compliant axes, K = R V R^T, mean contact
+force; stored in the model file's metadata).  The commander moves a reference
+point along d at the phase's demonstrated speed (never more than ``lead``
+ahead of the tool, so a blocked tool does not wind the spring up), and
+commands
+
+    F = K (x_ref - x) + F_ff - D v,   F_ff = -(mean contact force on the compliant axes)
+
+i.e. stiff along d and the other non-compliant axes, soft along the compliant
+axes, pressing into the surfaces as the teacher did.  FRI's own stiffness is
+diagonal in the tcp frame, so the full K is realised through addTcpFT (the
+superposed wrench, thesis eq. 79) with the KRC's translational stiffness at
+zero; the KRC's rotational stiffness holds the start orientation.  At the goal
+(the demonstrations' mean end point) the reference stops and the commander
+reports ``goal_reached``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from etar import ETAR
+from services.runtime.messages import ROBOT_COMMAND
+from services.runtime.service import Service, now_ns
+from services.runtime.session import ZenohOptions, add_zenoh_arguments, zenoh_options
+
+DT = 0.001
+DECIMATION = 10
+FRI_ORDER = np.array([0, 1, 2, 5, 4, 3])
+HOLD_STIFFNESS = 2000.0
+ROT_STIFFNESS = 150.0
+EFFECTIVE_MASS = 2.0  # kg, for the damping ratio of the commanded impedance
+
+
+@dataclass(frozen=True)
+class CommanderConfig:
+    run_id: str
+    zenoh: ZenohOptions
+    clock: str = "lockstep"
+    model: str | None = None
+    lead: float = 0.02  # m
+    damping_ratio: float = 0.7
+    goal_tolerance: float = 0.01
+
+
+class ImpedanceLaw:
+    """The per-phase law, free of messaging (tested on its own)."""
+
+    def __init__(self, impedances: list, goal: np.ndarray | None, *, lead=0.02, damping_ratio=0.7,
+                 goal_tolerance=0.01):
+        self.impedances = impedances
+        self.goal = None if goal is None else np.asarray(goal, dtype=np.float64)
+        self.lead = lead
+        self.zeta = damping_ratio
+        self.tol = goal_tolerance
+        self.reset()
+
+    def reset(self):
+        self.phase = None
+        self.ref = None
+        self.R_hold = None
+        self.prev_x = None
+        self.v = np.zeros(3)
+        self.goal_reached = False
+        self.last_phase = None
+
+    def step(self, x: np.ndarray, R: np.ndarray, phase: int | None) -> tuple[np.ndarray, np.ndarray]:
+        """(force in base axes (3,), setpoint rotation) for this cycle."""
+        if self.R_hold is None:
+            self.R_hold = R.copy()
+        if self.prev_x is not None:
+            # a light low-pass on the finite-difference velocity (1 ms steps)
+            self.v = 0.7 * self.v + 0.3 * (x - self.prev_x) / DT
+        self.prev_x = x.copy()
+        if phase != self.phase:
+            self.phase = phase
+            self.ref = x.copy()
+        imp = self.impedances[phase] if phase is not None and 0 <= phase < len(self.impedances) else None
+        if self.goal_reached or imp is None:
+            if self.ref is None:
+                self.ref = x.copy()
+            K = HOLD_STIFFNESS * np.eye(3)
+            F = K @ (self.ref - x) - self._damping(K) @ self.v
+            return F, self.R_hold
+        d = np.asarray(imp["direction"])
+        K = np.asarray(imp["stiffness"])
+        axes = np.asarray(imp["compliant_axes"]).reshape(-1, 3)
+        speed = max(float(imp["mean_speed"]), 0.01)
+        self.ref = self.ref + d * speed * DT
+        ahead = (self.ref - x) @ d
+        if ahead > self.lead:
+            self.ref -= d * (ahead - self.lead)
+        F_ff = np.zeros(3)
+        mean_force = np.asarray(imp["mean_force"])
+        for a in axes:
+            F_ff -= (mean_force @ a) * a
+        F = K @ (self.ref - x) + F_ff - self._damping(K) @ self.v
+        if self.goal is not None and phase == len(self.impedances) - 1:
+            past = (x - self.goal) @ d >= 0.0
+            lateral = np.linalg.norm((x - self.goal) - ((x - self.goal) @ d) * d)
+            if np.linalg.norm(x - self.goal) < self.tol or (past and lateral < 3 * self.tol):
+                self.goal_reached = True
+                self.ref = x.copy()
+        return F, self.R_hold
+
+    def _damping(self, K):
+        w, V = np.linalg.eigh(0.5 * (K + K.T))
+        c = 2.0 * self.zeta * np.sqrt(np.maximum(w, 0.0) * EFFECTIVE_MASS)
+        return V @ np.diag(c) @ V.T
+
+
+class CommanderProcess:
+    def __init__(self, config: CommanderConfig, svc: Service):
+        self.config = config
+        self.svc = svc
+        self.law = None
+        self.episode = -1
+        self._lock = threading.Lock()
+        self._pending: dict[int, dict] = {}
+        self._phases: dict[int, int] = {}
+        self._latest_phase = None
+        self._pub = svc.publisher("robot/command")
+        self.model = ETAR.load(config.model) if config.model else None
+        svc.subscribe("robot/state", self.on_state)
+        svc.subscribe("estimator/phase", self.on_phase)
+
+    def on_phase(self, msg, recv_ns, raw):
+        with self._lock:
+            if msg["episode"] != self.episode:
+                return
+            self._phases[msg["seq"]] = msg["phase"]
+            self._latest_phase = msg["phase"]
+            self._drain()
+
+    def on_state(self, msg, recv_ns, raw):
+        with self._lock:
+            self._pending[msg["seq"]] = msg
+            self._drain()
+
+    def _drain(self):
+        lockstep = self.config.clock == "lockstep"
+        for seq in sorted(self._pending):
+            if lockstep and seq % DECIMATION == 0 and self.law is not None and seq not in self._phases \
+                    and self._pending[seq]["episode"] == self.episode:
+                return  # wait for this cycle's estimate
+            state = self._pending.pop(seq)
+            phase = self._phases.pop(seq, None)
+            if phase is not None:
+                self._latest_phase = phase
+            self._answer(state)
+
+    def _answer(self, state):
+        m = np.asarray(state["msr_cart_pos"]).reshape(3, 4)
+        R, x = m[:, :3], m[:, 3]
+        if self.law is None or state["episode"] != self.episode:
+            F, R_set, phase, goal = np.zeros(3), R, -1, False
+            stiffness = np.array([HOLD_STIFFNESS] * 3 + [ROT_STIFFNESS] * 3)
+            cart = m.ravel()
+            add = np.zeros(6)
+        else:
+            phase = self._latest_phase
+            F, R_set = self.law.step(x, R, phase)
+            goal = self.law.goal_reached
+            stiffness = np.array([0.0, 0.0, 0.0] + [ROT_STIFFNESS] * 3)
+            cart = np.hstack([R_set, x[:, None]]).ravel()
+            add = np.concatenate([R.T @ F, np.zeros(3)])[FRI_ORDER]
+            phase = -1 if phase is None else int(phase)
+        self._pub.put(ROBOT_COMMAND.encode(
+            seq=state["seq"], stamp_ns=state["stamp_ns"], sent_ns=now_ns(), cart_pos=cart,
+            cart_stiffness=stiffness, cart_damping=np.full(6, 0.7), add_tcp_ft=add, requested_mode=2,
+            phase=phase, goal_reached=bool(goal), episode=state["episode"]))
+
+    def reset(self, p: dict) -> None:
+        with self._lock:
+            if p.get("model"):
+                self.model = ETAR.load(p["model"])
+            if self.model is None:
+                raise ValueError("no model: pass 'model' with reset or --model")
+            imps = self.model.metadata.get("impedance")
+            if not imps:
+                raise ValueError("the model file has no per-phase impedance (metadata.impedance); "
+                                 "learn it with etar learn or the runner")
+            goal = p.get("goal")
+            self.law = ImpedanceLaw(imps, goal, lead=self.config.lead, damping_ratio=self.config.damping_ratio,
+                                    goal_tolerance=float(p.get("goal_tolerance", self.config.goal_tolerance)))
+            self.episode = int(p["episode"])
+            self._pending.clear()
+            self._phases.clear()
+            self._latest_phase = None
+
+    def serve(self) -> None:
+        while not self.svc.stop.is_set():
+            req = self.svc.next_control(timeout=0.05)
+            if req is None:
+                continue
+            try:
+                if req.cmd == "reset":
+                    self.reset(req.payload)
+                    req.reply()
+                elif req.cmd == "status":
+                    req.reply(episode=self.episode, links={k: v.to_dict() for k, v in self.svc.links.items()})
+                elif req.cmd == "shutdown":
+                    req.reply()
+                    return
+                else:
+                    req.fail(f"unknown command {req.cmd!r} (reset, status, shutdown)")
+            except (KeyError, ValueError, OSError) as exc:
+                req.fail(f"{type(exc).__name__}: {exc}")
+
+
+def main(config: CommanderConfig) -> int:
+    with Service("impedance_commander", config.run_id, config.zenoh) as svc:
+        proc = CommanderProcess(config, svc)
+        svc.log(f"ready: clock {config.clock}")
+        proc.serve()
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="etar-impedance-commander", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--run-id", required=True)
+    parser.add_argument("--clock", choices=("lockstep", "realtime"), default="lockstep")
+    parser.add_argument("--model", help="learned model file with per-phase impedance; can also come with reset")
+    parser.add_argument("--lead", type=float, default=0.02, help="how far the reference may run ahead, m")
+    parser.add_argument("--damping-ratio", type=float, default=0.7)
+    add_zenoh_arguments(parser)
+    return parser
+
+
+def cli(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    return main(CommanderConfig(args.run_id, zenoh_options(args), args.clock, args.model, args.lead,
+                                args.damping_ratio))
+
+
+if __name__ == "__main__":
+    sys.exit(cli())

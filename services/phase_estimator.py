@@ -1,0 +1,163 @@
+"""phase_estimator: the ETAR online forward filter on live data, 100 Hz.
+
+Every tenth robot cycle (10 ms of simulated time) it takes the robot state
+and the F/T wrench of that cycle, builds ETAR's state and force vectors
+(``services.features``, the same as the learner's) and publishes the
+normalised forward message on ``estimator/phase``.  In lockstep it waits for
+both inputs of the cycle; in realtime it uses the newest wrench it has.
+Control: ``reset`` (episode, model path, state, features), ``status``,
+``shutdown``.  A wrench with error status or a sample the filter rejects
+(non-finite) is skipped and counted; the filter keeps its state.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from etar import ETAR
+from services.features import force_vector, pose_of, state_vector
+from services.runtime.messages import ESTIMATOR_PHASE
+from services.runtime.service import Service, now_ns
+from services.runtime.session import ZenohOptions, add_zenoh_arguments, zenoh_options
+
+DECIMATION = 10  # robot cycles per estimator update: 1 kHz -> 100 Hz
+
+
+@dataclass(frozen=True)
+class EstimatorConfig:
+    run_id: str
+    zenoh: ZenohOptions
+    clock: str = "lockstep"
+    model: str | None = None
+
+
+class EstimatorProcess:
+    def __init__(self, config: EstimatorConfig, svc: Service):
+        self.config = config
+        self.svc = svc
+        self.model = ETAR.load(config.model) if config.model else None
+        self.filter = None
+        self.episode = -1
+        self.state_kind, self.feature_kind = "position", "force"
+        self.R0 = None
+        self.skipped = 0
+        self.updates = 0
+        self._lock = threading.Lock()
+        self._states: dict[int, dict] = {}
+        self._wrenches: dict[int, dict] = {}
+        self._latest_wrench = None
+        self._pub = svc.publisher("estimator/phase")
+        svc.subscribe("robot/state", self.on_state)
+        svc.subscribe("ft/wrench", self.on_wrench)
+
+    def on_state(self, msg, recv_ns, raw):
+        if msg["seq"] % DECIMATION:
+            return
+        with self._lock:
+            self._states[msg["seq"]] = msg
+            self._try(msg["seq"])
+
+    def on_wrench(self, msg, recv_ns, raw):
+        with self._lock:
+            self._latest_wrench = msg
+            if msg["seq"] % DECIMATION == 0:
+                self._wrenches[msg["seq"]] = msg
+                self._try(msg["seq"])
+
+    def _try(self, seq):
+        state = self._states.get(seq)
+        if state is None:
+            return
+        wrench = self._wrenches.get(seq)
+        if wrench is None:
+            if self.config.clock == "lockstep" or self._latest_wrench is None:
+                return  # lockstep: wait for this very cycle's wrench
+            wrench = self._latest_wrench
+        del self._states[seq]
+        for store in (self._states, self._wrenches):
+            for k in [k for k in store if k <= seq]:
+                del store[k]
+        if self.filter is None or state["episode"] != self.episode:
+            return
+        if wrench["status"] != 0:
+            self.skipped += 1
+            return
+        if self.R0 is None:
+            self.R0 = pose_of(state["msr_cart_pos"])[0]
+        s = state_vector(state["msr_cart_pos"], self.state_kind, self.R0)
+        f = force_vector(wrench["wrench"], state["msr_cart_pos"], self.feature_kind)
+        try:
+            alpha = self.filter.update(s, f)
+        except ValueError:
+            self.skipped += 1
+            return
+        self.updates += 1
+        self._pub.put(ESTIMATOR_PHASE.encode(seq=seq, stamp_ns=state["stamp_ns"], sent_ns=now_ns(),
+                                             posterior=alpha, phase=int(np.argmax(alpha)), input_seq=seq,
+                                             ft_seq=wrench["seq"], episode=self.episode))
+
+    def reset(self, p: dict) -> None:
+        with self._lock:
+            if p.get("model"):
+                self.model = ETAR.load(p["model"])
+            if self.model is None:
+                raise ValueError("no model: pass 'model' (a model file) with reset or --model")
+            self.state_kind = p.get("state", "position")
+            self.feature_kind = p.get("features", "force")
+            self.filter = self.model.filter()
+            self.episode = int(p["episode"])
+            self.R0 = None
+            self._states.clear()
+            self._wrenches.clear()
+
+    def serve(self) -> None:
+        while not self.svc.stop.is_set():
+            req = self.svc.next_control(timeout=0.05)
+            if req is None:
+                continue
+            try:
+                if req.cmd == "reset":
+                    self.reset(req.payload)
+                    req.reply(n_phases=self.model.n_phases)
+                elif req.cmd == "status":
+                    req.reply(episode=self.episode, updates=self.updates, skipped=self.skipped,
+                              links={k: v.to_dict() for k, v in self.svc.links.items()})
+                elif req.cmd == "shutdown":
+                    req.reply()
+                    return
+                else:
+                    req.fail(f"unknown command {req.cmd!r} (reset, status, shutdown)")
+            except (KeyError, ValueError, OSError) as exc:
+                req.fail(f"{type(exc).__name__}: {exc}")
+
+
+def main(config: EstimatorConfig) -> int:
+    with Service("phase_estimator", config.run_id, config.zenoh) as svc:
+        proc = EstimatorProcess(config, svc)
+        svc.log(f"ready: clock {config.clock}, model {config.model or '(set by reset)'}")
+        proc.serve()
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="etar-phase-estimator", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--run-id", required=True)
+    parser.add_argument("--clock", choices=("lockstep", "realtime"), default="lockstep")
+    parser.add_argument("--model", help="learned model file (etar learn --out); can also come with reset")
+    add_zenoh_arguments(parser)
+    return parser
+
+
+def cli(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    return main(EstimatorConfig(args.run_id, zenoh_options(args), args.clock, args.model))
+
+
+if __name__ == "__main__":
+    sys.exit(cli())

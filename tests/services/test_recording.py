@@ -1,0 +1,434 @@
+"""Episode recordings: MCAP round trip, schemas, bad payloads, truncated files,
+and a real simulated demonstration through load_demonstration and ``etar learn``."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from scipy.spatial.transform import Rotation
+
+from robot_sim.cell import RobotCell
+from robot_sim.demonstration import settle_and_tare
+from robot_sim.teacher import DOWN, ValleyTeacher
+from robot_sim.worlds import valley
+from services.recording import EpisodeWriter, RecordingError, load_demonstration, read_episode
+from services.runtime.messages import (BY_TOPIC, ESTIMATOR_PHASE, FT_WRENCH, ROBOT_COMMAND, ROBOT_CONTACT,
+                                       ROBOT_STATE, RUNNER_EVENT, TEACHER_WRENCH)
+
+RUN = "r42"
+SCENARIO = "name: valley\nstages:\n  - demonstrate: {episodes: 1}\n"
+
+
+def key(topic: str) -> str:
+    return f"etar/{RUN}/{topic}"
+
+
+def header(seq, sent_ns=None):
+    return dict(seq=seq, stamp_ns=seq * 1_000_000, sent_ns=1_000_000_000 + seq * 1000 if sent_ns is None else sent_ns)
+
+
+def state_payload(seq, rng):
+    pose = np.concatenate([np.eye(3), rng.normal(size=(3, 1))], axis=1).reshape(-1)
+    return ROBOT_STATE.encode(**header(seq), reflected_seq=seq - 1, fri_state=2, fri_quality=3, control_mode=2,
+                              msr_jnt_pos=rng.normal(size=7), msr_cart_pos=pose, est_ext_tcp_ft=rng.normal(size=6),
+                              answer_rate=1.0, latency_s=2e-4, jitter_s=1e-5, miss_rate=0.0, safety=0,
+                              gravity_compensation=True, episode=0)
+
+
+def ft_payload(seq, rng):
+    w = rng.normal(size=6)
+    return FT_WRENCH.encode(**header(seq), rdt_sequence=seq, ft_sequence=seq, status=0,
+                            counts=[int(x) for x in w * 1e6], counts_per_force=1e6, counts_per_torque=1e6, wrench=w)
+
+
+def mixed_messages(n_cycles, rng):
+    """(key expression, payload, log time) of several topics, robot-cycle style."""
+    out = []
+    for seq in range(1, n_cycles + 1):
+        t = 5_000_000_000 + seq * 1_000_000
+        out.append((key("robot/state"), state_payload(seq, rng), t))
+        out.append((key("robot/contact"), ROBOT_CONTACT.encode(**header(seq), wrench=rng.normal(size=6),
+                                                               contact_force=rng.normal(size=3), touching=["plate_left"],
+                                                               true_phase=1, episode=0), t + 20_000))
+        out.append((key("ft/wrench"), ft_payload(seq, rng), t + 40_000))
+        out.append((key("teacher/wrench"), TEACHER_WRENCH.encode(**header(seq), wrench=rng.normal(size=6),
+                                                                 script_phase=1, done=False, episode=0), t + 30_000))
+        out.append((key("robot/command"), ROBOT_COMMAND.encode(
+            **header(seq), cart_pos=rng.normal(size=12), cart_stiffness=[1000.0] * 3 + [100.0] * 3,
+            cart_damping=[0.7] * 6, add_tcp_ft=[0.0] * 6, requested_mode=2, phase=0, goal_reached=False,
+            episode=0), t + 50_000))
+        if seq % 10 == 0:
+            out.append((key("estimator/phase"), ESTIMATOR_PHASE.encode(
+                **header(seq), posterior=[0.2, 0.8], phase=1, input_seq=seq, ft_seq=seq, episode=0), t + 60_000))
+    out.append((key("runner/event"), RUNNER_EVENT.encode(**header(0), event="episode_end", stage="demonstrate",
+                                                         episode=0, info={"note": "done"}), 4_000_000_000))
+    return out
+
+
+def write_episode(path, messages, **kwargs):
+    kwargs.setdefault("scenario_text", SCENARIO)
+    with EpisodeWriter(path, run_id=RUN, episode_kind="demonstration", episode_index=3, **kwargs) as w:
+        for k, payload, t in messages:
+            w.add(k, payload, t)
+    return w
+
+
+def expected(messages):
+    rows = [(k[len(f"etar/{RUN}"):], t, p) for k, p, t in messages]
+    return sorted(rows, key=lambda r: r[1])  # stable: equal times keep their order
+
+
+# ---------------------------------------------------------------------------
+# round trip
+# ---------------------------------------------------------------------------
+
+
+def test_round_trip_is_byte_identical_in_log_time_order(tmp_path, rng):
+    messages = mixed_messages(200, rng)
+    path = tmp_path / "ep.mcap"
+    w = write_episode(path, messages, metadata={"seed": 7, "side": "left"})
+    assert (w.messages_written, w.bad_payloads) == (len(messages), 0)
+
+    ep = read_episode(path)
+    assert ep.complete and ep.problem is None
+    assert [tuple(m) for m in ep.messages] == expected(messages)
+    assert all(type(m.payload) is bytes for m in ep.messages)
+    assert ep.scenario_text == SCENARIO
+    assert ep.attachments == {"scenario.yaml": SCENARIO.encode()}
+    assert ep.metadata["run_id"] == RUN
+    assert ep.metadata["episode_kind"] == "demonstration"
+    assert ep.metadata["episode_index"] == "3"
+    assert ep.metadata["seed"] == "7" and ep.metadata["side"] == "left"
+    assert all(isinstance(v, str) for v in ep.metadata.values())
+
+
+def test_indexed_reader_sees_the_same_file(tmp_path, rng):
+    """What Foxglove-style seeking readers use: summary, chunk indexes, publish times, attachment index."""
+    messages = mixed_messages(50, rng)
+    path = tmp_path / "ep.mcap"
+    write_episode(path, messages)
+    with open(path, "rb") as f:
+        reader = make_reader(f, validate_crcs=True)
+        summary = reader.get_summary()
+        assert summary.statistics.message_count == len(messages)
+        assert summary.chunk_indexes and all(ci.compression == "zstd" for ci in summary.chunk_indexes)
+        got = [(ch.topic, m.log_time, m.publish_time, m.data) for _, ch, m in reader.iter_messages()]
+        attachments = list(reader.iter_attachments())
+        metadata = list(reader.iter_metadata())
+    # publish time is the sender's sent_ns header
+    for topic, _, publish, data in got:
+        assert publish == json.loads(data)["sent_ns"]
+    assert [(t, lt, d) for t, lt, _, d in got] == expected(messages)
+    assert [(a.name, a.media_type, a.data) for a in attachments] == [("scenario.yaml", "application/yaml",
+                                                                      SCENARIO.encode())]
+    assert [m.name for m in metadata] == ["etar"]
+
+
+def test_every_channel_has_a_jsonschema_schema(tmp_path, rng):
+    messages = mixed_messages(10, rng) + [(key("custom/thing"), b'{"seq": 1, "x": 2}', 6_000_000_000)]
+    path = tmp_path / "ep.mcap"
+    write_episode(path, messages)
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    topics = set()
+    for ch in summary.channels.values():
+        topics.add(ch.topic)
+        assert ch.message_encoding == "json"
+        assert ch.metadata["key_expr"] == key(ch.topic[1:])
+        assert ch.schema_id != 0
+        schema = summary.schemas[ch.schema_id]
+        assert schema.encoding == "jsonschema"
+        parsed = json.loads(schema.data)
+        assert parsed["type"] == "object"
+        mtype = BY_TOPIC.get(ch.topic[1:])
+        if mtype is not None:
+            assert schema.name == mtype.name and parsed == mtype.json_schema()
+    assert topics == {"/robot/state", "/robot/contact", "/ft/wrench", "/teacher/wrench", "/robot/command",
+                      "/estimator/phase", "/runner/event", "/custom/thing"}
+    assert {c.topic: c.schema_encoding for c in read_episode(path).channels.values()} == dict.fromkeys(
+        topics, "jsonschema")
+
+
+def test_bad_payloads_are_recorded_and_counted(tmp_path, rng):
+    good = state_payload(1, rng)
+    bad = [b"not json at all", b'{"seq": 2}', state_payload(3, rng).replace(b'"safety":0', b'"safety":"x"'),
+           b"\xff\xfe", b"[1, 2]"]
+    path = tmp_path / "ep.mcap"
+    with EpisodeWriter(path, run_id=RUN, episode_kind="demonstration", episode_index=0) as w:
+        w.add(key("robot/state"), good, 10)
+        for i, payload in enumerate(bad):
+            w.add(key("robot/state"), payload, 20 + i)
+        w.add(key("custom/thing"), b"neither", 30)  # no definition, and not JSON either
+        w.add(key("custom/thing"), bytearray(b'{"sent_ns": 5}'), 31)
+    assert w.messages_written == 8
+    assert w.bad_payloads == 6
+    ep = read_episode(path)
+    assert [m.payload for m in ep.messages] == [good, *bad, b"neither", b'{"sent_ns": 5}']
+    assert ep.scenario_text is None
+    with open(path, "rb") as f:
+        publish = [m.publish_time for _, _, m in make_reader(f).iter_messages()]
+    assert publish == [json.loads(good)["sent_ns"], 20, 21, 22, 23, 24, 30, 5]
+
+
+def test_writer_lifetime_and_misuse(tmp_path, rng):
+    path = tmp_path / "ep.mcap"
+    w = EpisodeWriter(path, run_id=RUN, episode_kind="reproduction", episode_index=1)
+    with pytest.raises(RecordingError, match="not under 'etar/r42/'"):
+        w.add("etar/other/robot/state", state_payload(1, rng), 1)
+    with pytest.raises(TypeError):
+        w.add(key("robot/state"), "text", 1)
+    with pytest.raises(ValueError):
+        w.add(key("robot/state"), state_payload(1, rng), -1)
+    w.add(key("robot/state"), state_payload(1, rng), 1, publish_time_ns=1)
+    w.finish()
+    w.finish()  # idempotent
+    with pytest.raises(RecordingError, match="after finish"):
+        w.add(key("robot/state"), state_payload(2, rng), 2)
+    assert len(read_episode(path).messages) == 1
+    with pytest.raises(RecordingError, match="reserved"):
+        EpisodeWriter(tmp_path / "x.mcap", run_id=RUN, episode_kind="demonstration", episode_index=0,
+                      metadata={"run_id": "other"})
+    # an exception inside the with block still leaves a finished, readable file
+    with pytest.raises(KeyError):
+        with EpisodeWriter(tmp_path / "y.mcap", run_id=RUN, episode_kind="demonstration", episode_index=0) as w:
+            w.add(key("ft/wrench"), ft_payload(1, rng), 5)
+            raise KeyError("boom")
+    assert read_episode(tmp_path / "y.mcap").complete
+
+
+# ---------------------------------------------------------------------------
+# damaged files
+# ---------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def long_episode(tmp_path_factory):
+    """An episode spanning several 256 KiB chunks."""
+    rng = np.random.default_rng(11)
+    messages = [(key("robot/state"), state_payload(s, rng), 1_000_000 * s) for s in range(1, 3001)]
+    path = tmp_path_factory.mktemp("long") / "long.mcap"
+    write_episode(path, messages)
+    return path, expected(messages)
+
+
+def test_truncated_file_gives_complete_chunks_or_a_clear_error(tmp_path, long_episode):
+    path, want = long_episode
+    data = path.read_bytes()
+    ep = read_episode(path)
+    assert ep.complete and ep.chunks >= 4
+    recovered = {}
+    for cut in (4, 20, 200, len(data) // 3, len(data) // 2, 2 * len(data) // 3, len(data) - 300, len(data) - 8,
+                len(data) - 1):
+        cut_path = tmp_path / f"cut_{cut}.mcap"
+        cut_path.write_bytes(data[:cut])
+        try:
+            ep = read_episode(cut_path)
+        except RecordingError as exc:
+            assert str(cut_path) in str(exc)
+            recovered[cut] = None
+            continue
+        assert not ep.complete
+        assert ep.problem and "footer" in ep.problem
+        # a prefix of what was written, byte for byte
+        assert [tuple(m) for m in ep.messages] == want[: len(ep.messages)]
+        assert ep.metadata["run_id"] == RUN and ep.scenario_text == SCENARIO
+        recovered[cut] = len(ep.messages)
+    assert recovered[4] is None and recovered[20] is None  # not even the header
+    assert recovered[200] in (None, 0)  # at most the metadata and the scenario
+    # mid-file: the complete chunks before the cut
+    assert 0 < recovered[len(data) // 2] < len(want)
+    assert recovered[len(data) // 3] <= recovered[len(data) // 2] <= recovered[2 * len(data) // 3]
+    # cut in the summary: every message is there, the file is still not complete
+    assert recovered[len(data) - 300] == len(want)
+    with pytest.raises(RecordingError, match="incomplete"):
+        load_demonstration(tmp_path / f"cut_{len(data) // 2}.mcap")
+
+
+def test_killed_writer_leaves_its_complete_chunks(tmp_path):
+    path = tmp_path / "killed.mcap"
+    script = f"""
+import os, signal
+from services.recording import EpisodeWriter
+w = EpisodeWriter({str(path)!r}, run_id={RUN!r}, episode_kind="demonstration", episode_index=0,
+                  scenario_text="x: 1\\n")
+for s in range(1, 2501):
+    w.add({key("custom/pad")!r}, b'{{"seq":%d,"pad":"%s"}}' % (s, os.urandom(200).hex().encode()), s)
+os.kill(os.getpid(), signal.SIGKILL)
+"""
+    proc = subprocess.run([sys.executable, "-c", script], cwd=os.getcwd(), capture_output=True, timeout=60)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr.decode()
+    ep = read_episode(path)
+    assert not ep.complete
+    assert ep.chunks >= 2 and 0 < len(ep.messages) < 2500
+    assert [m.log_time_ns for m in ep.messages] == list(range(1, len(ep.messages) + 1))
+    assert ep.scenario_text == "x: 1\n"
+
+
+def test_corrupt_or_foreign_files_raise_naming_the_file(tmp_path, long_episode):
+    path, _ = long_episode
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2: len(data) // 2 + 64] = bytes(64)  # zeros inside a chunk of a finished file
+    bad = tmp_path / "flipped.mcap"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(RecordingError, match="corrupt") as info:
+        read_episode(bad)
+    assert str(bad) in str(info.value)
+    foreign = tmp_path / "notes.mcap"
+    foreign.write_bytes(b"this is not an MCAP file, just text\n" * 4)
+    with pytest.raises(RecordingError, match="not a readable MCAP file|not an MCAP file"):
+        read_episode(foreign)
+    with pytest.raises(RecordingError, match="no such file"):
+        read_episode(tmp_path / "missing.mcap")
+    with pytest.raises(RecordingError, match="cannot open"):
+        read_episode(tmp_path)  # a directory
+
+
+# ---------------------------------------------------------------------------
+# a real simulated demonstration
+# ---------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def simulated_demo(tmp_path_factory):
+    """A short valley demonstration (all three phases) recorded as the services
+    publish it, every cycle, and the record_demonstration-style reference at 100 Hz."""
+    cell = RobotCell(valley(), seed=0)
+    start = np.array([0.68, 0.06, 0.34])  # close to the plate, so all three phases fit in ~5 s
+    cell.place_tcp(start, DOWN)
+    cell.start()
+    settle_and_tare(cell)
+    teacher = ValleyTeacher(cell.world.task, start, goal_x=0.60, rng=np.random.default_rng(0))
+    cfg = cell.ati_config
+    dt_cycle = cell.cycle_ns * 1e-9
+    true_wrench = np.zeros(6)
+    ref = dict(position=[], R=[], force=[], torque=[], phase=[], stamp=[])
+    path = tmp_path_factory.mktemp("demo") / "demo_000.mcap"
+    with EpisodeWriter(path, run_id=RUN, episode_kind="demonstration", episode_index=0,
+                       scenario_text=SCENARIO) as w:
+        for k in range(int(8.0 / dt_cycle)):
+            m = cell.begin_cycle()
+            pose = m.msr_cart_pos.reshape(3, 4)
+            twist = cell.tcp_twist()
+            hand = teacher.step(dt_cycle, pose[:, 3], twist[:3], pose[:, :3], twist[3:],
+                                cell.sim.contact_wrench()[0], cell.sim.touching())
+            out = cell.end_cycle(hand)
+            teacher.update_label(out.touching)
+            cell.sim.sensor_wrench(true_wrench)
+            hdr = dict(seq=m.seq, stamp_ns=m.stamp_ns)
+            w.add(key("robot/state"), ROBOT_STATE.encode(
+                **hdr, sent_ns=time.monotonic_ns(), reflected_seq=m.reflected_seq, fri_state=int(m.state),
+                fri_quality=int(m.quality), control_mode=int(m.control_mode), msr_jnt_pos=m.msr_jnt_pos,
+                msr_cart_pos=m.msr_cart_pos, est_ext_tcp_ft=m.est_ext_tcp_ft, answer_rate=m.answer_rate,
+                latency_s=m.latency_s, jitter_s=m.jitter_s, miss_rate=m.miss_rate, safety=int(cell.krc.safety),
+                gravity_compensation=True, episode=0), time.monotonic_ns())
+            w.add(key("robot/contact"), ROBOT_CONTACT.encode(
+                **hdr, sent_ns=time.monotonic_ns(), wrench=true_wrench, contact_force=out.contact_force,
+                touching=list(out.touching), true_phase=teacher.true_phase, episode=0), time.monotonic_ns())
+            wrench = out.ft.wrench(cfg)
+            w.add(key("ft/wrench"), FT_WRENCH.encode(
+                **hdr, sent_ns=time.monotonic_ns(), rdt_sequence=out.ft.rdt_sequence,
+                ft_sequence=out.ft.ft_sequence, status=out.ft.status, counts=out.ft.counts,
+                counts_per_force=float(cfg.counts_per_force), counts_per_torque=float(cfg.counts_per_torque),
+                wrench=wrench), time.monotonic_ns())
+            if k % 10 == 0:  # record_demonstration's 100 Hz sampling
+                R = pose[:, :3]
+                ref["position"].append(pose[:, 3].copy())
+                ref["R"].append(R.copy())
+                ref["force"].append(R @ wrench[:3])
+                ref["torque"].append(R @ wrench[3:])
+                ref["phase"].append(teacher.true_phase)
+                ref["stamp"].append(m.stamp_ns)
+            if teacher.done:
+                break
+    assert teacher.done and w.bad_payloads == 0
+    return path, {k: np.array(v) for k, v in ref.items()}
+
+
+def test_load_demonstration_matches_the_simulation(simulated_demo):
+    path, ref = simulated_demo
+    d = load_demonstration(path)
+    T = len(ref["phase"])
+    assert d["states"].shape == (T, 3) and d["forces"].shape == (T, 3) and d["phases"].shape == (T - 1,)
+    assert d["path"] == str(path) and d["skipped"] == 0 and d["gaps"] == 0 and d["complete"]
+    assert d["dt"] == pytest.approx(0.01)
+    np.testing.assert_allclose(d["t"], ref["stamp"] * 1e-9)
+    np.testing.assert_allclose(np.diff(d["t"]), 0.01, atol=1e-12)
+    np.testing.assert_array_equal(d["states"], ref["position"])
+    np.testing.assert_allclose(d["forces"], ref["force"], rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(d["phases"], ref["phase"][1:])
+    # the three valley phases, in order, each long enough to learn from
+    assert list(np.unique(d["phases"])) == [0, 1, 2]
+    assert np.all(np.diff(d["phases"]) >= 0)
+    assert np.bincount(d["phases"]).min() > 50
+    # contact shows in the force: pushed up by the plate/groove, nothing in free motion
+    free, contact = d["phases"] == 0, d["phases"] > 0
+    assert np.linalg.norm(d["forces"][1:][free], axis=1).mean() < 1.0
+    assert np.median(d["forces"][1:][contact][:, 2]) > 1.0
+
+
+def test_load_demonstration_pose_and_torque(simulated_demo):
+    path, ref = simulated_demo
+    d = load_demonstration(path, state="pose", features="force_torque")
+    assert d["states"].shape[1] == 6 and d["forces"].shape[1] == 6
+    np.testing.assert_array_equal(d["states"][:, :3], ref["position"])
+    rel = Rotation.from_rotvec(d["states"][:, 3:]).as_matrix()
+    np.testing.assert_allclose(rel @ ref["R"][0], ref["R"], atol=1e-9)
+    np.testing.assert_allclose(d["states"][0, 3:], 0.0, atol=1e-12)
+    np.testing.assert_allclose(d["forces"][:, :3], ref["force"], atol=1e-12)
+    np.testing.assert_allclose(d["forces"][:, 3:], ref["torque"], atol=1e-12)
+    # 50 Hz keeps every other 100 Hz sample
+    half = load_demonstration(path, rate_hz=50.0)
+    np.testing.assert_array_equal(half["states"], ref["position"][ref["stamp"] % 20_000_000 == 0])
+    with pytest.raises(RecordingError, match="state must be"):
+        load_demonstration(path, state="joints")
+    with pytest.raises(RecordingError, match="multiple"):
+        load_demonstration(path, rate_hz=1600.0)  # 625 us: between robot cycles
+    with pytest.raises(RecordingError, match="whole number of nanoseconds"):
+        load_demonstration(path, rate_hz=1500.0)
+
+
+def test_load_demonstration_skips_bad_messages_and_names_what_is_missing(tmp_path, simulated_demo):
+    path, ref = simulated_demo
+    ep = read_episode(path)
+    copy = tmp_path / "copy.mcap"
+    only_state = tmp_path / "state_only.mcap"
+    with EpisodeWriter(copy, run_id=RUN, episode_kind="demonstration", episode_index=0) as w, \
+            EpisodeWriter(only_state, run_id=RUN, episode_kind="demonstration", episode_index=0) as w2:
+        for m in ep.messages:
+            w.add(key(m.topic[1:]), m.payload, m.log_time_ns)
+            if m.topic == "/robot/state":
+                w2.add(key(m.topic[1:]), m.payload, m.log_time_ns)
+        w.add(key("ft/wrench"), b'{"seq": 1, "garbage": true}', ep.messages[-1].log_time_ns + 1)
+        w.add(key("robot/state"), b"\x00\x01", ep.messages[-1].log_time_ns + 2)
+    assert w.bad_payloads == 2
+    d = load_demonstration(copy)
+    assert d["skipped"] == 2
+    np.testing.assert_array_equal(d["states"], ref["position"])
+    with pytest.raises(RecordingError, match="no /ft/wrench messages") as info:
+        load_demonstration(only_state)
+    assert str(only_state) in str(info.value)
+
+
+def test_etar_cli_learns_three_phases_from_the_recording(tmp_path, simulated_demo, capsys):
+    from services.etar_cli import main
+
+    path, _ = simulated_demo
+    model = tmp_path / "model.json"
+    assert main(["learn", str(path), "--phases", "3", "--out", str(model), "--restarts", "2",
+                 "--max-iter", "60"]) == 0
+    data = json.loads(model.read_text())
+    assert data["n_phases"] == 3
+    assert data["metadata"]["demonstrations"] == [str(path)]
+    assert len(data["metadata"]["impedance"]) == 3
+    # a broken recording is a clean command-line error naming the file
+    broken = tmp_path / "broken.mcap"
+    broken.write_bytes(b"garbage" * 10)
+    capsys.readouterr()
+    assert main(["learn", str(broken), "--phases", "2", "--out", str(tmp_path / "m2.json")]) == 2
+    assert str(broken) in capsys.readouterr().err
