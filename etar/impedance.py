@@ -104,13 +104,15 @@ def derive_impedance(
         normals = np.cross(vn, fn)
         _, sv, vt = np.linalg.svd(normals, full_matrices=True)
         sv = np.concatenate([sv, np.zeros(3 - len(sv))])
-        # when every sample spans the same plane (straight sliding on one
-        # surface) the two smallest singular values are both ~0 and d is only
-        # known to lie in that plane: keep the mean velocity, which does
-        if sv[1] > 0.1 * max(sv[0], 1e-12):
-            d = vt[2]
-            if d @ v_hat < 0:
-                d = -d
+        # when every sample spans (nearly) the same plane - straight sliding
+        # on one surface - d is only known to lie in that plane, and the
+        # smallest singular vector is decided by noise: keep the mean
+        # velocity, which lies in the plane.  The contact deflects the motion
+        # from d by less than 45 degrees in any task we can learn from, so a
+        # candidate further from the motion than that is noise too.
+        candidate = vt[2] if vt[2] @ v_hat >= 0 else -vt[2]
+        if sv[1] > 0.3 * max(sv[0], 1e-12) and candidate @ v_hat > np.cos(np.pi / 4):
+            d = candidate
     # compliant axes: the contact force directions orthogonal to d
     axes = np.zeros((0, 3))
     if contact.sum() >= 3:

@@ -38,7 +38,7 @@ from services.runtime.service import Service, now_ns
 from services.runtime.session import ZenohOptions, add_zenoh_arguments, zenoh_options
 
 DT = 0.001
-DECIMATION = 10
+PERIOD_NS = 10_000_000  # the estimator's period (simulated time)
 FRI_ORDER = np.array([0, 1, 2, 5, 4, 3])
 HOLD_STIFFNESS = 2000.0
 ROT_STIFFNESS = 150.0
@@ -85,10 +85,12 @@ class ImpedanceLaw:
             # a light low-pass on the finite-difference velocity (1 ms steps)
             self.v = 0.7 * self.v + 0.3 * (x - self.prev_x) / DT
         self.prev_x = x.copy()
-        if phase != self.phase:
-            self.phase = phase
-            self.ref = x.copy()
         imp = self.impedances[phase] if phase is not None and 0 <= phase < len(self.impedances) else None
+        if phase != self.phase:
+            # a new phase starts its reference at the tool, already half a lead
+            # ahead along its direction: a flickering estimate must not stall the motion
+            self.phase = phase
+            self.ref = x.copy() if imp is None else x + np.asarray(imp["direction"]) * 0.5 * self.lead
         if self.goal_reached or imp is None:
             if self.ref is None:
                 self.ref = x.copy()
@@ -153,7 +155,7 @@ class CommanderProcess:
     def _drain(self):
         lockstep = self.config.clock == "lockstep"
         for seq in sorted(self._pending):
-            if lockstep and seq % DECIMATION == 0 and self.law is not None and seq not in self._phases \
+            if lockstep and self._pending[seq]["stamp_ns"] % PERIOD_NS == 0 and self.law is not None and seq not in self._phases \
                     and self._pending[seq]["episode"] == self.episode:
                 return  # wait for this cycle's estimate
             state = self._pending.pop(seq)

@@ -25,7 +25,7 @@ from services.runtime.messages import ESTIMATOR_PHASE
 from services.runtime.service import Service, now_ns
 from services.runtime.session import ZenohOptions, add_zenoh_arguments, zenoh_options
 
-DECIMATION = 10  # robot cycles per estimator update: 1 kHz -> 100 Hz
+PERIOD_NS = 10_000_000  # 100 Hz on simulated time, the instants the learner's samples were taken at
 
 
 @dataclass(frozen=True)
@@ -56,7 +56,7 @@ class EstimatorProcess:
         svc.subscribe("ft/wrench", self.on_wrench)
 
     def on_state(self, msg, recv_ns, raw):
-        if msg["seq"] % DECIMATION:
+        if msg["stamp_ns"] % PERIOD_NS:
             return
         with self._lock:
             self._states[msg["seq"]] = msg
@@ -65,7 +65,7 @@ class EstimatorProcess:
     def on_wrench(self, msg, recv_ns, raw):
         with self._lock:
             self._latest_wrench = msg
-            if msg["seq"] % DECIMATION == 0:
+            if msg["stamp_ns"] % PERIOD_NS == 0:
                 self._wrenches[msg["seq"]] = msg
                 self._try(msg["seq"])
 

@@ -15,7 +15,10 @@ clock, on one host), or the receive time when the payload does not decode.  The
 Layout, chosen so a killed recorder loses little: the header, the ``etar``
 metadata record and the ``scenario.yaml`` attachment come first; messages
 follow in zstd chunks of about 256 KiB; the summary (statistics, chunk and
-message indexes) is written by ``finish()``.
+message indexes) is written by ``finish()``.  Indexes are written only for
+groups that cannot be empty (chunks, messages, metadata, and attachments when
+there is a scenario): mcap's default writer emits summary offsets for empty
+groups, which MCAP validators flag.
 
 Reading (``read_episode``) walks the file forward with mcap's ``StreamReader``,
 not with ``make_reader``: the seeking reader starts from the footer at the end
@@ -26,7 +29,8 @@ mid-run) recovers is therefore: the metadata, the scenario attachment, and
 every message of every chunk that was completely written; the messages of the
 chunk being written when the process died (at most ~256 KiB of JSON, a few
 hundred robot cycles) are lost.  Such an episode has ``complete = False`` and
-``problem`` says where the file ends.  A file that is not MCAP, or a finished
+``problem`` says what was lost; a file cut before its metadata record says
+nothing worth keeping and raises.  A file that is not MCAP, or a finished
 file (with its closing magic) that does not read through, raises
 ``RecordingError`` naming the file.
 
@@ -38,6 +42,7 @@ from __future__ import annotations
 
 import json
 import math
+import numbers
 import os
 import struct
 import threading
@@ -48,11 +53,12 @@ from typing import NamedTuple
 
 import numpy as np
 import zstandard
-from mcap.exceptions import McapError
+from mcap.exceptions import McapError, RecordLengthLimitExceeded
 from mcap.records import Attachment, Channel, Chunk, DataEnd, Footer, Header, Message, Metadata, Schema, Statistics
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, IndexType, Writer
 
+from services.features import force_vector, state_vector
 from services.runtime.messages import BY_TOPIC, FT_WRENCH, ROBOT_CONTACT, ROBOT_STATE, MessageError, MessageType
 
 CHUNK_SIZE = 256 * 1024  # bytes of uncompressed records per chunk: what a killed recorder can lose
@@ -101,8 +107,8 @@ class EpisodeWriter:
                 raise RecordingError(f"{self.path}: metadata key {k!r} is reserved for the recorder")
             record[str(k)] = str(v)
 
-        # indexes only for groups that are never empty: the default writer emits
-        # summary offsets for empty groups, which MCAP validators flag
+        # indexes only for groups that cannot be empty (module docstring); the
+        # attachment and metadata indexes let seeking readers (Foxglove) list them
         index_types = IndexType.CHUNK | IndexType.MESSAGE | IndexType.METADATA
         if scenario_text is not None:
             index_types |= IndexType.ATTACHMENT
@@ -132,7 +138,8 @@ class EpisodeWriter:
         """Record one sample as received.  A payload that does not decode is
         recorded all the same (and counted in ``bad_payloads``): the recording
         is the evidence of what was sent.  Passing ``publish_time_ns`` skips
-        decoding (and so the bad-payload check)."""
+        decoding (and so the bad-payload check).  A key expression outside
+        ``etar/<run_id>/`` raises ``RecordingError`` and is not recorded."""
         if not isinstance(payload, (bytes, bytearray, memoryview)):
             raise TypeError(f"payload must be bytes, got {type(payload).__name__}")
         log_time_ns = _check_time("log_time_ns", log_time_ns)
@@ -216,7 +223,7 @@ def _check_time(name: str, value) -> int:
         raise TypeError(f"{name} must be an integer number of nanoseconds, got {value!r}")
     value = int(value)
     if not 0 <= value < _UINT64:
-        raise ValueError(f"{name} must be within [0, 2**64) ns, got {value}")
+        raise RecordingError(f"{name} must be within [0, 2**64) ns, got {value}")
     return value
 
 
@@ -315,8 +322,8 @@ def read_episode(path) -> Episode:
         recovered = ("the data section is complete: every message was recovered, only the summary is lost"
                      if scan.data_end else f"{scan.chunks} complete chunk(s) recovered; the messages of the "
                      "chunk being written when the file ended are lost")
-        problem = (f"file ends at byte {size} without the MCAP footer (the writer did not finish: killed, or "
-                   f"copied while recording; {_describe(error)}); {recovered}")
+        problem = (f"no MCAP footer: the writer did not finish (killed, or the file copied while recording); "
+                   f"{_describe(error)}; {recovered}")
     elif scan.statistics is not None and scan.statistics.message_count != len(scan.rows):
         raise RecordingError(f"{path}: corrupt MCAP file (the summary counts {scan.statistics.message_count} "
                              f"messages, the chunks hold {len(scan.rows)})")
@@ -387,6 +394,9 @@ def _describe(exc: BaseException | None) -> str:
     if exc is None:
         return "no records"
     text = str(exc)
+    if isinstance(exc, RecordLengthLimitExceeded):
+        # the limit is the file size, so the record runs past the end of the file
+        text += " (the file size): the file ends inside it"
     return f"{type(exc).__name__}: {text}" if text else f"{type(exc).__name__} (unexpected end of file)"
 
 
@@ -409,7 +419,7 @@ def load_demonstration(path, *, state: str = "position", features: str = "force"
     deterministic, and the same instants whatever cycle the recording began on.
 
     Returns ``states`` (T, 3) tcp position [m] or (T, 6) position + rotation
-    vector of R R_0^T (base axes, relative to the first sample); ``forces``
+    vector of R_0^T R (relative to the first sample; ``services.features``); ``forces``
     (T, 3) the F/T force, or (T, 6) force and torque, in base axes (the sensor
     has the tcp's orientation, so f_base = R f_sensor); ``phases`` (T-1,) the
     true phase of samples 1..T-1 (the label of step t -> t+1 is the phase at
@@ -427,8 +437,8 @@ def load_demonstration(path, *, state: str = "position", features: str = "force"
     period_ns = _sample_period_ns(rate_hz)
     episode = read_episode(path)
     if not episode.complete and not allow_incomplete:
-        raise RecordingError(f"{path}: incomplete recording ({episode.problem}); "
-                             f"{len(episode.messages)} message(s) recovered; load it with allow_incomplete=True")
+        raise RecordingError(f"{path}: incomplete recording: {episode.problem}; {len(episode.messages)} "
+                             "message(s) recovered (load_demonstration(..., allow_incomplete=True) uses them)")
 
     by_seq: dict[str, dict[int, dict]] = {topic: {} for topic in _DEMONSTRATION_TOPICS}
     skipped = 0
@@ -478,15 +488,10 @@ def load_demonstration(path, *, state: str = "position", features: str = "force"
     wrench = np.array([ft_by_seq[s]["wrench"] for s in chosen], dtype=np.float64)
     true_phase = np.array([contact_by_seq[s]["true_phase"] for s in chosen], dtype=np.int64)
 
-    if state == "position":
-        states = p.copy()
-    else:
-        from scipy.spatial.transform import Rotation
-
-        states = np.concatenate([p, Rotation.from_matrix(R @ R[0].T).as_rotvec()], axis=1)
-    forces = np.einsum("tij,tj->ti", R, wrench[:, :3])
-    if features == "force_torque":
-        forces = np.concatenate([forces, np.einsum("tij,tj->ti", R, wrench[:, 3:])], axis=1)
+    # the same functions as the online estimator, so learner and estimator see the same numbers
+    R0 = R[0]
+    states = np.array([state_vector(c, state, R0) for c in cart.reshape(-1, 12)])
+    forces = np.array([force_vector(w, c, features) for w, c in zip(wrench, cart.reshape(-1, 12))])
 
     gaps = int((stamp_ns[-1] - stamp_ns[0]) // period_ns + 1 - len(chosen))
     return dict(states=states, forces=forces, phases=true_phase[1:], dt=period_ns * 1e-9, t=stamp_ns * 1e-9,
@@ -495,7 +500,8 @@ def load_demonstration(path, *, state: str = "position", features: str = "force"
 
 
 def _sample_period_ns(rate_hz: float) -> int:
-    if not (isinstance(rate_hz, (int, float)) and math.isfinite(rate_hz) and rate_hz > 0):
+    if isinstance(rate_hz, bool) or not isinstance(rate_hz, numbers.Real) or not (
+            math.isfinite(rate_hz) and rate_hz > 0):
         raise RecordingError(f"rate_hz must be a positive number, got {rate_hz!r}")
     period = round(1e9 / rate_hz)
     if abs(period - 1e9 / rate_hz) > 1e-3:

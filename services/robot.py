@@ -224,7 +224,7 @@ class RobotProcess:
             if stall_every and k > 0 and k % stall_every == 0:
                 time.sleep(self.config.stall_ms / 1e3)
             if lockstep:
-                needed = [w for w in wait_for if w != "phase" or seq % 10 == 0]
+                needed = [w for w in wait_for if w != "phase" or m.stamp_ns % 10_000_000 == 0]
                 if needed and not self._wait_for(needed, seq):
                     missed_answers += 1
             else:

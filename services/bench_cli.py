@@ -1,0 +1,97 @@
+"""``etar-bench``: run scenarios and read their reports.
+
+    etar-bench run SCENARIO [--out DIR] [--clock realtime|lockstep]
+    etar-bench report RUN_DIR
+    etar-bench router [--listen tcp/0.0.0.0:7447]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from services.runtime.session import add_zenoh_arguments, zenoh_options
+
+
+def _say(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def cmd_run(args) -> int:
+    from services.runner import RunOptions, run
+    from services.scenario import ScenarioError
+
+    out = args.out or f"runs/{Path(args.scenario).stem}-{time.strftime('%Y%m%d-%H%M%S')}"
+    zopts = zenoh_options(args) if args.connect else None
+    try:
+        report = run(RunOptions(scenario=args.scenario, out=out, clock=args.clock, run_id=args.run_id, zenoh=zopts),
+                     progress=_say)
+    except ScenarioError as exc:
+        _say(f"etar-bench run: error: {exc}")
+        return 2
+    print((Path(out) / "report.txt").read_text())
+    _say(f"report: {out}/report.json, {out}/report.txt; recordings in {out}/recordings")
+    return 0 if report["error"] is None else 1
+
+
+def cmd_report(args) -> int:
+    path = Path(args.run_dir)
+    for name in ("report.txt", "report.json"):
+        if not (path / name).exists():
+            _say(f"etar-bench report: {path / name} not found (is {path} a run directory?)")
+            return 2
+    if args.json:
+        print(json.dumps(json.loads((path / "report.json").read_text()), indent=1))
+    else:
+        print((path / "report.txt").read_text())
+    return 0
+
+
+def cmd_router(args) -> int:
+    """A real Zenoh router (the Python library in router mode) for multi-host or container runs."""
+    import zenoh
+
+    from services.runtime.session import ZenohOptions
+
+    opts = ZenohOptions(mode="router", connect=(), listen=tuple(args.listen or ["tcp/0.0.0.0:7447"]))
+    conf = opts.config()
+    with zenoh.open(conf):
+        _say(f"zenoh router listening on {', '.join(opts.listen)}; Ctrl-C to stop")
+        try:
+            while True:
+                time.sleep(1.0)
+        except KeyboardInterrupt:
+            return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="etar-bench", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("run", help="run a scenario: demonstrate, learn, reproduce, report")
+    p.add_argument("scenario", help="scenario YAML file (see docs/scenarios.md)")
+    p.add_argument("--out", help="output directory (default runs/<scenario>-<time>)")
+    p.add_argument("--clock", choices=("lockstep", "realtime"), help="override the scenario's clock")
+    p.add_argument("--run-id", help="run id (default <scenario>-<random>)")
+    add_zenoh_arguments(p)
+    p.set_defaults(func=cmd_run)
+    p = sub.add_parser("report", help="print the report of a finished run")
+    p.add_argument("run_dir")
+    p.add_argument("--json", action="store_true", help="print report.json instead of the text")
+    p.set_defaults(func=cmd_report)
+    p = sub.add_parser("router", help="run a Zenoh router (for docker-compose or several hosts)")
+    p.add_argument("--listen", action="append", help="endpoint(s), default tcp/0.0.0.0:7447")
+    p.set_defaults(func=cmd_router)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    return args.func(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,148 @@
+"""recorder: everything of a run, byte for byte, to MCAP - one file per episode.
+
+Subscribes to ``etar/<run_id>/**`` and writes every sample's payload unchanged
+(``services.recording.EpisodeWriter``: chunked, zstd, a JSON Schema per
+channel so Foxglove plots the wrench and phase topics, the scenario
+attached).  Control: ``begin_episode`` (path, kind, index, scenario text),
+``end_episode`` (waits until every listed topic has reached ``last_seq``, then
+finalises the file), ``status``, ``shutdown``.  SIGINT/SIGTERM finalise the open
+file: nothing already recorded is lost.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from services.recording import EpisodeWriter
+from services.runtime import topics
+from services.runtime.service import Service, now_ns
+from services.runtime.session import ZenohOptions, add_zenoh_arguments, zenoh_options
+
+_SEQ = re.compile(rb'^\{"seq":(-?\d+)')
+
+
+@dataclass(frozen=True)
+class RecorderConfig:
+    run_id: str
+    zenoh: ZenohOptions
+    out_dir: str = "recordings"
+
+
+class RecorderProcess:
+    def __init__(self, config: RecorderConfig, svc: Service):
+        self.config = config
+        self.svc = svc
+        self.writer: EpisodeWriter | None = None
+        self._lock = threading.Condition()
+        self._last_seq: dict[str, int] = {}
+        self.total = 0
+        prefix = topics.prefix(config.run_id) + "/"
+        self._prefix_len = len(prefix)
+        self._sub = svc.session.declare_subscriber(prefix + "**", self.on_sample)
+
+    def on_sample(self, sample) -> None:
+        recv = now_ns()
+        key = str(sample.key_expr)
+        raw = sample.payload.to_bytes()
+        m = _SEQ.match(raw)
+        with self._lock:
+            if self.writer is not None:
+                self.writer.add(key, raw, recv)
+                self.total += 1
+            if m:
+                topic = key[self._prefix_len:]
+                seq = int(m.group(1))
+                if seq > self._last_seq.get(topic, -1):
+                    self._last_seq[topic] = seq
+                self._lock.notify_all()
+
+    def begin(self, p: dict) -> str:
+        path = Path(p["path"])
+        if not path.is_absolute():
+            path = Path(self.config.out_dir) / path
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with self._lock:
+            if self.writer is not None:
+                self.writer.finish()
+            self.writer = EpisodeWriter(path, run_id=self.config.run_id, episode_kind=p.get("kind", "episode"),
+                                        episode_index=int(p.get("index", 0)), scenario_text=p.get("scenario"),
+                                        metadata=p.get("metadata") or {})
+        return str(path)
+
+    def end(self, p: dict) -> dict:
+        last = int(p.get("last_seq", -1))
+        wanted = list(p.get("topics", []))
+        deadline = time.monotonic() + float(p.get("timeout", 10.0))
+        with self._lock:
+            while any(self._last_seq.get(t, -1) < last for t in wanted) and time.monotonic() < deadline:
+                self._lock.wait(0.05)
+            lagging = [t for t in wanted if self._last_seq.get(t, -1) < last]
+            writer, self.writer = self.writer, None
+        if writer is None:
+            raise ValueError("no episode is being recorded")
+        writer.finish()
+        return {"messages": writer.messages_written, "bad_payloads": writer.bad_payloads, "lagging": lagging}
+
+    def close(self) -> None:
+        with self._lock:
+            if self.writer is not None:
+                self.writer.finish()
+                self.writer = None
+        self._sub.undeclare()
+
+    def serve(self) -> None:
+        try:
+            while not self.svc.stop.is_set():
+                req = self.svc.next_control(timeout=0.05)
+                if req is None:
+                    continue
+                try:
+                    if req.cmd == "begin_episode":
+                        req.reply(path=self.begin(req.payload))
+                    elif req.cmd == "end_episode":
+                        req.reply(**self.end(req.payload))
+                    elif req.cmd == "status":
+                        req.reply(total=self.total, recording=self.writer is not None, last_seq=self._last_seq)
+                    elif req.cmd == "shutdown":
+                        req.reply()
+                        return
+                    else:
+                        req.fail(f"unknown command {req.cmd!r} (begin_episode, end_episode, status, shutdown)")
+                except (KeyError, ValueError, OSError) as exc:
+                    req.fail(f"{type(exc).__name__}: {exc}")
+        finally:
+            self.close()
+
+
+def main(config: RecorderConfig) -> int:
+    with Service("recorder", config.run_id, config.zenoh) as svc:
+        proc = RecorderProcess(config, svc)
+        svc.log(f"ready: recording etar/{config.run_id}/** into {config.out_dir}")
+        proc.serve()
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="etar-recorder", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--run-id", required=True)
+    parser.add_argument("--clock", choices=("lockstep", "realtime"), default="lockstep",
+                        help="accepted for symmetry: the recorder records whatever arrives")
+    parser.add_argument("--out-dir", default="recordings", help="directory for relative episode paths")
+    add_zenoh_arguments(parser)
+    return parser
+
+
+def cli(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    return main(RecorderConfig(args.run_id, zenoh_options(args), args.out_dir))
+
+
+if __name__ == "__main__":
+    sys.exit(cli())

@@ -1,0 +1,211 @@
+"""The run report: ``report.json`` for machines, ``report.txt`` for people.
+
+Everything is measured from the run's recordings and the services' own
+statistics:
+
+- learning: the number of phases chosen and the BIC/AIC table;
+- per reproduction: reached the goal, peak contact force, and the online
+  estimator's phase accuracy and transition-time error against the
+  simulator's ground truth (learned phases are mapped to true phases once, on
+  the demonstrations, never per reproduction);
+- timing: the robot loop's deadline misses and per-link latency percentiles
+  (publish -> recorder receive, one host, CLOCK_MONOTONIC), the FRI answer
+  latency, and the environment (kernel, CPUs, clock mode, SCHED_FIFO).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+from pathlib import Path
+
+import numpy as np
+
+from etar.metrics import score_segmentation
+from services.recording import read_episode
+from services.runtime.messages import BY_TOPIC
+
+
+def _percentiles(values_us) -> dict:
+    if len(values_us) == 0:
+        return {}
+    a = np.asarray(values_us, dtype=np.float64)
+    return {"count": int(a.size), "p50_us": float(np.percentile(a, 50)), "p99_us": float(np.percentile(a, 99)),
+            "p99_9_us": float(np.percentile(a, 99.9)), "max_us": float(a.max())}
+
+
+def episode_links(path) -> dict:
+    """Per topic: publish -> recorder latency percentiles, and lost / out-of-order
+    messages judged from the sequence numbers."""
+    ep = read_episode(path)
+    per = {}
+    for msg in ep.messages:
+        topic = msg.topic.lstrip("/")
+        mtype = BY_TOPIC.get(topic)
+        if mtype is None:
+            continue
+        try:
+            d = json.loads(msg.payload)
+            seq, sent = int(d["seq"]), int(d["sent_ns"])
+        except (ValueError, KeyError, TypeError):
+            continue
+        entry = per.setdefault(topic, {"lat": [], "seqs": []})
+        entry["lat"].append((msg.log_time_ns - sent) / 1e3)
+        entry["seqs"].append(seq)
+    out = {}
+    for topic, e in per.items():
+        seqs = np.asarray(e["seqs"])
+        out_of_order = int(np.sum(np.diff(seqs) < 0)) if seqs.size > 1 else 0
+        span = seqs.max() - seqs.min() + 1 if seqs.size else 0
+        out[topic] = dict(_percentiles(e["lat"]), out_of_order=out_of_order,
+                          lost=int(max(0, span - np.unique(seqs).size)) if topic in ("robot/state", "robot/contact",
+                                                                                      "ft/wrench") else None)
+    return out
+
+
+def reproduction_phases(path, phase_to_truth: dict, dt: float = 0.01) -> dict:
+    """Accuracy and transition-time error of the online estimate in one reproduction."""
+    ep = read_episode(path)
+    truth_by_seq, est_by_seq = {}, {}
+    for msg in ep.messages:
+        topic = msg.topic.lstrip("/")
+        if topic == "robot/contact":
+            d = json.loads(msg.payload)
+            truth_by_seq[d["seq"]] = d["true_phase"]
+        elif topic == "estimator/phase":
+            d = json.loads(msg.payload)
+            est_by_seq[d["seq"]] = d["phase"]
+    seqs = sorted(s for s in est_by_seq if s in truth_by_seq)
+    if not seqs:
+        return {"updates": 0, "accuracy": None}
+    truth = np.array([truth_by_seq[s] for s in seqs])
+    est = np.array([est_by_seq[s] for s in seqs])
+    score = score_segmentation(truth, est, dt=dt, mapping={int(k): int(v) for k, v in phase_to_truth.items()})
+    return dict(updates=len(seqs), correct=int(round(score.accuracy * len(seqs))), **score.to_dict())
+
+
+def environment(clock: str, fifo: bool) -> dict:
+    return {"kernel": platform.release(), "machine": platform.machine(), "cpus": os.cpu_count(),
+            "python": platform.python_version(), "clock": clock, "sched_fifo": fifo}
+
+
+def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: float) -> dict:
+    st = runner.state
+    sc = runner.scenario
+    repro = []
+    for r in st.reproductions:
+        s = r["summary"]
+        phases = reproduction_phases(r["path"], st.phase_to_truth or {}) if st.phase_to_truth else {}
+        reached = s["reason"] == "goal_reached"
+        bounded = s["peak_contact_force"] <= r["max_contact_force"]
+        repro.append(dict(index=len(repro), path=r["path"], side=r["side"], start=r["start"], reason=s["reason"],
+                          reached_goal=reached, peak_contact_force=s["peak_contact_force"],
+                          bounded_force=bounded, success=reached and bounded, sim_seconds=s["sim_seconds"],
+                          wall_seconds=s["wall_seconds"], final_position=s["final_position"], phases=phases))
+    updates = sum(r["phases"].get("updates", 0) for r in repro)
+    correct = sum(r["phases"].get("correct", 0) for r in repro)
+    errors = [e for r in repro for e in r["phases"].get("transition_errors_s", [])]
+    episodes = [d["summary"] for d in st.demonstrations] + [r["summary"] for r in st.reproductions]
+    loops = [e["loop"] for e in episodes if e.get("loop")]
+    links = {}
+    for d in st.demonstrations + st.reproductions:
+        try:
+            for topic, v in episode_links(d["path"]).items():
+                links.setdefault(topic, []).append(v)
+        except (OSError, ValueError):
+            continue
+    link_summary = {t: {"p50_us": float(np.median([v["p50_us"] for v in vs])),
+                        "p99_us": float(max(v["p99_us"] for v in vs)),
+                        "max_us": float(max(v["max_us"] for v in vs)),
+                        "lost": sum(v["lost"] or 0 for v in vs), "out_of_order": sum(v["out_of_order"] for v in vs)}
+                    for t, vs in links.items() if vs and "p50_us" in vs[0]}
+    sim_total = sum(e["sim_seconds"] for e in episodes)
+    wall_total = sum(e["wall_seconds"] for e in episodes)
+    report = {
+        "scenario": sc.name,
+        "source": sc.source,
+        "run_id": runner.run_id,
+        "error": error,
+        "wall_seconds": wall_seconds,
+        "environment": environment(sc.clock, any(loop.get("sched_fifo") for loop in loops)),
+        "demonstrations": [dict(path=d["path"], side=d["side"], start=d["start"], reason=d["summary"]["reason"],
+                                sim_seconds=d["summary"]["sim_seconds"], wall_seconds=d["summary"]["wall_seconds"])
+                           for d in st.demonstrations],
+        "learning": {"model": st.model_path, "selection": st.selection, "phase_to_truth": st.phase_to_truth,
+                     "goal": st.goal},
+        "reproductions": repro,
+        "summary": {
+            "phases_chosen": (st.selection or {}).get("best"),
+            "reproductions": len(repro),
+            "successes": sum(r["success"] for r in repro),
+            "online_phase_accuracy": correct / updates if updates else None,
+            "mean_transition_error_s": float(np.mean(errors)) if errors else None,
+            "simulated_seconds": sim_total,
+            "episode_wall_seconds": wall_total,
+            "real_time_factor": sim_total / wall_total if wall_total else None,
+        },
+        "timing": {
+            "robot_loop": {"cycles": sum(lp["cycles"] for lp in loops),
+                           "deadline_misses": sum(lp["misses"] for lp in loops),
+                           "longest_miss_run": max((lp["longest_miss_run"] for lp in loops), default=0),
+                           "per_episode": loops},
+            "links_publish_to_recorder": link_summary,
+            "fri": [e["fri"] for e in episodes],
+        },
+        "exit_codes": exit_codes,
+    }
+    out = Path(runner.out)
+    (out / "report.json").write_text(json.dumps(report, indent=1, default=float) + "\n")
+    (out / "report.txt").write_text(render_text(report))
+    return report
+
+
+def render_text(r: dict) -> str:
+    s = r["summary"]
+    lines = [f"ETAR testbench run {r['run_id']} - scenario {r['scenario']} ({r['source']})",
+             f"clock {r['environment']['clock']}, SCHED_FIFO {'yes' if r['environment']['sched_fifo'] else 'no'}, "
+             f"kernel {r['environment']['kernel']}, {r['environment']['cpus']} CPUs, "
+             f"{r['wall_seconds']:.1f} s wall"]
+    if r["error"]:
+        lines.append(f"RUN FAILED: {r['error']}")
+    lines.append("")
+    lines.append(f"demonstrations: {len(r['demonstrations'])}")
+    for i, d in enumerate(r["demonstrations"]):
+        lines.append(f"  {i:2d} {d['side']:>5}  {d['reason']:<13} {d['sim_seconds']:6.1f} s sim  "
+                     f"{d['wall_seconds']:6.1f} s wall")
+    sel = r["learning"]["selection"]
+    if sel:
+        lines.append("")
+        lines.append(f"phases chosen: {sel['best']} ({sel['criterion']})")
+        for k in sorted(sel["scores"], key=int):
+            lines.append(f"  K={k}: score {sel['scores'][k]:.1f}, log-likelihood {sel['log_likelihoods'][k]:.1f}, "
+                         f"{sel['n_parameters'][k]} parameters{'  <-' if int(k) == sel['best'] else ''}")
+    if r["reproductions"]:
+        lines.append("")
+        lines.append(f"reproductions: {s['successes']} of {s['reproductions']} reached the goal with bounded force")
+        lines.append("   #  side  result        peak F [N]  phase acc  trans. err [s]  sim [s]  wall [s]")
+        for rp in r["reproductions"]:
+            ph = rp["phases"]
+            acc = ph.get("accuracy")
+            te = ph.get("mean_transition_error_s")
+            lines.append(f"  {rp['index']:2d} {rp['side']:>5}  {rp['reason']:<13} {rp['peak_contact_force']:10.1f}  "
+                         f"{'-' if acc is None else f'{acc:9.3f}'}  "
+                         f"{'-' if te is None or te != te else f'{te:14.3f}'}  {rp['sim_seconds']:7.1f}  "
+                         f"{rp['wall_seconds']:8.1f}")
+        acc = s["online_phase_accuracy"]
+        te = s["mean_transition_error_s"]
+        lines.append(f"online phase accuracy overall: {'-' if acc is None else f'{acc:.4f}'}; mean transition "
+                     f"error: {'-' if te is None else f'{te:.3f} s'}")
+    t = r["timing"]
+    lines.append("")
+    lines.append(f"robot loop: {t['robot_loop']['cycles']} cycles, {t['robot_loop']['deadline_misses']} deadline "
+                 f"misses, longest run {t['robot_loop']['longest_miss_run']}")
+    rtf = s["real_time_factor"]
+    lines.append(f"simulated {s['simulated_seconds']:.1f} s in {s['episode_wall_seconds']:.1f} s of episodes: "
+                 f"{'-' if rtf is None else f'{rtf:.2f}'} x real time")
+    lines.append("link latency, publish -> recorder (us):   p50      p99      max   lost  out-of-order")
+    for topic, v in sorted(t["links_publish_to_recorder"].items()):
+        lines.append(f"  {topic:<22} {v['p50_us']:9.0f} {v['p99_us']:8.0f} {v['max_us']:8.0f} {v['lost']:6d} "
+                     f"{v['out_of_order']:6d}")
+    return "\n".join(lines) + "\n"

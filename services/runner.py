@@ -1,0 +1,288 @@
+"""The scenario runner: starts the processes a scenario needs, drives its stages,
+stops everything cleanly and writes the recordings, the model and the report.
+
+    etar-bench run scenarios/valley.yaml --out runs/valley
+
+Stages (``services.scenario``):
+
+- demonstrate: per demonstration, the recorder opens a file, the robot is put
+  at the start in gravity compensation, the sensor is tared while the arm
+  rests, the teacher guides the arm until it is done;
+- learn: ETAR is fitted to the recorded MCAP files (BIC over the candidates,
+  or a fixed number of phases), and every phase's impedance is derived;
+- reproduce: per reproduction, the robot starts where no demonstration did, in
+  Cartesian impedance under FRI command mode; the estimator and the commander
+  close the loop until the goal is reached (or time runs out).
+
+Everything the report says is measured from the recordings and the services'
+own statistics (``services.report``).
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from etar import ETAR
+from etar.impedance import phase_impedances
+from etar.selection import select_order
+from services import launch
+from services.recording import load_demonstration
+from services.runtime import topics
+from services.runtime.messages import EPISODE_SUMMARY, RUNNER_EVENT
+from services.runtime.service import now_ns, request
+from services.runtime.session import ZenohOptions, open_session
+from services.scenario import Scenario, demonstration_starts, load_scenario, reproduction_starts
+
+DEMO_TOPICS = ["robot/state", "robot/contact", "ft/wrench", "teacher/wrench"]
+REPRO_TOPICS = ["robot/state", "robot/contact", "ft/wrench", "robot/command"]
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    scenario: str
+    out: str
+    clock: str | None = None
+    run_id: str | None = None
+    zenoh: ZenohOptions | None = None  # None: the runner listens on a free loopback port
+    robot_args: tuple = ()  # extra flags for the robot (e.g. fault injection)
+    commander_args: tuple = ()
+
+
+@dataclass
+class RunState:
+    demonstrations: list = field(default_factory=list)  # dicts: path, start, side, summary
+    reproductions: list = field(default_factory=list)
+    model_path: str | None = None
+    selection: dict | None = None
+    phase_to_truth: dict | None = None
+    goal: list | None = None
+
+
+class Runner:
+    def __init__(self, options: RunOptions, progress=print):
+        self.options = options
+        self.say = progress
+        self.scenario: Scenario = load_scenario(options.scenario)
+        if options.clock:
+            self.scenario = self.scenario.with_clock(options.clock)
+        self.out = Path(options.out)
+        self.run_id = options.run_id or f"{self.scenario.name}-{uuid.uuid4().hex[:8]}"
+        self.state = RunState()
+        self._episode_done = threading.Event()
+        self._summary = None
+
+    # --------------------------------------------------------------- roles
+
+    def roles(self) -> list[str]:
+        kinds = {s.kind for s in self.scenario.stages}
+        roles = ["robot", "ft_sensor", "recorder"]
+        if "demonstrate" in kinds:
+            roles.append("teacher")
+        if "reproduce" in kinds:
+            roles += ["phase_estimator", "impedance_commander"]
+        return roles
+
+    def _args(self, role: str, connect: str) -> list[str]:
+        sc = self.scenario
+        common = ["--run-id", self.run_id, "--clock", sc.clock]
+        if self.options.zenoh is not None:
+            common += self.options.zenoh.to_args()
+        else:
+            common += ["--connect", connect]
+        extra = {
+            "robot": ["--world", sc.world, "--seed", str(sc.seed), *self.options.robot_args],
+            "teacher": ["--world", sc.world],
+            "ft_sensor": ["--seed", str(sc.seed)],
+            "recorder": ["--out-dir", str(self.out / "recordings")],
+            "impedance_commander": list(self.options.commander_args),
+        }.get(role, [])
+        return common + extra
+
+    # ----------------------------------------------------------------- run
+
+    def run(self) -> dict:
+        from services.report import write_report
+
+        self.out.mkdir(parents=True, exist_ok=True)
+        (self.out / "recordings").mkdir(exist_ok=True)
+        t0 = time.monotonic()
+        if self.options.zenoh is not None:
+            zopts, endpoint = self.options.zenoh, ""
+        else:
+            endpoint = f"tcp/127.0.0.1:{launch.free_port()}"
+            zopts = ZenohOptions(listen=(endpoint,))
+        self.say(f"run {self.run_id}: scenario {self.scenario.name} ({self.scenario.source}), "
+                 f"clock {self.scenario.clock}, output {self.out}")
+        session = open_session(zopts)
+        self.session = session
+        self._pub_event = session.declare_publisher(topics.key(self.run_id, "runner/event"))
+        sub = session.declare_subscriber(topics.key(self.run_id, "robot/episode"), self._on_episode)
+        processes = []
+        error = None
+        try:
+            for role in self.roles():
+                processes.append(launch.spawn(role, self._args(role, endpoint), self.out / "logs"))
+            launch.wait_alive(session, self.run_id, self.roles(), processes)
+            self.say(f"services ready ({', '.join(self.roles())}) after {time.monotonic() - t0:.1f} s")
+            for stage in self.scenario.stages:
+                getattr(self, f"stage_{stage.kind}")(stage)
+            self._event("run_end", "", -1, {})
+        except BaseException as exc:
+            error = f"{type(exc).__name__}: {exc}"
+            self.say(f"run failed: {error}")
+            for p in processes:
+                if not p.alive():
+                    self.say(f"--- {p.name} exited with {p.popen.returncode}; end of its log:\n{p.tail()}")
+            if isinstance(exc, KeyboardInterrupt):
+                raise
+        finally:
+            for role in self.roles():
+                try:
+                    request(session, self.run_id, role, "shutdown", timeout=2.0)
+                except Exception:  # already gone: the escalation below handles it
+                    pass
+            codes = launch.stop(processes)
+            sub.undeclare()
+            session.close()
+        report = write_report(self, codes, error, time.monotonic() - t0)
+        return report
+
+    # ------------------------------------------------------------- helpers
+
+    def _event(self, event, stage, episode, info):
+        self._pub_event.put(RUNNER_EVENT.encode(seq=0, stamp_ns=0, sent_ns=now_ns(), event=event, stage=stage,
+                                                episode=episode, info=info))
+
+    def _on_episode(self, sample):
+        try:
+            self._summary = EPISODE_SUMMARY.decode(sample.payload.to_bytes())
+        except ValueError:
+            return
+        self._episode_done.set()
+
+    def _req(self, role, cmd, timeout=30.0, **args):
+        return request(self.session, self.run_id, role, cmd, timeout=timeout, **args)
+
+    def _run_episode(self, wait_for, stop_on, max_seconds) -> dict:
+        self._episode_done.clear()
+        self._req("robot", "run", wait_for=wait_for, stop_on=stop_on, max_seconds=max_seconds)
+        # lockstep runs at the pace of the slowest participant: allow a generous wall-clock budget
+        if not self._episode_done.wait(max(120.0, 30.0 * max_seconds)):
+            self._req("robot", "stop", timeout=10.0)
+            if not self._episode_done.wait(30.0):
+                raise TimeoutError("the robot did not end its episode")
+        return self._summary
+
+    def _prepare(self, kind, index, start, path):
+        scenario_text = Path(self.scenario.source).read_text() if Path(self.scenario.source).exists() else None
+        self._req("recorder", "begin_episode", path=str(path), kind=kind, index=index, scenario=scenario_text,
+                  metadata={"start": json.dumps(list(start)), "scenario": self.scenario.name})
+        self._event("episode_begin", kind, index, {"start": list(start)})
+        self._req("robot", "reset", start=list(start), episode=index, kind=kind)
+        self._req("ft_sensor", "tare", samples=100)
+        self._req("robot", "settle", cycles=200, wait_for=["ft"] if self.scenario.clock == "lockstep" else [],
+                  timeout=120.0)
+
+    def _finish(self, kind, index, summary, topic_list):
+        rec = self._req("recorder", "end_episode", last_seq=summary["last_seq"], topics=topic_list, timeout=30.0)
+        self._event("episode_end", kind, index, {"reason": summary["reason"]})
+        return rec
+
+    # -------------------------------------------------------------- stages
+
+    def stage_demonstrate(self, stage):
+        sc = self.scenario
+        starts = demonstration_starts(stage, sc.world, stage.seed)
+        for i, (side, start) in enumerate(starts):
+            index = len(self.state.demonstrations)
+            path = self.out / "recordings" / f"demonstration_{index:02d}.mcap"
+            self._prepare("demonstration", index, start, path)
+            reset = dict(start=list(start), episode=index, seed=stage.seed * 1000 + i)
+            if stage.goal_x is not None:
+                reset["goal_x"] = stage.goal_x
+            self._req("teacher", "reset", **reset)
+            wait = ["teacher"] if sc.clock == "lockstep" else []
+            summary = self._run_episode(wait, "teacher_done", stage.max_seconds)
+            rec = self._finish("demonstration", index, summary, DEMO_TOPICS)
+            self.state.demonstrations.append(dict(path=str(path), side=side, start=list(start), summary=summary,
+                                                  recording=rec))
+            self.say(f"demonstration {index + 1}/{len(starts)} ({side}): {summary['reason']} after "
+                     f"{summary['sim_seconds']:.1f} s simulated / {summary['wall_seconds']:.1f} s wall, "
+                     f"{rec['messages']} messages recorded")
+
+    def stage_learn(self, stage):
+        sc = self.scenario
+        demos = [load_demonstration(d["path"], state=sc.state, features=sc.features)
+                 for d in self.state.demonstrations]
+        pairs = [(d["states"], d["forces"]) for d in demos]
+        options = dict(n_restarts=stage.restarts)
+        t = time.monotonic()
+        if stage.phases == "auto":
+            self.say(f"learning: {stage.criterion.upper()} over {list(stage.candidates)} phases from "
+                     f"{len(pairs)} demonstrations ({sum(len(s) for s, _ in pairs)} samples)")
+            sel = select_order(pairs, stage.candidates, stage.criterion, transitions=stage.transitions,
+                               seed=stage.seed, max_iter=stage.max_iter, progress=self.say, **options)
+            model = sel.model
+            self.state.selection = dict(criterion=sel.criterion, best=sel.best,
+                                        scores={str(k): v for k, v in sel.scores.items()},
+                                        log_likelihoods={str(k): v for k, v in sel.log_likelihoods.items()},
+                                        n_parameters={str(k): v for k, v in sel.n_parameters.items()})
+            self.say(sel.table())
+        else:
+            model = ETAR(int(stage.phases), stage.transitions, **options).fit(
+                pairs, max_iter=stage.max_iter, seed=stage.seed)
+            self.state.selection = dict(criterion="fixed", best=int(stage.phases), scores={}, log_likelihoods={
+                str(stage.phases): model.fit_report_.log_likelihood}, n_parameters={})
+        dt = float(demos[0]["dt"])
+        imps = phase_impedances(model, pairs, dt)
+        model.metadata.update(impedance=[None if i is None else i.to_dict() for i in imps], dt=dt,
+                              state=sc.state, features=sc.features,
+                              demonstrations=[d["path"] for d in self.state.demonstrations],
+                              selection=self.state.selection)
+        # which learned phase is which true phase, judged on the demonstrations only
+        from etar.metrics import match_phases
+
+        truth = np.concatenate([d["phases"] for d in demos])
+        pred = np.concatenate([model.viterbi(s, f) for s, f in pairs])
+        self.state.phase_to_truth = match_phases(truth, pred, n_pred=model.n_phases)
+        self.state.goal = np.mean([s[-1][:3] for s, _ in pairs], axis=0).tolist()
+        path = self.out / "model.json"
+        model.save(path)
+        self.state.model_path = str(path)
+        self.say(f"learned {model.n_phases} phases in {time.monotonic() - t:.1f} s; model {path}")
+
+    def stage_reproduce(self, stage):
+        sc = self.scenario
+        if self.state.model_path is None:
+            raise RuntimeError("reproduce needs a learned model")
+        demo_starts = [(d["side"], tuple(d["start"])) for d in self.state.demonstrations]
+        starts = reproduction_starts(stage, sc.world, stage.seed, demo_starts)
+        model_path = str(Path(self.state.model_path).resolve())
+        for i, (side, start) in enumerate(starts):
+            index = len(self.state.reproductions)
+            path = self.out / "recordings" / f"reproduction_{index:02d}.mcap"
+            self._prepare("reproduction", index, start, path)
+            self._req("phase_estimator", "reset", model=model_path, episode=index, state=sc.state,
+                      features=sc.features)
+            goal = list(self.state.goal)
+            self._req("impedance_commander", "reset", model=model_path, episode=index, goal=goal,
+                      goal_tolerance=stage.goal_tolerance)
+            wait = ["command"] if sc.clock == "lockstep" else []
+            summary = self._run_episode(wait, "goal_reached", stage.max_seconds)
+            rec = self._finish("reproduction", index, summary, REPRO_TOPICS)
+            self.state.reproductions.append(dict(path=str(path), side=side, start=list(start), summary=summary,
+                                                 recording=rec, max_contact_force=stage.max_contact_force))
+            self.say(f"reproduction {index + 1}/{len(starts)} ({side}): {summary['reason']}, peak contact "
+                     f"{summary['peak_contact_force']:.1f} N, {summary['sim_seconds']:.1f} s simulated / "
+                     f"{summary['wall_seconds']:.1f} s wall")
+
+
+def run(options: RunOptions, progress=print) -> dict:
+    return Runner(options, progress).run()
