@@ -17,18 +17,17 @@ $(STAMP): pyproject.toml
 
 venv: $(STAMP)
 
-# The main job.  Until the simulator and services land (issues 3 and 4) it runs
-# the learning stage on synthetic demonstrations: demonstrate -> learn (BIC) -> report.
+# The main job: the thesis' valley experiment end to end over Zenoh -
+# 6 demonstrations, learning with BIC, 20 reproductions, report (out/valley/).
 run: $(STAMP)
-	$(BIN)/etar synth --out $(OUT)/demos --demos 6 --length 600 --phases 3 --seed 0
-	$(BIN)/etar learn $(OUT)/demos/*.npz --phases auto --out $(OUT)/model.json
-	$(BIN)/etar inspect $(OUT)/model.json --demos $(OUT)/demos/*.npz
+	$(BIN)/etar-bench run scenarios/valley.yaml --out $(OUT)/valley
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
 bench: $(STAMP)
 	$(BIN)/python bench/etar_fit.py
+	$(BIN)/python bench/sim_step.py
 
 clean:
 	rm -rf $(VENV) $(OUT) .pytest_cache

@@ -26,9 +26,12 @@ def cmd_run(args) -> int:
 
     out = args.out or f"runs/{Path(args.scenario).stem}-{time.strftime('%Y%m%d-%H%M%S')}"
     zopts = zenoh_options(args) if args.connect else None
+    if args.attach and (zopts is None or not args.run_id):
+        _say("etar-bench run: --attach needs --connect (the router or a peer) and --run-id (the services')")
+        return 2
     try:
-        report = run(RunOptions(scenario=args.scenario, out=out, clock=args.clock, run_id=args.run_id, zenoh=zopts),
-                     progress=_say)
+        report = run(RunOptions(scenario=args.scenario, out=out, clock=args.clock, run_id=args.run_id, zenoh=zopts,
+                                attach=args.attach, ready_timeout=args.ready_timeout), progress=_say)
     except ScenarioError as exc:
         _say(f"etar-bench run: error: {exc}")
         return 2
@@ -76,6 +79,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="output directory (default runs/<scenario>-<time>)")
     p.add_argument("--clock", choices=("lockstep", "realtime"), help="override the scenario's clock")
     p.add_argument("--run-id", help="run id (default <scenario>-<random>)")
+    p.add_argument("--attach", action="store_true",
+                   help="drive services that are already running (docker-compose) instead of starting them")
+    p.add_argument("--ready-timeout", type=float, default=60.0, help="seconds to wait for the services")
     add_zenoh_arguments(p)
     p.set_defaults(func=cmd_run)
     p = sub.add_parser("report", help="print the report of a finished run")

@@ -53,6 +53,8 @@ class RunOptions:
     zenoh: ZenohOptions | None = None  # None: the runner listens on a free loopback port
     robot_args: tuple = ()  # extra flags for the robot (e.g. fault injection)
     commander_args: tuple = ()
+    attach: bool = False  # the services are already running (docker-compose): do not spawn them
+    ready_timeout: float = 60.0
 
 
 @dataclass
@@ -127,9 +129,10 @@ class Runner:
         processes = []
         error = None
         try:
-            for role in self.roles():
-                processes.append(launch.spawn(role, self._args(role, endpoint), self.out / "logs"))
-            launch.wait_alive(session, self.run_id, self.roles(), processes)
+            if not self.options.attach:
+                for role in self.roles():
+                    processes.append(launch.spawn(role, self._args(role, endpoint), self.out / "logs"))
+            launch.wait_alive(session, self.run_id, self.roles(), processes, timeout=self.options.ready_timeout)
             self.say(f"services ready ({', '.join(self.roles())}) after {time.monotonic() - t0:.1f} s")
             for stage in self.scenario.stages:
                 getattr(self, f"stage_{stage.kind}")(stage)
@@ -143,16 +146,26 @@ class Runner:
             if isinstance(exc, KeyboardInterrupt):
                 raise
         finally:
-            for role in self.roles():
-                try:
-                    request(session, self.run_id, role, "shutdown", timeout=2.0)
-                except Exception:  # already gone: the escalation below handles it
-                    pass
-            codes = launch.stop(processes)
-            sub.undeclare()
-            session.close()
-        report = write_report(self, codes, error, time.monotonic() - t0)
+            codes = {}
+            if not self.options.attach:
+                self._shutdown_services()
+                codes = launch.stop(processes)
+            try:
+                report = write_report(self, codes, error, time.monotonic() - t0)
+            finally:
+                if self.options.attach:
+                    # containers stop with their services: only once the report is written
+                    self._shutdown_services()
+                sub.undeclare()
+                session.close()
         return report
+
+    def _shutdown_services(self):
+        for role in self.roles():
+            try:
+                request(self.session, self.run_id, role, "shutdown", timeout=2.0)
+            except Exception:  # already gone: launch.stop's escalation handles it
+                pass
 
     # ------------------------------------------------------------- helpers
 

@@ -1,0 +1,19 @@
+# One image for every role; the command picks the service (docker-compose.yml).
+# BASE: a registry's python:3.11-slim for users; here a Debian bookworm root
+# filesystem imported locally (docker/setup-podman.sh), since no registry is reachable.
+ARG BASE=python:3.11-slim
+FROM ${BASE}
+# dependencies come from a wheelhouse built on the host (docker/setup-podman.sh):
+# no package index is used inside the build
+# MuJoCo and Pinocchio's wheels need the GNU OpenMP runtime; the local base has it,
+# a python:3.11-slim base gets it from Debian
+RUN ldconfig -p | grep -q libgomp.so.1 || (apt-get update && apt-get install -y --no-install-recommends libgomp1 \
+    && rm -rf /var/lib/apt/lists/*)
+COPY docker/wheelhouse /wheelhouse
+RUN python3 -m venv /opt/etar \
+ && /opt/etar/bin/pip install --no-index --find-links /wheelhouse etar-testbench \
+ && rm -rf /wheelhouse
+COPY scenarios /app/scenarios
+ENV PATH=/opt/etar/bin:$PATH PYTHONUNBUFFERED=1
+WORKDIR /app
+CMD ["etar-bench", "--help"]

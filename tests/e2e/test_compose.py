@@ -1,0 +1,112 @@
+"""docker-compose.yml: every service runs a real CLI of this project with valid flags
+(fast), and the smoke scenario comes up with docker-compose on podman (slow)."""
+
+import json
+import os
+import re
+import shlex
+import shutil
+import subprocess
+import time
+import tomllib
+from pathlib import Path
+
+import pytest
+import yaml
+
+from services import bench_cli, ft_sensor, impedance_commander, phase_estimator, recorder, robot, teacher
+
+ROOT = Path(__file__).resolve().parents[2]
+PARSERS = {
+    "etar-bench": bench_cli.build_parser,
+    "etar-robot": robot.build_parser,
+    "etar-ft-sensor": ft_sensor.build_parser,
+    "etar-teacher": teacher.build_parser,
+    "etar-phase-estimator": phase_estimator.build_parser,
+    "etar-impedance-commander": impedance_commander.build_parser,
+    "etar-recorder": recorder.build_parser,
+}
+ROLES = {"robot", "ft_sensor", "teacher", "phase_estimator", "impedance_commander", "recorder"}
+
+
+def expand(text: str) -> str:
+    """docker-compose's ${VAR:-default} with the defaults."""
+    return re.sub(r"\$\{(\w+):-([^}]*)\}", lambda m: os.environ.get(m.group(1), m.group(2)), text)
+
+
+def compose():
+    return yaml.safe_load((ROOT / "docker-compose.yml").read_text())
+
+
+def test_every_compose_command_is_a_real_cli_with_valid_flags():
+    scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+    services = compose()["services"]
+    assert ROLES | {"router", "runner"} <= set(services)
+    run_ids = set()
+    for name, svc in services.items():
+        argv = shlex.split(expand(svc["command"]))
+        exe, args = argv[0], argv[1:]
+        assert exe in scripts, f"{name}: {exe} is not a console script of this project"
+        assert exe in PARSERS, f"{name}: no parser known for {exe}"
+        try:
+            parsed = PARSERS[exe]().parse_args(args)
+        except SystemExit as exc:
+            pytest.fail(f"{name}: `{' '.join(argv)}` has invalid flags (argparse exit {exc.code})")
+        if hasattr(parsed, "run_id") and parsed.run_id:
+            run_ids.add(parsed.run_id)
+        if name in ROLES | {"runner"}:
+            assert parsed.mode == "client" and parsed.connect, f"{name} must join the router"
+    assert len(run_ids) == 1, f"every role must use the same run id, got {run_ids}"
+    # the runner drives what compose started rather than spawning its own
+    runner = bench_cli.build_parser().parse_args(shlex.split(expand(services["runner"]["command"]))[1:])
+    assert runner.attach and runner.command == "run"
+
+
+def _podman_ready() -> tuple[bool, str]:
+    if os.geteuid() != 0:
+        return False, "needs root (apt-get, podman)"
+    if not shutil.which("apt-get") and not shutil.which("podman"):
+        return False, "no apt-get and no podman on this machine"
+    return True, ""
+
+
+@pytest.mark.compose
+def test_smoke_scenario_on_docker_compose_with_podman(tmp_path):
+    ok, why = _podman_ready()
+    if not ok:
+        pytest.skip(why)
+    t0 = time.monotonic()
+    setup = subprocess.run(["bash", str(ROOT / "docker" / "setup-podman.sh")], capture_output=True, text=True,
+                           timeout=1500)
+    print(setup.stdout[-2000:], setup.stderr[-2000:])
+    assert setup.returncode == 0, "docker/setup-podman.sh failed"
+    print(f"setup: {time.monotonic() - t0:.1f} s")
+    run_id = f"compose{int(time.time())}"
+    env = dict(os.environ, DOCKER_HOST="unix:///tmp/etar-podman.sock", RUN_ID=run_id,
+               ZENOH_PORT=str(_free_port()), COMPOSE_PROJECT_NAME=run_id)
+    runs = ROOT / "runs"
+    cmd = ["docker-compose", "-f", str(ROOT / "docker-compose.yml"), "up", "--build", "--exit-code-from", "runner"]
+    t1 = time.monotonic()
+    up = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=1500)
+    print(up.stdout[-6000:], up.stderr[-3000:])
+    subprocess.run(["docker-compose", "-f", str(ROOT / "docker-compose.yml"), "down"], cwd=ROOT, env=env,
+                   capture_output=True, timeout=300)
+    print(f"compose up: {time.monotonic() - t1:.1f} s")
+    assert up.returncode == 0, "the runner container failed"
+    out = runs / run_id
+    report = json.loads((out / "report.json").read_text())
+    assert report["error"] is None
+    from services.recording import read_episode
+
+    files = sorted((out / "recordings").glob("*.mcap"))
+    assert [f.name for f in files] == ["demonstration_00.mcap", "demonstration_01.mcap", "reproduction_00.mcap"]
+    for f in files:
+        ep = read_episode(f)
+        assert ep.complete and {"/robot/state", "/ft/wrench", "/robot/contact"} <= set(ep.topics())
+    shutil.rmtree(out, ignore_errors=True)
+
+
+def _free_port() -> int:
+    from services.launch import free_port
+
+    return free_port()

@@ -1,0 +1,63 @@
+"""A real service process over Zenoh: it answers valid messages and survives garbage."""
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from services import launch
+from services.runtime import topics
+from services.runtime.messages import FT_WRENCH, ROBOT_CONTACT
+from services.runtime.service import request
+from services.runtime.session import ZenohOptions, open_session
+
+
+@pytest.fixture
+def ft_sensor(tmp_path):
+    endpoint = f"tcp/127.0.0.1:{launch.free_port()}"
+    session = open_session(ZenohOptions(listen=(endpoint,)))
+    run_id = f"proc-{int(time.time() * 1000)}"
+    proc = launch.spawn("ft_sensor", ["--run-id", run_id, "--connect", endpoint, "--seed", "3"], tmp_path)
+    try:
+        launch.wait_alive(session, run_id, ["ft_sensor"], [proc], timeout=60)
+        yield session, run_id, proc
+    finally:
+        codes = launch.stop([proc])
+        session.close()
+        assert codes["ft_sensor"] == 0, proc.tail()  # SIGINT: a clean exit
+
+
+def test_garbage_is_dropped_and_counted_valid_messages_are_answered(ft_sensor):
+    session, run_id, proc = ft_sensor
+    got, done = [], threading.Event()
+
+    def on_wrench(sample):
+        got.append(FT_WRENCH.decode(sample.payload.to_bytes()))
+        if len(got) == 5:
+            done.set()
+
+    sub = session.declare_subscriber(topics.key(run_id, "ft/wrench"), on_wrench)
+    pub = session.declare_publisher(topics.key(run_id, "robot/contact"))
+    time.sleep(0.2)  # let the subscription propagate to the peer
+    for junk in (b"\x00\xff not json", b'{"seq": "one"}', b'{"seq":1,"stamp_ns":0,"sent_ns":0,"wrench":[NaN,0,0,0,0,0],'
+                 b'"contact_force":[0,0,0],"touching":[],"true_phase":0,"episode":0}'):
+        pub.put(junk)
+    for k in range(5):
+        pub.put(ROBOT_CONTACT.encode(seq=k + 1, stamp_ns=(k + 1) * 1_000_000, sent_ns=time.monotonic_ns(),
+                                     wrench=np.array([0.0, 0.0, 2.45, 0.0, 0.0, 0.0]), contact_force=np.zeros(3),
+                                     touching=[], true_phase=0, episode=0))
+    assert done.wait(10), f"only {len(got)} answers"
+    assert [m["seq"] for m in got] == [1, 2, 3, 4, 5]
+    assert all(m["status"] == 0 for m in got)
+    # untared: the tool's weight plus the sensor's bias
+    from robot_sim.ati import AtiConfig
+
+    assert abs(np.mean([m["wrench"][2] for m in got]) - (2.45 + AtiConfig.mini45().bias[2])) < 0.5
+    status = request(session, run_id, "ft_sensor", "status")
+    assert status["links"]["robot/contact"]["bad"] == 3
+    assert status["links"]["robot/contact"]["received"] == 8
+    with pytest.raises(RuntimeError, match="unknown command"):
+        request(session, run_id, "ft_sensor", "explode")
+    assert proc.alive()
+    sub.undeclare()
