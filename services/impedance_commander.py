@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import sys
 import threading
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -43,6 +44,7 @@ FRI_ORDER = np.array([0, 1, 2, 5, 4, 3])
 HOLD_STIFFNESS = 2000.0
 ROT_STIFFNESS = 150.0
 EFFECTIVE_MASS = 2.0  # kg, for the damping ratio of the commanded impedance
+ESTIMATE_WAIT_S = 2.0  # lockstep: how long to wait for a cycle's estimate before going on without it
 
 
 @dataclass(frozen=True)
@@ -134,6 +136,8 @@ class CommanderProcess:
         self._pending: dict[int, dict] = {}
         self._phases: dict[int, int] = {}
         self._latest_phase = None
+        self._waiting_since = None
+        self.missing_estimates = 0
         self._pub = svc.publisher("robot/command")
         self.model = ETAR.load(config.model) if config.model else None
         svc.subscribe("robot/state", self.on_state)
@@ -149,15 +153,25 @@ class CommanderProcess:
 
     def on_state(self, msg, recv_ns, raw):
         with self._lock:
+            # only the cycles of the reproduction this commander was reset for are
+            # answered: answers to others (demonstrations, the rest while the
+            # sensor is tared) would reach the FRI link at times that depend on
+            # the machine, and lockstep runs must not
+            if self.law is None or msg["episode"] != self.episode:
+                return
             self._pending[msg["seq"]] = msg
             self._drain()
 
-    def _drain(self):
+    def _drain(self, give_up: bool = False):
         lockstep = self.config.clock == "lockstep"
         for seq in sorted(self._pending):
-            if lockstep and self._pending[seq]["stamp_ns"] % PERIOD_NS == 0 and self.law is not None and seq not in self._phases \
-                    and self._pending[seq]["episode"] == self.episode:
-                return  # wait for this cycle's estimate
+            if lockstep and self._pending[seq]["stamp_ns"] % PERIOD_NS == 0 and seq not in self._phases:
+                if not give_up:
+                    self._waiting_since = self._waiting_since or time.monotonic()
+                    return  # wait for this cycle's estimate
+                # the estimate is not coming (the estimator skipped the sample): go on with the last one
+                self.missing_estimates += 1
+            self._waiting_since = None
             state = self._pending.pop(seq)
             phase = self._phases.pop(seq, None)
             if phase is not None:
@@ -167,23 +181,14 @@ class CommanderProcess:
     def _answer(self, state):
         m = np.asarray(state["msr_cart_pos"]).reshape(3, 4)
         R, x = m[:, :3], m[:, 3]
-        if self.law is None or state["episode"] != self.episode:
-            F, R_set, phase, goal = np.zeros(3), R, -1, False
-            stiffness = np.array([HOLD_STIFFNESS] * 3 + [ROT_STIFFNESS] * 3)
-            cart = m.ravel()
-            add = np.zeros(6)
-        else:
-            phase = self._latest_phase
-            F, R_set = self.law.step(x, R, phase)
-            goal = self.law.goal_reached
-            stiffness = np.array([0.0, 0.0, 0.0] + [ROT_STIFFNESS] * 3)
-            cart = np.hstack([R_set, x[:, None]]).ravel()
-            add = np.concatenate([R.T @ F, np.zeros(3)])[FRI_ORDER]
-            phase = -1 if phase is None else int(phase)
+        F, R_set = self.law.step(x, R, self._latest_phase)
+        add = np.concatenate([R.T @ F, np.zeros(3)])[FRI_ORDER]
         self._pub.put(ROBOT_COMMAND.encode(
-            seq=state["seq"], stamp_ns=state["stamp_ns"], sent_ns=now_ns(), cart_pos=cart,
-            cart_stiffness=stiffness, cart_damping=np.full(6, 0.7), add_tcp_ft=add, requested_mode=2,
-            phase=phase, goal_reached=bool(goal), episode=state["episode"]))
+            seq=state["seq"], stamp_ns=state["stamp_ns"], sent_ns=now_ns(),
+            cart_pos=np.hstack([R_set, x[:, None]]).ravel(),
+            cart_stiffness=np.array([0.0, 0.0, 0.0] + [ROT_STIFFNESS] * 3), cart_damping=np.full(6, 0.7),
+            add_tcp_ft=add, requested_mode=2, phase=-1 if self._latest_phase is None else int(self._latest_phase),
+            goal_reached=bool(self.law.goal_reached), episode=state["episode"]))
 
     def reset(self, p: dict) -> None:
         with self._lock:
@@ -202,10 +207,14 @@ class CommanderProcess:
             self._pending.clear()
             self._phases.clear()
             self._latest_phase = None
+            self._waiting_since = None
 
     def serve(self) -> None:
         while not self.svc.stop.is_set():
             req = self.svc.next_control(timeout=0.05)
+            with self._lock:
+                if self._waiting_since is not None and time.monotonic() - self._waiting_since > ESTIMATE_WAIT_S:
+                    self._drain(give_up=True)
             if req is None:
                 continue
             try:
@@ -213,7 +222,8 @@ class CommanderProcess:
                     self.reset(req.payload)
                     req.reply()
                 elif req.cmd == "status":
-                    req.reply(episode=self.episode, links={k: v.to_dict() for k, v in self.svc.links.items()})
+                    req.reply(episode=self.episode, missing_estimates=self.missing_estimates,
+                              links={k: v.to_dict() for k, v in self.svc.links.items()})
                 elif req.cmd == "shutdown":
                     req.reply()
                     return

@@ -78,8 +78,16 @@ def wait_alive(session, run_id: str, names, processes, timeout: float = 60.0) ->
         time.sleep(0.1)
 
 
-def stop(processes, timeouts=(5.0, 3.0, 2.0)) -> dict:
-    """SIGINT, then SIGTERM, then SIGKILL to each process group; returns exit codes."""
+def stop(processes, timeouts=(5.0, 3.0, 2.0), grace: float = 5.0) -> dict:
+    """Give processes ``grace`` seconds to exit by themselves (after a shutdown
+    request), then SIGINT, SIGTERM and SIGKILL to each process group; returns
+    the exit codes (negative: killed by that signal)."""
+    deadline = time.monotonic() + grace
+    for p in processes:
+        try:
+            p.popen.wait(max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            pass
     codes = {}
     for sig, timeout in zip((signal.SIGINT, signal.SIGTERM, signal.SIGKILL), timeouts):
         running = [p for p in processes if p.alive()]

@@ -462,6 +462,8 @@ def load_demonstration(path, *, state: str = "position", features: str = "force"
             raise RecordingError(f"{path}: no {topic} messages that decode "
                                  f"({skipped} skipped; topics in the file: {found})")
     states_by_seq, ft_by_seq, contact_by_seq = (by_seq[t] for t in _DEMONSTRATION_TOPICS)
+    # cycles of no episode (episode -1: the arm resting while the sensor is tared) are not demonstration
+    states_by_seq = {k: v for k, v in states_by_seq.items() if v.get("episode", 0) != -1} or states_by_seq
     cycles = sorted(states_by_seq.keys() & ft_by_seq.keys() & contact_by_seq.keys())
     if not cycles:
         ranges = "; ".join(f"{t} seq {min(v)}..{max(v)}" for t, v in by_seq.items())

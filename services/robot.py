@@ -143,8 +143,14 @@ class RobotProcess:
                     store.clear()
             req.reply(q=q.tolist(), seq=cell.fri.seq)
         elif req.cmd == "settle":
+            # the arm rests while the sensor is tared: these cycles belong to no
+            # episode, so the estimator and the commander do not take them as one
             n = int(p.get("cycles", 200))
-            summary = self.run_cycles(n, list(p.get("wait_for", [])), stop_on=None, max_cycles=n)
+            episode, self.episode = self.episode, -1
+            try:
+                summary = self.run_cycles(n, list(p.get("wait_for", [])), stop_on=None, max_cycles=n)
+            finally:
+                self.episode = episode
             req.reply(**summary)
         elif req.cmd == "run":
             wait_for = list(p.get("wait_for", []))
@@ -183,106 +189,122 @@ class RobotProcess:
     # --------------------------------------------------------------- cycles
 
     def run_cycles(self, n, wait_for, stop_on, max_cycles) -> dict:
+        """Run FRI cycles until ``n`` are done, a stop condition holds or
+        ``max_cycles`` pass; returns the episode summary.
+
+        lockstep: open a cycle (measure, publish), wait for the awaited answers,
+        close it (apply them, step).  realtime: at every 1 ms deadline close the
+        cycle opened at the previous deadline (answers count if they arrived
+        before it) and open the next; a cycle whose work ends after the next
+        deadline is a deadline miss.
+        """
         cell = self.cell
         lockstep = self.config.clock == "lockstep"
         timing = LoopTiming(cell.cycle_ns)
         timer = None if lockstep else AbsoluteDeadlineTimer(cell.cycle_ns)
-        first_seq = cell.fri.seq + 1
-        peak = 0.0
-        missed_answers = 0
-        reason = "timeout"
+        ep = dict(first_seq=cell.fri.seq + 1, peak=0.0, missed_answers=0, reason="timeout", k=0)
         wall0 = time.monotonic()
         stall_every = int(self.config.stall_every_s * 1000) if self.config.stall_ms > 0 else 0
-        k = 0
-        while k < max_cycles:
+        open_cycle = None
+        while ep["k"] < max_cycles:
             if self.svc.stop.is_set():
-                reason = "stopped"
+                ep["reason"] = "stopped"
                 break
-            if timer is not None:
-                deadline, wake = timer.wait()
-            else:
-                deadline = wake = now_ns()
-            t_start = now_ns()
-            m = cell.begin_cycle()
-            seq = m.seq
-            sent_state = now_ns()
-            self._pub_state.put(ROBOT_STATE.encode(
-                seq=seq, stamp_ns=m.stamp_ns, sent_ns=sent_state, reflected_seq=m.reflected_seq,
-                fri_state=int(m.state), fri_quality=int(m.quality), control_mode=int(m.control_mode),
-                msr_jnt_pos=m.msr_jnt_pos, msr_cart_pos=m.msr_cart_pos, est_ext_tcp_ft=m.est_ext_tcp_ft,
-                answer_rate=m.answer_rate, latency_s=m.latency_s, jitter_s=m.jitter_s, miss_rate=m.miss_rate,
-                safety=int(cell.krc.safety), gravity_compensation=bool(cell.krc.gravity_compensation),
-                episode=self.episode))
-            wrench = cell.sim.sensor_wrench()
-            contact, _ = cell.sim.contact_wrench()
-            touching = cell.sim.touching()
-            true_phase = self.labeler.update(touching)
-            peak = max(peak, float(np.linalg.norm(contact)))
-            self._pub_contact.put(ROBOT_CONTACT.encode(
-                seq=seq, stamp_ns=m.stamp_ns, sent_ns=now_ns(), wrench=wrench, contact_force=contact,
-                touching=touching, true_phase=true_phase, episode=self.episode))
-            if stall_every and k > 0 and k % stall_every == 0:
-                time.sleep(self.config.stall_ms / 1e3)
             if lockstep:
+                t0 = now_ns()
+                m, sent = self._open(ep)
                 needed = [w for w in wait_for if w != "phase" or m.stamp_ns % 10_000_000 == 0]
-                if needed and not self._wait_for(needed, seq):
-                    missed_answers += 1
+                if needed and not self._wait_for(needed, m.seq):
+                    ep["missed_answers"] += 1
+                done = self._close(m, sent, lockstep, ep, stop_on)
+                timing.record(0, now_ns() - t0, missed=False)
             else:
-                end = deadline + cell.cycle_ns
-                now = now_ns()
-                if end > now:
-                    time.sleep((end - now) / 1e9)
-            goal_reached = False
-            teacher_done = False
-            with self._cond:
-                cmd_entry = self._answers["command"].pop(seq, None)
-                teacher_entry = self._answers["teacher"].pop(seq, None)
-                latest_teacher = self._latest_teacher
-            if cmd_entry is not None:
-                msg, recv = cmd_entry
-                arrival = m.stamp_ns + (LOCKSTEP_LATENCY_NS if lockstep else recv - sent_state)
-                cell.receive(CommandPacket(seq=msg["seq"], cart_pos=np.array(msg["cart_pos"]),
-                                           cart_stiffness=np.array(msg["cart_stiffness"]),
-                                           cart_damping=np.array(msg["cart_damping"]),
-                                           add_tcp_ft=np.array(msg["add_tcp_ft"]),
-                                           requested_mode=ControlMode(msg["requested_mode"])), arrival)
-                goal_reached = bool(msg["goal_reached"])
-            teacher_msg = teacher_entry[0] if teacher_entry is not None else (None if lockstep else latest_teacher)
-            hand = None
-            if teacher_msg is not None and teacher_msg["episode"] == self.episode:
-                hand = np.array(teacher_msg["wrench"])
-                teacher_done = bool(teacher_msg["done"])
-            cell.end_cycle(hand)
-            t_end = now_ns()
-            timing.record(wake - deadline, t_end - t_start,
-                          missed=(not lockstep) and t_end > deadline + cell.cycle_ns)
-            k += 1
-            if n is not None and k >= n:
-                reason = "settled"
+                deadline, wake = timer.wait()
+                t0 = now_ns()
+                done = self._close(*open_cycle, lockstep, ep, stop_on) if open_cycle is not None else None
+                if stall_every and ep["k"] > 0 and ep["k"] % stall_every == 0:
+                    time.sleep(self.config.stall_ms / 1e3)  # injected fault: the loop stalls
+                open_cycle = None if done else self._open(ep)
+                t_end = now_ns()
+                timing.record(wake - deadline, t_end - t0, missed=t_end > deadline + cell.cycle_ns)
+            if done:
                 break
-            if stop_on == "teacher_done" and teacher_done:
-                reason = "teacher_done"
+            if n is not None and ep["k"] >= n:
+                ep["reason"] = "settled"
                 break
-            if stop_on == "goal_reached" and goal_reached:
-                reason = "goal_reached"
+            if ep["k"] % 100 == 0 and self._stop_requested():
+                ep["reason"] = "stopped"
                 break
-            if cell.krc.safety != 0:
-                reason = "safety"
-                break
-            if k % 100 == 0 and self._stop_requested():
-                reason = "stopped"
-                break
+        if open_cycle is not None:
+            self._close(*open_cycle, lockstep, ep, None)  # do not leave a measured cycle unapplied
         stats = cell.fri.statistics()
         return dict(
             seq=cell.fri.seq, stamp_ns=cell.t_ns, sent_ns=now_ns(), episode=self.episode, kind=self.kind,
-            reason=reason, first_seq=first_seq, last_seq=cell.fri.seq, sim_seconds=k * cell.cycle_ns / 1e9,
-            wall_seconds=time.monotonic() - wall0, final_position=cell.sim.tcp_position(),
-            peak_contact_force=peak, safety=int(cell.krc.safety), missed_answers=missed_answers,
+            reason=ep["reason"], first_seq=ep["first_seq"], last_seq=cell.fri.seq,
+            sim_seconds=ep["k"] * cell.cycle_ns / 1e9, wall_seconds=time.monotonic() - wall0,
+            final_position=cell.sim.tcp_position(), peak_contact_force=ep["peak"], safety=int(cell.krc.safety),
+            missed_answers=ep["missed_answers"],
             fri={"answered": stats.answered, "missed": stats.missed, "late": stats.late, "corrupt": stats.corrupt,
                  "longest_miss_run": stats.longest_miss_run, "state": int(stats.state),
                  "quality": int(stats.quality)},
             loop=dict(timing.summary(), clock=self.config.clock, sched_fifo=self.fifo),
         )
+
+    def _open(self, ep):
+        """Measure and publish: the FRI measurement and the physics' truth."""
+        cell = self.cell
+        m = cell.begin_cycle()
+        sent = now_ns()
+        self._pub_state.put(ROBOT_STATE.encode(
+            seq=m.seq, stamp_ns=m.stamp_ns, sent_ns=sent, reflected_seq=m.reflected_seq,
+            fri_state=int(m.state), fri_quality=int(m.quality), control_mode=int(m.control_mode),
+            msr_jnt_pos=m.msr_jnt_pos, msr_cart_pos=m.msr_cart_pos, est_ext_tcp_ft=m.est_ext_tcp_ft,
+            answer_rate=m.answer_rate, latency_s=m.latency_s, jitter_s=m.jitter_s, miss_rate=m.miss_rate,
+            safety=int(cell.krc.safety), gravity_compensation=bool(cell.krc.gravity_compensation),
+            episode=self.episode))
+        wrench = cell.sim.sensor_wrench()
+        contact, _ = cell.sim.contact_wrench()
+        touching = cell.sim.touching()
+        true_phase = self.labeler.update(touching)
+        ep["peak"] = max(ep["peak"], float(np.linalg.norm(contact)))
+        self._pub_contact.put(ROBOT_CONTACT.encode(
+            seq=m.seq, stamp_ns=m.stamp_ns, sent_ns=now_ns(), wrench=wrench, contact_force=contact,
+            touching=touching, true_phase=true_phase, episode=self.episode))
+        return m, sent
+
+    def _close(self, m, sent, lockstep, ep, stop_on) -> bool:
+        """Hand this cycle's answers to the FRI link, apply the hand, step.
+        Returns True when the episode should end."""
+        cell = self.cell
+        with self._cond:
+            cmd_entry = self._answers["command"].pop(m.seq, None)
+            teacher_entry = self._answers["teacher"].pop(m.seq, None)
+            latest_teacher = self._latest_teacher
+        goal_reached = teacher_done = False
+        if cmd_entry is not None:
+            msg, recv = cmd_entry
+            arrival = m.stamp_ns + (LOCKSTEP_LATENCY_NS if lockstep else recv - sent)
+            cell.receive(CommandPacket(seq=msg["seq"], cart_pos=np.array(msg["cart_pos"]),
+                                       cart_stiffness=np.array(msg["cart_stiffness"]),
+                                       cart_damping=np.array(msg["cart_damping"]),
+                                       add_tcp_ft=np.array(msg["add_tcp_ft"]),
+                                       requested_mode=ControlMode(msg["requested_mode"])), arrival)
+            goal_reached = bool(msg["goal_reached"])
+        teacher_msg = teacher_entry[0] if teacher_entry is not None else (None if lockstep else latest_teacher)
+        hand = None
+        if teacher_msg is not None and teacher_msg["episode"] == self.episode:
+            hand = np.array(teacher_msg["wrench"])
+            teacher_done = bool(teacher_msg["done"])
+        cell.end_cycle(hand)
+        ep["k"] += 1
+        for flag, name in ((teacher_done, "teacher_done"), (goal_reached, "goal_reached")):
+            if flag and stop_on == name:
+                ep["reason"] = name
+                return True
+        if cell.krc.safety != 0:
+            ep["reason"] = "safety"
+            return True
+        return False
 
 
 def main(config: RobotConfig) -> int:

@@ -68,7 +68,7 @@ def test_smoke_lockstep_twice_at_once_is_deterministic_and_isolated(tmp_path):
         assert report["error"] is None, report["error"]
         assert len(report["demonstrations"]) == 2 and len(report["reproductions"]) == 1
         assert report["summary"]["phases_chosen"] == 3
-        assert all(code in (0, None) or code == 0 for code in report["exit_codes"].values()), report["exit_codes"]
+        assert all(code == 0 for code in report["exit_codes"].values()), report["exit_codes"]
         check_recordings(tmp_path / name, report)
         assert (tmp_path / name / "report.txt").read_text().startswith("ETAR testbench run")
         assert (tmp_path / name / "model.json").exists()
