@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import queue
+from collections import deque
 import signal
 import sys
 import threading
@@ -36,7 +37,8 @@ class LinkCounters:
     received: int = 0
     bad: int = 0
     last_error: str = ""
-    latencies_ns: list = field(default_factory=list)
+    # the newest latencies only: a long realtime run must not grow without bound
+    latencies_ns: deque = field(default_factory=lambda: deque(maxlen=100_000))
 
     def to_dict(self) -> dict:
         return {"received": self.received, "bad": self.bad, "last_error": self.last_error}
