@@ -31,7 +31,8 @@ def cmd_run(args) -> int:
         return 2
     try:
         report = run(RunOptions(scenario=args.scenario, out=out, clock=args.clock, run_id=args.run_id, zenoh=zopts,
-                                attach=args.attach, ready_timeout=args.ready_timeout), progress=_say)
+                                attach=args.attach, ready_timeout=args.ready_timeout, sched_fifo=args.sched_fifo),
+                     progress=_say)
     except ScenarioError as exc:
         _say(f"etar-bench run: error: {exc}")
         return 2

@@ -27,6 +27,7 @@ from services.runtime.session import ZenohOptions, add_zenoh_arguments, zenoh_op
 class FtSensorConfig:
     run_id: str
     zenoh: ZenohOptions
+    sched_fifo: bool = False
     seed: int = 0
 
 
@@ -70,7 +71,7 @@ class FtSensorProcess:
 
 
 def main(config: FtSensorConfig) -> int:
-    with Service("ft_sensor", config.run_id, config.zenoh) as svc:
+    with Service("ft_sensor", config.run_id, config.zenoh, sched_fifo=config.sched_fifo) as svc:
         proc = FtSensorProcess(config, svc)
         svc.log("ready")
         proc.serve()
@@ -90,7 +91,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def cli(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    return main(FtSensorConfig(args.run_id, zenoh_options(args), args.seed))
+    return main(FtSensorConfig(run_id=args.run_id, zenoh=zenoh_options(args), seed=args.seed,
+                               sched_fifo=args.sched_fifo))
 
 
 if __name__ == "__main__":

@@ -51,11 +51,14 @@ ESTIMATE_WAIT_S = 2.0  # lockstep: how long to wait for a cycle's estimate befor
 class CommanderConfig:
     run_id: str
     zenoh: ZenohOptions
+    sched_fifo: bool = False
     clock: str = "lockstep"
     model: str | None = None
     lead: float = 0.02  # m
     damping_ratio: float = 0.7
     goal_tolerance: float = 0.01
+    stall_every_s: float = 0.0  # fault injection: stall before answering, every N s of simulated time
+    stall_ms: float = 0.0
 
 
 class ImpedanceLaw:
@@ -136,6 +139,7 @@ class CommanderProcess:
         self._pending: dict[int, dict] = {}
         self._phases: dict[int, int] = {}
         self._latest_phase = None
+        self._latest_phase_seq = -1
         self._waiting_since = None
         self.missing_estimates = 0
         self._pub = svc.publisher("robot/command")
@@ -149,6 +153,7 @@ class CommanderProcess:
                 return
             self._phases[msg["seq"]] = msg["phase"]
             self._latest_phase = msg["phase"]
+            self._latest_phase_seq = msg["seq"]
             self._drain()
 
     def on_state(self, msg, recv_ns, raw):
@@ -176,9 +181,13 @@ class CommanderProcess:
             phase = self._phases.pop(seq, None)
             if phase is not None:
                 self._latest_phase = phase
+                self._latest_phase_seq = seq
             self._answer(state)
 
     def _answer(self, state):
+        c = self.config
+        if c.stall_ms > 0 and c.stall_every_s > 0 and state["stamp_ns"] % int(c.stall_every_s * 1e9) == 0:
+            time.sleep(c.stall_ms / 1e3)  # injected fault: this answer comes late
         m = np.asarray(state["msr_cart_pos"]).reshape(3, 4)
         R, x = m[:, :3], m[:, 3]
         F, R_set = self.law.step(x, R, self._latest_phase)
@@ -188,6 +197,7 @@ class CommanderProcess:
             cart_pos=np.hstack([R_set, x[:, None]]).ravel(),
             cart_stiffness=np.array([0.0, 0.0, 0.0] + [ROT_STIFFNESS] * 3), cart_damping=np.full(6, 0.7),
             add_tcp_ft=add, requested_mode=2, phase=-1 if self._latest_phase is None else int(self._latest_phase),
+            estimate_seq=self._latest_phase_seq,
             goal_reached=bool(self.law.goal_reached), episode=state["episode"]))
 
     def reset(self, p: dict) -> None:
@@ -207,6 +217,7 @@ class CommanderProcess:
             self._pending.clear()
             self._phases.clear()
             self._latest_phase = None
+            self._latest_phase_seq = -1
             self._waiting_since = None
 
     def serve(self) -> None:
@@ -234,7 +245,7 @@ class CommanderProcess:
 
 
 def main(config: CommanderConfig) -> int:
-    with Service("impedance_commander", config.run_id, config.zenoh) as svc:
+    with Service("impedance_commander", config.run_id, config.zenoh, sched_fifo=config.sched_fifo) as svc:
         proc = CommanderProcess(config, svc)
         svc.log(f"ready: clock {config.clock}")
         proc.serve()
@@ -249,14 +260,18 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--model", help="learned model file with per-phase impedance; can also come with reset")
     parser.add_argument("--lead", type=float, default=0.02, help="how far the reference may run ahead, m")
     parser.add_argument("--damping-ratio", type=float, default=0.7)
+    parser.add_argument("--stall-every", type=float, default=0.0,
+                        help="fault injection: stall before answering every N s of simulated time")
+    parser.add_argument("--stall-ms", type=float, default=0.0, help="fault injection: stall length, ms")
     add_zenoh_arguments(parser)
     return parser
 
 
 def cli(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    return main(CommanderConfig(args.run_id, zenoh_options(args), args.clock, args.model, args.lead,
-                                args.damping_ratio))
+    return main(CommanderConfig(run_id=args.run_id, zenoh=zenoh_options(args), clock=args.clock, model=args.model,
+                                lead=args.lead, damping_ratio=args.damping_ratio, sched_fifo=args.sched_fifo,
+                                stall_every_s=args.stall_every, stall_ms=args.stall_ms))
 
 
 if __name__ == "__main__":

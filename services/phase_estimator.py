@@ -32,6 +32,7 @@ PERIOD_NS = 10_000_000  # 100 Hz on simulated time, the instants the learner's s
 class EstimatorConfig:
     run_id: str
     zenoh: ZenohOptions
+    sched_fifo: bool = False
     clock: str = "lockstep"
     model: str | None = None
 
@@ -137,7 +138,7 @@ class EstimatorProcess:
 
 
 def main(config: EstimatorConfig) -> int:
-    with Service("phase_estimator", config.run_id, config.zenoh) as svc:
+    with Service("phase_estimator", config.run_id, config.zenoh, sched_fifo=config.sched_fifo) as svc:
         proc = EstimatorProcess(config, svc)
         svc.log(f"ready: clock {config.clock}, model {config.model or '(set by reset)'}")
         proc.serve()
@@ -156,7 +157,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def cli(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    return main(EstimatorConfig(args.run_id, zenoh_options(args), args.clock, args.model))
+    return main(EstimatorConfig(run_id=args.run_id, zenoh=zenoh_options(args), clock=args.clock, model=args.model,
+                                sched_fifo=args.sched_fifo))
 
 
 if __name__ == "__main__":

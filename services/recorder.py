@@ -31,6 +31,7 @@ _SEQ = re.compile(rb'^\{"seq":(-?\d+)')
 class RecorderConfig:
     run_id: str
     zenoh: ZenohOptions
+    sched_fifo: bool = False
     out_dir: str = "recordings"
 
 
@@ -108,7 +109,8 @@ class RecorderProcess:
                     elif req.cmd == "end_episode":
                         req.reply(**self.end(req.payload))
                     elif req.cmd == "status":
-                        req.reply(total=self.total, recording=self.writer is not None, last_seq=self._last_seq)
+                        req.reply(total=self.total, recording=self.writer is not None, last_seq=self._last_seq,
+                                  links={})
                     elif req.cmd == "shutdown":
                         req.reply()
                         return
@@ -121,7 +123,7 @@ class RecorderProcess:
 
 
 def main(config: RecorderConfig) -> int:
-    with Service("recorder", config.run_id, config.zenoh) as svc:
+    with Service("recorder", config.run_id, config.zenoh, sched_fifo=config.sched_fifo) as svc:
         proc = RecorderProcess(config, svc)
         svc.log(f"ready: recording etar/{config.run_id}/** into {config.out_dir}")
         proc.serve()
@@ -141,7 +143,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def cli(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    return main(RecorderConfig(args.run_id, zenoh_options(args), args.out_dir))
+    return main(RecorderConfig(run_id=args.run_id, zenoh=zenoh_options(args), out_dir=args.out_dir,
+                               sched_fifo=args.sched_fifo))
 
 
 if __name__ == "__main__":

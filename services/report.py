@@ -25,6 +25,7 @@ import numpy as np
 from etar.metrics import score_segmentation
 from services.recording import read_episode
 from services.runtime.messages import BY_TOPIC
+from services.runtime.timing import Histogram
 
 
 def _percentiles(values_us) -> dict:
@@ -120,6 +121,11 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
                         "max_us": float(max(v["max_us"] for v in vs)),
                         "lost": sum(v["lost"] or 0 for v in vs), "out_of_order": sum(v["out_of_order"] for v in vs)}
                     for t, vs in links.items() if vs and "p50_us" in vs[0]}
+    received = {}
+    for role, st_ in (getattr(runner, "service_stats", None) or {}).items():
+        for topic, v in (st_.get("links") or {}).items():
+            received[f"{topic} -> {role}"] = v
+    closed = [lp.get("closed_loop_latency", {}) for lp in loops if lp.get("closed_loop_latency", {}).get("count")]
     sim_total = sum(e["sim_seconds"] for e in episodes)
     wall_total = sum(e["wall_seconds"] for e in episodes)
     report = {
@@ -151,6 +157,9 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
                            "longest_miss_run": max((lp["longest_miss_run"] for lp in loops), default=0),
                            "per_episode": loops},
             "links_publish_to_recorder": link_summary,
+            "links_received": received,
+            "closed_loop": {"per_episode": closed,
+                            "p99_us_max": max((c["p99_us"] for c in closed), default=None)},
             "fri": [e["fri"] for e in episodes],
         },
         "exit_codes": exit_codes,
@@ -158,7 +167,75 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
     out = Path(runner.out)
     (out / "report.json").write_text(json.dumps(report, indent=1, default=float) + "\n")
     (out / "report.txt").write_text(render_text(report))
+    (out / "timing.txt").write_text(histograms_text(loops))
+    try:
+        plot_timing(report, loops, [d["path"] for d in st.demonstrations + st.reproductions], out / "timing.png")
+    except Exception as exc:  # a picture must not cost the run its report
+        (out / "timing.png.error").write_text(f"{type(exc).__name__}: {exc}\n")
     return report
+
+
+def _pooled(loops, key) -> Histogram:
+    h = Histogram()
+    for lp in loops:
+        d = lp.get(key) or {}
+        for start_us, count in (d.get("bins") or {}).items():
+            h.counts[int(start_us) * 1000 // h.bin_ns] += count
+        h.overflow += d.get("overflow", 0)
+    return h
+
+
+def histograms_text(loops) -> str:
+    """cyclictest-style histograms of the robot loop and its answers, all episodes pooled."""
+    parts = []
+    for key, title in (("lateness", "robot 1 kHz loop: wake-up lateness (us)"),
+                       ("execution", "robot 1 kHz loop: execution time per cycle (us)"),
+                       ("answer_latency", "FRI answer latency: measurement published -> command received (us)"),
+                       ("closed_loop_latency", "closed loop: measurement -> sensor -> estimator -> commander -> "
+                                               "robot (us)")):
+        parts.append(_pooled(loops, key).text(title))
+    return "\n".join(parts)
+
+
+def plot_timing(report, loops, recordings, path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 2, figsize=(12, 7))
+    for ax, (key, title) in zip(axes.ravel()[:3], (("lateness", "loop wake-up lateness"),
+                                                   ("answer_latency", "FRI answer latency"),
+                                                   ("closed_loop_latency", "closed-loop latency"))):
+        h = _pooled(loops, key)
+        x = np.arange(h.counts.size) * h.bin_ns / 1e3
+        ax.bar(x, h.counts, width=h.bin_ns / 1e3, align="edge")
+        ax.set_yscale("log")
+        ax.set_xlim(0, max(50.0, (np.flatnonzero(h.counts).max() + 2) * h.bin_ns / 1e3 if h.counts.any() else 50.0))
+        ax.set_title(f"{title} (overflow >= {h.limit_ns / 1e6:.0f} ms: {h.overflow})")
+        ax.set_xlabel("us (10 us bins)")
+    ax = axes.ravel()[3]
+    for path_ in recordings[-4:]:
+        try:
+            ep = read_episode(path_)
+        except (OSError, ValueError):
+            continue
+        t, q = [], []
+        for m in ep.messages:
+            if m.topic == "/robot/state":
+                d = json.loads(m.payload)
+                t.append(d["stamp_ns"] / 1e9)
+                q.append(d["fri_quality"])
+        if t:
+            ax.step(np.asarray(t) - t[0], q, where="post", label=Path(path_).stem)
+    ax.set_yticks([0, 1, 2, 3], ["UNACC.", "BAD", "OK", "PERFECT"])
+    ax.set_title("FRI quality over each episode")
+    ax.set_xlabel("simulated time in episode [s]")
+    ax.legend(fontsize=7)
+    fig.suptitle(f"run {report['run_id']} ({report['environment']['clock']})")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
 
 
 def render_text(r: dict) -> str:
@@ -204,6 +281,19 @@ def render_text(r: dict) -> str:
     rtf = s["real_time_factor"]
     lines.append(f"simulated {s['simulated_seconds']:.1f} s in {s['episode_wall_seconds']:.1f} s of episodes: "
                  f"{'-' if rtf is None else f'{rtf:.2f}'} x real time")
+    cl = t.get("closed_loop", {})
+    if cl.get("p99_us_max") is not None:
+        lines.append(f"closed loop (measurement -> sensor -> estimator -> commander -> robot): worst p99 "
+                     f"{cl['p99_us_max']:.0f} us over {len(cl['per_episode'])} reproduction(s)")
+    if t.get("links_received"):
+        lines.append("link latency at the receiver (us):                    p50      p99    p99.9      max   lost"
+                     "  out-of-order  garbage")
+        for name, v in sorted(t["links_received"].items()):
+            lat = v.get("latency", {})
+            if not lat.get("count"):
+                continue
+            lines.append(f"  {name:<45} {lat['p50_us']:8.0f} {lat['p99_us']:8.0f} {lat['p99_9_us']:8.0f} "
+                         f"{lat['max_us']:8.0f} {v['lost']:6d} {v['out_of_order']:13d} {v['bad']:8d}")
     lines.append("link latency, publish -> recorder (us):   p50      p99      max   lost  out-of-order")
     for topic, v in sorted(t["links_publish_to_recorder"].items()):
         lines.append(f"  {topic:<22} {v['p50_us']:9.0f} {v['p99_us']:8.0f} {v['max_us']:8.0f} {v['lost']:6d} "

@@ -34,6 +34,7 @@ from robot_sim.labels import LABELERS
 from robot_sim.teacher import DOWN
 from robot_sim.worlds import WORLDS
 from services.runtime.loop import AbsoluteDeadlineTimer, LoopTiming, set_timer_slack, try_sched_fifo
+from services.runtime.timing import Histogram
 from services.runtime.messages import EPISODE_SUMMARY, ROBOT_CONTACT, ROBOT_STATE
 from services.runtime.service import Service, now_ns
 from services.runtime.session import ZenohOptions, add_zenoh_arguments, zenoh_options
@@ -202,7 +203,8 @@ class RobotProcess:
         lockstep = self.config.clock == "lockstep"
         timing = LoopTiming(cell.cycle_ns)
         timer = None if lockstep else AbsoluteDeadlineTimer(cell.cycle_ns)
-        ep = dict(first_seq=cell.fri.seq + 1, peak=0.0, missed_answers=0, reason="timeout", k=0)
+        ep = dict(first_seq=cell.fri.seq + 1, peak=0.0, missed_answers=0, reason="timeout", k=0,
+                  answer=Histogram(), closed_loop=Histogram(), sent={}, last_estimate=-1)
         wall0 = time.monotonic()
         stall_every = int(self.config.stall_every_s * 1000) if self.config.stall_ms > 0 else 0
         open_cycle = None
@@ -247,7 +249,8 @@ class RobotProcess:
             fri={"answered": stats.answered, "missed": stats.missed, "late": stats.late, "corrupt": stats.corrupt,
                  "longest_miss_run": stats.longest_miss_run, "state": int(stats.state),
                  "quality": int(stats.quality)},
-            loop=dict(timing.summary(), clock=self.config.clock, sched_fifo=self.fifo),
+            loop=dict(timing.summary(), clock=self.config.clock, sched_fifo=self.fifo,
+                      answer_latency=ep["answer"].to_dict(), closed_loop_latency=ep["closed_loop"].to_dict()),
         )
 
     def _open(self, ep):
@@ -267,6 +270,10 @@ class RobotProcess:
         touching = cell.sim.touching()
         true_phase = self.labeler.update(touching)
         ep["peak"] = max(ep["peak"], float(np.linalg.norm(contact)))
+        ep["sent"][m.seq] = sent
+        if len(ep["sent"]) > 2000:  # the closed loop spans a few cycles: forget the old ones
+            for old in [k for k in ep["sent"] if k < m.seq - 1000]:
+                del ep["sent"][old]
         self._pub_contact.put(ROBOT_CONTACT.encode(
             seq=m.seq, stamp_ns=m.stamp_ns, sent_ns=now_ns(), wrench=wrench, contact_force=contact,
             touching=touching, true_phase=true_phase, episode=self.episode))
@@ -283,6 +290,12 @@ class RobotProcess:
         goal_reached = teacher_done = False
         if cmd_entry is not None:
             msg, recv = cmd_entry
+            ep["answer"].add(recv - sent)
+            est = msg.get("estimate_seq", -1)
+            if est > ep["last_estimate"] and est in ep["sent"]:
+                # closed loop: this cycle's measurement -> sensor -> estimator -> commander -> here
+                ep["closed_loop"].add(recv - ep["sent"][est])
+                ep["last_estimate"] = est
             arrival = m.stamp_ns + (LOCKSTEP_LATENCY_NS if lockstep else recv - sent)
             cell.receive(CommandPacket(seq=msg["seq"], cart_pos=np.array(msg["cart_pos"]),
                                        cart_stiffness=np.array(msg["cart_stiffness"]),

@@ -54,6 +54,7 @@ class RunOptions:
     robot_args: tuple = ()  # extra flags for the robot (e.g. fault injection)
     commander_args: tuple = ()
     attach: bool = False  # the services are already running (docker-compose): do not spawn them
+    sched_fifo: bool = False  # every service under SCHED_FIFO if permitted
     ready_timeout: float = 60.0
 
 
@@ -93,7 +94,7 @@ class Runner:
 
     def _args(self, role: str, connect: str) -> list[str]:
         sc = self.scenario
-        common = ["--run-id", self.run_id, "--clock", sc.clock]
+        common = ["--run-id", self.run_id, "--clock", sc.clock] + (["--sched-fifo"] if self.options.sched_fifo else [])
         if self.options.zenoh is not None:
             common += self.options.zenoh.to_args()
         else:
@@ -146,6 +147,7 @@ class Runner:
             if isinstance(exc, KeyboardInterrupt):
                 raise
         finally:
+            self.service_stats = self._collect_stats()
             codes = {}
             if not self.options.attach:
                 self._shutdown_services()
@@ -159,6 +161,16 @@ class Runner:
                 sub.undeclare()
                 session.close()
         return report
+
+    def _collect_stats(self) -> dict:
+        """Each service's own link statistics (receiving end), before they stop."""
+        out = {}
+        for role in self.roles():
+            try:
+                out[role] = self._req(role, "status", timeout=3.0)
+            except Exception as exc:  # a dead service has no statistics; the report says so
+                out[role] = {"error": f"{type(exc).__name__}: {exc}"}
+        return out
 
     def _shutdown_services(self):
         for role in self.roles():

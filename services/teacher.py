@@ -30,6 +30,7 @@ DT = 0.001
 class TeacherConfig:
     run_id: str
     zenoh: ZenohOptions
+    sched_fifo: bool = False
     world: str = "valley"
 
 
@@ -118,7 +119,7 @@ class TeacherProcess:
 
 
 def main(config: TeacherConfig) -> int:
-    with Service("teacher", config.run_id, config.zenoh) as svc:
+    with Service("teacher", config.run_id, config.zenoh, sched_fifo=config.sched_fifo) as svc:
         proc = TeacherProcess(config, svc)
         svc.log(f"ready: world {config.world}")
         proc.serve()
@@ -138,7 +139,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def cli(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    return main(TeacherConfig(args.run_id, zenoh_options(args), args.world))
+    return main(TeacherConfig(run_id=args.run_id, zenoh=zenoh_options(args), world=args.world,
+                              sched_fifo=args.sched_fifo))
 
 
 if __name__ == "__main__":

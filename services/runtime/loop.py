@@ -15,7 +15,7 @@ import os
 import time
 from dataclasses import dataclass, field
 
-import numpy as np
+from services.runtime.timing import Histogram
 
 
 def set_timer_slack(ns: int = 1) -> bool:
@@ -39,16 +39,18 @@ def try_sched_fifo(priority: int = 50) -> bool:
 
 @dataclass
 class LoopTiming:
+    """Per-cycle wake-up lateness, execution time and deadline misses of one loop."""
+
     period_ns: int
-    lateness_ns: list = field(default_factory=list)
-    exec_ns: list = field(default_factory=list)
+    lateness: Histogram = field(default_factory=Histogram)
+    execution: Histogram = field(default_factory=Histogram)
     misses: int = 0
     longest_miss_run: int = 0
     _run: int = 0
 
     def record(self, lateness_ns: int, exec_ns: int, missed: bool) -> None:
-        self.lateness_ns.append(lateness_ns)
-        self.exec_ns.append(exec_ns)
+        self.lateness.add(lateness_ns)
+        self.execution.add(exec_ns)
         if missed:
             self.misses += 1
             self._run += 1
@@ -58,15 +60,9 @@ class LoopTiming:
 
     @property
     def cycles(self) -> int:
-        return len(self.exec_ns)
+        return self.execution.total
 
     def summary(self) -> dict:
-        def pct(values):
-            if not values:
-                return {}
-            a = np.asarray(values, dtype=np.float64) / 1e3
-            return {"p50_us": float(np.percentile(a, 50)), "p99_us": float(np.percentile(a, 99)),
-                    "p99_9_us": float(np.percentile(a, 99.9)), "max_us": float(a.max())}
         n = self.cycles
         return {
             "cycles": n,
@@ -74,8 +70,8 @@ class LoopTiming:
             "misses": self.misses,
             "misses_per_million": (self.misses / n * 1e6) if n else 0.0,
             "longest_miss_run": self.longest_miss_run,
-            "lateness": pct(self.lateness_ns),
-            "execution": pct(self.exec_ns),
+            "lateness": self.lateness.to_dict(),
+            "execution": self.execution.to_dict(),
         }
 
 

@@ -254,6 +254,7 @@ ROBOT_COMMAND = MessageType(
         ("add_tcp_ft", "float[6]", "superposed wrench [Fx Fy Fz Tz Ty Tx], tcp frame"),
         ("requested_mode", "int", "control mode this command is for (2 CART_IMP)"),
         ("phase", "int", "phase whose impedance this command applies (-1: none)"),
+        ("estimate_seq", "int", "robot cycle of the phase estimate this command used (-1: none)"),
         ("goal_reached", "bool", "the commander judges the task complete"),
         ("episode", "int", "reproduction index"),
     ),

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import queue
-from collections import deque
 import signal
 import sys
 import threading
@@ -24,6 +23,11 @@ import zenoh
 from services.runtime import topics
 from services.runtime.messages import BY_TOPIC, MessageError, MessageType
 from services.runtime.session import ZenohOptions, open_session
+from services.runtime.timing import Histogram, SequenceTracker
+
+
+# topics whose sequence numbers (robot cycles) advance by more than one per message
+STRIDES = {"estimator/phase": 10}
 
 
 def now_ns() -> int:
@@ -32,16 +36,21 @@ def now_ns() -> int:
 
 @dataclass
 class LinkCounters:
-    """Per subscribed topic: what arrived, what was garbage, latency samples."""
+    """Per subscribed topic, at the receiving end: what arrived, what was garbage,
+    one-way latency (publish -> this callback, same-host CLOCK_MONOTONIC) and
+    lost / out-of-order messages from the sequence numbers."""
 
     received: int = 0
     bad: int = 0
     last_error: str = ""
-    # the newest latencies only: a long realtime run must not grow without bound
-    latencies_ns: deque = field(default_factory=lambda: deque(maxlen=100_000))
+    latency: Histogram = field(default_factory=Histogram)
+    sequence: SequenceTracker = field(default_factory=SequenceTracker)
 
     def to_dict(self) -> dict:
-        return {"received": self.received, "bad": self.bad, "last_error": self.last_error}
+        seq = self.sequence.to_dict()
+        return {"received": self.received, "bad": self.bad, "last_error": self.last_error,
+                "latency": self.latency.summary(), "lost": seq["lost"], "out_of_order": seq["out_of_order"],
+                "duplicates": seq["duplicates"]}
 
 
 def _plain(value):
@@ -70,8 +79,10 @@ class ControlRequest:
 class Service:
     """Context manager around one service's Zenoh session."""
 
-    def __init__(self, name: str, run_id: str, zenoh_options: ZenohOptions, *, log=None):
+    def __init__(self, name: str, run_id: str, zenoh_options: ZenohOptions, *, log=None, sched_fifo: bool = False):
         self.name = name
+        self.sched_fifo_requested = sched_fifo
+        self.sched_fifo = False
         self.run_id = topics.check_run_id(run_id)
         self.zenoh_options = zenoh_options
         self.stop = threading.Event()
@@ -86,6 +97,12 @@ class Service:
         self._log(msg)
 
     def __enter__(self) -> "Service":
+        if self.sched_fifo_requested:
+            # before the session: the threads Zenoh starts inherit the policy
+            from services.runtime.loop import set_timer_slack, try_sched_fifo
+
+            self.sched_fifo = try_sched_fifo()
+            set_timer_slack(1)
         self.session = open_session(self.zenoh_options)
         self._queryable = self.session.declare_queryable(topics.control(self.run_id, self.name), self._on_query)
         self._token = self.session.liveliness().declare_token(topics.alive(self.run_id, self.name))
@@ -143,7 +160,7 @@ class Service:
         """Deliver (message dict, receive time ns, raw bytes) for every valid
         sample on etar/<run_id>/<topic>; garbage is counted in ``links``, never raised."""
         message_type: MessageType | None = BY_TOPIC.get(topic)
-        counters = self.links.setdefault(topic, LinkCounters())
+        counters = self.links.setdefault(topic, LinkCounters(sequence=SequenceTracker(stride=STRIDES.get(topic, 1))))
 
         def callback(sample: zenoh.Sample) -> None:
             recv = now_ns()
@@ -157,7 +174,8 @@ class Service:
                     counters.bad += 1
                     counters.last_error = str(exc)
                     return
-                counters.latencies_ns.append(recv - msg["sent_ns"])
+                counters.latency.add(recv - msg["sent_ns"])
+                counters.sequence.add(msg["seq"])
             try:
                 on_message(msg, recv, raw)
             except Exception as exc:  # a bad message must not kill the subscriber thread

@@ -61,6 +61,9 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
                    help="endpoint to listen on (repeatable; default tcp/127.0.0.1:0 for peers, none for clients)")
     g.add_argument("--cfg", action="append", default=[], metavar="KEY:VALUE",
                    help="any Zenoh configuration key with a JSON5 value, e.g. transport/unicast/lowlatency:true")
+    if not any(a.dest == "sched_fifo" for a in parser._actions):
+        parser.add_argument("--sched-fifo", action="store_true",
+                            help="run under SCHED_FIFO 50 if permitted (the report says whether it was used)")
 
 
 def zenoh_options(args: argparse.Namespace) -> ZenohOptions:

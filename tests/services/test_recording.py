@@ -62,7 +62,8 @@ def mixed_messages(n_cycles, rng):
                                                                  script_phase=1, done=False, episode=0), t + 30_000))
         out.append((key("robot/command"), ROBOT_COMMAND.encode(
             **header(seq), cart_pos=rng.normal(size=12), cart_stiffness=[1000.0] * 3 + [100.0] * 3,
-            cart_damping=[0.7] * 6, add_tcp_ft=[0.0] * 6, requested_mode=2, phase=0, goal_reached=False,
+            cart_damping=[0.7] * 6, add_tcp_ft=[0.0] * 6, requested_mode=2, phase=0, estimate_seq=-1,
+            goal_reached=False,
             episode=0), t + 50_000))
         if seq % 10 == 0:
             out.append((key("estimator/phase"), ESTIMATOR_PHASE.encode(
