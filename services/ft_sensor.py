@@ -52,22 +52,12 @@ class FtSensorProcess:
             counts_per_force=float(self.ati_config.counts_per_force),
             counts_per_torque=float(self.ati_config.counts_per_torque), wrench=w))
 
+    def tare(self, p: dict) -> None:
+        with self._lock:
+            self.ati.tare(int(p.get("samples", 100)))
+
     def serve(self) -> None:
-        while not self.svc.stop.is_set():
-            req = self.svc.next_control(timeout=0.05)
-            if req is None:
-                continue
-            if req.cmd == "tare":
-                with self._lock:
-                    self.ati.tare(int(req.payload.get("samples", 100)))
-                req.reply()
-            elif req.cmd == "status":
-                req.reply(links={k: v.to_dict() for k, v in self.svc.links.items()})
-            elif req.cmd == "shutdown":
-                req.reply()
-                return
-            else:
-                req.fail(f"unknown command {req.cmd!r} (tare, status, shutdown)")
+        self.svc.serve({"tare": self.tare})
 
 
 def main(config: FtSensorConfig) -> int:

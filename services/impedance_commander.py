@@ -220,28 +220,14 @@ class CommanderProcess:
             self._latest_phase_seq = -1
             self._waiting_since = None
 
+    def _unstick(self) -> None:
+        with self._lock:
+            if self._waiting_since is not None and time.monotonic() - self._waiting_since > ESTIMATE_WAIT_S:
+                self._drain(give_up=True)
+
     def serve(self) -> None:
-        while not self.svc.stop.is_set():
-            req = self.svc.next_control(timeout=0.05)
-            with self._lock:
-                if self._waiting_since is not None and time.monotonic() - self._waiting_since > ESTIMATE_WAIT_S:
-                    self._drain(give_up=True)
-            if req is None:
-                continue
-            try:
-                if req.cmd == "reset":
-                    self.reset(req.payload)
-                    req.reply()
-                elif req.cmd == "status":
-                    req.reply(episode=self.episode, missing_estimates=self.missing_estimates,
-                              links={k: v.to_dict() for k, v in self.svc.links.items()})
-                elif req.cmd == "shutdown":
-                    req.reply()
-                    return
-                else:
-                    req.fail(f"unknown command {req.cmd!r} (reset, status, shutdown)")
-            except (KeyError, ValueError, OSError) as exc:
-                req.fail(f"{type(exc).__name__}: {exc}")
+        self.svc.serve({"reset": self.reset}, idle=self._unstick,
+                       status=lambda: {"episode": self.episode, "missing_estimates": self.missing_estimates})
 
 
 def main(config: CommanderConfig) -> int:

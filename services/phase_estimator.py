@@ -115,26 +115,11 @@ class EstimatorProcess:
             self.R0 = None
             self._states.clear()
             self._wrenches.clear()
+            return {"n_phases": self.model.n_phases}
 
     def serve(self) -> None:
-        while not self.svc.stop.is_set():
-            req = self.svc.next_control(timeout=0.05)
-            if req is None:
-                continue
-            try:
-                if req.cmd == "reset":
-                    self.reset(req.payload)
-                    req.reply(n_phases=self.model.n_phases)
-                elif req.cmd == "status":
-                    req.reply(episode=self.episode, updates=self.updates, skipped=self.skipped,
-                              links={k: v.to_dict() for k, v in self.svc.links.items()})
-                elif req.cmd == "shutdown":
-                    req.reply()
-                    return
-                else:
-                    req.fail(f"unknown command {req.cmd!r} (reset, status, shutdown)")
-            except (KeyError, ValueError, OSError) as exc:
-                req.fail(f"{type(exc).__name__}: {exc}")
+        self.svc.serve({"reset": self.reset},
+                       status=lambda: {"episode": self.episode, "updates": self.updates, "skipped": self.skipped})
 
 
 def main(config: EstimatorConfig) -> int:

@@ -99,25 +99,9 @@ class RecorderProcess:
 
     def serve(self) -> None:
         try:
-            while not self.svc.stop.is_set():
-                req = self.svc.next_control(timeout=0.05)
-                if req is None:
-                    continue
-                try:
-                    if req.cmd == "begin_episode":
-                        req.reply(path=self.begin(req.payload))
-                    elif req.cmd == "end_episode":
-                        req.reply(**self.end(req.payload))
-                    elif req.cmd == "status":
-                        req.reply(total=self.total, recording=self.writer is not None, last_seq=self._last_seq,
-                                  links={})
-                    elif req.cmd == "shutdown":
-                        req.reply()
-                        return
-                    else:
-                        req.fail(f"unknown command {req.cmd!r} (begin_episode, end_episode, status, shutdown)")
-                except (KeyError, ValueError, OSError) as exc:
-                    req.fail(f"{type(exc).__name__}: {exc}")
+            self.svc.serve({"begin_episode": lambda p: {"path": self.begin(p)}, "end_episode": self.end},
+                           status=lambda: {"total": self.total, "recording": self.writer is not None,
+                                           "last_seq": self._last_seq})
         finally:
             self.close()
 

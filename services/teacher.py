@@ -99,23 +99,7 @@ class TeacherProcess:
             self._contacts.clear()
 
     def serve(self) -> None:
-        while not self.svc.stop.is_set():
-            req = self.svc.next_control(timeout=0.05)
-            if req is None:
-                continue
-            try:
-                if req.cmd == "reset":
-                    self.reset(req.payload)
-                    req.reply()
-                elif req.cmd == "status":
-                    req.reply(episode=self.episode, links={k: v.to_dict() for k, v in self.svc.links.items()})
-                elif req.cmd == "shutdown":
-                    req.reply()
-                    return
-                else:
-                    req.fail(f"unknown command {req.cmd!r} (reset, status, shutdown)")
-            except (KeyError, ValueError, TypeError) as exc:
-                req.fail(f"{type(exc).__name__}: {exc}")
+        self.svc.serve({"reset": self.reset}, status=lambda: {"episode": self.episode})
 
 
 def main(config: TeacherConfig) -> int:

@@ -142,6 +142,36 @@ class Service:
         except queue.Empty:
             return None
 
+    def serve(self, handlers: dict, status=None, idle=None) -> None:
+        """Answer control requests until 'shutdown' or a signal.
+
+        ``handlers[cmd](payload)`` returns the reply's fields (or None); a
+        handler's KeyError/ValueError/TypeError/OSError becomes a failed reply,
+        never a dead service.  'status' replies ``status()`` plus the link
+        statistics; ``idle()`` runs between requests (every 50 ms at most).
+        """
+        known = ", ".join(sorted(handlers) + ["status", "shutdown"])
+        while not self.stop.is_set():
+            req = self.next_control(timeout=0.05)
+            if idle is not None:
+                idle()
+            if req is None:
+                continue
+            if req.cmd == "shutdown":
+                req.reply()
+                return
+            if req.cmd == "status":
+                req.reply(**(status() if status else {}), links={k: v.to_dict() for k, v in self.links.items()})
+                continue
+            handler = handlers.get(req.cmd)
+            if handler is None:
+                req.fail(f"unknown command {req.cmd!r} ({known})")
+                continue
+            try:
+                req.reply(**(handler(req.payload) or {}))
+            except (KeyError, ValueError, TypeError, OSError) as exc:
+                req.fail(f"{type(exc).__name__}: {exc}")
+
     # ------------------------------------------------------------ publishing
 
     def publisher(self, topic: str, *, realtime: bool = True):
