@@ -76,7 +76,9 @@ class RobotProcess:
         self._pub_contact = service.publisher("robot/contact")
         self._pub_episode = service.publisher("robot/episode", realtime=False)
         for name, topic in ANSWER_TOPICS.items():
-            service.subscribe(topic, self._on_answer(name))
+            # realtime needs only what it applies; lockstep also waits on the sensor and the estimator
+            if config.clock == "lockstep" or name in ("command", "teacher"):
+                service.subscribe(topic, self._on_answer(name))
         self.fifo = try_sched_fifo() if config.sched_fifo else False
         set_timer_slack(1)
 
