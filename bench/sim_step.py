@@ -19,7 +19,6 @@ import pinocchio as pin
 
 from robot_sim.cell import RobotCell
 from robot_sim.fri import CommandPacket
-from robot_sim.kinematics import READY
 from robot_sim.krc import ImpedanceCommand, pose_to_cart_pos
 from robot_sim.teacher import DOWN
 from robot_sim.worlds import Valley, valley

@@ -486,7 +486,7 @@ def load_demonstration(path, *, state: str = "position", features: str = "force"
     if np.any(np.diff(stamp_ns) <= 0):
         raise RecordingError(f"{path}: robot_state stamp_ns does not increase with seq")
     cart = np.array([states_by_seq[s]["msr_cart_pos"] for s in chosen], dtype=np.float64).reshape(-1, 3, 4)
-    R, p = cart[:, :, :3], cart[:, :, 3]
+    R = cart[:, :, :3]
     wrench = np.array([ft_by_seq[s]["wrench"] for s in chosen], dtype=np.float64)
     true_phase = np.array([contact_by_seq[s]["true_phase"] for s in chosen], dtype=np.int64)
 

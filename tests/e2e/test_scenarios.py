@@ -6,7 +6,6 @@ import time
 from collections import Counter
 from pathlib import Path
 
-import pytest
 
 from services.recording import read_episode
 from services.runner import RunOptions, run

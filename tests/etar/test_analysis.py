@@ -3,7 +3,6 @@
 import numpy as np
 import pytest
 
-from etar import ETAR
 from etar.analysis import prediction_errors
 from etar.impedance import derive_impedance, phase_impedances
 from etar.metrics import match_phases, score_demonstrations, score_segmentation
