@@ -77,8 +77,9 @@ class RobotCell:
 
     def place(self, q: np.ndarray) -> None:
         """Put the arm at joint positions q, at rest (between runs: the lab
-        would drive it there in POSITION mode; ``move_to`` does that)."""
+        would drive it there in POSITION mode)."""
         self.sim.reset(np.asarray(q, dtype=np.float64))
+        self._sense()
         self.krc.reset_safety()
 
     def place_tcp(self, position, rotation, seed_q=READY) -> np.ndarray:
@@ -91,10 +92,6 @@ class RobotCell:
         self.fri.start(self.t_ns)
 
     # --------------------------------------------------------------- cycle
-
-    def measured_pose(self) -> pin.SE3:
-        self.sim.joint_positions(self._q)
-        return self.kin.forward(self._q, "tcp")
 
     def begin_cycle(self) -> MeasurementPacket:
         sim, kin = self.sim, self.kin
@@ -134,10 +131,31 @@ class RobotCell:
         self.sim.apply(tau, hand_wrench)
         self.sim.step()
         self.cycle += 1
-        self.sim.sensor_wrench(self._true_wrench)
+        self._sense()
         record = self.ati.read(self._true_wrench, self.t_ns)
-        contact, _ = self.sim.contact_wrench()
-        return CycleResult(outcome, record, contact, self.sim.touching(), tau.copy(), self.t_ns)
+        return CycleResult(outcome, record, self._contact_force.copy(), list(self._touching), tau.copy(), self.t_ns)
+
+    def _sense(self) -> None:
+        """The physics' truth of the current state, read once per step: the tool
+        wrench on the sensor, the contact force on the tip, what it touches."""
+        self.sim.sensor_wrench(self._true_wrench)
+        self._contact_force, _ = self.sim.contact_wrench()
+        self._touching = self.sim.touching()
+
+    @property
+    def tool_wrench(self) -> np.ndarray:
+        """(6,) what the tool transmits to the F/T sensor now, sensor frame."""
+        return self._true_wrench.copy()
+
+    @property
+    def contact_force(self) -> np.ndarray:
+        """(3,) the environment's force on the tip now, world axes."""
+        return self._contact_force.copy()
+
+    @property
+    def touching(self) -> list:
+        """Names of the geoms the tip touches now."""
+        return list(self._touching)
 
     # ------------------------------------------------------------ helpers
 

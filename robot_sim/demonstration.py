@@ -66,7 +66,7 @@ def record_demonstration(cell: RobotCell, teacher: Teacher, *, sample_every: int
         pose = m.msr_cart_pos.reshape(3, 4)
         twist = cell.tcp_twist()
         hand = teacher.step(dt_cycle, pose[:, 3], twist[:3], pose[:, :3], twist[3:],
-                            cell.sim.contact_wrench()[0], cell.sim.touching())
+                            cell.contact_force, cell.touching)
         out = cell.end_cycle(hand)
         teacher.update_label(out.touching)
         if k % sample_every == 0:

@@ -34,13 +34,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from etar import ETAR
+from robot_sim.cell import standard_to_fri
 from services.runtime.messages import ROBOT_COMMAND
 from services.runtime.service import Service, now_ns
 from services.runtime.session import ZenohOptions, add_zenoh_arguments, zenoh_options
 
 DT = 0.001
 PERIOD_NS = 10_000_000  # the estimator's period (simulated time)
-FRI_ORDER = np.array([0, 1, 2, 5, 4, 3])
 HOLD_STIFFNESS = 2000.0
 ROT_STIFFNESS = 150.0
 EFFECTIVE_MASS = 2.0  # kg, for the damping ratio of the commanded impedance
@@ -61,17 +61,39 @@ class CommanderConfig:
     stall_ms: float = 0.0
 
 
+@dataclass(frozen=True)
+class PhaseLaw:
+    """One phase's impedance as arrays, prepared once from the model file."""
+
+    direction: np.ndarray  # (3,)
+    stiffness: np.ndarray  # (3, 3) K = R V R^T
+    damping: np.ndarray  # (3, 3)
+    feedforward: np.ndarray  # (3,) -(mean contact force on the compliant axes)
+    speed: float  # m/s along the direction
+
+
 class ImpedanceLaw:
     """The per-phase law, free of messaging (tested on its own)."""
 
     def __init__(self, impedances: list, goal: np.ndarray | None, *, lead=0.02, damping_ratio=0.7,
                  goal_tolerance=0.01):
-        self.impedances = impedances
+        self.zeta = damping_ratio
+        self.phases = [None if imp is None else self._prepare(imp) for imp in impedances]
+        self.hold_stiffness = HOLD_STIFFNESS * np.eye(3)
+        self.hold_damping = self._damping(self.hold_stiffness)
         self.goal = None if goal is None else np.asarray(goal, dtype=np.float64)
         self.lead = lead
-        self.zeta = damping_ratio
         self.tol = goal_tolerance
         self.reset()
+
+    def _prepare(self, imp: dict) -> PhaseLaw:
+        K = np.asarray(imp["stiffness"], dtype=np.float64)
+        mean_force = np.asarray(imp["mean_force"], dtype=np.float64)
+        F_ff = np.zeros(3)
+        for a in np.asarray(imp["compliant_axes"], dtype=np.float64).reshape(-1, 3):
+            F_ff -= (mean_force @ a) * a
+        return PhaseLaw(np.asarray(imp["direction"], dtype=np.float64), K, self._damping(K), F_ff,
+                        max(float(imp["mean_speed"]), 0.01))
 
     def reset(self):
         self.phase = None
@@ -80,7 +102,6 @@ class ImpedanceLaw:
         self.prev_x = None
         self.v = np.zeros(3)
         self.goal_reached = False
-        self.last_phase = None
 
     def step(self, x: np.ndarray, R: np.ndarray, phase: int | None) -> tuple[np.ndarray, np.ndarray]:
         """(force in base axes (3,), setpoint rotation) for this cycle."""
@@ -90,32 +111,23 @@ class ImpedanceLaw:
             # a light low-pass on the finite-difference velocity (1 ms steps)
             self.v = 0.7 * self.v + 0.3 * (x - self.prev_x) / DT
         self.prev_x = x.copy()
-        imp = self.impedances[phase] if phase is not None and 0 <= phase < len(self.impedances) else None
+        law = self.phases[phase] if phase is not None and 0 <= phase < len(self.phases) else None
         if phase != self.phase:
             # a new phase starts its reference at the tool, already half a lead
             # ahead along its direction: a flickering estimate must not stall the motion
             self.phase = phase
-            self.ref = x.copy() if imp is None else x + np.asarray(imp["direction"]) * 0.5 * self.lead
-        if self.goal_reached or imp is None:
+            self.ref = x.copy() if law is None else x + law.direction * 0.5 * self.lead
+        if self.goal_reached or law is None:
             if self.ref is None:
                 self.ref = x.copy()
-            K = HOLD_STIFFNESS * np.eye(3)
-            F = K @ (self.ref - x) - self._damping(K) @ self.v
-            return F, self.R_hold
-        d = np.asarray(imp["direction"])
-        K = np.asarray(imp["stiffness"])
-        axes = np.asarray(imp["compliant_axes"]).reshape(-1, 3)
-        speed = max(float(imp["mean_speed"]), 0.01)
-        self.ref = self.ref + d * speed * DT
+            return self.hold_stiffness @ (self.ref - x) - self.hold_damping @ self.v, self.R_hold
+        d = law.direction
+        self.ref = self.ref + d * law.speed * DT
         ahead = (self.ref - x) @ d
         if ahead > self.lead:
             self.ref -= d * (ahead - self.lead)
-        F_ff = np.zeros(3)
-        mean_force = np.asarray(imp["mean_force"])
-        for a in axes:
-            F_ff -= (mean_force @ a) * a
-        F = K @ (self.ref - x) + F_ff - self._damping(K) @ self.v
-        if self.goal is not None and phase == len(self.impedances) - 1:
+        F = law.stiffness @ (self.ref - x) + law.feedforward - law.damping @ self.v
+        if self.goal is not None and phase == len(self.phases) - 1:
             past = (x - self.goal) @ d >= 0.0
             lateral = np.linalg.norm((x - self.goal) - ((x - self.goal) @ d) * d)
             if np.linalg.norm(x - self.goal) < self.tol or (past and lateral < 3 * self.tol):
@@ -191,7 +203,7 @@ class CommanderProcess:
         m = np.asarray(state["msr_cart_pos"]).reshape(3, 4)
         R, x = m[:, :3], m[:, 3]
         F, R_set = self.law.step(x, R, self._latest_phase)
-        add = np.concatenate([R.T @ F, np.zeros(3)])[FRI_ORDER]
+        add = standard_to_fri(np.concatenate([R.T @ F, np.zeros(3)]))
         self._pub.put(ROBOT_COMMAND.encode(
             seq=state["seq"], stamp_ns=state["stamp_ns"], sent_ns=now_ns(),
             cart_pos=np.hstack([R_set, x[:, None]]).ravel(),

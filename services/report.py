@@ -25,49 +25,32 @@ import numpy as np
 from etar.metrics import score_segmentation
 from services.recording import read_episode
 from services.runtime.messages import BY_TOPIC
-from services.runtime.timing import Histogram
+from services.runtime.service import STRIDES
+from services.runtime.timing import Histogram, SequenceTracker, percentiles
 
 
-def _percentiles(values_us) -> dict:
-    if len(values_us) == 0:
-        return {}
-    a = np.asarray(values_us, dtype=np.float64)
-    return {"count": int(a.size), "p50_us": float(np.percentile(a, 50)), "p99_us": float(np.percentile(a, 99)),
-            "p99_9_us": float(np.percentile(a, 99.9)), "max_us": float(a.max())}
-
-
-def episode_links(path) -> dict:
-    """Per topic: publish -> recorder latency percentiles, and lost / out-of-order
-    messages judged from the sequence numbers."""
-    ep = read_episode(path)
+def episode_links(ep) -> dict:
+    """Per topic of one recorded episode: publish -> recorder latency percentiles,
+    and lost / out-of-order messages judged from the sequence numbers."""
     per = {}
     for msg in ep.messages:
         topic = msg.topic.lstrip("/")
-        mtype = BY_TOPIC.get(topic)
-        if mtype is None:
+        if topic not in BY_TOPIC:
             continue
         try:
             d = json.loads(msg.payload)
             seq, sent = int(d["seq"]), int(d["sent_ns"])
         except (ValueError, KeyError, TypeError):
             continue
-        entry = per.setdefault(topic, {"lat": [], "seqs": []})
-        entry["lat"].append((msg.log_time_ns - sent) / 1e3)
-        entry["seqs"].append(seq)
-    out = {}
-    for topic, e in per.items():
-        seqs = np.asarray(e["seqs"])
-        out_of_order = int(np.sum(np.diff(seqs) < 0)) if seqs.size > 1 else 0
-        span = seqs.max() - seqs.min() + 1 if seqs.size else 0
-        out[topic] = dict(_percentiles(e["lat"]), out_of_order=out_of_order,
-                          lost=int(max(0, span - np.unique(seqs).size)) if topic in ("robot/state", "robot/contact",
-                                                                                      "ft/wrench") else None)
-    return out
+        lat, tracker = per.setdefault(topic, ([], SequenceTracker(stride=STRIDES.get(topic, 1))))
+        lat.append(msg.log_time_ns - sent)
+        tracker.add(seq)
+    return {topic: dict(percentiles(lat), lost=tracker.lost, out_of_order=tracker.out_of_order)
+            for topic, (lat, tracker) in per.items()}
 
 
-def reproduction_phases(path, phase_to_truth: dict, dt: float = 0.01) -> dict:
-    """Accuracy and transition-time error of the online estimate in one reproduction."""
-    ep = read_episode(path)
+def reproduction_phases(ep, phase_to_truth: dict, dt: float = 0.01) -> dict:
+    """Accuracy and transition-time error of the online estimate in one recorded reproduction."""
     truth_by_seq, est_by_seq = {}, {}
     for msg in ep.messages:
         topic = msg.topic.lstrip("/")
@@ -86,6 +69,17 @@ def reproduction_phases(path, phase_to_truth: dict, dt: float = 0.01) -> dict:
     return dict(updates=len(seqs), correct=int(round(score.accuracy * len(seqs))), **score.to_dict())
 
 
+def fri_quality_series(ep) -> tuple[np.ndarray, np.ndarray]:
+    """(simulated time s, FRI quality) of every robot_state in one recorded episode."""
+    t, q = [], []
+    for m in ep.messages:
+        if m.topic == "/robot/state":
+            d = json.loads(m.payload)
+            t.append(d["stamp_ns"] / 1e9)
+            q.append(d["fri_quality"])
+    return np.asarray(t), np.asarray(q)
+
+
 def environment(clock: str, fifo: bool) -> dict:
     return {"kernel": platform.release(), "machine": platform.machine(), "cpus": os.cpu_count(),
             "python": platform.python_version(), "clock": clock, "sched_fifo": fifo}
@@ -94,10 +88,24 @@ def environment(clock: str, fifo: bool) -> dict:
 def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: float) -> dict:
     st = runner.state
     sc = runner.scenario
+    # each recording is read once, for every figure taken from it, and let go
+    # (a valley run's recordings do not fit in memory together)
+    links, phases_of, quality = {}, {}, {}
+    reproduction_paths = {r["path"] for r in st.reproductions}
+    for d in st.demonstrations + st.reproductions:
+        try:
+            ep = read_episode(d["path"])
+        except (OSError, ValueError):
+            continue
+        for topic, v in episode_links(ep).items():
+            links.setdefault(topic, []).append(v)
+        if d["path"] in reproduction_paths and st.phase_to_truth:
+            phases_of[d["path"]] = reproduction_phases(ep, st.phase_to_truth)
+        quality[d["path"]] = fri_quality_series(ep)
     repro = []
     for r in st.reproductions:
         s = r["summary"]
-        phases = reproduction_phases(r["path"], st.phase_to_truth or {}) if st.phase_to_truth else {}
+        phases = phases_of.get(r["path"], {})
         reached = s["reason"] == "goal_reached"
         bounded = s["peak_contact_force"] <= r["max_contact_force"]
         repro.append(dict(index=len(repro), path=r["path"], side=r["side"], start=r["start"], reason=s["reason"],
@@ -109,17 +117,10 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
     errors = [e for r in repro for e in r["phases"].get("transition_errors_s", [])]
     episodes = [d["summary"] for d in st.demonstrations] + [r["summary"] for r in st.reproductions]
     loops = [e["loop"] for e in episodes if e.get("loop")]
-    links = {}
-    for d in st.demonstrations + st.reproductions:
-        try:
-            for topic, v in episode_links(d["path"]).items():
-                links.setdefault(topic, []).append(v)
-        except (OSError, ValueError):
-            continue
     link_summary = {t: {"p50_us": float(np.median([v["p50_us"] for v in vs])),
                         "p99_us": float(max(v["p99_us"] for v in vs)),
                         "max_us": float(max(v["max_us"] for v in vs)),
-                        "lost": sum(v["lost"] or 0 for v in vs), "out_of_order": sum(v["out_of_order"] for v in vs)}
+                        "lost": sum(v["lost"] for v in vs), "out_of_order": sum(v["out_of_order"] for v in vs)}
                     for t, vs in links.items() if vs and "p50_us" in vs[0]}
     received = {}
     for role, st_ in (getattr(runner, "service_stats", None) or {}).items():
@@ -169,7 +170,7 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
     (out / "report.txt").write_text(render_text(report))
     (out / "timing.txt").write_text(histograms_text(loops))
     try:
-        plot_timing(report, loops, [d["path"] for d in st.demonstrations + st.reproductions], out / "timing.png")
+        plot_timing(report, loops, quality, out / "timing.png")
     except Exception as exc:  # a picture must not cost the run its report
         (out / "timing.png.error").write_text(f"{type(exc).__name__}: {exc}\n")
     return report
@@ -197,7 +198,7 @@ def histograms_text(loops) -> str:
     return "\n".join(parts)
 
 
-def plot_timing(report, loops, recordings, path) -> None:
+def plot_timing(report, loops, quality: dict, path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -215,19 +216,9 @@ def plot_timing(report, loops, recordings, path) -> None:
         ax.set_title(f"{title} (overflow >= {h.limit_ns / 1e6:.0f} ms: {h.overflow})")
         ax.set_xlabel("us (10 us bins)")
     ax = axes.ravel()[3]
-    for path_ in recordings[-4:]:
-        try:
-            ep = read_episode(path_)
-        except (OSError, ValueError):
-            continue
-        t, q = [], []
-        for m in ep.messages:
-            if m.topic == "/robot/state":
-                d = json.loads(m.payload)
-                t.append(d["stamp_ns"] / 1e9)
-                q.append(d["fri_quality"])
-        if t:
-            ax.step(np.asarray(t) - t[0], q, where="post", label=Path(path_).stem)
+    for path_, (t, q) in list(quality.items())[-4:]:
+        if len(t):
+            ax.step(t - t[0], q, where="post", label=Path(path_).stem)
     ax.set_yticks([0, 1, 2, 3], ["UNACC.", "BAD", "OK", "PERFECT"])
     ax.set_title("FRI quality over each episode")
     ax.set_xlabel("simulated time in episode [s]")

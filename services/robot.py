@@ -267,9 +267,7 @@ class RobotProcess:
             answer_rate=m.answer_rate, latency_s=m.latency_s, jitter_s=m.jitter_s, miss_rate=m.miss_rate,
             safety=int(cell.krc.safety), gravity_compensation=bool(cell.krc.gravity_compensation),
             episode=self.episode))
-        wrench = cell.sim.sensor_wrench()
-        contact, _ = cell.sim.contact_wrench()
-        touching = cell.sim.touching()
+        wrench, contact, touching = cell.tool_wrench, cell.contact_force, cell.touching
         true_phase = self.labeler.update(touching)
         ep["peak"] = max(ep["peak"], float(np.linalg.norm(contact)))
         ep["sent"][m.seq] = sent

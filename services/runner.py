@@ -77,6 +77,8 @@ class Runner:
             self.scenario = self.scenario.with_clock(options.clock)
         self.out = Path(options.out)
         self.run_id = options.run_id or f"{self.scenario.name}-{uuid.uuid4().hex[:8]}"
+        source = Path(self.scenario.source)
+        self.scenario_text = source.read_text() if source.is_file() else None  # attached to every recording
         self.state = RunState()
         self._episode_done = threading.Event()
         self._summary = None
@@ -206,8 +208,7 @@ class Runner:
         return self._summary
 
     def _prepare(self, kind, index, start, path):
-        scenario_text = Path(self.scenario.source).read_text() if Path(self.scenario.source).exists() else None
-        self._req("recorder", "begin_episode", path=str(path), kind=kind, index=index, scenario=scenario_text,
+        self._req("recorder", "begin_episode", path=str(path), kind=kind, index=index, scenario=self.scenario_text,
                   metadata={"start": json.dumps(list(start)), "scenario": self.scenario.name})
         self._event("episode_begin", kind, index, {"start": list(start)})
         self._req("robot", "reset", start=list(start), episode=index, kind=kind)
