@@ -3,7 +3,14 @@
 Frames are named in the arguments and results: ``oMtcp`` is the pose of the tcp
 frame in the base (world) frame; Jacobians are taken in
 ``LOCAL_WORLD_ALIGNED`` (origin at the frame, axes of the base) unless stated.
-All results are copies; nothing hands out views of ``data``.
+Results are copies, except what ``views`` and ``frame_views`` hand out.
+
+The realtime step (robot_sim.krc) must not allocate, and every Pinocchio
+function that returns an array returns a new one, as does every access to an
+attribute of ``data``.  For it, ``update_dynamics`` runs algorithms that only
+fill ``data`` in place, and ``views``/``frame_views`` hand out views of
+``data``'s buffers, taken once: Pinocchio writes into the same memory on every
+update, so they stay current (and valid as long as this object lives).
 """
 
 from __future__ import annotations
@@ -31,7 +38,14 @@ class ArmKinematics:
         self.frame_ids = {name: self.model.getFrameId(name) for name in FRAMES}
         self.q_min = np.array(description.q_min)
         self.q_max = np.array(description.q_max)
-        self._J = np.zeros((6, self.model.nv))
+        d = self.data
+        # the buffers update_dynamics fills: joint Jacobians (6, nv) in the world
+        # frame [linear; angular] (about the world origin), the joint-space
+        # inertia (nv, nv; its upper triangle is what the CRBA guarantees), and
+        # the nonlinear effects (nv,)
+        self.views = {"J": d.J, "M": d.M, "nle": d.nle}
+        self._frame_views = {name: (d.oMf[fid].rotation, d.oMf[fid].translation)
+                             for name, fid in self.frame_ids.items()}
 
     def update(self, q: np.ndarray, qd: np.ndarray | None = None) -> None:
         """Kinematics (and Jacobians) at q; call before the frame queries below."""
@@ -41,6 +55,29 @@ class ArmKinematics:
             pin.forwardKinematics(self.model, self.data, q, qd)
         pin.computeJointJacobians(self.model, self.data, q)
         pin.updateFramePlacements(self.model, self.data)
+
+    def update_dynamics(self, q: np.ndarray, qd: np.ndarray) -> None:
+        """``update(q, qd)`` plus the joint-space inertia and the nonlinear
+        effects, into ``views`` and ``frame_views``.  No Python object or numpy
+        array is allocated (computeJointJacobians and nonLinearEffects would
+        return copies); eigenpy still copies q and qd into Eigen vectors, two
+        56 B C++ heap blocks, as it does for any Pinocchio call."""
+        pin.computeAllTerms(self.model, self.data, q, qd)
+        pin.updateFramePlacements(self.model, self.data)
+
+    def frame_views(self, frame: str = "tcp") -> tuple[np.ndarray, np.ndarray]:
+        """(rotation (3, 3), translation (3,)) of oMframe: live views of ``data``."""
+        return self._frame_views[frame]
+
+    def support(self, frame: str = "tcp") -> np.ndarray:
+        """(nv,) 1.0 for the velocities that move the frame, 0.0 for the others:
+        the columns of the joint Jacobians that make up the frame's."""
+        mask = np.zeros(self.model.nv)
+        for j in self.model.supports[self.model.frames[self.frame_ids[frame]].parentJoint]:
+            if j > 0:
+                joint = self.model.joints[j]
+                mask[joint.idx_v:joint.idx_v + joint.nv] = 1.0
+        return mask
 
     def placement(self, frame: str = "tcp") -> pin.SE3:
         """oMframe after ``update`` (a copy)."""

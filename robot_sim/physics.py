@@ -2,20 +2,112 @@
 
 Model/Data split: ``Simulation.model`` is the immutable MjModel,
 ``Simulation.data`` the MjData workspace.  Everything is looked up by name
-once; the step writes into preallocated buffers (no allocation per step) and
-hands out copies.  Step order (dm_control's): ``apply(tau, hand_wrench)`` ->
-``step()`` -> read.  A step that produces NaN or a MuJoCo warning raises
-``PhysicsError`` instead of carrying garbage on.
+once; the step writes into preallocated buffers and hands out copies.  Step
+order (dm_control's): ``apply(tau, hand_wrench)`` -> ``step()`` -> read.  A
+step that produces NaN or a MuJoCo warning raises ``PhysicsError`` instead of
+carrying garbage on.
+
+``joint_positions(out)``, ``joint_velocities(out)``, ``apply`` and ``step``
+allocate nothing (tests/robot_sim/test_allocation.py): the MjData arrays are
+viewed once (MjData never moves them), and the little arithmetic is done by
+numba kernels that reach the buffers through their addresses (see ``address``).
 """
 
 from __future__ import annotations
 
 import mujoco
 import numpy as np
+from numba import carray, farray, njit, types
+from numba.extending import intrinsic
 
 from robot_sim.worlds import TIMESTEP, WorldSpec
 
 JOINTS = tuple(f"joint{i}" for i in range(1, 8))
+
+_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+
+
+# --------------------------------------------------------------------------
+# allocation-free kernels
+#
+# numba wraps every ndarray argument of a call in a freshly allocated MemInfo
+# (48 B through PyMem_RawMalloc, freed on return), so a per-step kernel called
+# with arrays allocates however little it computes.  Plain ints cost nothing to
+# pass: the per-step kernels here and in robot_sim.krc take the addresses of
+# preallocated float64 buffers and view them with ``carray_at``/``farray_at``.
+# Whoever takes an address keeps the array alive and never resizes it.
+# (numba's cache only tracks the file a kernel is defined in: after changing
+# these helpers, clear robot_sim/__pycache__/*.nb[ic].)
+# --------------------------------------------------------------------------
+
+
+def address(a: np.ndarray) -> int:
+    """Where the float64 data of ``a`` starts, for ``carray_at``/``farray_at``."""
+    if a.dtype != np.float64 or not (a.flags.c_contiguous or a.flags.f_contiguous):
+        raise ValueError(f"need a contiguous float64 array, got {a.dtype} with strides {a.strides}")
+    return a.ctypes.data
+
+
+@intrinsic
+def _float64_pointer(typingctx, addr):
+    if not isinstance(addr, types.Integer):
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.inttoptr(args[0], context.get_value_type(signature.return_type))
+
+    return types.CPointer(types.float64)(addr), codegen
+
+
+@njit(**_JIT, inline="always")
+def carray_at(addr, shape):
+    """The row-major float64 array of ``shape`` at ``addr`` (a view, in a kernel)."""
+    return carray(_float64_pointer(addr), shape)
+
+
+@njit(**_JIT, inline="always")
+def farray_at(addr, shape):
+    """The column-major (Eigen's default) float64 array of ``shape`` at ``addr``."""
+    return farray(_float64_pointer(addr), shape)
+
+
+@njit(**_JIT)
+def all_finite_at(addr, n):
+    a = carray_at(addr, (n,))
+    for i in range(n):
+        if not np.isfinite(a[i]):
+            return False
+    return True
+
+
+@njit(**_JIT)
+def _applied_forces(nv, cdof_at, com_at, point_at, chain_at, wrench_at, hand, tau_at, arm_dof, hand_at, out_at):
+    """qfrc_applied = the hand's wrench at the point (mj_applyFT) + tau on the arm's dofs.
+
+    As mj_jac: the dofs of the body's chain move the point with
+    jacp = cdof_lin + cdof_ang x (point - subtree_com[root]), jacr = cdof_ang."""
+    cdof = carray_at(cdof_at, (nv, 6))
+    qfrc_hand = carray_at(hand_at, (nv,))
+    out = carray_at(out_at, (nv,))
+    if hand:
+        com, point = carray_at(com_at, (3,)), carray_at(point_at, (3,))
+        chain, w = carray_at(chain_at, (nv,)), carray_at(wrench_at, (6,))
+        ox, oy, oz = point[0] - com[0], point[1] - com[1], point[2] - com[2]
+        for i in range(nv):
+            if chain[i] == 0.0:
+                qfrc_hand[i] = 0.0
+                continue
+            ax, ay, az = cdof[i, 0], cdof[i, 1], cdof[i, 2]
+            jx = cdof[i, 3] + ay * oz - az * oy
+            jy = cdof[i, 4] + az * ox - ax * oz
+            jz = cdof[i, 5] + ax * oy - ay * ox
+            qfrc_hand[i] = jx * w[0] + jy * w[1] + jz * w[2] + ax * w[3] + ay * w[4] + az * w[5]
+    else:
+        qfrc_hand[:] = 0.0
+    out[:] = qfrc_hand
+    tau = carray_at(tau_at, (7,))
+    for i in range(7):
+        out[arm_dof + i] += tau[i]
 
 
 class PhysicsError(RuntimeError):
@@ -41,10 +133,34 @@ class Simulation:
         self._force_adr = m.sensor_adr[m.sensor("ft_force").id]
         self._torque_adr = m.sensor_adr[m.sensor("ft_torque").id]
         self._role_of_geom = {m.geom(name).id: role for name, role in world.contact_geoms.items()}
-        self._qfrc = np.zeros(m.nv)
         self._hand_qfrc = np.zeros(m.nv)
         self._contact6 = np.zeros(6)
-        self._wrench = np.zeros(6)
+        self._tau = np.zeros(7)
+        self._hand_wrench = np.zeros(6)
+        # the per-step arrays, viewed once: each index or slice would make a new array
+        d = self.data
+        a, v = int(self._qpos[0]), int(self._dof[0])
+        if not (np.array_equal(self._qpos, np.arange(a, a + 7)) and np.array_equal(self._dof, np.arange(v, v + 7))):
+            raise ValueError(f"world {world.name}: the arm's joints must be consecutive in qpos and qvel")
+        self._arm_qpos = d.qpos[a:a + 7]
+        self._arm_qvel = d.qvel[v:v + 7]
+        self._arm_dof = v
+        self._nv = m.nv
+        self._bad_qacc = d.warning[mujoco.mjtWarning.mjWARN_BADQACC]  # a live view of the counter
+        # the dofs that move the flange: mj_jac's chain, as a mask
+        chain = np.zeros(m.nv)
+        body = self._flange_body
+        while body and not m.body_dofnum[body]:
+            body = m.body_parentid[body]
+        dof = m.body_dofadr[body] + m.body_dofnum[body] - 1 if body else -1
+        while dof >= 0:
+            chain[dof] = 1.0
+            dof = m.dof_parentid[dof]
+        self._chain = chain
+        self._at = {"cdof": address(d.cdof), "com": address(d.subtree_com[m.body_rootid[self._flange_body]]),
+                    "flange": address(d.site_xpos[self._flange_site]), "chain": address(chain),
+                    "wrench": address(self._hand_wrench), "tau": address(self._tau), "hand": address(self._hand_qfrc),
+                    "applied": address(d.qfrc_applied), "qacc": address(d.qacc)}
 
     @property
     def time(self) -> float:
@@ -60,13 +176,15 @@ class Simulation:
         mujoco.mj_forward(self.model, self.data)
 
     def joint_positions(self, out: np.ndarray | None = None) -> np.ndarray:
-        out = np.empty(7) if out is None else out
-        np.copyto(out, self.data.qpos[self._qpos])
+        if out is None:
+            return self._arm_qpos.copy()
+        out[...] = self._arm_qpos
         return out
 
     def joint_velocities(self, out: np.ndarray | None = None) -> np.ndarray:
-        out = np.empty(7) if out is None else out
-        np.copyto(out, self.data.qvel[self._dof])
+        if out is None:
+            return self._arm_qvel.copy()
+        out[...] = self._arm_qvel
         return out
 
     def tcp_position(self) -> np.ndarray:
@@ -81,17 +199,19 @@ class Simulation:
         """Joint torques (7,) and the teacher's hand wrench (6,) [force; torque]
         in world axes, applied at the flange (above the F/T sensor, where a
         person grasps the arm, so the sensor sees contact and tool, not the hand)."""
-        self._hand_qfrc[:] = 0.0
-        if hand_wrench is not None:
-            mujoco.mj_applyFT(self.model, self.data, hand_wrench[:3], hand_wrench[3:],
-                              self.data.site_xpos[self._flange_site], self._flange_body, self._hand_qfrc)
-        np.copyto(self._qfrc, self._hand_qfrc)
-        self._qfrc[self._dof] += tau
-        self.data.qfrc_applied[:] = self._qfrc
+        # the hand acts through the Jacobian at the flange of the last computed
+        # kinematics, as mj_applyFT would (its bindings allocate per call)
+        self._tau[...] = tau
+        hand = hand_wrench is not None
+        if hand:
+            self._hand_wrench[...] = hand_wrench
+        at = self._at
+        _applied_forces(self._nv, at["cdof"], at["com"], at["flange"], at["chain"], at["wrench"], hand,
+                        at["tau"], self._arm_dof, at["hand"], at["applied"])
 
     def step(self) -> None:
         mujoco.mj_step(self.model, self.data)
-        if not np.isfinite(self.data.qacc).all() or self.data.warning[mujoco.mjtWarning.mjWARN_BADQACC].number:
+        if not all_finite_at(self._at["qacc"], self._nv) or self._bad_qacc.number:
             raise PhysicsError(f"simulation diverged at t={self.data.time:.3f} s (bad acceleration)")
 
     # ------------------------------------------------------------- sensing

@@ -1,0 +1,147 @@
+"""The allocation-free control step computes what Pinocchio's and MuJoCo's
+allocating functions compute: frame Jacobians, log3, the operational-space
+inertia, the hand's joint torques, and the whole impedance law."""
+
+import mujoco
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from robot_sim.kinematics import FRAMES, READY, ArmKinematics
+from robot_sim.krc import (
+    ImpedanceCommand,
+    KrcController,
+    SafetyReason,
+    frame_jacobian,
+    lambda_diagonal,
+    log3,
+    pose_to_cart_pos,
+)
+from robot_sim.lwr4 import LWR4
+from robot_sim.physics import Simulation
+from robot_sim.worlds import Valley, free_space, valley
+
+LOCAL, LWA = pin.ReferenceFrame.LOCAL, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+
+
+def random_states(n, seed=0):
+    rng = np.random.default_rng(seed)
+    for q in rng.uniform(0.95 * np.array(LWR4.q_min), 0.95 * np.array(LWR4.q_max), size=(n, 7)):
+        yield q, rng.normal(size=7)
+
+
+@pytest.fixture(scope="module")
+def kin():
+    return ArmKinematics()
+
+
+def test_frame_jacobians_from_the_joint_jacobians_are_pinocchios(kin):
+    out = np.empty((6, 7))
+    for q, qd in random_states(100):
+        kin.update_dynamics(q, qd)
+        for frame in FRAMES:
+            rotation, translation = kin.frame_views(frame)
+            for reference, local in ((LOCAL, True), (LWA, False)):
+                frame_jacobian(kin.views["J"], rotation, translation, kin.support(frame), local, out)
+                expected = pin.getFrameJacobian(kin.model, kin.data, kin.frame_ids[frame], reference)
+                np.testing.assert_allclose(out, expected, rtol=0, atol=1e-12)
+
+
+def test_views_follow_the_updates(kin):
+    J, nle = kin.views["J"], kin.views["nle"]
+    rotation, translation = kin.frame_views("tcp")
+    for q, qd in random_states(5, seed=1):
+        kin.update_dynamics(q, qd)
+        np.testing.assert_array_equal(J, pin.computeJointJacobians(kin.model, kin.model.createData(), q))
+        np.testing.assert_allclose(nle, pin.nonLinearEffects(kin.model, kin.model.createData(), q, qd), atol=1e-12)
+        oMtcp = kin.forward(q)
+        np.testing.assert_allclose(rotation, oMtcp.rotation, atol=1e-15)
+        np.testing.assert_allclose(translation, oMtcp.translation, atol=1e-15)
+
+
+def test_log3_is_pinocchios():
+    rng = np.random.default_rng(2)
+    rotations = [pin.exp3(rng.normal(size=3)) for _ in range(500)]
+    for angle in (0.0, 1e-9, 1e-6, 1e-3, 1.0, np.pi - 1e-3, np.pi - 1e-5, np.pi - 1e-7, np.pi):
+        for _ in range(30):
+            axis = rng.normal(size=3)
+            rotations.append(pin.exp3(angle * axis / np.linalg.norm(axis)))
+    work, out = np.empty((4, 3)), np.empty(3)
+    for R in rotations:
+        # commanded rotations are orthonormal only to FRI's tolerance: log3 renormalises
+        for M in (R, R + rng.normal(size=(3, 3)) * 1e-7):
+            log3(M, work, out)
+            np.testing.assert_allclose(out, pin.log3(M), rtol=0, atol=1e-10)
+
+
+def test_lambda_diagonal_is_the_cartesian_mass_in_tcp_axes(kin):
+    J = np.empty((6, 7))
+    L, X, A, La = np.empty((7, 7)), np.empty((7, 6)), np.empty((6, 6)), np.empty((6, 6))
+    y, out = np.empty(6), np.empty(6)
+    for q, qd in random_states(50, seed=3):
+        kin.update_dynamics(q, qd)
+        rotation, translation = kin.frame_views("tcp")
+        frame_jacobian(kin.views["J"], rotation, translation, kin.support("tcp"), True, J)
+        lambda_diagonal(kin.views["M"], J, L, X, A, La, y, out)
+        R = kin.placement("tcp").rotation
+        Rb = np.zeros((6, 6))
+        Rb[:3, :3] = Rb[3:, 3:] = R
+        expected = np.maximum(np.diag(Rb.T @ kin.cartesian_mass(q, "tcp") @ Rb), 1e-3)
+        np.testing.assert_allclose(out, expected, rtol=1e-9)
+
+
+@pytest.mark.parametrize("world", [free_space(), valley(Valley())], ids=["free_space", "valley"])
+def test_apply_is_mj_applyFT_plus_the_drive_torques(world):
+    sim = Simulation(world)
+    rng = np.random.default_rng(4)
+    for q, qd in random_states(30, seed=5):
+        sim.reset(q, qd)
+        hand, tau = rng.normal(size=6) * 10.0, rng.normal(size=7) * 5.0
+        sim.apply(tau, hand)
+        expected = np.zeros(sim.model.nv)
+        mujoco.mj_applyFT(sim.model, sim.data, hand[:3], hand[3:], sim.data.site_xpos[sim._flange_site],
+                          sim._flange_body, expected)
+        np.testing.assert_allclose(sim.external_joint_torques() - sim.data.qfrc_constraint[sim._dof],
+                                   expected[sim._dof], atol=1e-12)
+        expected[sim._dof] += tau
+        np.testing.assert_allclose(sim.data.qfrc_applied, expected, atol=1e-12)
+        sim.apply(tau)
+        np.testing.assert_array_equal(sim.data.qfrc_applied[sim._dof], tau)
+
+
+def reference_impedance(kin, q, qd, command):
+    """Eq. 79 with Pinocchio's allocating functions, as the law was first written."""
+    kin.update(q, qd)
+    nle = kin.nonlinear_effects(q, qd)
+    oMtcp = kin.placement("tcp")
+    J = kin.jacobian("tcp", LOCAL)
+    m = command.cart_pos.reshape(3, 4)
+    error = np.concatenate([oMtcp.rotation.T @ (m[:, 3] - oMtcp.translation), pin.log3(oMtcp.rotation.T @ m[:, :3])])
+    Rb = np.zeros((6, 6))
+    Rb[:3, :3] = Rb[3:, 3:] = oMtcp.rotation
+    lam = np.maximum(np.diag(Rb.T @ kin.cartesian_mass(q, "tcp") @ Rb), 1e-3)
+    k = command.cart_stiffness
+    F = k * error - 2.0 * command.cart_damping * np.sqrt(k * lam) * (J @ qd) + command.add_tcp_ft
+    return J.T @ F + nle, F
+
+
+def test_the_impedance_law_is_eq_79(kin):
+    rng = np.random.default_rng(6)
+    for q, qd in random_states(30, seed=7):
+        krc = KrcController(kin)  # a fresh controller refreshes Lambda on its first cycle
+        target = pin.SE3(pin.exp3(rng.normal(size=3) * 0.3) @ kin.forward(q).rotation,
+                         kin.forward(q).translation + rng.normal(size=3) * 0.05)
+        command = ImpedanceCommand(pose_to_cart_pos(target), rng.uniform(0.0, [3000.0] * 3 + [200.0] * 3),
+                                   rng.uniform(0.0, 1.0, 6), rng.normal(size=6))
+        tau = krc.compute(q, qd, command, hold=False).copy()
+        assert krc.safety == SafetyReason.NONE
+        expected, wrench = reference_impedance(kin, q, qd, command)
+        np.testing.assert_allclose(krc.last_wrench_tcp, wrench, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(tau, np.clip(expected, -krc.tau_max, krc.tau_max), rtol=1e-9, atol=1e-9)
+        np.testing.assert_array_equal(krc.last_tau, tau)
+
+
+def test_compute_returns_its_buffer_and_the_cell_copies_it(kin):
+    krc = KrcController(kin)
+    first = krc.compute(READY, np.zeros(7))
+    assert krc.compute(READY, np.zeros(7)) is first  # documented: copy to keep
