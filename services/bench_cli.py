@@ -83,6 +83,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--attach", action="store_true",
                    help="drive services that are already running (docker-compose) instead of starting them")
     p.add_argument("--ready-timeout", type=float, default=60.0, help="seconds to wait for the services")
+    p.add_argument("--sched-fifo", action="store_true",
+                   help="SCHED_FIFO (where permitted) for the robot (priority 60) and the impedance commander (55), "
+                        "the two ends of the FRI link; the other services stay ordinary processes")
     add_zenoh_arguments(p)
     p.set_defaults(func=cmd_run)
     p = sub.add_parser("report", help="print the report of a finished run")

@@ -27,7 +27,8 @@ from services.runtime.session import ZenohOptions, add_zenoh_arguments, zenoh_op
 class FtSensorConfig:
     run_id: str
     zenoh: ZenohOptions
-    sched_fifo: bool = False
+    sched_fifo: int = 0  # SCHED_FIFO priority, 0: none
+    cpus: tuple = ()  # CPU affinity of the whole process, (): any
     seed: int = 0
 
 
@@ -61,7 +62,8 @@ class FtSensorProcess:
 
 
 def main(config: FtSensorConfig) -> int:
-    with Service("ft_sensor", config.run_id, config.zenoh, sched_fifo=config.sched_fifo) as svc:
+    with Service("ft_sensor", config.run_id, config.zenoh, sched_fifo=config.sched_fifo,
+                 cpus=config.cpus) as svc:
         proc = FtSensorProcess(config, svc)
         svc.log("ready")
         proc.serve()
@@ -82,7 +84,7 @@ def build_parser() -> argparse.ArgumentParser:
 def cli(argv=None) -> int:
     args = build_parser().parse_args(argv)
     return main(FtSensorConfig(run_id=args.run_id, zenoh=zenoh_options(args), seed=args.seed,
-                               sched_fifo=args.sched_fifo))
+                               sched_fifo=args.sched_fifo, cpus=args.cpus))
 
 
 if __name__ == "__main__":

@@ -35,7 +35,9 @@ import numpy as np
 
 from etar import ETAR
 from robot_sim.cell import standard_to_fri
+from services.runtime.loop import Sections
 from services.runtime.messages import ROBOT_COMMAND
+from services.runtime.timing import Histogram
 from services.runtime.service import Service, now_ns
 from services.runtime.session import ZenohOptions, add_zenoh_arguments, zenoh_options
 
@@ -44,14 +46,17 @@ PERIOD_NS = 10_000_000  # the estimator's period (simulated time)
 HOLD_STIFFNESS = 2000.0
 ROT_STIFFNESS = 150.0
 EFFECTIVE_MASS = 2.0  # kg, for the damping ratio of the commanded impedance
-ESTIMATE_WAIT_S = 2.0  # lockstep: how long to wait for a cycle's estimate before going on without it
+ESTIMATE_WAIT_S = 2.0
+_CART_STIFFNESS = [0.0, 0.0, 0.0] + [ROT_STIFFNESS] * 3
+_CART_DAMPING = [0.7] * 6  # lockstep: how long to wait for a cycle's estimate before going on without it
 
 
 @dataclass(frozen=True)
 class CommanderConfig:
     run_id: str
     zenoh: ZenohOptions
-    sched_fifo: bool = False
+    sched_fifo: int = 0  # SCHED_FIFO priority, 0: none
+    cpus: tuple = ()  # CPU affinity of the whole process, (): any
     clock: str = "lockstep"
     model: str | None = None
     lead: float = 0.02  # m
@@ -154,7 +159,12 @@ class CommanderProcess:
         self._latest_phase_seq = -1
         self._waiting_since = None
         self.missing_estimates = 0
-        self._pub = svc.publisher("robot/command")
+        # where an answer's time goes, and receive -> published (the commander's share of
+        # the FRI answer latency)
+        self.sections = Sections("decode", "law", "encode", "publish")
+        self.answer_time = Histogram()
+        self._recv_ns = 0
+        self._pub = svc.publisher("robot/command", drop_when_congested=config.clock == "realtime")
         self.model = ETAR.load(config.model) if config.model else None
         svc.subscribe("robot/state", self.on_state)
         svc.subscribe("estimator/phase", self.on_phase)
@@ -176,6 +186,10 @@ class CommanderProcess:
             # the machine, and lockstep runs must not
             if self.law is None or msg["episode"] != self.episode:
                 return
+            t = now_ns()
+            self.sections.cycles += 1
+            self.sections.add("decode", t - recv_ns)  # receive -> here: decoding and the lock
+            self._recv_ns = recv_ns
             self._pending[msg["seq"]] = msg
             self._drain()
 
@@ -200,17 +214,27 @@ class CommanderProcess:
         c = self.config
         if c.stall_ms > 0 and c.stall_every_s > 0 and state["stamp_ns"] % int(c.stall_every_s * 1e9) == 0:
             time.sleep(c.stall_ms / 1e3)  # injected fault: this answer comes late
+        t0 = now_ns()
         m = np.asarray(state["msr_cart_pos"]).reshape(3, 4)
         R, x = m[:, :3], m[:, 3]
         F, R_set = self.law.step(x, R, self._latest_phase)
         add = standard_to_fri(np.concatenate([R.T @ F, np.zeros(3)]))
-        self._pub.put(ROBOT_COMMAND.encode(
-            seq=state["seq"], stamp_ns=state["stamp_ns"], sent_ns=now_ns(),
+        t1 = now_ns()
+        raw = ROBOT_COMMAND.encode(
+            seq=state["seq"], stamp_ns=state["stamp_ns"], sent_ns=t1,
             cart_pos=np.hstack([R_set, x[:, None]]).ravel(),
-            cart_stiffness=np.array([0.0, 0.0, 0.0] + [ROT_STIFFNESS] * 3), cart_damping=np.full(6, 0.7),
+            cart_stiffness=_CART_STIFFNESS, cart_damping=_CART_DAMPING,
             add_tcp_ft=add, requested_mode=2, phase=-1 if self._latest_phase is None else int(self._latest_phase),
             estimate_seq=self._latest_phase_seq,
-            goal_reached=bool(self.law.goal_reached), episode=state["episode"]))
+            goal_reached=bool(self.law.goal_reached), episode=state["episode"])
+        t2 = now_ns()
+        self._pub.put(raw)
+        t3 = now_ns()
+        sec = self.sections
+        sec.add("law", t1 - t0)
+        sec.add("encode", t2 - t1)
+        sec.add("publish", t3 - t2)
+        self.answer_time.add(t3 - self._recv_ns if self._recv_ns else 0)
 
     def reset(self, p: dict) -> None:
         with self._lock:
@@ -239,11 +263,14 @@ class CommanderProcess:
 
     def serve(self) -> None:
         self.svc.serve({"reset": self.reset}, idle=self._unstick,
-                       status=lambda: {"episode": self.episode, "missing_estimates": self.missing_estimates})
+                       status=lambda: {"episode": self.episode, "missing_estimates": self.missing_estimates,
+                                       "sections": self.sections.summary(),
+                                       "receive_to_answer": self.answer_time.summary()})
 
 
 def main(config: CommanderConfig) -> int:
-    with Service("impedance_commander", config.run_id, config.zenoh, sched_fifo=config.sched_fifo) as svc:
+    with Service("impedance_commander", config.run_id, config.zenoh, sched_fifo=config.sched_fifo,
+                 cpus=config.cpus) as svc:
         proc = CommanderProcess(config, svc)
         svc.log(f"ready: clock {config.clock}")
         proc.serve()
@@ -269,6 +296,7 @@ def cli(argv=None) -> int:
     args = build_parser().parse_args(argv)
     return main(CommanderConfig(run_id=args.run_id, zenoh=zenoh_options(args), clock=args.clock, model=args.model,
                                 lead=args.lead, damping_ratio=args.damping_ratio, sched_fifo=args.sched_fifo,
+                                cpus=args.cpus,
                                 stall_every_s=args.stall_every, stall_ms=args.stall_ms))
 
 

@@ -3,8 +3,11 @@
 Every tenth robot cycle (10 ms of simulated time) it takes the robot state
 and the F/T wrench of that cycle, builds ETAR's state and force vectors
 (``services.features``, the same as the learner's) and publishes the
-normalised forward message on ``estimator/phase``.  In lockstep it waits for
-both inputs of the cycle; in realtime it uses the newest wrench it has.
+normalised forward message on ``estimator/phase``.  On either clock it waits
+for both inputs of the same cycle (the wrench comes through the sensor, a hop
+later than the state); a cycle whose wrench has not come by the next tenth
+cycle is skipped and counted.  The other nine cycles' messages are not even
+decoded (``Service.subscribe(every_tenth=True)``).
 Control: ``reset`` (episode, model path, state, features), ``status``,
 ``shutdown``.  A wrench with error status or a sample the filter rejects
 (non-finite) is skipped and counted; the filter keeps its state.
@@ -32,7 +35,8 @@ PERIOD_NS = 10_000_000  # 100 Hz on simulated time, the instants the learner's s
 class EstimatorConfig:
     run_id: str
     zenoh: ZenohOptions
-    sched_fifo: bool = False
+    sched_fifo: int = 0  # SCHED_FIFO priority, 0: none
+    cpus: tuple = ()  # CPU affinity of the whole process, (): any
     clock: str = "lockstep"
     model: str | None = None
 
@@ -51,35 +55,35 @@ class EstimatorProcess:
         self._lock = threading.Lock()
         self._states: dict[int, dict] = {}
         self._wrenches: dict[int, dict] = {}
-        self._latest_wrench = None
         self._pub = svc.publisher("estimator/phase")
-        svc.subscribe("robot/state", self.on_state)
-        svc.subscribe("ft/wrench", self.on_wrench)
+        svc.subscribe("robot/state", self.on_state, every_tenth=True)
+        svc.subscribe("ft/wrench", self.on_wrench, every_tenth=True)
 
     def on_state(self, msg, recv_ns, raw):
         if msg["stamp_ns"] % PERIOD_NS:
             return
         with self._lock:
+            # a cycle still waiting for its wrench when the next one comes has lost it
+            stale = [k for k in self._states if k < msg["seq"]]
+            for k in stale:
+                del self._states[k]
+            if stale and self.filter is not None:
+                self.skipped += len(stale)
             self._states[msg["seq"]] = msg
             self._try(msg["seq"])
 
     def on_wrench(self, msg, recv_ns, raw):
+        if msg["stamp_ns"] % PERIOD_NS:
+            return
         with self._lock:
-            self._latest_wrench = msg
-            if msg["stamp_ns"] % PERIOD_NS == 0:
-                self._wrenches[msg["seq"]] = msg
-                self._try(msg["seq"])
+            self._wrenches[msg["seq"]] = msg
+            self._try(msg["seq"])
 
     def _try(self, seq):
         state = self._states.get(seq)
-        if state is None:
-            return
         wrench = self._wrenches.get(seq)
-        if wrench is None:
-            if self.config.clock == "lockstep" or self._latest_wrench is None:
-                return  # lockstep: wait for this very cycle's wrench
-            wrench = self._latest_wrench
-        del self._states[seq]
+        if state is None or wrench is None:
+            return  # wait for the other input of this very cycle
         for store in (self._states, self._wrenches):
             for k in [k for k in store if k <= seq]:
                 del store[k]
@@ -123,7 +127,8 @@ class EstimatorProcess:
 
 
 def main(config: EstimatorConfig) -> int:
-    with Service("phase_estimator", config.run_id, config.zenoh, sched_fifo=config.sched_fifo) as svc:
+    with Service("phase_estimator", config.run_id, config.zenoh, sched_fifo=config.sched_fifo,
+                 cpus=config.cpus) as svc:
         proc = EstimatorProcess(config, svc)
         svc.log(f"ready: clock {config.clock}, model {config.model or '(set by reset)'}")
         proc.serve()
@@ -143,7 +148,7 @@ def build_parser() -> argparse.ArgumentParser:
 def cli(argv=None) -> int:
     args = build_parser().parse_args(argv)
     return main(EstimatorConfig(run_id=args.run_id, zenoh=zenoh_options(args), clock=args.clock, model=args.model,
-                                sched_fifo=args.sched_fifo))
+                                sched_fifo=args.sched_fifo, cpus=args.cpus))
 
 
 if __name__ == "__main__":

@@ -31,7 +31,8 @@ _SEQ = re.compile(rb'^\{"seq":(-?\d+)')
 class RecorderConfig:
     run_id: str
     zenoh: ZenohOptions
-    sched_fifo: bool = False
+    sched_fifo: int = 0  # SCHED_FIFO priority, 0: none
+    cpus: tuple = ()  # CPU affinity of the whole process, (): any
     out_dir: str = "recordings"
 
 
@@ -45,7 +46,7 @@ class RecorderProcess:
         self.total = 0
         prefix = topics.prefix(config.run_id) + "/"
         self._prefix_len = len(prefix)
-        self._sub = svc.session.declare_subscriber(prefix + "**", self.on_sample)
+        self._sub = svc.session.declare_subscriber(prefix + "**", svc.profile.wrap(self.on_sample))
 
     def on_sample(self, sample) -> None:
         recv = now_ns()
@@ -107,7 +108,8 @@ class RecorderProcess:
 
 
 def main(config: RecorderConfig) -> int:
-    with Service("recorder", config.run_id, config.zenoh, sched_fifo=config.sched_fifo) as svc:
+    with Service("recorder", config.run_id, config.zenoh, sched_fifo=config.sched_fifo,
+                 cpus=config.cpus) as svc:
         proc = RecorderProcess(config, svc)
         svc.log(f"ready: recording etar/{config.run_id}/** into {config.out_dir}")
         proc.serve()
@@ -128,7 +130,7 @@ def build_parser() -> argparse.ArgumentParser:
 def cli(argv=None) -> int:
     args = build_parser().parse_args(argv)
     return main(RecorderConfig(run_id=args.run_id, zenoh=zenoh_options(args), out_dir=args.out_dir,
-                               sched_fifo=args.sched_fifo))
+                               sched_fifo=args.sched_fifo, cpus=args.cpus))
 
 
 if __name__ == "__main__":

@@ -69,15 +69,52 @@ def reproduction_phases(ep, phase_to_truth: dict, dt: float = 0.01) -> dict:
     return dict(updates=len(seqs), correct=int(round(score.accuracy * len(seqs))), **score.to_dict())
 
 
-def fri_quality_series(ep) -> tuple[np.ndarray, np.ndarray]:
-    """(simulated time s, FRI quality) of every robot_state in one recorded episode."""
-    t, q = [], []
+QUALITY_NAMES = ("UNACCEPTABLE", "BAD", "OK", "PERFECT")
+STATE_NAMES = ("OFF", "MON", "CMD")
+MAX_TRANSITIONS = 200  # per episode in report.json; a flapping link gets its count, not a list of thousands
+
+
+def fri_quality_series(ep) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(simulated time s, FRI quality, FRI state) of every robot_state in one recorded episode."""
+    t, q, st = [], [], []
     for m in ep.messages:
         if m.topic == "/robot/state":
             d = json.loads(m.payload)
             t.append(d["stamp_ns"] / 1e9)
             q.append(d["fri_quality"])
-    return np.asarray(t), np.asarray(q)
+            st.append(d["fri_state"])
+    order = np.argsort(t, kind="stable")
+    return np.asarray(t)[order], np.asarray(q, dtype=np.int64)[order], np.asarray(st, dtype=np.int64)[order]
+
+
+def _changes(t, v) -> list:
+    if len(v) == 0:
+        return []
+    at = np.concatenate([[0], np.flatnonzero(np.diff(v)) + 1])
+    return [[round(float(t[i]), 3), int(v[i])] for i in at]
+
+
+def fri_quality_timeline(t, q, state) -> dict:
+    """FRI quality and state over one episode, as the robot published them every cycle:
+    the changes ([simulated time s, value]; times are the robot's clock, not the
+    episode's), the time spent at each quality, and how often PERFECT was lost."""
+    if len(t) == 0:
+        return {"cycles": 0}
+    dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.001
+    quality, states = _changes(t, q), _changes(t, state)
+    drops = int(np.sum((q[:-1] == 3) & (q[1:] < 3)))
+    perfect = np.flatnonzero(q == 3)
+    cmd = np.flatnonzero(state == 2)
+    return {
+        "cycles": int(len(t)), "start_s": round(float(t[0]), 3), "end_s": round(float(t[-1]), 3),
+        "seconds_at": {name: round(float(np.sum(q == i)) * dt, 3) for i, name in enumerate(QUALITY_NAMES)},
+        "seconds_in_state": {name: round(float(np.sum(state == i)) * dt, 3) for i, name in enumerate(STATE_NAMES)},
+        "first_perfect_s": round(float(t[perfect[0]]), 3) if perfect.size else None,
+        "first_cmd_s": round(float(t[cmd[0]]), 3) if cmd.size else None,
+        "drops_from_perfect": drops,
+        "quality_changes": quality[:MAX_TRANSITIONS], "quality_changes_total": len(quality),
+        "state_changes": states[:MAX_TRANSITIONS], "state_changes_total": len(states),
+    }
 
 
 def environment(clock: str, fifo: bool) -> dict:
@@ -102,16 +139,20 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
         if d["path"] in reproduction_paths and st.phase_to_truth:
             phases_of[d["path"]] = reproduction_phases(ep, st.phase_to_truth)
         quality[d["path"]] = fri_quality_series(ep)
+    timelines = {path: fri_quality_timeline(*series) for path, series in quality.items()}
     repro = []
     for r in st.reproductions:
         s = r["summary"]
         phases = phases_of.get(r["path"], {})
-        reached = s["reason"] == "goal_reached"
+        # a hold run (stop_at_goal: false) keeps going after the goal: the commander said when
+        reached = s["reason"] == "goal_reached" or s.get("goal_reached_at_s", -1.0) >= 0
         bounded = s["peak_contact_force"] <= r["max_contact_force"]
         repro.append(dict(index=len(repro), path=r["path"], side=r["side"], start=r["start"], reason=s["reason"],
                           reached_goal=reached, peak_contact_force=s["peak_contact_force"],
                           bounded_force=bounded, success=reached and bounded, sim_seconds=s["sim_seconds"],
-                          wall_seconds=s["wall_seconds"], final_position=s["final_position"], phases=phases))
+                          wall_seconds=s["wall_seconds"], final_position=s["final_position"], phases=phases,
+                          goal_reached_at_s=s.get("goal_reached_at_s", -1.0), fri=s.get("fri"),
+                          fri_quality=timelines.get(r["path"], {})))
     updates = sum(r["phases"].get("updates", 0) for r in repro)
     correct = sum(r["phases"].get("correct", 0) for r in repro)
     errors = [e for r in repro for e in r["phases"].get("transition_errors_s", [])]
@@ -137,7 +178,8 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
         "wall_seconds": wall_seconds,
         "environment": environment(sc.clock, any(loop.get("sched_fifo") for loop in loops)),
         "demonstrations": [dict(path=d["path"], side=d["side"], start=d["start"], reason=d["summary"]["reason"],
-                                sim_seconds=d["summary"]["sim_seconds"], wall_seconds=d["summary"]["wall_seconds"])
+                                sim_seconds=d["summary"]["sim_seconds"], wall_seconds=d["summary"]["wall_seconds"],
+                                fri=d["summary"].get("fri"), fri_quality=timelines.get(d["path"], {}))
                            for d in st.demonstrations],
         "learning": {"model": st.model_path, "selection": st.selection, "phase_to_truth": st.phase_to_truth,
                      "goal": st.goal},
@@ -162,6 +204,9 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
             "closed_loop": {"per_episode": closed,
                             "p99_us_max": max((c["p99_us"] for c in closed), default=None)},
             "fri": [e["fri"] for e in episodes],
+            # what each service said about itself at the end (counters, the commander's sections)
+            "services": {role: {k: v for k, v in (st_ or {}).items() if k not in ("links", "ok")}
+                         for role, st_ in (getattr(runner, "service_stats", None) or {}).items()},
         },
         "exit_codes": exit_codes,
     }
@@ -216,7 +261,7 @@ def plot_timing(report, loops, quality: dict, path) -> None:
         ax.set_title(f"{title} (overflow >= {h.limit_ns / 1e6:.0f} ms: {h.overflow})")
         ax.set_xlabel("us (10 us bins)")
     ax = axes.ravel()[3]
-    for path_, (t, q) in list(quality.items())[-4:]:
+    for path_, (t, q, _) in list(quality.items())[-4:]:
         if len(t):
             ax.step(t - t[0], q, where="post", label=Path(path_).stem)
     ax.set_yticks([0, 1, 2, 3], ["UNACC.", "BAD", "OK", "PERFECT"])
@@ -269,6 +314,21 @@ def render_text(r: dict) -> str:
     lines.append("")
     lines.append(f"robot loop: {t['robot_loop']['cycles']} cycles, {t['robot_loop']['deadline_misses']} deadline "
                  f"misses, longest run {t['robot_loop']['longest_miss_run']}")
+    episodes = [("demonstration", i, d) for i, d in enumerate(r["demonstrations"])] + \
+               [("reproduction", rp["index"], rp) for rp in r["reproductions"]]
+    if any(e.get("fri") for _, _, e in episodes):
+        lines.append("FRI per episode:        answered   missed     late  longest miss run  at PERFECT  drops from "
+                     "PERFECT  CMD from [s]")
+        for kind, i, e in episodes:
+            f, fq = e.get("fri") or {}, e.get("fri_quality") or {}
+            if not f:
+                continue
+            span = sum((fq.get("seconds_at") or {}).values())
+            at = (fq["seconds_at"]["PERFECT"] / span) if span else None
+            cmd = fq.get("first_cmd_s")
+            lines.append(f"  {kind:<13} {i:3d} {f['answered']:10d} {f['missed']:8d} {f['late']:8d} "
+                         f"{f['longest_miss_run']:17d}  {'-' if at is None else f'{at:9.1%}'}  "
+                         f"{fq.get('drops_from_perfect', 0):18d}  {'-' if cmd is None else f'{cmd:.3f}'}")
     rtf = s["real_time_factor"]
     lines.append(f"simulated {s['simulated_seconds']:.1f} s in {s['episode_wall_seconds']:.1f} s of episodes: "
                  f"{'-' if rtf is None else f'{rtf:.2f}'} x real time")

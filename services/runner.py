@@ -12,7 +12,12 @@ Stages (``services.scenario``):
   or a fixed number of phases), and every phase's impedance is derived;
 - reproduce: per reproduction, the robot starts where no demonstration did, in
   Cartesian impedance under FRI command mode; the estimator and the commander
-  close the loop until the goal is reached (or time runs out).
+  close the loop until the goal is reached (or time runs out; with
+  ``stop_at_goal: false`` for the whole time, holding at the goal).
+
+A scenario with a ``model`` file reproduces with that model (learned by an
+earlier run, which stored the goal and the phase mapping in its metadata)
+instead of learning one.
 
 Everything the report says is measured from the recordings and the services'
 own statistics (``services.report``).
@@ -21,6 +26,7 @@ own statistics (``services.report``).
 from __future__ import annotations
 
 import json
+import os
 import threading
 import time
 import uuid
@@ -40,6 +46,10 @@ from services.runtime.service import now_ns, request
 from services.runtime.session import ZenohOptions, open_session
 from services.scenario import Scenario, demonstration_starts, load_scenario, reproduction_starts
 
+# with isolate_robot: who gets the robot's CPU.  The sensor there too made it worse
+# (measured on 2 CPUs: FRI answered in time 57 % instead of 99 %, the sensor as far behind)
+ROBOT_CPU_ROLES = ("robot",)
+
 DEMO_TOPICS = ["robot/state", "robot/contact", "ft/wrench", "teacher/wrench"]
 REPRO_TOPICS = ["robot/state", "robot/contact", "ft/wrench", "robot/command"]
 
@@ -54,7 +64,15 @@ class RunOptions:
     robot_args: tuple = ()  # extra flags for the robot (e.g. fault injection)
     commander_args: tuple = ()
     attach: bool = False  # the services are already running (docker-compose): do not spawn them
-    sched_fifo: bool = False  # every service under SCHED_FIFO if permitted
+    # SCHED_FIFO (where permitted) for the two ends of the FRI link, the robot above the
+    # commander; the others stay ordinary processes.  All six at one priority starve
+    # one another on two cores (measured: 97 % missed deadlines)
+    sched_fifo: bool = False
+    fifo_priorities: tuple = (("robot", 60), ("impedance_commander", 55))  # (role, priority) used with sched_fifo
+    # the robot (with the sensor, see ROBOT_CPU_ROLES) on the last CPU, every other
+    # service on the others: the 1 kHz loop keeps most of a core (and its caches) instead
+    # of sharing it with five processes that each wake a thousand times a second
+    isolate_robot: bool = False
     ready_timeout: float = 60.0
 
 
@@ -96,7 +114,13 @@ class Runner:
 
     def _args(self, role: str, connect: str) -> list[str]:
         sc = self.scenario
-        common = ["--run-id", self.run_id, "--clock", sc.clock] + (["--sched-fifo"] if self.options.sched_fifo else [])
+        priority = dict(self.options.fifo_priorities).get(role) if self.options.sched_fifo else None
+        common = ["--run-id", self.run_id, "--clock", sc.clock] + (["--sched-fifo", str(priority)] if priority else [])
+        cpus = os.sched_getaffinity(0)
+        if self.options.isolate_robot and len(cpus) >= 2:
+            last = max(cpus)
+            mine = [last] if role in ROBOT_CPU_ROLES else sorted(cpus - {last})
+            common += ["--cpus", ",".join(map(str, mine))]
         if self.options.zenoh is not None:
             common += self.options.zenoh.to_args()
         else:
@@ -137,6 +161,8 @@ class Runner:
                     processes.append(launch.spawn(role, self._args(role, endpoint), self.out / "logs"))
             launch.wait_alive(session, self.run_id, self.roles(), processes, timeout=self.options.ready_timeout)
             self.say(f"services ready ({', '.join(self.roles())}) after {time.monotonic() - t0:.1f} s")
+            if self.scenario.model is not None:
+                self._use_model(self.scenario.model_path())
             for stage in self.scenario.stages:
                 getattr(self, f"stage_{stage.kind}")(stage)
             self._event("run_end", "", -1, {})
@@ -279,10 +305,25 @@ class Runner:
         pred = np.concatenate([model.viterbi(s, f) for s, f in pairs])
         self.state.phase_to_truth = match_phases(truth, pred, n_pred=model.n_phases)
         self.state.goal = np.mean([s[-1][:3] for s, _ in pairs], axis=0).tolist()
+        # a later scenario can reproduce with this file alone (its `model` key)
+        model.metadata.update(goal=self.state.goal,
+                              phase_to_truth={str(k): int(v) for k, v in self.state.phase_to_truth.items()})
         path = self.out / "model.json"
         model.save(path)
         self.state.model_path = str(path)
         self.say(f"learned {model.n_phases} phases in {time.monotonic() - t:.1f} s; model {path}")
+
+    def _use_model(self, path: Path) -> None:
+        model = ETAR.load(path)
+        meta = model.metadata
+        if not meta.get("impedance") or meta.get("goal") is None:
+            raise ValueError(f"{path}: the model has no per-phase impedance or goal in its metadata; "
+                             f"use a model.json written by a run's learn stage")
+        self.state.model_path = str(Path(path).resolve())
+        self.state.goal = list(meta["goal"])
+        self.state.phase_to_truth = {int(k): int(v) for k, v in (meta.get("phase_to_truth") or {}).items()} or None
+        self.state.selection = meta.get("selection")
+        self.say(f"model {path}: {model.n_phases} phases, goal {np.round(self.state.goal, 3).tolist()}")
 
     def stage_reproduce(self, stage):
         sc = self.scenario
@@ -301,7 +342,7 @@ class Runner:
             self._req("impedance_commander", "reset", model=model_path, episode=index, goal=goal,
                       goal_tolerance=stage.goal_tolerance)
             wait = ["command"] if sc.clock == "lockstep" else []
-            summary = self._run_episode(wait, "goal_reached", stage.max_seconds)
+            summary = self._run_episode(wait, "goal_reached" if stage.stop_at_goal else None, stage.max_seconds)
             rec = self._finish("reproduction", index, summary, REPRO_TOPICS)
             self.state.reproductions.append(dict(path=str(path), side=side, start=list(start), summary=summary,
                                                  recording=rec, max_contact_force=stage.max_contact_force))

@@ -18,6 +18,8 @@ Schema (every key optional unless marked required; unknown keys are errors)::
     seed: 0                           # int >= 0, default 0: base seed
     state: position                   # position | pose: what ETAR uses as its state, default position
     features: force                   # force | force_torque: ETAR transition/effect features, default force
+    model: models/smoke.json          # a model file learned earlier (relative to this file), default none:
+                                      #   the reproductions use it instead of a learn stage
     stages:                           # required, non-empty list; each item has exactly one key
       - demonstrate:
           count: 6                    # int >= 1, required
@@ -48,11 +50,14 @@ Schema (every key optional unless marked required; unknown keys are errors)::
           goal_tolerance: 0.01        # m > 0, default 0.01
           max_contact_force: 60.0     # N > 0: a reproduction whose peak contact force exceeds this fails
           max_seconds: 40             # > 0, default 40
+          stop_at_goal: true          # bool, default true; false: run the whole max_seconds, holding at
+                                      #   the goal (load and timing runs)
           seed: 20                    # int >= 0, default: scenario seed + 2000 (+ j for the j-th reproduce stage)
 
 Rules: the stages run in the order demonstrate*, learn?, reproduce*; a learn
 stage needs a demonstrate stage before it and a reproduce stage needs the learn
-stage before it.  Numbers must be finite; ``start`` has exactly 3 numbers; in
+stage before it, or a ``model`` file (then there is no learn stage).  Numbers
+must be finite; ``start`` has exactly 3 numbers; in
 the valley the left side is y < 0, so a left start (with its spread or
 perturbation) must stay at y < 0, and ``goal_x`` must lie below the start's x
 (the teacher slides towards -x).  Seeds are non-negative because numpy's
@@ -190,6 +195,12 @@ def _choice(value: Any, name: str, options: Sequence[str]) -> str:
     if not isinstance(value, str) or value not in options:
         raise ScenarioError(f"expected one of {', '.join(map(repr, options))}", path=name, value=value)
     return value
+
+
+def _bool(value: Any, name: str) -> bool:
+    if not isinstance(value, (bool, np.bool_)):
+        raise ScenarioError("expected true or false", path=name, value=value)
+    return bool(value)
 
 
 def _text(value: Any, name: str, non_empty: bool = False) -> str:
@@ -385,6 +396,7 @@ class ReproduceStage(_MotionStage):
     goal_tolerance: float = 0.01
     max_contact_force: float = 60.0
     max_seconds: float = 40.0
+    stop_at_goal: bool = True
     seed: int | None = None
 
     @property
@@ -404,6 +416,7 @@ class ReproduceStage(_MotionStage):
         _set(self, "goal_tolerance", _number(self.goal_tolerance, "goal_tolerance", 0.0, strict=True))
         _set(self, "max_contact_force", _number(self.max_contact_force, "max_contact_force", 0.0, strict=True))
         _set(self, "max_seconds", _number(self.max_seconds, "max_seconds", 0.0, strict=True))
+        _set(self, "stop_at_goal", _bool(self.stop_at_goal, "stop_at_goal"))
         if self.seed is not None:
             _set(self, "seed", _seed(self.seed, "seed"))
 
@@ -415,12 +428,14 @@ Stage = Union[DemonstrateStage, LearnStage, ReproduceStage]
 STAGE_TYPES: dict[str, type] = {"demonstrate": DemonstrateStage, "learn": LearnStage, "reproduce": ReproduceStage}
 
 
-def _check_stage_order(kinds: list[str]) -> None:
+def _check_stage_order(kinds: list[str], has_model: bool = False) -> None:
     demonstrations = learned = reproduced = 0
     order = "the order is demonstrate..., learn, reproduce..."
     for i, kind in enumerate(kinds):
         problem = None
-        if kind == "demonstrate" and (learned or reproduced):
+        if kind == "learn" and has_model:
+            problem = "a scenario with a model file does not learn: remove the learn stage or the model key"
+        elif kind == "demonstrate" and (learned or reproduced):
             problem = f"a demonstrate stage must come before the learn and reproduce stages ({order})"
         elif kind == "learn" and learned:
             problem = f"only one learn stage is allowed ({order})"
@@ -428,7 +443,7 @@ def _check_stage_order(kinds: list[str]) -> None:
             problem = f"the learn stage must come before the reproduce stages ({order})"
         elif kind == "learn" and not demonstrations:
             problem = f"a learn stage needs a demonstrate stage before it ({order})"
-        elif kind == "reproduce" and not learned:
+        elif kind == "reproduce" and not learned and not has_model:
             problem = f"a reproduce stage needs a learn stage before it ({order})"
         if problem:
             raise ScenarioError(problem, path=f"stages[{i}]", value=kinds)
@@ -454,6 +469,7 @@ class Scenario:
     seed: int = 0
     state: str = "position"
     features: str = "force"
+    model: str | None = None
     stages: tuple[Stage, ...]
     source: str = "<dict>"
 
@@ -472,6 +488,8 @@ class Scenario:
         _set(self, "seed", _seed(self.seed, "seed"))
         _choice(self.state, "state", STATES)
         _choice(self.features, "features", FEATURES)
+        if self.model is not None:
+            _text(self.model, "model", non_empty=True)
         stages = _list(self.stages, "stages", "stages")
         if not stages:
             raise ScenarioError("expected at least one stage", path="stages", value=self.stages)
@@ -479,7 +497,7 @@ class Scenario:
             if not isinstance(stage, tuple(STAGE_TYPES.values())):
                 raise ScenarioError("expected a DemonstrateStage, LearnStage or ReproduceStage",
                                     path=f"stages[{i}]", value=stage)
-        _check_stage_order([stage.kind for stage in stages])
+        _check_stage_order([stage.kind for stage in stages], self.model is not None)
         resolved = []
         ordinal = {kind: 0 for kind in STAGE_TYPES}
         for i, stage in enumerate(stages):
@@ -506,6 +524,17 @@ class Scenario:
     def reproduce_stages(self) -> tuple[ReproduceStage, ...]:
         return tuple(s for s in self.stages if s.kind == "reproduce")
 
+    def model_path(self) -> Path | None:
+        """The model file, a relative ``model`` taken from the scenario file's directory
+        (from the working directory for a scenario that came from a dict)."""
+        if self.model is None:
+            return None
+        path = Path(self.model)
+        if path.is_absolute():
+            return path
+        source = Path(self.source)
+        return (source.parent / path) if source.is_file() else path
+
     def with_clock(self, clock: str) -> Scenario:
         """A copy run on another clock: the same scenario, lockstep for CI, realtime for the lab."""
         return dataclasses.replace(self, clock=clock)
@@ -525,6 +554,8 @@ class Scenario:
         """Plain data (lists, not tuples) that `from_dict` turns back into an equal Scenario."""
         out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
                if f.name not in ("stages", "source")}
+        if self.model is None:
+            del out["model"]
         out["stages"] = [{stage.kind: _stage_dict(stage)} for stage in self.stages]
         return out
 

@@ -30,7 +30,8 @@ DT = 0.001
 class TeacherConfig:
     run_id: str
     zenoh: ZenohOptions
-    sched_fifo: bool = False
+    sched_fifo: int = 0  # SCHED_FIFO priority, 0: none
+    cpus: tuple = ()  # CPU affinity of the whole process, (): any
     world: str = "valley"
 
 
@@ -103,7 +104,8 @@ class TeacherProcess:
 
 
 def main(config: TeacherConfig) -> int:
-    with Service("teacher", config.run_id, config.zenoh, sched_fifo=config.sched_fifo) as svc:
+    with Service("teacher", config.run_id, config.zenoh, sched_fifo=config.sched_fifo,
+                 cpus=config.cpus) as svc:
         proc = TeacherProcess(config, svc)
         svc.log(f"ready: world {config.world}")
         proc.serve()
@@ -124,7 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
 def cli(argv=None) -> int:
     args = build_parser().parse_args(argv)
     return main(TeacherConfig(run_id=args.run_id, zenoh=zenoh_options(args), world=args.world,
-                              sched_fifo=args.sched_fifo))
+                              sched_fifo=args.sched_fifo, cpus=args.cpus))
 
 
 if __name__ == "__main__":

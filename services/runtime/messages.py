@@ -28,6 +28,10 @@ HEADER = (
 )
 
 
+# one encoder for every message: json.dumps with options builds a new one per call
+_ENCODER = json.JSONEncoder(allow_nan=False, separators=(",", ":"))
+
+
 class MessageError(ValueError):
     """A message that does not decode or does not match its definition."""
 
@@ -67,6 +71,7 @@ class MessageType:
         self.doc = doc
         self.fields = tuple(Field(*h) for h in HEADER) + tuple(f if isinstance(f, Field) else Field(*f) for f in fields)
         self._required = [f for f in self.fields if not f.optional]
+        self._fast = [(f.name, _fast_check(f)) for f in self.fields]
 
     # -------------------------------------------------------------- wire
 
@@ -86,7 +91,7 @@ class MessageType:
         if extra:
             raise MessageError(f"{self.name}: unknown field(s) {sorted(extra)}")
         try:
-            return json.dumps(out, allow_nan=False, separators=(",", ":")).encode()
+            return _ENCODER.encode(out).encode()
         except ValueError as exc:
             bad = [k for k, v in out.items() if _has_non_finite(v)]
             raise MessageError(f"{self.name}: non-finite value in field(s) {bad} ({exc})") from None
@@ -102,9 +107,13 @@ class MessageType:
         for f in self._required:
             if f.name not in msg:
                 raise MessageError(f"{self.name}: field '{f.name}' is missing")
-        for f in self.fields:
-            if f.name in msg:
-                _check(self.name, f, msg[f.name])
+        # every service decodes every message it receives at 1 kHz: the common case
+        # (the right types, finite) is settled per field in one step, and only a field
+        # that fails it is looked at element by element to name the problem
+        for f, (name, ok) in zip(self.fields, self._fast):
+            v = msg.get(name, _ABSENT)
+            if v is not _ABSENT and not ok(v):
+                _check(self.name, f, v)
         return msg
 
     # ---------------------------------------------------------- schema/doc
@@ -125,6 +134,26 @@ class MessageType:
         for f in self.fields:
             lines.append(f"| `{f.name}` | `{f.type}`{' (optional)' if f.optional else ''} | {f.doc} |")
         return "\n".join(lines)
+
+
+_ABSENT = object()
+_isfinite = math.isfinite
+
+
+def _fast_check(f: Field):
+    """A predicate that is True when the value certainly passes ``_check`` for ``f``
+    (False means: look closer, it may still pass, e.g. an int in a float array)."""
+    scalar = {"int": int, "float": float, "bool": bool, "str": str, "object": dict}[f.base]
+    if "[" not in f.type:
+        if scalar is float:
+            return lambda v: type(v) is float and _isfinite(v)
+        return lambda v: type(v) is scalar
+    n = f.length
+    if scalar is float:
+        # a sum of finite floats is finite unless it overflows (then the slow path decides)
+        return lambda v: (type(v) is list and (n is None or len(v) == n)
+                          and all(type(x) is float for x in v) and _isfinite(sum(v)))
+    return lambda v: type(v) is list and (n is None or len(v) == n) and all(type(x) is scalar for x in v)
 
 
 def _has_non_finite(v) -> bool:
@@ -277,7 +306,8 @@ EPISODE_SUMMARY = MessageType(
     (
         ("episode", "int", "episode index"),
         ("kind", "str", "demonstration | reproduction"),
-        ("reason", "str", "why it ended: teacher_done | goal_reached | timeout | safety | stopped"),
+        ("reason", "str", "why it ended: teacher_done | goal_reached | timeout | elapsed (ran its whole time with "
+                           "nothing to stop on) | safety | stopped"),
         ("first_seq", "int", "first robot cycle of the episode"),
         ("last_seq", "int", "last robot cycle of the episode"),
         ("sim_seconds", "float", "simulated duration, s"),
@@ -286,7 +316,9 @@ EPISODE_SUMMARY = MessageType(
         ("peak_contact_force", "float", "largest contact force on the tip during the episode, N"),
         ("safety", "int", "KRC safety state at the end (0: none)"),
         ("missed_answers", "int", "lockstep: cycles whose awaited answers did not come in time"),
-        ("fri", "object", "FRI link statistics at the end"),
+        Field("goal_reached_at_s", "float", "simulated time into the episode when the commander first reported "
+                                            "the goal reached (-1: never)", optional=True),
+        ("fri", "object", "FRI link statistics of this episode (counts) and at its end (state, quality)"),
         ("loop", "object", "timing statistics of the robot's 1 kHz loop"),
     ),
 )

@@ -62,8 +62,26 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--cfg", action="append", default=[], metavar="KEY:VALUE",
                    help="any Zenoh configuration key with a JSON5 value, e.g. transport/unicast/lowlatency:true")
     if not any(a.dest == "sched_fifo" for a in parser._actions):
-        parser.add_argument("--sched-fifo", action="store_true",
-                            help="run under SCHED_FIFO 50 if permitted (the report says whether it was used)")
+        add_sched_fifo_argument(parser)
+
+
+def add_sched_fifo_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--sched-fifo", nargs="?", type=int, const=50, default=0, metavar="PRIORITY",
+                        help="run the whole process (its Zenoh threads too) under SCHED_FIFO at PRIORITY "
+                             "(default 50) if permitted; the report says whether it was used")
+    parser.add_argument("--cpus", type=cpu_list, default=(), metavar="LIST",
+                        help="pin the whole process to these CPUs, e.g. 1 or 0,2-3 (default: any)")
+
+
+def cpu_list(text: str) -> tuple:
+    cpus = set()
+    for part in text.split(","):
+        lo, _, hi = part.partition("-")
+        try:
+            cpus.update(range(int(lo), int(hi or lo) + 1))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected CPUs like 1 or 0,2-3, got {text!r}") from None
+    return tuple(sorted(cpus))
 
 
 def zenoh_options(args: argparse.Namespace) -> ZenohOptions:

@@ -92,3 +92,57 @@ def test_smoke_realtime_completes_with_its_deadline_report(tmp_path):
     s = report["summary"]
     assert 0.5 < s["real_time_factor"] < 1.2
     assert "deadline misses" in (tmp_path / "report.txt").read_text()
+
+
+def hold_scenario(tmp_path, seconds: float) -> str:
+    """scenarios/hold.yaml cut to ``seconds``, its stored model named by absolute path."""
+    text = (ROOT / "scenarios" / "hold.yaml").read_text()
+    text = text.replace("model: models/smoke.json", f"model: {ROOT / 'scenarios' / 'models' / 'smoke.json'}")
+    text = text.replace("max_seconds: 60", f"max_seconds: {seconds}")
+    path = tmp_path / "hold.yaml"
+    path.write_text(text)
+    return str(path)
+
+
+def quality_at(changes, t):
+    """FRI quality at simulated time t from the report's [[time, quality], ...] changes."""
+    q = changes[0][1]
+    for at, value in changes:
+        if at > t:
+            break
+        q = value
+    return q
+
+
+def test_injected_commander_stall_shows_up_as_fri_misses_and_quality_drops(tmp_path):
+    """The commander sleeps 3 ms before one answer every simulated second (its
+    --stall-every/--stall-ms fault injection); realtime, all processes over Zenoh,
+    the two ends of the FRI link under SCHED_FIFO.  The stalled answer and the ones
+    queued behind it miss their deadlines: the report counts them late, and the FRI
+    quality falls at the stall instants."""
+    every, stall_ms = 1.0, 3.0
+    t = time.monotonic()
+    report = run(RunOptions(scenario=hold_scenario(tmp_path, 10), out=str(tmp_path / "run"), sched_fifo=True,
+                            isolate_robot=True,
+                            commander_args=("--stall-every", str(every), "--stall-ms", str(stall_ms))),
+                 progress=print)
+    print(f"stall run: {time.monotonic() - t:.1f} s wall")
+    assert report["error"] is None, report["error"]
+    (rp,) = report["reproductions"]
+    fri, q = rp["fri"], rp["fri_quality"]
+    print(json.dumps({"fri": fri, "quality": {k: v for k, v in q.items() if not k.endswith("changes")}}))
+    # the stall instants on the robot's clock (the commander keys them on the measurement's stamp)
+    stalls = [k * every for k in range(int(q["start_s"] / every) + 1, int(q["end_s"] / every) + 1)]
+    assert len(stalls) >= 8
+    # a 3 ms stall costs about three cycles: each is missed, and its answer counted when it comes late
+    assert fri["missed"] >= len(stalls) and fri["late"] >= len(stalls), fri
+    # the quality the robot published falls right after a stall (three misses in the
+    # window of 100: PERFECT or OK -> at most BAD); from UNACCEPTABLE there is no lower
+    changes = q["quality_changes"]
+    fell = {s: quality_at(changes, s + 0.02) < quality_at(changes, s - 0.001) for s in stalls
+            if quality_at(changes, s - 0.001) > 0}
+    print("quality before -> after each stall:",
+          [(s, quality_at(changes, s - 0.001), quality_at(changes, s + 0.02)) for s in stalls])
+    assert len(fell) >= 2 and sum(fell.values()) >= len(fell) / 2, fell
+    if q["first_perfect_s"] is not None and any(quality_at(changes, s - 0.001) == 3 for s in stalls):
+        assert q["drops_from_perfect"] >= 1

@@ -439,3 +439,55 @@ def test_start_functions_check_the_world():
 def test_starts_are_finite_floats():
     for side, xyz in demonstration_starts(DemonstrateStage(count=3), "valley", 0):
         assert len(xyz) == 3 and all(type(v) is float and math.isfinite(v) for v in xyz)
+
+
+# --- a stored model instead of a learn stage; holding the goal -------------------------------
+
+MODEL_ONLY = """\
+name: t
+world: valley
+model: models/m.json
+stages:
+  - reproduce:
+      count: 1
+      stop_at_goal: false
+"""
+
+
+def test_a_model_file_replaces_the_learn_stage_and_resolves_beside_the_scenario(tmp_path):
+    s = load_scenario(write(tmp_path, MODEL_ONLY))
+    assert s.model == "models/m.json" and s.learn_stage is None
+    assert s.model_path() == tmp_path / "models" / "m.json"
+    assert s.reproduce_stages[0].stop_at_goal is False
+    assert Scenario.from_dict(s.to_dict(), source=s.source) == s
+    assert "model" not in load_scenario(write(tmp_path, MINIMAL, "y.yaml")).to_dict()
+    assert load_scenario(write(tmp_path, MINIMAL, "z.yaml")).reproduce_stages[0].stop_at_goal is True
+
+
+def test_a_model_and_a_learn_stage_conflict(tmp_path):
+    path = write(tmp_path, MINIMAL.replace("name: t", "name: t\nmodel: m.json"))
+    with pytest.raises(ScenarioError) as caught:
+        load_scenario(path)
+    assert caught.value.path == "stages[1]" and "does not learn" in str(caught.value)
+
+
+@pytest.mark.parametrize("text, field_path, problem", [
+    (MODEL_ONLY.replace("stop_at_goal: false", "stop_at_goal: 0"), "stages[0].reproduce.stop_at_goal",
+     "expected true or false"),
+    (MODEL_ONLY.replace("model: models/m.json", "model: ''"), "model", "expected a non-empty string"),
+])
+def test_model_and_stop_at_goal_are_checked(tmp_path, text, field_path, problem):
+    with pytest.raises(ScenarioError) as caught:
+        load_scenario(write(tmp_path, text))
+    assert caught.value.path == field_path and problem in str(caught.value)
+
+
+def test_hold_file_reproduces_with_the_stored_smoke_model_for_a_minute():
+    s = load_scenario(SCENARIOS / "hold.yaml")
+    (repro,) = s.stages
+    assert (s.clock, repro.max_seconds, repro.stop_at_goal) == ("realtime", 60.0, False)
+    assert s.model_path().is_file()
+    from etar import ETAR
+
+    meta = ETAR.load(s.model_path()).metadata
+    assert len(meta["goal"]) == 3 and meta["impedance"] and meta["phase_to_truth"]
