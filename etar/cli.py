@@ -65,7 +65,7 @@ def _pairs(demos):
 def cmd_learn(args) -> int:
     from etar.impedance import phase_impedances
     from etar.model import ETAR
-    from etar.selection import select_order
+    from etar.selection import select_order, vote_order
 
     demos = load_demonstrations(args.demos)
     pairs = _pairs(demos)
@@ -74,15 +74,25 @@ def cmd_learn(args) -> int:
         candidates = range(1, args.max_phases + 1)
         _say(f"selecting the number of phases by {args.criterion.upper()} over {list(candidates)} "
              f"from {len(pairs)} demonstration(s)")
-        sel = select_order(pairs, candidates, args.criterion, transitions=args.transitions, seed=args.seed,
-                           max_iter=args.max_iter, tol=args.tol, progress=_say, **options)
-        model = sel.model
-        _say(sel.table())
-        model.metadata["selection"] = dict(
-            criterion=sel.criterion, best=sel.best, scores={str(k): v for k, v in sel.scores.items()},
-            log_likelihoods={str(k): v for k, v in sel.log_likelihoods.items()},
-            n_parameters={str(k): v for k, v in sel.n_parameters.items()}, n_samples=sel.n_samples,
-        )
+        if args.selection == "per_demonstration" and len(pairs) > 1:
+            vote = vote_order(pairs, candidates, args.criterion, transitions=args.transitions, seed=args.seed,
+                              max_iter=args.max_iter, tol=args.tol, progress=_say, **options)
+            _say(vote.table())
+            _say(f"fitting {vote.best} phases to all {len(pairs)} demonstrations")
+            model = ETAR(vote.best, args.transitions, **options).fit(pairs, max_iter=args.max_iter, tol=args.tol,
+                                                                    seed=args.seed, progress=_say)
+            model.metadata["selection"] = vote.to_dict()
+        else:
+            sel = select_order(pairs, candidates, args.criterion, transitions=args.transitions, seed=args.seed,
+                               max_iter=args.max_iter, tol=args.tol, progress=_say, **options)
+            model = sel.model
+            _say(sel.table())
+            model.metadata["selection"] = dict(
+                method="pooled", criterion=sel.criterion, best=sel.best,
+                scores={str(k): v for k, v in sel.scores.items()},
+                log_likelihoods={str(k): v for k, v in sel.log_likelihoods.items()},
+                n_parameters={str(k): v for k, v in sel.n_parameters.items()}, n_samples=sel.n_samples,
+            )
     else:
         try:
             k = int(args.phases)
@@ -118,8 +128,13 @@ def cmd_inspect(args) -> int:
               f"{fit['n_iter']} iterations, {'converged' if fit['converged'] else 'not converged'}, seed {fit['seed']}")
     sel = model.metadata.get("selection")
     if sel:
-        print(f"\nnumber of phases chosen by {sel['criterion'].upper()}: {sel['best']}")
-        for k in sorted(sel["scores"], key=int):
+        per_demo = sel.get("per_demonstration", [])
+        print(f"\nnumber of phases chosen by {sel['criterion'].upper()}: {sel['best']}"
+              f"{' (each demonstration chose; the majority won)' if per_demo else ''}")
+        for i, d in enumerate(per_demo):
+            print(f"  demonstration {i}: " + ", ".join(
+                f"K={k} {d['scores'][k]:.1f}" for k in sorted(d["scores"], key=int)) + f"  -> {d['best']}")
+        for k in sorted(sel.get("scores", {}), key=int):
             mark = "  <- best" if int(k) == sel["best"] else ""
             print(f"  K={k}: {sel['criterion'].upper()} {sel['scores'][k]:.2f}  "
                   f"(log-lik {sel['log_likelihoods'][k]:.2f}, {sel['n_parameters'][k]} params){mark}")
@@ -175,6 +190,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--phases", default="auto", help="number of phases, or 'auto' to choose by --criterion")
     p.add_argument("--max-phases", type=int, default=6, help="largest candidate for --phases auto (default 6)")
     p.add_argument("--criterion", choices=("bic", "aic"), default="bic")
+    p.add_argument("--selection", choices=("per_demonstration", "pooled"), default="per_demonstration",
+                   help="per_demonstration: each demonstration chooses its number of phases and the majority "
+                        "wins (thesis 6.1); pooled: one score over all demonstrations (default per_demonstration)")
     p.add_argument("--transitions", choices=("effect", "state"), default="effect",
                    help="effect: ETAR (force features); state: STAR (position relative to the end point)")
     p.add_argument("--out", required=True, help="model file to write (JSON)")

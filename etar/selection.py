@@ -1,4 +1,20 @@
-"""Choosing the number of phases by BIC or AIC (thesis 4.2)."""
+"""Choosing the number of phases by BIC or AIC (thesis 4.2).
+
+Two ways to put the criterion to the demonstrations:
+
+- ``select_order`` (pooled): one fit per candidate over all demonstrations
+  together, the candidate with the lowest score wins;
+- ``vote_order`` (per demonstration, what the thesis did in 6.1: "BIC was used
+  for estimating the model number ... for all the six separate
+  demonstrations"): each demonstration chooses on its own, the number most of
+  them choose wins (ties go to fewer phases).
+
+They answer different questions.  The fit's gain from one more phase grows
+with the number of samples N, the penalty only with log N, so pooled over
+many demonstrations BIC keeps adding phases for any repeatable within-phase
+detail (a hand lagging after each turn); one demonstration asks how many
+phases a single execution of the task shows.
+"""
 
 from __future__ import annotations
 
@@ -10,6 +26,7 @@ from etar.demonstrations import check_demonstrations
 from etar.model import ETAR
 
 CRITERIA = ("bic", "aic")
+METHODS = ("per_demonstration", "pooled")
 
 
 @dataclass(frozen=True)
@@ -98,3 +115,67 @@ def select_order(
         raise ValueError(f"no candidate in {candidates} has fewer parameters than the {n_samples} steps")
     best = min(scores, key=scores.get)
     return OrderSelection(best, criterion, scores, lls, params, n_samples, models)
+
+
+@dataclass(frozen=True)
+class OrderVote:
+    """Per-demonstration selection: ``best`` is the number of phases most
+    demonstrations chose; ``votes``: candidate -> how many chose it;
+    ``per_demonstration``: each demonstration's own ``OrderSelection``."""
+
+    best: int
+    criterion: str
+    votes: dict
+    per_demonstration: tuple
+
+    def table(self) -> str:
+        """Demonstrations as rows, candidates as columns, each row's choice marked."""
+        ks = sorted({k for sel in self.per_demonstration for k in sel.scores})
+        lines = [f"{'demo':>4} {'samples':>7} " + " ".join(f"{f'K={k}':>11}" for k in ks) + "  chosen"]
+        for i, sel in enumerate(self.per_demonstration):
+            cells = [f"{sel.scores[k]:>10.1f}{'*' if k == sel.best else ' '}" if k in sel.scores else f"{'-':>11}"
+                     for k in ks]
+            lines.append(f"{i:>4} {sel.n_samples:>7} " + " ".join(cells) + f"  {sel.best}")
+        votes = ", ".join(f"{k}: {self.votes[k]}" for k in sorted(self.votes))
+        lines.append(f"{self.criterion.upper()} per demonstration, votes {{{votes}}} -> {self.best} phases")
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        """JSON-ready summary (no models)."""
+        return dict(method="per_demonstration", criterion=self.criterion, best=self.best,
+                    votes={str(k): v for k, v in sorted(self.votes.items())},
+                    per_demonstration=[dict(best=sel.best, n_samples=sel.n_samples,
+                                            scores={str(k): v for k, v in sel.scores.items()},
+                                            log_likelihoods={str(k): v for k, v in sel.log_likelihoods.items()},
+                                            n_parameters={str(k): v for k, v in sel.n_parameters.items()})
+                                       for sel in self.per_demonstration])
+
+
+def vote_order(
+    demos: Sequence,
+    candidates: Sequence[int] = (1, 2, 3, 4, 5, 6),
+    criterion: str = "bic",
+    *,
+    progress: Callable[[str], None] | None = None,
+    **options,
+) -> OrderVote:
+    """Score the candidates on each demonstration alone (``select_order`` with
+    the same options) and take the number of phases most of them choose.
+
+    The chosen model is not fitted here: fit it on all demonstrations with
+    ``ETAR(vote.best, ...)``.
+    """
+    demos = check_demonstrations(demos)
+    selections = []
+    for i, demo in enumerate(demos):
+        sel = select_order([demo], candidates, criterion, **options)
+        if progress:
+            progress(f"demonstration {i}: {criterion.upper()} chooses {sel.best} phases "
+                     f"({sel.n_samples} steps; " + ", ".join(f"K={k} {v:.0f}" for k, v in sel.scores.items()) + ")")
+        selections.append(sel)
+    votes: dict = {}
+    for sel in selections:
+        votes[sel.best] = votes.get(sel.best, 0) + 1
+    top = max(votes.values())
+    best = min(k for k, v in votes.items() if v == top)  # a tie goes to the simpler model
+    return OrderVote(best, criterion, votes, tuple(selections))

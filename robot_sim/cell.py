@@ -25,6 +25,15 @@ from robot_sim.krc import ImpedanceCommand, KrcConfig, KrcController, pose_to_ca
 from robot_sim.physics import Simulation
 from robot_sim.worlds import TIMESTEP, WorldSpec
 
+# Noise of the measured joint positions FRI reports (rad, per joint, white).
+# Not from a KUKA datasheet (none gives it): chosen so the reported tcp position
+# scatters by about 20 um per axis at the valley postures, below the LWR4+'s
+# +-0.05 mm repeatability.  It matters to learning: noise-free positions let the
+# auto-regression resolve sub-micrometre structure (the hand's lag after each
+# turn, its speed wander) that no lab recording shows, and BIC then pays for
+# extra phases to model it.
+JOINT_POSITION_NOISE = 2.5e-5
+
 # FRI orders torques Tz, Ty, Tx; the physics and the law use Tx, Ty, Tz
 FRI_FT_ORDER = np.array([0, 1, 2, 5, 4, 3])
 
@@ -49,7 +58,7 @@ class CycleResult:
 class RobotCell:
     def __init__(self, world: WorldSpec, *, seed: int = 0, fri_config: FriConfig | None = None,
                  ati_config: AtiConfig | None = None, krc_config: KrcConfig | None = None,
-                 faults: LinkFaults | None = None):
+                 faults: LinkFaults | None = None, joint_noise: float = JOINT_POSITION_NOISE):
         self.world = world
         self.sim = Simulation(world)
         self.kin = ArmKinematics()
@@ -64,6 +73,11 @@ class RobotCell:
         self.cycle = 0
         self._q = np.zeros(7)
         self._qd = np.zeros(7)
+        if not (np.isfinite(joint_noise) and joint_noise >= 0.0):
+            raise ValueError(f"joint_noise must be a standard deviation >= 0 rad, got {joint_noise!r}")
+        self.joint_noise = float(joint_noise)
+        self._q_msr = np.zeros(7)
+        self._joint_rng = np.random.default_rng([seed, 1])  # its own stream: the ATI's draws stay as they were
         self._tau_ext = np.zeros(7)
         self._true_wrench = np.zeros(6)
         self._last_measurement: MeasurementPacket | None = None
@@ -97,9 +111,14 @@ class RobotCell:
         sim, kin = self.sim, self.kin
         sim.joint_positions(self._q)
         sim.joint_velocities(self._qd)
-        kin.update(self._q)
+        # the KRC reports measured joint positions, and the tcp pose from them
+        self._joint_rng.standard_normal(out=self._q_msr)
+        self._q_msr *= self.joint_noise
+        self._q_msr += self._q
+        kin.update(self._q_msr)
         oMtcp = kin.placement("tcp")
-        m = self.fri.measurement(self.t_ns, self._q, pose_to_cart_pos(oMtcp), standard_to_fri(self.external_wrench_tcp()))
+        m = self.fri.measurement(self.t_ns, self._q_msr, pose_to_cart_pos(oMtcp),
+                                 standard_to_fri(self.external_wrench_tcp()))
         self._last_measurement = m
         return m
 

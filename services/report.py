@@ -290,8 +290,16 @@ def render_text(r: dict) -> str:
     sel = r["learning"]["selection"]
     if sel:
         lines.append("")
-        lines.append(f"phases chosen: {sel['best']} ({sel['criterion']})")
-        for k in sorted(sel["scores"], key=int):
+        method = sel.get("method", "pooled")
+        lines.append(f"phases chosen: {sel['best']} ({sel['criterion']}"
+                     f"{', per demonstration' if method == 'per_demonstration' else ''})")
+        for i, d in enumerate(sel.get("per_demonstration", [])):
+            lines.append(f"  demo {i:2d}: " + "  ".join(
+                f"K={k} {d['scores'][k]:.0f}{'*' if int(k) == d['best'] else ''}" for k in sorted(d["scores"], key=int))
+                + f"  -> {d['best']}")
+        if "votes" in sel:
+            lines.append("  votes: " + ", ".join(f"{k} phases: {v}" for k, v in sel["votes"].items()))
+        for k in sorted(sel.get("scores", {}), key=int):
             lines.append(f"  K={k}: score {sel['scores'][k]:.1f}, log-likelihood {sel['log_likelihoods'][k]:.1f}, "
                          f"{sel['n_parameters'][k]} parameters{'  <-' if int(k) == sel['best'] else ''}")
     if r["reproductions"]:

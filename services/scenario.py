@@ -35,6 +35,8 @@ Schema (every key optional unless marked required; unknown keys are errors)::
           phases: auto                # 'auto' or int >= 1, default auto
           candidates: [1, 2, 3, 4, 5, 6]   # distinct ints >= 1, tried with auto, default 1..6
           criterion: bic              # bic | aic, default bic
+          selection: per_demonstration  # per_demonstration (each demonstration chooses, the majority
+                                      # wins: thesis 6.1) | pooled (one score over all), default per_demonstration
           transitions: effect         # effect (ETAR) | state (STAR), default effect
           restarts: 4                 # int >= 1, default 4
           max_iter: 200               # int >= 1, default 200
@@ -94,6 +96,7 @@ FEATURES = ("force", "force_torque")
 SIDES = ("left", "right")
 CRITERIA = ("bic", "aic")
 TRANSITIONS = ("effect", "state")
+SELECTIONS = ("per_demonstration", "pooled")
 
 # Left-side tcp starts, m.  The valley's is above the left plate, the coupler's above and
 # beside the socket (robot_sim.worlds.HoseCoupler.center = (0.55, 0, 0.20)).
@@ -348,6 +351,7 @@ class LearnStage:
     phases: int | str = "auto"
     candidates: tuple[int, ...] = (1, 2, 3, 4, 5, 6)
     criterion: str = "bic"
+    selection: str = "per_demonstration"
     transitions: str = "effect"
     restarts: int = 4
     max_iter: int = 200
@@ -366,6 +370,7 @@ class LearnStage:
         _set(self, "phases", _phases(self.phases, "phases"))
         _set(self, "candidates", _candidates(self.candidates, "candidates"))
         _set(self, "criterion", _choice(self.criterion, "criterion", CRITERIA))
+        _set(self, "selection", _choice(self.selection, "selection", SELECTIONS))
         _set(self, "transitions", _choice(self.transitions, "transitions", TRANSITIONS))
         _set(self, "restarts", _int(self.restarts, "restarts", 1))
         _set(self, "max_iter", _int(self.max_iter, "max_iter", 1))

@@ -16,7 +16,7 @@ def test_synth_learn_inspect(tmp_path, capsys):
     assert len(demos) == 3
     model = tmp_path / "model.json"
     assert main(["learn", *demos, "--phases", "auto", "--max-phases", "3", "--out", str(model),
-                 "--restarts", "2"]) == 0
+                 "--restarts", "2", "--selection", "pooled"]) == 0
     data = json.loads(model.read_text())
     assert data["n_phases"] == 2
     assert data["metadata"]["selection"]["best"] == 2
@@ -26,6 +26,15 @@ def test_synth_learn_inspect(tmp_path, capsys):
     assert main(["inspect", str(model), "--demos", *demos]) == 0
     out = capsys.readouterr().out
     assert "2 phases" in out and "BIC" in out and "accuracy" in out
+    # the default: every demonstration chooses, the majority wins
+    voted = tmp_path / "voted.json"
+    assert main(["learn", *demos, "--max-phases", "3", "--out", str(voted), "--restarts", "2"]) == 0
+    sel = json.loads(voted.read_text())["metadata"]["selection"]
+    assert sel["method"] == "per_demonstration" and sel["best"] == 2 and len(sel["per_demonstration"]) == 3
+    assert sum(sel["votes"].values()) == 3
+    capsys.readouterr()
+    assert main(["inspect", str(voted)]) == 0
+    assert "demonstration 2:" in capsys.readouterr().out
 
 
 def test_learn_fixed_number_of_phases(tmp_path):

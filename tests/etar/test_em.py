@@ -8,7 +8,7 @@ import pytest
 from etar import ETAR, em
 from etar.demonstrations import step_arrays
 from etar.metrics import score_demonstrations
-from etar.selection import select_order
+from etar.selection import select_order, vote_order
 from etar.synthetic import make_task, sample_demonstrations
 
 
@@ -74,6 +74,30 @@ def test_bic_picks_the_true_number_of_phases(n_phases, task_seed):
     assert sel.model.n_phases == n_phases
     # the count used is this model's, not a Gaussian HMM's
     assert sel.n_parameters[3] == ETAR.count_free_parameters(3, 3, 3) == 3 * (9 + 12 + 6) + 4 * 2 * 4
+
+
+def test_per_demonstration_vote_picks_the_true_number_of_phases():
+    _, demos, _ = synthetic(3, task_seed=0, n_demos=3, length=500, seed=10)
+    messages = []
+    vote = vote_order(demos, range(1, 6), "bic", seed=0, n_restarts=2, progress=messages.append)
+    assert vote.best == 3, vote.table()
+    assert vote.votes.get(3, 0) >= 2 and sum(vote.votes.values()) == 3
+    assert len(vote.per_demonstration) == 3 and len(messages) == 3
+    # each demonstration was scored on its own steps only
+    assert [sel.n_samples for sel in vote.per_demonstration] == [len(s) - 1 for s, _ in demos]
+    d = vote.to_dict()
+    assert d["method"] == "per_demonstration" and d["best"] == 3
+    assert set(d["per_demonstration"][0]["scores"]) == {"1", "2", "3", "4", "5"}
+    assert "votes {" in vote.table() and vote.table().count("\n") == 4
+
+
+def test_per_demonstration_tie_goes_to_fewer_phases():
+    # one demonstration of a 2-phase task and one of a 3-phase task: one vote each
+    _, two, _ = synthetic(2, task_seed=3, n_demos=1, length=500, seed=13)
+    _, three, _ = synthetic(3, task_seed=0, n_demos=1, length=500, seed=10)
+    vote = vote_order(two + three, range(1, 5), "bic", seed=0, n_restarts=2)
+    assert [sel.best for sel in vote.per_demonstration] == [2, 3], vote.table()
+    assert vote.best == 2
 
 
 def test_aic_is_available_and_penalises_less():

@@ -3,7 +3,9 @@ answers, the arm holds meanwhile, and everything recovers."""
 
 import numpy as np
 
-from robot_sim.cell import RobotCell, fri_to_standard, standard_to_fri
+import pytest
+
+from robot_sim.cell import JOINT_POSITION_NOISE, RobotCell, fri_to_standard, standard_to_fri
 from robot_sim.fri import CommandPacket, ControlMode, FriQuality, FriState
 from robot_sim.worlds import free_space
 
@@ -82,5 +84,37 @@ def test_measurement_carries_the_state_and_the_external_force():
     R = m.msr_cart_pos.reshape(3, 4)[:, :3]
     est = fri_to_standard(m.est_ext_tcp_ft)
     np.testing.assert_allclose(R @ est[:3], push[:3], atol=0.2)  # force in tcp axes -> world
-    np.testing.assert_allclose(m.msr_jnt_pos, cell.sim.joint_positions())
+    np.testing.assert_allclose(m.msr_jnt_pos, cell.sim.joint_positions(), rtol=0, atol=6 * cell.joint_noise)
     np.testing.assert_array_equal(standard_to_fri(fri_to_standard(np.arange(6.0))), np.arange(6.0))
+
+
+def test_measured_joint_positions_carry_the_configured_white_noise():
+    cell = RobotCell(free_space(), seed=3)
+    cell.start()
+    cell.krc.gravity_compensation = True
+    errors, cart = [], []
+    for _ in range(3000):
+        m = cell.begin_cycle()
+        errors.append(m.msr_jnt_pos - cell.sim.joint_positions())
+        cart.append(m.msr_cart_pos.reshape(3, 4)[:, 3] - cell.kin.forward(cell.sim.joint_positions()).translation)
+        cell.end_cycle()
+    e = np.array(errors)
+    assert cell.joint_noise == JOINT_POSITION_NOISE
+    np.testing.assert_allclose(e.std(axis=0), JOINT_POSITION_NOISE, rtol=0.1)
+    assert np.abs(e.mean(axis=0)).max() < 0.1 * JOINT_POSITION_NOISE
+    # white: consecutive errors uncorrelated
+    lag1 = [np.corrcoef(e[1:, j], e[:-1, j])[0, 1] for j in range(7)]
+    assert max(abs(c) for c in lag1) < 0.1
+    # the reported tcp pose is the forward kinematics of the measured joints: tens of um
+    c = np.array(cart)
+    assert 3e-6 < c.std(axis=0).min() and c.std(axis=0).max() < 6e-5
+
+
+def test_noise_free_measurement_and_bad_noise():
+    cell = RobotCell(free_space(), seed=0, joint_noise=0.0)
+    cell.start()
+    m = cell.begin_cycle()
+    np.testing.assert_array_equal(m.msr_jnt_pos, cell.sim.joint_positions())
+    for bad in (-1e-5, float("nan")):
+        with pytest.raises(ValueError, match="joint_noise"):
+            RobotCell(free_space(), joint_noise=bad)

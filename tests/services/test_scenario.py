@@ -173,6 +173,9 @@ def test_constructors_validate_on_their_own():
         DemonstrateStage(count=0)
     with pytest.raises(ScenarioError, match=r"^criterion: expected one of 'bic', 'aic', got 'mdl'$"):
         LearnStage(criterion="mdl")
+    with pytest.raises(ScenarioError, match=r"^selection: expected one of 'per_demonstration', 'pooled', got 'mean'$"):
+        LearnStage(selection="mean")
+    assert LearnStage().selection == "per_demonstration" and LearnStage(selection="pooled").selection == "pooled"
     with pytest.raises(ScenarioError, match=r"<dict>: stages\[0\]: a learn stage needs a demonstrate stage"):
         Scenario(name="t", world="valley", stages=(LearnStage(),))
 
