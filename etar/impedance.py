@@ -68,6 +68,7 @@ def derive_impedance(
     contact_force: float = 2.0,
     min_speed_fraction: float = 0.2,
     compliance_ratio: float = 0.25,
+    min_contact_fraction: float = 0.5,
     stiffness: float = 2000.0,
     compliant_stiffness: float = 100.0,
 ) -> PhaseImpedance:
@@ -78,8 +79,13 @@ def derive_impedance(
     Samples with |f| < ``contact_force`` count as free motion; samples slower
     than ``min_speed_fraction`` of the median speed carry no direction.  A
     second compliant axis is kept when its singular value is at least
-    ``compliance_ratio`` of the first.  Stiffness: ``stiffness`` along d and the
-    non-compliant axes, ``compliant_stiffness`` along compliant axes.
+    ``compliance_ratio`` of the first.  A phase is in contact only if at least
+    ``min_contact_fraction`` of its moving samples touch: a free-motion phase's
+    few touching samples are the next phase's first ones (a segmentation's
+    boundary is uncertain by a few samples), and their force must not become
+    a compliant axis and a feedforward push in free space.  Stiffness:
+    ``stiffness`` along d and the non-compliant axes, ``compliant_stiffness``
+    along compliant axes.
     """
     v = np.asarray(velocities, dtype=np.float64)
     f = np.asarray(forces, dtype=np.float64)
@@ -93,6 +99,8 @@ def derive_impedance(
     fnorm = np.linalg.norm(f, axis=1)
     moving = speed > min_speed_fraction * max(np.median(speed), 1e-12)
     contact = (fnorm > contact_force) & moving
+    if contact.sum() < min_contact_fraction * max(moving.sum(), 1):
+        contact[:] = False
     mean_v = v[moving].mean(axis=0) if moving.any() else v.mean(axis=0)
     if np.linalg.norm(mean_v) < 1e-12:
         raise ValueError("the phase does not move: no direction of motion can be derived")
@@ -136,8 +144,7 @@ def derive_impedance(
     K = R @ np.diag(V) @ R.T
     return PhaseImpedance(
         direction=d, n_compliant=len(axes), compliant_axes=R[:, 1 : 1 + len(axes)].T.copy(), rotation=R,
-        stiffness=0.5 * (K + K.T), mean_force=f[fnorm > contact_force].mean(axis=0) if (fnorm > contact_force).any()
-        else np.zeros(3), mean_speed=float(np.mean(v[moving] @ d)) if moving.any() else 0.0,
+        stiffness=0.5 * (K + K.T), mean_force=f[contact].mean(axis=0) if contact.any() else np.zeros(3), mean_speed=float(np.mean(v[moving] @ d)) if moving.any() else 0.0,
         n_samples=int(v.shape[0]), n_contact_samples=int(contact.sum()),
     )
 

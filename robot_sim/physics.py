@@ -170,6 +170,9 @@ class Simulation:
 
     def reset(self, q: np.ndarray, qd: np.ndarray | None = None) -> None:
         mujoco.mj_resetData(self.model, self.data)
+        # the last episode's hand must not linger in the external torques the KRC
+        # estimates its force from (it latched a force-limit stop at the next start)
+        self._hand_qfrc[:] = 0.0
         self.data.qpos[self._qpos] = q
         if qd is not None:
             self.data.qvel[self._dof] = qd

@@ -305,12 +305,12 @@ def render_text(r: dict) -> str:
     if r["reproductions"]:
         lines.append("")
         lines.append(f"reproductions: {s['successes']} of {s['reproductions']} reached the goal with bounded force")
-        lines.append("   #  side  result        peak F [N]  phase acc  trans. err [s]  sim [s]  wall [s]")
+        lines.append("   #  side  result                 peak F [N]  phase acc  trans. err [s]  sim [s]  wall [s]")
         for rp in r["reproductions"]:
             ph = rp["phases"]
             acc = ph.get("accuracy")
             te = ph.get("mean_transition_error_s")
-            lines.append(f"  {rp['index']:2d} {rp['side']:>5}  {rp['reason']:<13} {rp['peak_contact_force']:10.1f}  "
+            lines.append(f"  {rp['index']:2d} {rp['side']:>5}  {rp['reason']:<22} {rp['peak_contact_force']:10.1f}  "
                          f"{'-' if acc is None else f'{acc:9.3f}'}  "
                          f"{'-' if te is None or te != te else f'{te:14.3f}'}  {rp['sim_seconds']:7.1f}  "
                          f"{rp['wall_seconds']:8.1f}")

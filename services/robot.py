@@ -30,6 +30,7 @@ import numpy as np
 
 from robot_sim.cell import RobotCell
 from robot_sim.fri import CommandPacket, ControlMode, FriState
+from robot_sim.krc import SafetyReason
 from robot_sim.labels import LABELERS
 from robot_sim.teacher import DOWN
 from robot_sim.worlds import WORLDS
@@ -365,7 +366,7 @@ class RobotProcess:
                 ep["reason"] = name
                 return True
         if cell.krc.safety != 0:
-            ep["reason"] = "safety"
+            ep["reason"] = f"safety:{SafetyReason(cell.krc.safety).name.lower()}"
             return True
         return False
 

@@ -118,3 +118,26 @@ def test_noise_free_measurement_and_bad_noise():
     for bad in (-1e-5, float("nan")):
         with pytest.raises(ValueError, match="joint_noise"):
             RobotCell(free_space(), joint_noise=bad)
+
+
+def test_a_safety_stop_does_not_carry_into_the_next_placement():
+    # a hand pushing 300 N latches the Cartesian force limit; placed elsewhere for the
+    # next episode, the arm must start clean (the stale hand torque once re-latched it)
+    from robot_sim.teacher import DOWN
+    from robot_sim.worlds import valley
+
+    cell = RobotCell(valley(), seed=0)
+    cell.place_tcp(np.array([0.6, -0.08, 0.32]), DOWN)
+    cell.start()
+    cell.krc.gravity_compensation = True
+    for _ in range(20):
+        cell.begin_cycle()
+        cell.end_cycle(np.array([0.0, 0.0, -300.0, 0.0, 0.0, 0.0]))
+    assert cell.krc.safety == 2  # CARTESIAN_FORCE
+    cell.place_tcp(np.array([0.66, -0.10, 0.40]), DOWN)
+    cell.krc.gravity_compensation = False
+    for _ in range(300):
+        m = cell.begin_cycle()
+        cell.end_cycle()
+        assert cell.krc.safety == 0
+    assert np.linalg.norm(fri_to_standard(m.est_ext_tcp_ft)[:3]) < 5.0
