@@ -59,7 +59,11 @@ class CommanderConfig:
     cpus: tuple = ()  # CPU affinity of the whole process, (): any
     clock: str = "lockstep"
     model: str | None = None
-    lead: float = 0.02  # m
+    # m: the stiff axis pushes a blocked tool with at most K lead: 10 N at 2000 N/m, the
+    # order of the demonstrated contact forces.  With 2 cm (40 N) the free-motion law slid
+    # the tool down the plate faster than any demonstration, and the estimator, which
+    # judges phases by their dynamics, flickered between free motion and plate.
+    lead: float = 0.005
     damping_ratio: float = 0.7
     goal_tolerance: float = 0.01
     stall_every_s: float = 0.0  # fault injection: stall before answering, every N s of simulated time
@@ -80,7 +84,7 @@ class PhaseLaw:
 class ImpedanceLaw:
     """The per-phase law, free of messaging (tested on its own)."""
 
-    def __init__(self, impedances: list, goal: np.ndarray | None, *, lead=0.02, damping_ratio=0.7,
+    def __init__(self, impedances: list, goal: np.ndarray | None, *, lead=0.005, damping_ratio=0.7,
                  goal_tolerance=0.01):
         self.zeta = damping_ratio
         self.phases = [None if imp is None else self._prepare(imp) for imp in impedances]
@@ -283,7 +287,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--run-id", required=True)
     parser.add_argument("--clock", choices=("lockstep", "realtime"), default="lockstep")
     parser.add_argument("--model", help="learned model file with per-phase impedance; can also come with reset")
-    parser.add_argument("--lead", type=float, default=0.02, help="how far the reference may run ahead, m")
+    parser.add_argument("--lead", type=float, default=0.005,
+                        help="how far the reference may run ahead of the tool, m (default 0.005)")
     parser.add_argument("--damping-ratio", type=float, default=0.7)
     parser.add_argument("--stall-every", type=float, default=0.0,
                         help="fault injection: stall before answering every N s of simulated time")
