@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
 import time
 from pathlib import Path
@@ -29,6 +30,9 @@ def cmd_run(args) -> int:
     if args.attach and (zopts is None or not args.run_id):
         _say("etar-bench run: --attach needs --connect (the router or a peer) and --run-id (the services')")
         return 2
+    # SIGTERM (kill, docker stop) takes the same way out as Ctrl-C: the runner stops the
+    # services it started and writes what it has; otherwise they outlive it as orphans
+    signal.signal(signal.SIGTERM, _interrupt)
     try:
         report = run(RunOptions(scenario=args.scenario, out=out, clock=args.clock, run_id=args.run_id, zenoh=zopts,
                                 attach=args.attach, ready_timeout=args.ready_timeout, sched_fifo=args.sched_fifo),
@@ -36,9 +40,16 @@ def cmd_run(args) -> int:
     except ScenarioError as exc:
         _say(f"etar-bench run: error: {exc}")
         return 2
+    except KeyboardInterrupt as exc:
+        _say(f"etar-bench run: interrupted ({exc or 'SIGINT'}); services stopped, partial report in {out}")
+        return 130
     print((Path(out) / "report.txt").read_text())
     _say(f"report: {out}/report.json, {out}/report.txt; recordings in {out}/recordings")
     return 0 if report["error"] is None else 1
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt(signal.Signals(signum).name)
 
 
 def cmd_report(args) -> int:

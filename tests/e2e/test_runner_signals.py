@@ -1,0 +1,54 @@
+"""`etar-bench run` stopped with SIGTERM (kill, docker stop) stops the services it
+started and leaves a report, instead of leaving six orphans behind."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def processes_of(run_id: str) -> list[int]:
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            cmdline = (entry / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if run_id.encode() in cmdline and int(entry.name) != os.getpid():
+            pids.append(int(entry.name))
+    return pids
+
+
+def test_sigterm_stops_the_services_and_writes_a_report(tmp_path):
+    run_id = f"sigterm-{uuid.uuid4().hex[:8]}"
+    out = tmp_path / "run"
+    runner = subprocess.Popen(
+        [sys.executable, "-m", "services.bench_cli", "run", str(ROOT / "scenarios" / "smoke.yaml"), "--out", str(out),
+         "--run-id", run_id], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        for line in runner.stderr:  # wait until the services run a demonstration
+            if "services ready" in line or time.monotonic() > deadline:
+                break
+        time.sleep(2.0)
+        services = [p for p in processes_of(run_id) if p != runner.pid]
+        assert len(services) == 6, services
+        runner.send_signal(signal.SIGTERM)
+        assert runner.wait(timeout=60) == 130
+    finally:
+        if runner.poll() is None:
+            runner.kill()
+    deadline = time.monotonic() + 10
+    while processes_of(run_id) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert processes_of(run_id) == []
+    report = json.loads((out / "report.json").read_text())
+    assert "SIGTERM" in report["error"]
