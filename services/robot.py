@@ -346,7 +346,9 @@ class RobotProcess:
                     ep["goal_at"] = ep["k"] * cell.cycle_ns / 1e9
         teacher_msg = teacher_entry[0] if teacher_entry is not None else (None if lockstep else latest_teacher)
         hand = None
-        if teacher_msg is not None and teacher_msg["episode"] == self.episode:
+        # episode indices count demonstrations and reproductions separately: the teacher
+        # still set up for demonstration 5 answered reproduction 5 and pushed the arm
+        if teacher_msg is not None and teacher_msg["episode"] == self.episode and self.kind == "demonstration":
             hand = np.array(teacher_msg["wrench"])
             teacher_done = bool(teacher_msg["done"])
         t1 = now_ns()
