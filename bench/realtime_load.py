@@ -18,8 +18,13 @@ woken more than one period late is a miss.  Only the reproduction's wall-clock
 span counts for both.
 
 --sched-fifo: the robot at priority 60 and the commander at 55 (whole processes,
-Zenoh threads included); --isolate-robot: the robot alone on the last CPU, the
-other services on the others.  The table also gives the CPU share of each
+Zenoh threads included); --fifo-chain: with --sched-fifo, also the sensor at 50
+and the estimator at 45 (the rest of the closed loop; the recorder stays an
+ordinary process); --isolate-robot: the robot alone on the last CPU, the
+other services on the others; --cpu-latency-qos: hold /dev/cpu_dma_latency at
+0 for the run, as cyclictest does by default (idle CPUs poll instead of
+halting: on this VM a halted vCPU takes a few hundred microseconds to wake for
+a message; the bare loop in the same run gets it too).  The table also gives the CPU share of each
 process and of everything else on the machine ("other": someone else's jobs
 make the numbers worthless, so look at it).
 
@@ -80,7 +85,11 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--sched-fifo", action="store_true")
+    parser.add_argument("--fifo-chain", action="store_true",
+                        help="with --sched-fifo: the sensor (50) and the estimator (45) under SCHED_FIFO too")
     parser.add_argument("--isolate-robot", action="store_true")
+    parser.add_argument("--cpu-latency-qos", action="store_true",
+                        help="hold /dev/cpu_dma_latency at 0 during the run (idle CPUs poll; needs root)")
     parser.add_argument("--out", help="run directory (default: a temporary one)")
     args = parser.parse_args()
 
@@ -96,6 +105,14 @@ def main():
     scenario.write_text(text)
     run_id = f"rtload-{uuid.uuid4().hex[:8]}"
 
+    qos = None
+    if args.cpu_latency_qos:
+        import os
+        import struct
+
+        # the request holds while the file is open (PM QoS): closed at exit
+        qos = os.open("/dev/cpu_dma_latency", os.O_WRONLY)
+        os.write(qos, struct.pack("i", 0))
     ctx = mp.get_context("spawn")
     stop, queue = ctx.Event(), ctx.Queue()
     bare = ctx.Process(target=bare_loop, args=(args.sched_fifo, stop, queue))
@@ -104,8 +121,12 @@ def main():
     watch.add(bare.pid, "bare loop")
     t = time.monotonic()
     try:
+        priorities = (("robot", 60), ("impedance_commander", 55))
+        if args.fifo_chain:
+            priorities += (("ft_sensor", 50), ("phase_estimator", 45))
         report = run(RunOptions(scenario=str(scenario), out=str(out), run_id=run_id, sched_fifo=args.sched_fifo,
-                                isolate_robot=args.isolate_robot), progress=lambda m: print(m, file=sys.stderr))
+                                isolate_robot=args.isolate_robot, fifo_priorities=priorities),
+                     progress=lambda m: print(m, file=sys.stderr))
     finally:
         watch.stop()
         stop.set()
@@ -129,9 +150,11 @@ def main():
         return f"{d[k]:.0f}" if d.get(k) is not None else "-"
 
     rows = [
-        ("run", f"{args.seconds:g} s held, SCHED_FIFO {'robot 60 / commander 55' if args.sched_fifo else 'no'}"
+        ("run", f"{args.seconds:g} s held, SCHED_FIFO "
+                f"{(', '.join(f'{r} {p}' for r, p in priorities)) if args.sched_fifo else 'no'}"
                 f"{' (robot: ' + str(loop['sched_fifo']) + ')' if args.sched_fifo else ''}, "
-                f"robot {'alone on the last CPU' if args.isolate_robot else 'on any CPU'}; "
+                f"robot {'alone on the last CPU' if args.isolate_robot else 'on any CPU'}"
+                f"{', /dev/cpu_dma_latency 0' if qos is not None else ''}; "
                 f"{wall:.0f} s wall; run directory {out}"),
         ("reproduction", f"{rp['reason']}, goal reached after {rp['goal_reached_at_s']:.2f} s, "
                          f"peak contact {rp['peak_contact_force']:.1f} N"),
@@ -164,15 +187,16 @@ def main():
         rows.append(("commander, receive -> answer", f"p50 {cmd['receive_to_answer']['p50_us']:.0f} us, p99 "
                                                      f"{cmd['receive_to_answer']['p99_us']:.0f} us; " + ", ".join(
                                                          f"{k} {v['mean_us']:.0f}" for k, v in
-                                                         cmd["sections"].items())))
+                                                         cmd["sections"].items())
+                                                     + f"; left unanswered, a cycle old: {cmd.get('stale', '-')}"))
     width = max(len(r[0]) for r in rows)
     for name, value in rows:
         print(f"{name:<{width}}  {value}")
-    print("per-link latency at the receiver (us):   p50      p99   lost")
+    print("per-link latency at the receiver (us):   p50      p99   lost  (skipped for a newer one)")
     for name, v in sorted(report["timing"]["links_received"].items()):
         lat = v.get("latency", {})
         if lat.get("count"):
-            print(f"  {name:<38} {lat['p50_us']:7.0f} {lat['p99_us']:8.0f} {v['lost']:6d}")
+            print(f"  {name:<38} {lat['p50_us']:7.0f} {lat['p99_us']:8.0f} {v['lost']:6d}  ({v.get('skipped', 0)})")
     if cpu:
         print(f"CPU over the reproduction ({cpu['seconds']:.0f} s, % of one CPU; the machine has "
               f"{mp.cpu_count()}): " + ", ".join(f"{k} {v:.0f}" for k, v in sorted(cpu.items()) if k != "seconds"))

@@ -2,7 +2,10 @@
 
 Samples the tool wrench the robot publishes on ``robot/contact`` with the ATI
 model (bias, drift, noise, quantisation, saturation) and publishes an RDT-like
-record on ``ft/wrench`` carrying the same cycle ``seq``.  Control: ``tare``
+record on ``ft/wrench`` carrying the same cycle ``seq``.  On the realtime
+clock a sensor that has fallen behind samples the newest contact message and
+skips the older ones (``Service.subscribe(latest=True)``: counted as lost);
+in lockstep it answers every one.  Control: ``tare``
 (software bias over the next N samples), ``status``, ``shutdown``.  A
 malformed contact message is dropped and counted; a non-finite wrench sets the
 sensor's error bit (robot_sim.ati) instead of reaching the wire.
@@ -30,6 +33,7 @@ class FtSensorConfig:
     sched_fifo: int = 0  # SCHED_FIFO priority, 0: none
     cpus: tuple = ()  # CPU affinity of the whole process, (): any
     seed: int = 0
+    clock: str = "lockstep"
 
 
 class FtSensorProcess:
@@ -40,7 +44,7 @@ class FtSensorProcess:
         self._lock = threading.Lock()
         self._pub = svc.publisher("ft/wrench")
         self._wrench = np.zeros(6)
-        svc.subscribe("robot/contact", self.on_contact)
+        svc.subscribe("robot/contact", self.on_contact, latest=config.clock == "realtime")
 
     def on_contact(self, msg, recv_ns, raw) -> None:
         with self._lock:
@@ -75,7 +79,8 @@ def build_parser() -> argparse.ArgumentParser:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--run-id", required=True)
     parser.add_argument("--clock", choices=("lockstep", "realtime"), default="lockstep",
-                        help="accepted for symmetry: the sensor answers every robot cycle either way")
+                        help="realtime: sample the newest contact message, skipping any backlog; "
+                             "lockstep: every one")
     parser.add_argument("--seed", type=int, default=0, help="seed of the sensor's noise and drift")
     add_zenoh_arguments(parser)
     return parser
@@ -84,7 +89,7 @@ def build_parser() -> argparse.ArgumentParser:
 def cli(argv=None) -> int:
     args = build_parser().parse_args(argv)
     return main(FtSensorConfig(run_id=args.run_id, zenoh=zenoh_options(args), seed=args.seed,
-                               sched_fifo=args.sched_fifo, cpus=args.cpus))
+                               sched_fifo=args.sched_fifo, cpus=args.cpus, clock=args.clock))
 
 
 if __name__ == "__main__":

@@ -5,6 +5,15 @@ seq (``robot/command``).  The phase is the estimator's most likely phase
 (``estimator/phase``, 100 Hz; in lockstep the commander waits for the
 estimate of the same cycle every tenth cycle).
 
+On the realtime clock only answers that can still count are sent: the
+commander takes the newest measurement that has arrived (an older one's cycle
+closed when the robot sent the next; ``Service.subscribe(latest=True)``) and
+leaves unanswered one that is already a cycle old (``stale`` in its status):
+its answer could only reach the KRC late, which FRI counts as a miss all the
+same, and computing it would delay the answer to the cycle that is still open.
+The law then integrates over the cycles that passed (``dt``).  Lockstep
+answers every measurement.
+
 The impedance of each phase is the one derived from its demonstration data
 (``etar.impedance``: direction d, compliant axes, K = R V R^T, mean contact
 force; stored in the model file's metadata).  The commander moves a reference
@@ -42,6 +51,7 @@ from services.runtime.service import Service, now_ns
 from services.runtime.session import ZenohOptions, add_zenoh_arguments, zenoh_options
 
 DT = 0.001
+CYCLE_NS = 1_000_000  # the FRI cycle: an answer later than this after its measurement is late
 PERIOD_NS = 10_000_000  # the estimator's period (simulated time)
 HOLD_STIFFNESS = 2000.0
 ROT_STIFFNESS = 150.0
@@ -112,13 +122,14 @@ class ImpedanceLaw:
         self.v = np.zeros(3)
         self.goal_reached = False
 
-    def step(self, x: np.ndarray, R: np.ndarray, phase: int | None) -> tuple[np.ndarray, np.ndarray]:
-        """(force in base axes (3,), setpoint rotation) for this cycle."""
+    def step(self, x: np.ndarray, R: np.ndarray, phase: int | None, dt: float = DT) -> tuple[np.ndarray, np.ndarray]:
+        """(force in base axes (3,), setpoint rotation) for this cycle; ``dt``: time since
+        the previous step (more than one cycle when realtime left measurements unanswered)."""
         if self.R_hold is None:
             self.R_hold = R.copy()
         if self.prev_x is not None:
             # a light low-pass on the finite-difference velocity (1 ms steps)
-            self.v = 0.7 * self.v + 0.3 * (x - self.prev_x) / DT
+            self.v = 0.7 * self.v + 0.3 * (x - self.prev_x) / dt
         self.prev_x = x.copy()
         law = self.phases[phase] if phase is not None and 0 <= phase < len(self.phases) else None
         if phase != self.phase:
@@ -131,7 +142,7 @@ class ImpedanceLaw:
                 self.ref = x.copy()
             return self.hold_stiffness @ (self.ref - x) - self.hold_damping @ self.v, self.R_hold
         d = law.direction
-        self.ref = self.ref + d * law.speed * DT
+        self.ref = self.ref + d * law.speed * dt
         ahead = (self.ref - x) @ d
         if ahead > self.lead:
             self.ref -= d * (ahead - self.lead)
@@ -162,25 +173,29 @@ class CommanderProcess:
         self._latest_phase = None
         self._latest_phase_seq = -1
         self._waiting_since = None
+        self._last_answered_seq = None
         self.missing_estimates = 0
+        self.stale = 0  # realtime: measurements left unanswered, already a cycle old when their turn came
         # where an answer's time goes, and receive -> published (the commander's share of
         # the FRI answer latency)
         self.sections = Sections("decode", "law", "encode", "publish")
         self.answer_time = Histogram()
         self._recv_ns = 0
-        self._pub = svc.publisher("robot/command", drop_when_congested=config.clock == "realtime")
+        realtime = config.clock == "realtime"
+        self._pub = svc.publisher("robot/command", drop_when_congested=realtime)
         self.model = ETAR.load(config.model) if config.model else None
-        svc.subscribe("robot/state", self.on_state)
-        svc.subscribe("estimator/phase", self.on_phase)
+        svc.subscribe("robot/state", self.on_state, latest=realtime)
+        svc.subscribe("estimator/phase", self.on_phase, latest=realtime)
 
     def on_phase(self, msg, recv_ns, raw):
         with self._lock:
             if msg["episode"] != self.episode:
                 return
-            self._phases[msg["seq"]] = msg["phase"]
             self._latest_phase = msg["phase"]
             self._latest_phase_seq = msg["seq"]
-            self._drain()
+            if self.config.clock == "lockstep":  # realtime uses the latest estimate, whatever its cycle
+                self._phases[msg["seq"]] = msg["phase"]
+                self._drain()
 
     def on_state(self, msg, recv_ns, raw):
         with self._lock:
@@ -191,6 +206,9 @@ class CommanderProcess:
             if self.law is None or msg["episode"] != self.episode:
                 return
             t = now_ns()
+            if self.config.clock == "realtime" and t - msg["sent_ns"] >= CYCLE_NS:
+                self.stale += 1  # its cycle is over: an answer now could only be late
+                return
             self.sections.cycles += 1
             self.sections.add("decode", t - recv_ns)  # receive -> here: decoding and the lock
             self._recv_ns = recv_ns
@@ -216,12 +234,19 @@ class CommanderProcess:
 
     def _answer(self, state):
         c = self.config
-        if c.stall_ms > 0 and c.stall_every_s > 0 and state["stamp_ns"] % int(c.stall_every_s * 1e9) == 0:
-            time.sleep(c.stall_ms / 1e3)  # injected fault: this answer comes late
+        seq, last = state["seq"], self._last_answered_seq
+        if c.stall_ms > 0 and c.stall_every_s > 0:
+            # injected fault: the first answer of every stall_every_s of simulated time comes late
+            # (the first one answered: realtime may have left the cycle on the mark unanswered)
+            every, stamp = int(c.stall_every_s * 1e9), state["stamp_ns"]
+            if stamp % every == 0 or (last is not None and stamp // every > (stamp - (seq - last) * CYCLE_NS) // every):
+                time.sleep(c.stall_ms / 1e3)
         t0 = now_ns()
         m = np.asarray(state["msr_cart_pos"]).reshape(3, 4)
         R, x = m[:, :3], m[:, 3]
-        F, R_set = self.law.step(x, R, self._latest_phase)
+        cycles = seq - last if last is not None and 0 < seq - last <= 100 else 1
+        self._last_answered_seq = seq
+        F, R_set = self.law.step(x, R, self._latest_phase, cycles * DT)
         add = standard_to_fri(np.concatenate([R.T @ F, np.zeros(3)]))
         t1 = now_ns()
         raw = ROBOT_COMMAND.encode(
@@ -259,6 +284,7 @@ class CommanderProcess:
             self._latest_phase = None
             self._latest_phase_seq = -1
             self._waiting_since = None
+            self._last_answered_seq = None
 
     def _unstick(self) -> None:
         with self._lock:
@@ -268,6 +294,7 @@ class CommanderProcess:
     def serve(self) -> None:
         self.svc.serve({"reset": self.reset}, idle=self._unstick,
                        status=lambda: {"episode": self.episode, "missing_estimates": self.missing_estimates,
+                                       "stale": self.stale,
                                        "sections": self.sections.summary(),
                                        "receive_to_answer": self.answer_time.summary()})
 

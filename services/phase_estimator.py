@@ -7,7 +7,10 @@ normalised forward message on ``estimator/phase``.  On either clock it waits
 for both inputs of the same cycle (the wrench comes through the sensor, a hop
 later than the state); a cycle whose wrench has not come by the next tenth
 cycle is skipped and counted.  The other nine cycles' messages are not even
-decoded (``Service.subscribe(every_tenth=True)``).
+decoded (``Service.subscribe(every_tenth=True)``).  On the realtime clock an
+estimator that has fallen behind takes the newest tenth cycle and skips the
+older ones (``latest=True``: counted as lost), so its estimate is about the
+present; lockstep takes every one.
 Control: ``reset`` (episode, model path, state, features), ``status``,
 ``shutdown``.  A wrench with error status or a sample the filter rejects
 (non-finite) is skipped and counted; the filter keeps its state.
@@ -56,8 +59,9 @@ class EstimatorProcess:
         self._states: dict[int, dict] = {}
         self._wrenches: dict[int, dict] = {}
         self._pub = svc.publisher("estimator/phase")
-        svc.subscribe("robot/state", self.on_state, every_tenth=True)
-        svc.subscribe("ft/wrench", self.on_wrench, every_tenth=True)
+        latest = config.clock == "realtime"
+        svc.subscribe("robot/state", self.on_state, every_tenth=True, latest=latest)
+        svc.subscribe("ft/wrench", self.on_wrench, every_tenth=True, latest=latest)
 
     def on_state(self, msg, recv_ns, raw):
         if msg["stamp_ns"] % PERIOD_NS:

@@ -40,17 +40,19 @@ def now_ns() -> int:
 class LinkCounters:
     """Per subscribed topic, at the receiving end: what arrived, what was garbage,
     one-way latency (publish -> this callback, same-host CLOCK_MONOTONIC) and
-    lost / out-of-order messages from the sequence numbers."""
+    lost / out-of-order messages from the sequence numbers.  ``skipped``: messages
+    a ``latest`` subscriber passed over for a newer one (also in ``lost``)."""
 
     received: int = 0
     bad: int = 0
+    skipped: int = 0
     last_error: str = ""
     latency: Histogram = field(default_factory=Histogram)
     sequence: SequenceTracker = field(default_factory=SequenceTracker)
 
     def to_dict(self) -> dict:
         seq = self.sequence.to_dict()
-        return {"received": self.received, "bad": self.bad, "last_error": self.last_error,
+        return {"received": self.received, "bad": self.bad, "skipped": self.skipped, "last_error": self.last_error,
                 "latency": self.latency.summary(), "lost": seq["lost"], "out_of_order": seq["out_of_order"],
                 "duplicates": seq["duplicates"]}
 
@@ -207,23 +209,32 @@ class Service:
         self._publishers[topic] = pub
         return pub
 
-    def subscribe(self, topic: str, on_message, *, decode: bool = True, every_tenth: bool = False) -> None:
+    def subscribe(self, topic: str, on_message, *, decode: bool = True, every_tenth: bool = False,
+                  latest: bool = False) -> None:
         """Deliver (message dict, receive time ns, raw bytes) for every valid
         sample on etar/<run_id>/<topic>; garbage is counted in ``links``, never raised.
 
         ``every_tenth``: only the messages of every tenth robot cycle (stamp a
         multiple of 10 ms), told from the raw bytes before anything is decoded: a
         100 Hz consumer of a 1 kHz topic then pays for the other nine at the cost
-        of a byte comparison."""
+        of a byte comparison.
+
+        ``latest``: for a realtime consumer that needs only the current data (the
+        sensor, the estimator, the commander's measurements).  When it gets to the
+        next message it takes the newest one that has arrived and skips the older
+        ones: one that fell behind (a stall, a crowded CPU) starts again from the
+        present instead of working through a stale backlog.  Skipped messages are
+        never decoded; they show as gaps in the sequence numbers (``lost``) and, as
+        far as this process saw them, in ``skipped``.  Zenoh keeps the newest
+        samples in a ring (``zenoh.handlers.RingChannel``: 1 sample, 10 with
+        ``every_tenth`` so that a tenth cycle is among them) and drops older ones
+        without waking Python; one thread of this process drains it.  Never for
+        the recorder or for lockstep, which need every message."""
         message_type: MessageType | None = BY_TOPIC.get(topic)
         stride = 10 if every_tenth else STRIDES.get(topic, 1)
         counters = self.links.setdefault(topic, LinkCounters(sequence=SequenceTracker(stride=stride)))
 
-        def callback(sample: zenoh.Sample) -> None:
-            recv = now_ns()
-            raw = sample.payload.to_bytes()
-            if every_tenth and not _tenth_cycle(raw):
-                return
+        def deliver(raw: bytes, recv: int) -> None:
             counters.received += 1
             msg = None
             if decode and message_type is not None:
@@ -241,12 +252,48 @@ class Service:
                 counters.bad += 1
                 counters.last_error = f"{type(exc).__name__}: {exc}"
 
+        key = topics.key(self.run_id, topic)
+        if latest:
+            sub = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(10 if every_tenth else 1))
+            deliver = self.profile.wrap(deliver)
+            ring = sub.handler  # not the subscriber: undeclaring it while a thread waits in its recv() fails
+
+            def drain() -> None:
+                try:
+                    while True:
+                        raw = ring.recv().payload.to_bytes()
+                        recv = now_ns()
+                        if every_tenth and not _tenth_cycle(raw):
+                            raw = None
+                        while (sample := ring.try_recv()) is not None:
+                            newer = sample.payload.to_bytes()
+                            if every_tenth and not _tenth_cycle(newer):
+                                continue
+                            if raw is not None:
+                                counters.skipped += 1
+                            raw, recv = newer, now_ns()
+                        if raw is not None:
+                            deliver(raw, recv)
+                except zenoh.ZError:
+                    return  # undeclared: the ring is closed
+
+            # started from the thread that subscribes: under --sched-fifo it inherits the policy
+            threading.Thread(target=drain, name=f"latest {topic}", daemon=True).start()
+            self._subscribers.append(sub)
+            return
+
+        def callback(sample: zenoh.Sample) -> None:
+            recv = now_ns()
+            raw = sample.payload.to_bytes()
+            if every_tenth and not _tenth_cycle(raw):
+                return
+            deliver(raw, recv)
+
         # Zenoh's default hands each sample to a Python thread.  Running the callback on
         # the network thread itself (Callback(indirect=False)) was measured worse: a
         # callback that publishes (the sensor) then blocks reception, and the sensor fell
         # 150 ms behind instead of 0.75 ms (hold run, 2 CPUs); no gain for the FRI link
-        self._subscribers.append(self.session.declare_subscriber(topics.key(self.run_id, topic),
-                                                                 self.profile.wrap(callback)))
+        self._subscribers.append(self.session.declare_subscriber(key, self.profile.wrap(callback)))
 
 
 _STAMP = re.compile(rb'^\{"seq":-?\d+,"stamp_ns":(\d+)')

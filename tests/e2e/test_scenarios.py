@@ -117,9 +117,10 @@ def quality_at(changes, t):
 def test_injected_commander_stall_shows_up_as_fri_misses_and_quality_drops(tmp_path):
     """The commander sleeps 3 ms before one answer every simulated second (its
     --stall-every/--stall-ms fault injection); realtime, all processes over Zenoh,
-    the two ends of the FRI link under SCHED_FIFO.  The stalled answer and the ones
-    queued behind it miss their deadlines: the report counts them late, and the FRI
-    quality falls at the stall instants."""
+    the two ends of the FRI link under SCHED_FIFO.  The stalled answer misses its
+    deadline and the report counts it late; the measurements that came meanwhile are
+    a cycle old by then and left unanswered (missed); the FRI quality falls at the
+    stall instants."""
     every, stall_ms = 1.0, 3.0
     t = time.monotonic()
     report = run(RunOptions(scenario=hold_scenario(tmp_path, 10), out=str(tmp_path / "run"), sched_fifo=True,
@@ -134,7 +135,7 @@ def test_injected_commander_stall_shows_up_as_fri_misses_and_quality_drops(tmp_p
     # the stall instants on the robot's clock (the commander keys them on the measurement's stamp)
     stalls = [k * every for k in range(int(q["start_s"] / every) + 1, int(q["end_s"] / every) + 1)]
     assert len(stalls) >= 8
-    # a 3 ms stall costs about three cycles: each is missed, and its answer counted when it comes late
+    # a 3 ms stall costs about three cycles: each is missed; the stalled answer is counted when it comes late
     assert fri["missed"] >= len(stalls) and fri["late"] >= len(stalls), fri
     # the quality the robot published falls right after a stall (three misses in the
     # window of 100: PERFECT or OK -> at most BAD); from UNACCEPTABLE there is no lower

@@ -1,0 +1,107 @@
+"""A ``latest`` subscriber that falls behind takes the newest message, never a stale backlog;
+the default subscriber (lockstep, the recorder) gets every message."""
+
+import signal
+import threading
+import time
+
+import pytest
+
+from services.launch import free_port
+from services.runtime import topics
+from services.runtime.messages import ROBOT_CONTACT, ROBOT_STATE
+from services.runtime.service import Service
+from services.runtime.session import ZenohOptions, open_session
+
+
+def contact(seq):
+    return ROBOT_CONTACT.encode(seq=seq, stamp_ns=seq * 1_000_000, sent_ns=time.monotonic_ns(),
+                                wrench=[0.0] * 6, contact_force=[0.0] * 3, touching=[], true_phase=0, episode=0)
+
+
+def state(seq):
+    return ROBOT_STATE.encode(seq=seq, stamp_ns=seq * 1_000_000, sent_ns=time.monotonic_ns(), reflected_seq=-1,
+                              fri_state=1, fri_quality=3, control_mode=2, msr_jnt_pos=[0.0] * 7,
+                              msr_cart_pos=[0.0] * 12, est_ext_tcp_ft=[0.0] * 6, answer_rate=1.0, latency_s=0.0,
+                              jitter_s=0.0, miss_rate=0.0, safety=0, gravity_compensation=False, episode=0)
+
+
+@pytest.fixture
+def link():
+    """A service (the subscriber) and a second session that publishes to it."""
+    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    run_id = f"latest-{int(time.time() * 1000)}"
+    svc = Service("subscriber", run_id, ZenohOptions(listen=(endpoint,)))
+    svc.__enter__()
+    publisher = open_session(ZenohOptions(connect=(endpoint,)))
+    try:
+        yield svc, run_id, publisher
+    finally:
+        publisher.close()
+        svc.__exit__(None, None, None)
+        for sig, h in handlers.items():
+            signal.signal(sig, h)
+
+
+def wait_for(cond, timeout=10.0):
+    end = time.monotonic() + timeout
+    while not cond() and time.monotonic() < end:
+        time.sleep(0.01)
+    return cond()
+
+
+@pytest.mark.parametrize("latest", [True, False])
+def test_a_subscriber_that_falls_behind(link, latest):
+    svc, run_id, session = link
+    seen, busy = [], threading.Event()
+
+    def on_contact(msg, recv_ns, raw):
+        seen.append(msg["seq"])
+        if msg["seq"] == 1:
+            busy.wait(10)  # stuck on the first while 2..50 arrive
+
+    svc.subscribe("robot/contact", on_contact, latest=latest)
+    pub = session.declare_publisher(topics.key(run_id, "robot/contact"))
+    time.sleep(0.3)  # let the subscription reach the publisher
+    pub.put(contact(1))
+    assert wait_for(lambda: seen == [1])
+    for seq in range(2, 51):
+        pub.put(contact(seq))
+    time.sleep(0.3)  # all of them have arrived while the handler is stuck
+    busy.set()
+    assert wait_for(lambda: seen[-1] == 50)
+    time.sleep(0.1)
+    counters = svc.links["robot/contact"].to_dict()
+    if latest:
+        assert seen == [1, 50]  # the newest, not the backlog
+        assert counters["lost"] == 48 and counters["received"] == 2
+    else:
+        assert seen == list(range(1, 51))  # every one, in order
+        assert counters["lost"] == 0 and counters["skipped"] == 0
+
+
+def test_latest_every_tenth_takes_the_newest_tenth_cycle(link):
+    svc, run_id, session = link
+    seen, busy = [], threading.Event()
+
+    def on_state(msg, recv_ns, raw):
+        seen.append(msg["seq"])
+        if msg["seq"] == 10:
+            busy.wait(10)
+
+    svc.subscribe("robot/state", on_state, every_tenth=True, latest=True)
+    pub = session.declare_publisher(topics.key(run_id, "robot/state"))
+    time.sleep(0.3)
+    for seq in range(1, 11):
+        pub.put(state(seq))
+    assert wait_for(lambda: seen == [10])
+    for seq in range(11, 58):  # tenth cycles 20..50 arrive, then 51..57 fill the ring with nine others
+        pub.put(state(seq))
+    time.sleep(0.3)
+    busy.set()
+    for seq in range(58, 61):
+        pub.put(state(seq))
+    assert wait_for(lambda: seen[-1] == 60)
+    assert seen[0] == 10 and seen[-1] == 60 and len(seen) <= 3  # 50 at most in between, never 20-40
+    assert all(s % 10 == 0 for s in seen)
