@@ -51,6 +51,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
+from services.runtime.timing import longest_run  # noqa: E402  (after the path set-up)
+
 
 def bare_loop(fifo: bool, stop, queue):
     from services.runtime.loop import set_timer_slack, try_sched_fifo
@@ -71,14 +73,6 @@ def bare_loop(fifo: bool, stop, queue):
         if wake >= deadline:  # skip what was missed, as the robot's timer does
             deadline += ((wake - deadline) // period + 1) * period
     queue.put((used, np.array(wakes, dtype=np.int64), np.array(late, dtype=np.int64)))
-
-
-def longest_run(flags) -> int:
-    best = run = 0
-    for f in flags:
-        run = run + 1 if f else 0
-        best = max(best, run)
-    return best
 
 
 def main():

@@ -56,9 +56,9 @@ PERIOD_NS = 10_000_000  # the estimator's period (simulated time)
 HOLD_STIFFNESS = 2000.0
 ROT_STIFFNESS = 150.0
 EFFECTIVE_MASS = 2.0  # kg, for the damping ratio of the commanded impedance
-ESTIMATE_WAIT_S = 2.0
+ESTIMATE_WAIT_S = 2.0  # lockstep: how long to wait for a cycle's estimate before going on without it
 _CART_STIFFNESS = [0.0, 0.0, 0.0] + [ROT_STIFFNESS] * 3
-_CART_DAMPING = [0.7] * 6  # lockstep: how long to wait for a cycle's estimate before going on without it
+_CART_DAMPING = [0.7] * 6
 
 
 @dataclass(frozen=True)

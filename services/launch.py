@@ -82,12 +82,7 @@ def stop(processes, timeouts=(5.0, 3.0, 2.0), grace: float = 5.0) -> dict:
     """Give processes ``grace`` seconds to exit by themselves (after a shutdown
     request), then SIGINT, SIGTERM and SIGKILL to each process group; returns
     the exit codes (negative: killed by that signal)."""
-    deadline = time.monotonic() + grace
-    for p in processes:
-        try:
-            p.popen.wait(max(0.0, deadline - time.monotonic()))
-        except subprocess.TimeoutExpired:
-            pass
+    _wait_all(processes, grace)
     codes = {}
     for sig, timeout in zip((signal.SIGINT, signal.SIGTERM, signal.SIGKILL), timeouts):
         running = [p for p in processes if p.alive()]
@@ -98,12 +93,17 @@ def stop(processes, timeouts=(5.0, 3.0, 2.0), grace: float = 5.0) -> dict:
                 os.killpg(p.popen.pid, sig)
             except ProcessLookupError:
                 pass
-        deadline = time.monotonic() + timeout
-        for p in running:
-            try:
-                p.popen.wait(max(0.0, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                pass
+        _wait_all(running, timeout)
     for p in processes:
         codes[p.name] = p.popen.poll()
     return codes
+
+
+def _wait_all(processes, seconds: float) -> None:
+    """Wait until every process has exited or ``seconds`` have passed, whichever is first."""
+    deadline = time.monotonic() + seconds
+    for p in processes:
+        try:
+            p.popen.wait(max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            pass
