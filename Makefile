@@ -9,7 +9,7 @@ OUT ?= out
 
 .PHONY: run test bench venv clean
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml setup.py robot_sim/native/pinocchio_inplace.cpp
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade "pip>=24,<27"
 	$(BIN)/python -m pip install --quiet -e ".[test]"

@@ -15,10 +15,37 @@ update, so they stay current (and valid as long as this object lives).
 
 from __future__ import annotations
 
+import logging
+import os
+
 import numpy as np
 import pinocchio as pin
 
 from robot_sim.lwr4.description import LWR4, ArmDescription
+
+log = logging.getLogger(__name__)
+
+
+def _load_pinocchio_inplace():
+    """(the compiled robot_sim._pinocchio_inplace module or None, why not).
+
+    Imported after pinocchio: its libraries are then loaded and resolve the
+    extension's.  A module built against another Pinocchio would read Model and
+    Data with the wrong layout, so a version mismatch counts as missing.
+    ROBOT_SIM_PINOCCHIO_INPLACE=0 turns it off, to compare with the bindings."""
+    if os.environ.get("ROBOT_SIM_PINOCCHIO_INPLACE", "1") == "0":
+        return None, "turned off by ROBOT_SIM_PINOCCHIO_INPLACE=0"
+    try:
+        from robot_sim import _pinocchio_inplace as native
+    except ImportError as e:
+        return None, f"robot_sim._pinocchio_inplace did not import ({e}); reinstall with a C++ compiler"
+    if native.PINOCCHIO_VERSION != pin.__version__:
+        return None, (f"robot_sim._pinocchio_inplace was built against Pinocchio {native.PINOCCHIO_VERSION}, "
+                      f"{pin.__version__} is loaded; reinstall the project")
+    return native, None
+
+
+PINOCCHIO_INPLACE, PINOCCHIO_INPLACE_MISSING = _load_pinocchio_inplace()
 
 FRAMES = ("flange", "ati_sensor", "tool", "tcp")
 
@@ -29,10 +56,15 @@ READY = np.array([0.0, -0.5, 0.0, 1.5, 0.0, -1.1, 0.0])
 class ArmKinematics:
     """Forward kinematics, Jacobians, dynamics terms and IK of the LWR4+."""
 
+    _warned_inplace_missing = False
+
     def __init__(self, description: ArmDescription = LWR4):
         self.description = description
         self.model = pin.buildModelFromXML(description.to_urdf())
         self.data = self.model.createData()
+        if PINOCCHIO_INPLACE is None and not ArmKinematics._warned_inplace_missing:
+            ArmKinematics._warned_inplace_missing = True
+            log.warning("the control step allocates 2 x 56 B per cycle: %s", PINOCCHIO_INPLACE_MISSING)
         if self.model.nq != description.n_joints:
             raise ValueError(f"URDF gave {self.model.nq} joints, expected {description.n_joints}")
         self.frame_ids = {name: self.model.getFrameId(name) for name in FRAMES}
@@ -60,10 +92,14 @@ class ArmKinematics:
         """``update(q, qd)`` plus the joint-space inertia and the nonlinear
         effects, into ``views`` and ``frame_views``.  No Python object or numpy
         array is allocated (computeJointJacobians and nonLinearEffects would
-        return copies); eigenpy still copies q and qd into Eigen vectors, two
-        56 B C++ heap blocks, as it does for any Pinocchio call."""
-        pin.computeAllTerms(self.model, self.data, q, qd)
-        pin.updateFramePlacements(self.model, self.data)
+        return copies), and with robot_sim._pinocchio_inplace no C++ heap block
+        either: Pinocchio's own bindings copy q and qd into two new Eigen
+        vectors, which is the fallback when the extension is missing."""
+        if PINOCCHIO_INPLACE is not None:
+            PINOCCHIO_INPLACE.compute_all_terms(self.model, self.data, q, qd)
+        else:
+            pin.computeAllTerms(self.model, self.data, q, qd)
+            pin.updateFramePlacements(self.model, self.data)
 
     def frame_views(self, frame: str = "tcp") -> tuple[np.ndarray, np.ndarray]:
         """(rotation (3, 3), translation (3,)) of oMframe: live views of ``data``."""

@@ -1,0 +1,51 @@
+"""The project's one compiled part: robot_sim._pinocchio_inplace (see its source).
+
+Everything else is in pyproject.toml.  The extension is compiled against the
+headers and libraries of the pin wheel in the build environment (pinned to the
+runtime's version in pyproject.toml) and the Eigen headers of cmeel-eigen.  It
+is optional: without a C++ compiler the install goes on and robot_sim falls back
+to Pinocchio's bindings, which allocate two small vectors per control step.
+"""
+
+import sys
+from pathlib import Path
+
+from setuptools import Extension, setup
+
+
+def cmeel_prefix() -> Path:
+    """The cmeel prefix holding Pinocchio's and Eigen's headers (pin, cmeel-eigen)."""
+    for entry in sys.path:
+        prefix = Path(entry) / "cmeel.prefix"
+        if (prefix / "include" / "pinocchio").is_dir() and (prefix / "include" / "eigen3").is_dir():
+            return prefix
+    raise SystemExit("setup.py: no cmeel.prefix with include/pinocchio and include/eigen3 on sys.path; "
+                     "the build needs the pin and cmeel-eigen wheels (build-system.requires in pyproject.toml)")
+
+
+def pinocchio_inplace() -> Extension:
+    import numpy
+
+    prefix = cmeel_prefix()
+    lib = prefix / "lib"
+    return Extension(
+        "robot_sim._pinocchio_inplace",
+        sources=["robot_sim/native/pinocchio_inplace.cpp"],
+        include_dirs=[str(prefix / "include"), str(prefix / "include" / "eigen3"), numpy.get_include()],
+        # the compile definitions of the pinocchio::pinocchio_default CMake target
+        # (lib/cmake/pinocchio/pinocchioTargets.cmake): they fix the joint variant's size
+        define_macros=[("BOOST_MPL_LIMIT_LIST_SIZE", "30"), ("BOOST_MPL_LIMIT_VECTOR_SIZE", "30"),
+                       ("BOOST_MPL_CFG_NO_PREPROCESSED_HEADERS", None), ("BOOST_FUSION_INVOKE_MAX_ARITY", "12"),
+                       ("PINOCCHIO_ENABLE_TEMPLATE_INSTANTIATION", None), ("PINOCCHIO_WITH_COLLISION", None)],
+        library_dirs=[str(lib)],
+        libraries=["pinocchio_default", "eigenpy", f"boost_python{sys.version_info.major}{sys.version_info.minor}"],
+        # installed: site-packages/robot_sim -> site-packages/cmeel.prefix/lib; an
+        # editable install finds them because `import pinocchio` loaded them first
+        runtime_library_dirs=["$ORIGIN/../cmeel.prefix/lib"],
+        extra_compile_args=["-std=c++17", "-O2", "-Wno-deprecated-declarations"],
+        language="c++",
+        optional=True,
+    )
+
+
+setup(ext_modules=[pinocchio_inplace()])
