@@ -69,7 +69,13 @@ def test_smoke_lockstep_twice_at_once_is_deterministic_and_isolated(tmp_path):
         assert report["summary"]["phases_chosen"] == 3
         assert all(code == 0 for code in report["exit_codes"].values()), report["exit_codes"]
         check_recordings(tmp_path / name, report)
-        assert (tmp_path / name / "report.txt").read_text().startswith("ETAR testbench run")
+        text = (tmp_path / name / "report.txt").read_text()
+        assert text.startswith("ETAR testbench run")
+        # demonstrations run in gravity compensation: their unanswered FRI cycles are not shown as misses
+        assert text.count("gravity compensation, nobody answers FRI") == 2
+        # the reproduction entered command mode within the episode (time from its start, not the run's)
+        row = next(line for line in text.splitlines() if line.startswith("  reproduction    0 "))
+        assert 0.0 <= float(row.split()[-1]) < report["reproductions"][0]["sim_seconds"]
         assert (tmp_path / name / "model.json").exists()
     a, b = content(tmp_path / "a"), content(tmp_path / "b")
     assert a.keys() == b.keys() and len(a) == 3
