@@ -42,7 +42,7 @@ def pinocchio_inplace() -> Extension:
         # installed: site-packages/robot_sim -> site-packages/cmeel.prefix/lib; an
         # editable install finds them because `import pinocchio` loaded them first
         runtime_library_dirs=["$ORIGIN/../cmeel.prefix/lib"],
-        extra_compile_args=["-std=c++17", "-O2", "-Wno-deprecated-declarations"],
+        extra_compile_args=["-std=c++17", "-O2", "-g0", "-Wno-deprecated-declarations"],
         language="c++",
         optional=True,
     )

@@ -38,7 +38,8 @@ if ! podman image exists localhost/etar-base:bookworm-2; then
 fi
 
 stamp="$state/wheelhouse.stamp"
-if [[ ! -f "$stamp" || "$root/pyproject.toml" -nt "$stamp" || -n "$(find "$root/etar" "$root/robot_sim" "$root/services" -name '*.py' -newer "$stamp" -print -quit)" ]]; then
+if [[ ! -f "$stamp" || "$root/pyproject.toml" -nt "$stamp" || "$root/setup.py" -nt "$stamp" \
+      || -n "$(find "$root/etar" "$root/robot_sim" "$root/services" \( -name '*.py' -o -name '*.cpp' \) -newer "$stamp" -print -quit)" ]]; then
   echo "setup-podman: building the wheelhouse"
   rm -rf "$root/docker/wheelhouse"
   "$py" -m pip wheel -q --wheel-dir "$root/docker/wheelhouse" "$root" 2>"$state/wheel.log" >/dev/null

@@ -31,9 +31,15 @@ Figures and where they come from
   1 ms sample by default.
 * Resolution (quantisation step) 1/8 N (Fx, Fy, Fz), 1/376 Nm (Tx, Ty), 1/752 Nm
   (Tz): ATI's published Mini45 table for calibration SI-290-10 with a Net F/T /
-  16-bit DAQ system.  NOTE: recalled from ATI's product page; the page is not in
-  this project's reference corpus, so check it against the calibration certificate
-  of a real sensor before trusting the third significant figure.  The step is
+  16-bit DAQ system.  NOTE: recalled from ATI's product page, which is not in this
+  project's reference corpus.  The one written source found is second-hand: a
+  component summary compiled from that page gives, for the larger Mini45
+  calibration SI-580-20 (twice the ranges), 0.25 N on every force axis and
+  "0.003-0.005 Nm" on the torques.  Halved, 0.25 N is our 1/8 N; the torque
+  figures fit 1/376 and 1/188 Nm (0.0027, 0.0053) rounded, which halve to our
+  1/752 and 1/376 Nm.  So the force step agrees and the torque steps agree to the
+  summary's rounding; check them against a real sensor's calibration certificate
+  before trusting the third significant figure.  The step is
   snapped to whole counts (1/376 Nm -> 2660 counts), see
   :attr:`AtiConfig.effective_resolution`.
 * White noise std, half the resolution (1/16 N, 1/752 Nm, 1/1504 Nm): ASSUMPTION.
