@@ -103,7 +103,8 @@ def cmd_learn(args) -> int:
     model.metadata["demonstrations"] = [str(p) for p in args.demos]
     dt = args.dt if args.dt is not None else float(demos[0].get("dt", 0.01))
     if model.n_state >= 3 and model.n_force >= 3:
-        imps = phase_impedances(model, pairs, dt)
+        # a 6-column state is a pose: position and rotation vector (services.features)
+        imps = phase_impedances(model, pairs, dt, rotation_columns=slice(3, 6) if model.n_state == 6 else None)
         model.metadata["impedance"] = [None if imp is None else imp.to_dict() for imp in imps]
         model.metadata["dt"] = dt
     model.save(args.out)

@@ -10,13 +10,23 @@ attributed to contact: the directions of the contact force orthogonal to d are
 the compliant axes (0 in free space, 1 on a plane, 2 in a groove), and the
 stiffness is K = R V R^T with R = [d, c_1, c_2] and V = diag(stiff, soft/stiff...).
 (Thesis eq. 77-78.)
+
+Where the state carries the orientation (``pose``: a rotation vector relative to
+the episode's first orientation), each phase also gets its mean angular
+velocity, so that a phase that turns the tool (the hose coupler's coupling) can
+be reproduced turning.  The rate is the finite difference of the rotation
+vector, exact for a turn about one fixed axis, as in that task.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
+
+# m/s: a phase whose mean velocity is slower than this is done in place; the
+# demonstrated motions are 4-5 cm/s, a hand holding still drifts by a few mm/s
+IN_PLACE_SPEED = 0.005
 
 
 @dataclass(frozen=True)
@@ -30,6 +40,13 @@ class PhaseImpedance:
     mean_speed: float  # m/s along d
     n_samples: int
     n_contact_samples: int
+    # (3,) mean angular velocity, rad/s, in the axes of the episode's first
+    # orientation; zero when the state has no orientation
+    angular_velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    # (3,) mean position of the phase's samples (where a phase done in place happens); None if not given
+    mean_position: np.ndarray | None = None
+    in_place: bool = False  # demonstrated without going anywhere (press, turn): no direction of motion
+    successor: int | None = None  # the phase the demonstrations most often entered from this one
 
     def to_dict(self) -> dict:
         return dict(
@@ -37,6 +54,9 @@ class PhaseImpedance:
             compliant_axes=self.compliant_axes.tolist(), rotation=self.rotation.tolist(),
             stiffness=self.stiffness.tolist(), mean_force=self.mean_force.tolist(),
             mean_speed=self.mean_speed, n_samples=self.n_samples, n_contact_samples=self.n_contact_samples,
+            angular_velocity=self.angular_velocity.tolist(),
+            mean_position=None if self.mean_position is None else self.mean_position.tolist(),
+            in_place=self.in_place, successor=self.successor,
         )
 
     @classmethod
@@ -48,6 +68,11 @@ class PhaseImpedance:
             rotation=arr("rotation"), stiffness=arr("stiffness"), mean_force=arr("mean_force"),
             mean_speed=float(data["mean_speed"]), n_samples=int(data["n_samples"]),
             n_contact_samples=int(data["n_contact_samples"]),
+            # model files written before orientation was learned have none
+            angular_velocity=arr("angular_velocity") if "angular_velocity" in data else np.zeros(3),
+            mean_position=arr("mean_position") if data.get("mean_position") is not None else None,
+            in_place=bool(data.get("in_place", False)),
+            successor=None if data.get("successor") is None else int(data["successor"]),
         )
 
 
@@ -71,6 +96,9 @@ def derive_impedance(
     min_contact_fraction: float = 0.5,
     stiffness: float = 2000.0,
     compliant_stiffness: float = 100.0,
+    angular_velocities=None,
+    positions=None,
+    in_place_speed: float = IN_PLACE_SPEED,
 ) -> PhaseImpedance:
     """Desired direction, compliant axes and K = R V R^T of one phase.
 
@@ -85,7 +113,12 @@ def derive_impedance(
     boundary is uncertain by a few samples), and their force must not become
     a compliant axis and a feedforward push in free space.  Stiffness:
     ``stiffness`` along d and the non-compliant axes, ``compliant_stiffness``
-    along compliant axes.
+    along compliant axes.  ``angular_velocities`` (T, 3) rad/s, optional: their
+    mean over the phase is its ``angular_velocity``.  ``positions`` (T, 3) m,
+    optional: their mean is its ``mean_position``.  A phase whose mean velocity
+    is below ``in_place_speed`` is done in place (``in_place``): it has no
+    direction of motion; its compliant axis is the mean contact force's
+    direction, and ``direction`` is just the first stiff axis.
     """
     v = np.asarray(velocities, dtype=np.float64)
     f = np.asarray(forces, dtype=np.float64)
@@ -95,8 +128,44 @@ def derive_impedance(
         raise ValueError(f"a phase needs at least 2 samples to derive an impedance, got {v.shape[0]}")
     if not (np.all(np.isfinite(v)) and np.all(np.isfinite(f))):
         raise ValueError("velocities and forces must be finite")
+    omega = np.zeros(3)
+    if angular_velocities is not None:
+        w = np.asarray(angular_velocities, dtype=np.float64)
+        if w.shape != v.shape:
+            raise ValueError(f"angular_velocities must be (T, 3) like velocities {v.shape}, got {w.shape}")
+        if not np.all(np.isfinite(w)):
+            raise ValueError("angular_velocities must be finite")
+        omega = w.mean(axis=0)
+    where = None
+    if positions is not None:
+        x = np.asarray(positions, dtype=np.float64)
+        if x.shape != v.shape or not np.all(np.isfinite(x)):
+            raise ValueError(f"positions must be finite and (T, 3) like velocities {v.shape}, got {x.shape}")
+        where = x.mean(axis=0)
     speed = np.linalg.norm(v, axis=1)
     fnorm = np.linalg.norm(f, axis=1)
+    if np.linalg.norm(v.mean(axis=0)) < in_place_speed:
+        # done in place (pressing, turning): no direction of motion to find; the
+        # contact force's direction is the compliant axis, the others are stiff
+        contact = fnorm > contact_force
+        if contact.sum() < max(3, min_contact_fraction * len(v)):
+            contact[:] = False
+        mean_f = f[contact].mean(axis=0) if contact.any() else np.zeros(3)
+        axes = np.zeros((0, 3))
+        if np.linalg.norm(mean_f) > contact_force:
+            n = mean_f / np.linalg.norm(mean_f)
+            axes = n[None, :]
+            R = _complete_basis(_complete_basis(n)[:, 1], n)
+        else:
+            R = np.eye(3)
+        V = np.full(3, stiffness)
+        V[1 : 1 + len(axes)] = compliant_stiffness
+        K = R @ np.diag(V) @ R.T
+        return PhaseImpedance(
+            direction=R[:, 0].copy(), n_compliant=len(axes), compliant_axes=R[:, 1 : 1 + len(axes)].T.copy(),
+            rotation=R, stiffness=0.5 * (K + K.T), mean_force=mean_f, mean_speed=0.0, n_samples=int(v.shape[0]),
+            n_contact_samples=int(contact.sum()), angular_velocity=omega, mean_position=where, in_place=True,
+        )
     moving = speed > min_speed_fraction * max(np.median(speed), 1e-12)
     contact = (fnorm > contact_force) & moving
     if contact.sum() < min_contact_fraction * max(moving.sum(), 1):
@@ -145,26 +214,39 @@ def derive_impedance(
     return PhaseImpedance(
         direction=d, n_compliant=len(axes), compliant_axes=R[:, 1 : 1 + len(axes)].T.copy(), rotation=R,
         stiffness=0.5 * (K + K.T), mean_force=f[contact].mean(axis=0) if contact.any() else np.zeros(3), mean_speed=float(np.mean(v[moving] @ d)) if moving.any() else 0.0,
-        n_samples=int(v.shape[0]), n_contact_samples=int(contact.sum()),
+        n_samples=int(v.shape[0]), n_contact_samples=int(contact.sum()), angular_velocity=omega,
+        mean_position=where,
     )
 
 
 def phase_impedances(model, demos, dt: float, *, position_columns=slice(0, 3), force_columns=slice(0, 3),
-                     **options) -> list:
+                     rotation_columns=None, **options) -> list:
     """``derive_impedance`` for every phase of a fitted model.
 
     Steps are assigned to phases by Viterbi; velocities are finite differences
-    of the position columns of the state, forces the force columns.  A phase
-    with fewer than 2 steps gets ``None``.
+    of the position columns of the state, forces the force columns, angular
+    velocities finite differences of the ``rotation_columns`` (a rotation
+    vector; None: the state has no orientation), mean positions the mean of
+    the position columns.  A phase with fewer than 2
+    steps gets ``None``.  Each phase's ``successor`` is the phase its Viterbi
+    paths most often went on to (None if none did).
     """
-    vel, frc, lab = [], [], []
+    vel, frc, lab, omg, pos = [], [], [], [], []
     for states, forces in demos:
         states = np.asarray(states, dtype=np.float64)
         forces = np.asarray(forces, dtype=np.float64)
-        lab.append(model.viterbi(states, forces))
+        lab.append(model.viterbi(states, forces))  # (T-1,): one phase per step
         vel.append(np.diff(states[:, position_columns], axis=0) / dt)
+        pos.append(states[:-1, position_columns])
         frc.append(forces[:-1, force_columns])
-    lab, vel, frc = np.concatenate(lab), np.vstack(vel), np.vstack(frc)
+        if rotation_columns is not None:
+            omg.append(np.diff(states[:, rotation_columns], axis=0) / dt)
+    entered = np.zeros((model.n_phases, model.n_phases), dtype=np.int64)
+    for path in lab:
+        change = np.flatnonzero(np.diff(path))
+        np.add.at(entered, (path[change], path[change + 1]), 1)
+    lab, vel, frc, pos = np.concatenate(lab), np.vstack(vel), np.vstack(frc), np.vstack(pos)
+    omg = np.vstack(omg) if omg else None
     out = []
     for j in range(model.n_phases):
         sel = lab == j
@@ -172,7 +254,9 @@ def phase_impedances(model, demos, dt: float, *, position_columns=slice(0, 3), f
             out.append(None)
             continue
         try:
-            out.append(derive_impedance(vel[sel], frc[sel], **options))
+            imp = derive_impedance(vel[sel], frc[sel], angular_velocities=None if omg is None else omg[sel],
+                                   positions=pos[sel], **options)
+            out.append(replace(imp, successor=int(np.argmax(entered[j])) if entered[j].any() else None))
         except ValueError:
             out.append(None)
     return out

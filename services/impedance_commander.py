@@ -30,6 +30,15 @@ superposed wrench, thesis eq. 79) with the KRC's translational stiffness at
 zero; the KRC's rotational stiffness holds the start orientation.  At the goal
 (the demonstrations' mean end point) the reference stops and the commander
 reports ``goal_reached``.
+
+With a pose state the model also holds each phase's mean angular velocity and
+the demonstrations' mean final turn (``goal_rotation``).  A turning phase turns
+the setpoint orientation at its rate, never more than ``ROT_LEAD`` ahead of the
+tool and never past the goal's turn, through the KRC's rotational stiffness;
+the goal then also needs the turn.  A phase done in place (``in_place`` in the
+model: the coupler's coupling, press and turn) has no direction to follow: its
+reference goes, stiffly, to where the demonstrations did it, and there the
+phase's law presses along its compliant axis as the teacher did.
 """
 
 from __future__ import annotations
@@ -41,8 +50,10 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+import pinocchio as pin
 
 from etar import ETAR
+from etar.impedance import IN_PLACE_SPEED
 from robot_sim.cell import standard_to_fri
 from services.runtime.loop import Sections
 from services.runtime.messages import ROBOT_COMMAND
@@ -57,6 +68,12 @@ HOLD_STIFFNESS = 2000.0
 ROT_STIFFNESS = 150.0
 EFFECTIVE_MASS = 2.0  # kg, for the damping ratio of the commanded impedance
 ESTIMATE_WAIT_S = 2.0  # lockstep: how long to wait for a cycle's estimate before going on without it
+# rad: the setpoint orientation turns at most this far ahead of the tool, 15 Nm at
+# ROT_STIFFNESS: enough to turn against a seal's friction, bounded if the tool is stuck
+ROT_LEAD = 0.1
+ROT_TOLERANCE = 0.1  # rad: how close to the goal's turn counts as there
+TURNING_RATE = 1e-3  # rad/s: a phase with a slower mean angular velocity does not turn
+PLACE_SPEED = 0.02  # m/s: how fast a phase done in place moves its reference to where it was demonstrated
 _CART_STIFFNESS = [0.0, 0.0, 0.0] + [ROT_STIFFNESS] * 3
 _CART_DAMPING = [0.7] * 6
 
@@ -89,38 +106,89 @@ class PhaseLaw:
     damping: np.ndarray  # (3, 3)
     feedforward: np.ndarray  # (3,) -(mean contact force on the compliant axes)
     speed: float  # m/s along the direction
+    angular_velocity: np.ndarray  # (3,) rad/s, axes of the episode's first orientation
+    stationary: bool  # demonstrated (nearly) in place: go to where it happened and stay
+    place: np.ndarray | None  # (3,) the demonstrations' mean position in this phase
+    aim: np.ndarray | None  # (3,) free motion into a phase done in place: head for its place
 
 
 class ImpedanceLaw:
     """The per-phase law, free of messaging (tested on its own)."""
 
     def __init__(self, impedances: list, goal: np.ndarray | None, *, lead=0.005, damping_ratio=0.7,
-                 goal_tolerance=0.01):
+                 goal_tolerance=0.01, goal_rotation: np.ndarray | None = None, rotation_tolerance=ROT_TOLERANCE):
         self.zeta = damping_ratio
-        self.phases = [None if imp is None else self._prepare(imp) for imp in impedances]
+        self.phases = [None if imp is None else self._prepare(imp, impedances) for imp in impedances]
         self.hold_stiffness = HOLD_STIFFNESS * np.eye(3)
         self.hold_damping = self._damping(self.hold_stiffness)
         self.goal = None if goal is None else np.asarray(goal, dtype=np.float64)
+        # the goal's turn counts only if the demonstrations turned noticeably
+        self.goal_rotation = None
+        if goal_rotation is not None and np.linalg.norm(goal_rotation) > rotation_tolerance:
+            self.goal_rotation = np.asarray(goal_rotation, dtype=np.float64)
         self.lead = lead
         self.tol = goal_tolerance
+        self.rot_tol = rotation_tolerance
         self.reset()
 
-    def _prepare(self, imp: dict) -> PhaseLaw:
+    def _prepare(self, imp: dict, impedances: list) -> PhaseLaw:
         K = np.asarray(imp["stiffness"], dtype=np.float64)
         mean_force = np.asarray(imp["mean_force"], dtype=np.float64)
         F_ff = np.zeros(3)
         for a in np.asarray(imp["compliant_axes"], dtype=np.float64).reshape(-1, 3):
             F_ff -= (mean_force @ a) * a
+        omega = np.asarray(imp.get("angular_velocity", (0.0, 0.0, 0.0)), dtype=np.float64)
+        if np.linalg.norm(omega) < TURNING_RATE:
+            omega = np.zeros(3)
+        demonstrated = float(imp["mean_speed"])
+        place = imp.get("mean_position")
+        # model files from before in_place was learned: judge by the speed along d
+        stationary = bool(imp.get("in_place", demonstrated < IN_PLACE_SPEED))
+        # free motion whose successor is done in place (the coupler's approach) heads for
+        # that place: a fixed direction from another start would miss a 36 mm socket
+        aim = None
+        nxt = imp.get("successor")
+        if not stationary and imp["n_compliant"] == 0 and nxt is not None and 0 <= nxt < len(impedances):
+            follow = impedances[nxt]
+            if follow is not None and follow.get("in_place") and follow.get("mean_position") is not None:
+                aim = np.asarray(follow["mean_position"], dtype=np.float64)
         return PhaseLaw(np.asarray(imp["direction"], dtype=np.float64), K, self._damping(K), F_ff,
-                        max(float(imp["mean_speed"]), 0.01))
+                        max(demonstrated, 0.01), omega, stationary,
+                        None if place is None else np.asarray(place, dtype=np.float64), aim)
 
     def reset(self):
         self.phase = None
         self.ref = None
         self.R_hold = None
+        self.turn_ref = np.zeros(3)  # setpoint orientation: R_hold exp(turn_ref); kept across phases
+        self.at_place = False  # a phase done in place: its tool has arrived where it was demonstrated
         self.prev_x = None
         self.v = np.zeros(3)
         self.goal_reached = False
+
+    def _setpoint_rotation(self) -> np.ndarray:
+        if not self.turn_ref.any():
+            return self.R_hold
+        return self.R_hold @ pin.exp3(self.turn_ref)
+
+    def _turn(self, law: PhaseLaw, turned: np.ndarray, dt: float) -> None:
+        """Advance the setpoint's turn at the phase's rate: at most ROT_LEAD ahead of
+        the tool's ``turned`` (rotation vector from R_hold), never past the goal's."""
+        w = law.angular_velocity
+        self.turn_ref = self.turn_ref + w * dt
+        ahead = self.turn_ref - turned
+        if np.linalg.norm(ahead) > ROT_LEAD:
+            self.turn_ref = turned + ahead * (ROT_LEAD / np.linalg.norm(ahead))
+        if self.goal_rotation is not None:
+            axis = w / np.linalg.norm(w)
+            beyond = (self.turn_ref - self.goal_rotation) @ axis
+            if beyond > 0.0:
+                self.turn_ref = self.turn_ref - beyond * axis
+
+    def _turned_enough(self, turned: np.ndarray) -> bool:
+        if self.goal_rotation is None:
+            return True
+        return bool(np.linalg.norm(pin.log3(pin.exp3(self.goal_rotation).T @ pin.exp3(turned))) < self.rot_tol)
 
     def step(self, x: np.ndarray, R: np.ndarray, phase: int | None, dt: float = DT) -> tuple[np.ndarray, np.ndarray]:
         """(force in base axes (3,), setpoint rotation) for this cycle; ``dt``: time since
@@ -136,24 +204,57 @@ class ImpedanceLaw:
             # a new phase starts its reference at the tool, already half a lead
             # ahead along its direction: a flickering estimate must not stall the motion
             self.phase = phase
-            self.ref = x.copy() if law is None else x + law.direction * 0.5 * self.lead
+            self.at_place = False
+            moving = law is not None and not law.stationary
+            self.ref = x + law.direction * 0.5 * self.lead if moving else x.copy()
         if self.goal_reached or law is None:
             if self.ref is None:
                 self.ref = x.copy()
-            return self.hold_stiffness @ (self.ref - x) - self.hold_damping @ self.v, self.R_hold
+            return self.hold_stiffness @ (self.ref - x) - self.hold_damping @ self.v, self._setpoint_rotation()
         d = law.direction
-        self.ref = self.ref + d * law.speed * dt
-        ahead = (self.ref - x) @ d
-        if ahead > self.lead:
-            self.ref -= d * (ahead - self.lead)
-        F = law.stiffness @ (self.ref - x) + law.feedforward - law.damping @ self.v
+        if law.aim is not None and np.linalg.norm(law.aim - x) > self.lead:
+            # free space: K is isotropic, so turning d changes nothing else; the
+            # reference keeps only its lead along the new d
+            d = (law.aim - x) / np.linalg.norm(law.aim - x)
+            self.ref = x + max((self.ref - x) @ d, 0.0) * d
+        if not law.stationary:
+            self.ref = self.ref + d * law.speed * dt
+            ahead = (self.ref - x) @ d
+            if ahead > self.lead:
+                self.ref -= d * (ahead - self.lead)
+        elif law.place is not None:
+            # towards where the phase was demonstrated, at most a lead ahead of the tool
+            to_place = law.place - self.ref
+            step = min(np.linalg.norm(to_place), PLACE_SPEED * dt)
+            if step > 0.0:
+                self.ref = self.ref + to_place * (step / np.linalg.norm(to_place))
+            ahead = self.ref - x
+            if np.linalg.norm(ahead) > self.lead:
+                self.ref = x + ahead * (self.lead / np.linalg.norm(ahead))
+        if law.stationary and law.place is not None and not self.at_place:
+            # on the way to the place: stiff and damped on every axis, no push, so the
+            # tool arrives at the reference's pace (dropping off a rim onto the floor
+            # under the phase's push along a soft axis hit it with 70 N); the phase's own
+            # law, with its push, starts there
+            self.at_place = bool(np.linalg.norm(law.place - self.ref) < 1e-6
+                                 and np.linalg.norm(law.place - x) < self.lead)
+        if law.stationary and law.place is not None and not self.at_place:
+            F = self.hold_stiffness @ (self.ref - x) - self.hold_damping @ self.v
+        else:
+            F = law.stiffness @ (self.ref - x) + law.feedforward - law.damping @ self.v
+        turned = None
+        if law.angular_velocity.any() or self.goal_rotation is not None:
+            turned = pin.log3(self.R_hold.T @ R)
+            if law.angular_velocity.any():
+                self._turn(law, turned, dt)
         if self.goal is not None and phase == len(self.phases) - 1:
-            past = (x - self.goal) @ d >= 0.0
+            past = not law.stationary and (x - self.goal) @ d >= 0.0
             lateral = np.linalg.norm((x - self.goal) - ((x - self.goal) @ d) * d)
-            if np.linalg.norm(x - self.goal) < self.tol or (past and lateral < 3 * self.tol):
+            there = np.linalg.norm(x - self.goal) < self.tol or (past and lateral < 3 * self.tol)
+            if there and (turned is None or self._turned_enough(turned)):
                 self.goal_reached = True
                 self.ref = x.copy()
-        return F, self.R_hold
+        return F, self._setpoint_rotation()
 
     def _damping(self, K):
         w, V = np.linalg.eigh(0.5 * (K + K.T))
@@ -277,7 +378,8 @@ class CommanderProcess:
                                  "learn it with etar learn or the runner")
             goal = p.get("goal")
             self.law = ImpedanceLaw(imps, goal, lead=self.config.lead, damping_ratio=self.config.damping_ratio,
-                                    goal_tolerance=float(p.get("goal_tolerance", self.config.goal_tolerance)))
+                                    goal_tolerance=float(p.get("goal_tolerance", self.config.goal_tolerance)),
+                                    goal_rotation=p.get("goal_rotation", self.model.metadata.get("goal_rotation")))
             self.episode = int(p["episode"])
             self._pending.clear()
             self._phases.clear()

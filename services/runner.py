@@ -302,7 +302,8 @@ class Runner:
             self.state.selection = dict(criterion="fixed", best=int(stage.phases), scores={}, log_likelihoods={
                 str(stage.phases): model.fit_report_.log_likelihood}, n_parameters={})
         dt = float(demos[0]["dt"])
-        imps = phase_impedances(model, pairs, dt)
+        pose = sc.state == "pose"  # the state's columns 3:6 are the orientation (services.features)
+        imps = phase_impedances(model, pairs, dt, rotation_columns=slice(3, 6) if pose else None)
         model.metadata.update(impedance=[None if i is None else i.to_dict() for i in imps], dt=dt,
                               state=sc.state, features=sc.features,
                               demonstrations=[d["path"] for d in self.state.demonstrations],
@@ -315,6 +316,9 @@ class Runner:
         self.state.phase_to_truth = match_phases(truth, pred, n_pred=model.n_phases)
         self.state.goal = np.mean([s[-1][:3] for s, _ in pairs], axis=0).tolist()
         # a later scenario can reproduce with this file alone (its `model` key)
+        if pose:
+            # the demonstrations' mean final turn, relative to each one's first orientation
+            model.metadata.update(goal_rotation=np.mean([s[-1][3:6] for s, _ in pairs], axis=0).tolist())
         model.metadata.update(goal=self.state.goal,
                               phase_to_truth={str(k): int(v) for k, v in self.state.phase_to_truth.items()})
         path = self.out / "model.json"

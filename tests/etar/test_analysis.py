@@ -127,7 +127,38 @@ def test_impedance_bad_input():
     with pytest.raises(ValueError, match=r"\(T, 3\)"):
         derive_impedance(np.zeros((5, 2)), np.zeros((5, 2)))
     with pytest.raises(ValueError, match="does not move"):
-        derive_impedance(np.zeros((5, 3)), np.ones((5, 3)))
+        derive_impedance(np.zeros((5, 3)), np.ones((5, 3)), in_place_speed=0.0)
+    with pytest.raises(ValueError, match="angular_velocities"):
+        derive_impedance(np.ones((5, 3)), np.ones((5, 3)), angular_velocities=np.ones((4, 3)))
+    with pytest.raises(ValueError, match="positions"):
+        derive_impedance(np.ones((5, 3)), np.ones((5, 3)), positions=np.full((5, 3), np.inf))
+
+
+def test_a_phase_done_in_place_has_its_contact_force_as_the_compliant_axis():
+    rng = np.random.default_rng(4)
+    v = 0.002 * rng.normal(size=(400, 3))  # a hand holding still, pressing and turning
+    f = np.array([1.0, 0.0, 8.0]) + 0.3 * rng.normal(size=(400, 3))
+    w = np.array([0.0, 0.0, -0.6]) + 0.01 * rng.normal(size=(400, 3))
+    x = np.array([0.55, 0.0, 0.21]) + 0.001 * rng.normal(size=(400, 3))
+    imp = derive_impedance(v, f, angular_velocities=w, positions=x)
+    assert imp.in_place and imp.mean_speed == 0.0 and imp.n_compliant == 1
+    n = np.array([1.0, 0.0, 8.0]) / np.hypot(1.0, 8.0)
+    assert abs(imp.compliant_axes[0] @ n) > 0.999
+    a = imp.compliant_axes[0]
+    np.testing.assert_allclose(imp.stiffness @ a, 100.0 * a, atol=1e-9)  # soft along the press, stiff across
+    np.testing.assert_allclose(imp.angular_velocity, [0.0, 0.0, -0.6], atol=0.003)
+    np.testing.assert_allclose(imp.mean_position, [0.55, 0.0, 0.21], atol=3e-4)
+    np.testing.assert_allclose(np.linalg.det(imp.rotation), 1.0)
+    restored = type(imp).from_dict(imp.to_dict())
+    assert restored.in_place and np.array_equal(restored.angular_velocity, imp.angular_velocity)
+    # in free space: no compliant axis, stiff everywhere
+    free = derive_impedance(v, 0.1 * rng.normal(size=(400, 3)))
+    assert free.in_place and free.n_compliant == 0
+    np.testing.assert_allclose(free.stiffness, 2000.0 * np.eye(3), atol=1e-9)
+    # a file written before these fields were learned still loads
+    old = {k: val for k, val in imp.to_dict().items() if k not in ("angular_velocity", "mean_position", "in_place")}
+    legacy = type(imp).from_dict(old)
+    assert not legacy.in_place and legacy.mean_position is None and not legacy.angular_velocity.any()
     with pytest.raises(ValueError, match="finite"):
         derive_impedance(np.full((5, 3), np.nan), np.ones((5, 3)))
 

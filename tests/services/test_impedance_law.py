@@ -40,3 +40,79 @@ def test_reference_moves_at_the_phase_speed_and_the_goal_stops_it():
     for _ in range(100):  # the tool comes to rest
         F, _ = law.step(x, DOWN, 0)
     np.testing.assert_allclose(F, 0.0, atol=1e-6)  # at the goal the reference stops on the tool
+
+
+def coupling(place=(0.55, 0.0, 0.21), turn_rate=-0.6):
+    """A phase demonstrated in place: pressing down (soft z), turning about the tool axis."""
+    rng = np.random.default_rng(1)
+    n = 300
+    v = 0.002 * rng.normal(size=(n, 3))
+    f = np.array([0.0, 0.0, 8.5]) + 0.3 * rng.normal(size=(n, 3))
+    w = np.array([0.0, 0.0, turn_rate]) + 0.01 * rng.normal(size=(n, 3))
+    x = np.asarray(place) + 0.001 * rng.normal(size=(n, 3))
+    return derive_impedance(v, f, angular_velocities=w, positions=x).to_dict()
+
+
+def rotvec(R):
+    import pinocchio as pin
+    return pin.log3(R)
+
+
+def test_a_turning_phase_turns_the_setpoint_at_its_rate_within_the_lead_and_stops_at_the_goal_turn():
+    from services.impedance_commander import ROT_LEAD
+
+    imp = coupling(turn_rate=-0.6)
+    assert abs(imp["angular_velocity"][2] + 0.6) < 0.01
+    law = ImpedanceLaw([imp], goal=np.array([0.55, 0.0, 0.21]), goal_rotation=np.array([0.0, 0.0, -1.5]))
+    x = np.array(imp["mean_position"])
+    # a tool that does not turn: the setpoint runs ahead by the lead, no more
+    for _ in range(1000):
+        _, R_set = law.step(x, DOWN, 0)
+    np.testing.assert_allclose(rotvec(DOWN.T @ R_set), [0.0, 0.0, -ROT_LEAD], atol=1e-3)
+    assert np.linalg.norm(rotvec(DOWN.T @ R_set)) <= ROT_LEAD + 1e-12
+    assert not law.goal_reached  # in place, but not turned
+    # a tool that follows the setpoint: 0.6 rad/s, and not past the goal's turn
+    R = DOWN
+    for k in range(5000):
+        _, R_set = law.step(x, R, 0)
+        R = R_set
+        if law.goal_reached:
+            break
+    turned = rotvec(DOWN.T @ R)
+    assert law.goal_reached and abs(turned[2] + 1.5) < 0.1, turned
+    # from -0.1 to within 0.1 rad of -1.5 at 0.6 rad/s: about 2.2 s
+    assert 1.9 < k * 1e-3 < 2.5, k
+    for _ in range(2000):  # held there
+        _, R_set = law.step(x, R, 0)
+    assert rotvec(DOWN.T @ R_set)[2] >= -1.5 - 1e-9
+
+
+def test_a_phase_done_in_place_goes_there_stiffly_then_presses():
+    from services.impedance_commander import HOLD_STIFFNESS, PLACE_SPEED
+
+    imp = coupling(place=(0.55, 0.0, 0.21), turn_rate=0.0)
+    law = ImpedanceLaw([imp], goal=None)
+    x = np.array([0.57, 0.0, 0.24])  # on the rim, 3.6 cm from the place
+    F, _ = law.step(x, DOWN, 0)
+    # on the way: the hold law, at most a lead from the tool, no push
+    assert np.linalg.norm(F) <= HOLD_STIFFNESS * law.lead + 1e-9
+    np.testing.assert_allclose(law.ref - x, (np.array(imp["mean_position"]) - x) / np.linalg.norm(
+        np.array(imp["mean_position"]) - x) * PLACE_SPEED * 1e-3, atol=1e-12)
+    for _ in range(5000):  # a tool that follows the reference
+        law.step(x, DOWN, 0)
+        x = law.ref.copy()
+    assert law.at_place
+    np.testing.assert_allclose(x, imp["mean_position"], atol=1e-9)
+    F, _ = law.step(x, DOWN, 0)
+    np.testing.assert_allclose(F, [0.0, 0.0, -8.5], atol=0.3)  # the demonstrated press, into the floor
+
+
+def test_a_model_without_orientation_holds_the_start_orientation_exactly():
+    law = ImpedanceLaw([free_motion()], goal=None, goal_rotation=None)
+    R0 = np.array([[-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]])
+    x = np.array([0.6, 0.0, 0.3])
+    for _ in range(500):
+        _, R_set = law.step(x, R0 @ np.diag([1.0, 1.0, 1.0]), 0)
+    assert R_set is law.R_hold
+    # a pose model whose demonstrations did not turn has no goal turn either
+    assert ImpedanceLaw([free_motion()], goal=None, goal_rotation=[0.0, 0.02, -0.05]).goal_rotation is None
