@@ -26,7 +26,7 @@ if ! curl -s --unix-socket "$sock" http://d/_ping 2>/dev/null | grep -q OK; then
   echo "setup-podman: starting podman's Docker-compatible service on $sock"
   # from /: the service outlives this checkout, and a conmon it spawns in a deleted
   # working directory fails every container ("write child: broken pipe")
-  (cd / && nohup podman system service --time=0 "unix://$sock" >"$state/service.log" 2>&1 &)
+  (cd / && exec nohup podman system service --time=0 "unix://$sock") >"$state/service.log" 2>&1 </dev/null &
   for _ in $(seq 50); do curl -s --unix-socket "$sock" http://d/_ping 2>/dev/null | grep -q OK && break; sleep 0.2; done
 fi
 
