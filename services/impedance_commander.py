@@ -232,13 +232,13 @@ class ImpedanceLaw:
             if np.linalg.norm(ahead) > self.lead:
                 self.ref = x + ahead * (self.lead / np.linalg.norm(ahead))
         if law.stationary and law.place is not None and not self.at_place:
+            self.at_place = bool(np.linalg.norm(law.place - self.ref) < 1e-6
+                                 and np.linalg.norm(law.place - x) < self.lead)
+        if law.stationary and law.place is not None and not self.at_place:
             # on the way to the place: stiff and damped on every axis, no push, so the
             # tool arrives at the reference's pace (dropping off a rim onto the floor
             # under the phase's push along a soft axis hit it with 70 N); the phase's own
             # law, with its push, starts there
-            self.at_place = bool(np.linalg.norm(law.place - self.ref) < 1e-6
-                                 and np.linalg.norm(law.place - x) < self.lead)
-        if law.stationary and law.place is not None and not self.at_place:
             F = self.hold_stiffness @ (self.ref - x) - self.hold_damping @ self.v
         else:
             F = law.stiffness @ (self.ref - x) + law.feedforward - law.damping @ self.v
