@@ -65,7 +65,7 @@ def _pairs(demos):
 def cmd_learn(args) -> int:
     from etar.impedance import phase_impedances
     from etar.model import ETAR
-    from etar.selection import select_order, vote_order
+    from etar.selection import fit_order
 
     demos = load_demonstrations(args.demos)
     pairs = _pairs(demos)
@@ -74,25 +74,11 @@ def cmd_learn(args) -> int:
         candidates = range(1, args.max_phases + 1)
         _say(f"selecting the number of phases by {args.criterion.upper()} over {list(candidates)} "
              f"from {len(pairs)} demonstration(s)")
-        if args.selection == "per_demonstration" and len(pairs) > 1:
-            vote = vote_order(pairs, candidates, args.criterion, transitions=args.transitions, seed=args.seed,
-                              max_iter=args.max_iter, tol=args.tol, progress=_say, **options)
-            _say(vote.table())
-            _say(f"fitting {vote.best} phases to all {len(pairs)} demonstrations")
-            model = ETAR(vote.best, args.transitions, **options).fit(pairs, max_iter=args.max_iter, tol=args.tol,
-                                                                    seed=args.seed, progress=_say)
-            model.metadata["selection"] = vote.to_dict()
-        else:
-            sel = select_order(pairs, candidates, args.criterion, transitions=args.transitions, seed=args.seed,
-                               max_iter=args.max_iter, tol=args.tol, progress=_say, **options)
-            model = sel.model
-            _say(sel.table())
-            model.metadata["selection"] = dict(
-                method="pooled", criterion=sel.criterion, best=sel.best,
-                scores={str(k): v for k, v in sel.scores.items()},
-                log_likelihoods={str(k): v for k, v in sel.log_likelihoods.items()},
-                n_parameters={str(k): v for k, v in sel.n_parameters.items()}, n_samples=sel.n_samples,
-            )
+        # with one demonstration, voting is the pooled choice and one more fit
+        model, selection = fit_order(pairs, candidates, args.criterion, args.selection if len(pairs) > 1 else "pooled",
+                                     transitions=args.transitions, seed=args.seed, max_iter=args.max_iter,
+                                     tol=args.tol, progress=_say, **options)
+        model.metadata["selection"] = selection
     else:
         try:
             k = int(args.phases)

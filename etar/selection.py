@@ -46,6 +46,15 @@ class OrderSelection:
     def model(self) -> ETAR:
         return self.models[self.best]
 
+    def to_dict(self) -> dict:
+        """JSON-ready summary (no models)."""
+        return dict(method="pooled", criterion=self.criterion, **self._scores_dict())
+
+    def _scores_dict(self) -> dict:
+        return dict(best=self.best, n_samples=self.n_samples, scores={str(k): v for k, v in self.scores.items()},
+                    log_likelihoods={str(k): v for k, v in self.log_likelihoods.items()},
+                    n_parameters={str(k): v for k, v in self.n_parameters.items()})
+
     def table(self) -> str:
         """The scores as a small text table."""
         lines = [f"{'phases':>6} {'params':>7} {'log-lik':>14} {self.criterion.upper():>14}"]
@@ -144,11 +153,7 @@ class OrderVote:
         """JSON-ready summary (no models)."""
         return dict(method="per_demonstration", criterion=self.criterion, best=self.best,
                     votes={str(k): v for k, v in sorted(self.votes.items())},
-                    per_demonstration=[dict(best=sel.best, n_samples=sel.n_samples,
-                                            scores={str(k): v for k, v in sel.scores.items()},
-                                            log_likelihoods={str(k): v for k, v in sel.log_likelihoods.items()},
-                                            n_parameters={str(k): v for k, v in sel.n_parameters.items()})
-                                       for sel in self.per_demonstration])
+                    per_demonstration=[sel._scores_dict() for sel in self.per_demonstration])
 
 
 def vote_order(
@@ -179,3 +184,36 @@ def vote_order(
     top = max(votes.values())
     best = min(k for k, v in votes.items() if v == top)  # a tie goes to the simpler model
     return OrderVote(best, criterion, votes, tuple(selections))
+
+
+def fit_order(
+    demos: Sequence,
+    candidates: Sequence[int] = (1, 2, 3, 4, 5, 6),
+    criterion: str = "bic",
+    method: str = "per_demonstration",
+    *,
+    transitions: str = "effect",
+    seed: int = 0,
+    max_iter: int = 200,
+    tol: float = 1e-7,
+    progress: Callable[[str], None] | None = None,
+    **model_options,
+) -> tuple[ETAR, dict]:
+    """Choose the number of phases by ``method`` (``vote_order`` for
+    per_demonstration, ``select_order`` for pooled) and return (the model with
+    that many phases fitted to all demonstrations, the selection's JSON-ready
+    summary).  The tables go to ``progress``."""
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    say = progress or (lambda msg: None)
+    options = dict(transitions=transitions, seed=seed, max_iter=max_iter, tol=tol, progress=progress, **model_options)
+    if method == "pooled":
+        sel = select_order(demos, candidates, criterion, **options)
+        say(sel.table())
+        return sel.model, sel.to_dict()
+    vote = vote_order(demos, candidates, criterion, **options)
+    say(vote.table())
+    say(f"fitting {vote.best} phases to all {len(demos)} demonstrations")
+    model = ETAR(vote.best, transitions, **model_options).fit(demos, max_iter=max_iter, tol=tol, seed=seed,
+                                                              progress=progress)
+    return model, vote.to_dict()

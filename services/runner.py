@@ -37,7 +37,7 @@ import numpy as np
 
 from etar import ETAR
 from etar.impedance import phase_impedances
-from etar.selection import select_order, vote_order
+from etar.selection import fit_order
 from services import launch
 from services.recording import load_demonstration
 from services.runtime import topics
@@ -279,23 +279,9 @@ class Runner:
         if stage.phases == "auto":
             self.say(f"learning: {stage.criterion.upper()} over {list(stage.candidates)} phases from "
                      f"{len(pairs)} demonstrations ({sum(len(s) for s, _ in pairs)} samples)")
-            if stage.selection == "per_demonstration":
-                vote = vote_order(pairs, stage.candidates, stage.criterion, transitions=stage.transitions,
-                                  seed=stage.seed, max_iter=stage.max_iter, progress=self.say, **options)
-                self.say(vote.table())
-                self.say(f"fitting {vote.best} phases to all {len(pairs)} demonstrations")
-                model = ETAR(vote.best, stage.transitions, **options).fit(pairs, max_iter=stage.max_iter,
-                                                                          seed=stage.seed)
-                self.state.selection = vote.to_dict()
-            else:
-                sel = select_order(pairs, stage.candidates, stage.criterion, transitions=stage.transitions,
-                                   seed=stage.seed, max_iter=stage.max_iter, progress=self.say, **options)
-                model = sel.model
-                self.state.selection = dict(method="pooled", criterion=sel.criterion, best=sel.best,
-                                            scores={str(k): v for k, v in sel.scores.items()},
-                                            log_likelihoods={str(k): v for k, v in sel.log_likelihoods.items()},
-                                            n_parameters={str(k): v for k, v in sel.n_parameters.items()})
-                self.say(sel.table())
+            model, self.state.selection = fit_order(pairs, stage.candidates, stage.criterion, stage.selection,
+                                                    transitions=stage.transitions, seed=stage.seed,
+                                                    max_iter=stage.max_iter, progress=self.say, **options)
         else:
             model = ETAR(int(stage.phases), stage.transitions, **options).fit(
                 pairs, max_iter=stage.max_iter, seed=stage.seed)
