@@ -107,7 +107,7 @@ class PhaseLaw:
     feedforward: np.ndarray  # (3,) -(mean contact force on the compliant axes)
     speed: float  # m/s along the direction
     angular_velocity: np.ndarray  # (3,) rad/s, axes of the episode's first orientation
-    stationary: bool  # demonstrated (nearly) in place: go to where it happened and stay
+    in_place: bool  # demonstrated without going anywhere: go to where it happened and stay
     place: np.ndarray | None  # (3,) the demonstrations' mean position in this phase
     aim: np.ndarray | None  # (3,) free motion into a phase done in place: head for its place
 
@@ -126,6 +126,7 @@ class ImpedanceLaw:
         self.goal_rotation = None
         if goal_rotation is not None and np.linalg.norm(goal_rotation) > rotation_tolerance:
             self.goal_rotation = np.asarray(goal_rotation, dtype=np.float64)
+            self._goal_turn_T = pin.exp3(self.goal_rotation).T
         self.lead = lead
         self.tol = goal_tolerance
         self.rot_tol = rotation_tolerance
@@ -143,17 +144,17 @@ class ImpedanceLaw:
         demonstrated = float(imp["mean_speed"])
         place = imp.get("mean_position")
         # model files from before in_place was learned: judge by the speed along d
-        stationary = bool(imp.get("in_place", demonstrated < IN_PLACE_SPEED))
+        in_place = bool(imp.get("in_place", demonstrated < IN_PLACE_SPEED))
         # free motion whose successor is done in place (the coupler's approach) heads for
         # that place: a fixed direction from another start would miss a 36 mm socket
         aim = None
         nxt = imp.get("successor")
-        if not stationary and imp["n_compliant"] == 0 and nxt is not None and 0 <= nxt < len(impedances):
+        if not in_place and imp["n_compliant"] == 0 and nxt is not None and 0 <= nxt < len(impedances):
             follow = impedances[nxt]
             if follow is not None and follow.get("in_place") and follow.get("mean_position") is not None:
                 aim = np.asarray(follow["mean_position"], dtype=np.float64)
         return PhaseLaw(np.asarray(imp["direction"], dtype=np.float64), K, self._damping(K), F_ff,
-                        max(demonstrated, 0.01), omega, stationary,
+                        max(demonstrated, 0.01), omega, in_place,
                         None if place is None else np.asarray(place, dtype=np.float64), aim)
 
     def reset(self):
@@ -188,7 +189,7 @@ class ImpedanceLaw:
     def _turned_enough(self, turned: np.ndarray) -> bool:
         if self.goal_rotation is None:
             return True
-        return bool(np.linalg.norm(pin.log3(pin.exp3(self.goal_rotation).T @ pin.exp3(turned))) < self.rot_tol)
+        return bool(np.linalg.norm(pin.log3(self._goal_turn_T @ pin.exp3(turned))) < self.rot_tol)
 
     def step(self, x: np.ndarray, R: np.ndarray, phase: int | None, dt: float = DT) -> tuple[np.ndarray, np.ndarray]:
         """(force in base axes (3,), setpoint rotation) for this cycle; ``dt``: time since
@@ -205,7 +206,7 @@ class ImpedanceLaw:
             # ahead along its direction: a flickering estimate must not stall the motion
             self.phase = phase
             self.at_place = False
-            moving = law is not None and not law.stationary
+            moving = law is not None and not law.in_place
             self.ref = x + law.direction * 0.5 * self.lead if moving else x.copy()
         if self.goal_reached or law is None:
             if self.ref is None:
@@ -217,7 +218,7 @@ class ImpedanceLaw:
             # reference keeps only its lead along the new d
             d = (law.aim - x) / np.linalg.norm(law.aim - x)
             self.ref = x + max((self.ref - x) @ d, 0.0) * d
-        if not law.stationary:
+        if not law.in_place:
             self.ref = self.ref + d * law.speed * dt
             ahead = (self.ref - x) @ d
             if ahead > self.lead:
@@ -231,10 +232,12 @@ class ImpedanceLaw:
             ahead = self.ref - x
             if np.linalg.norm(ahead) > self.lead:
                 self.ref = x + ahead * (self.lead / np.linalg.norm(ahead))
-        if law.stationary and law.place is not None and not self.at_place:
+        going = law.in_place and law.place is not None and not self.at_place
+        if going:
             self.at_place = bool(np.linalg.norm(law.place - self.ref) < 1e-6
                                  and np.linalg.norm(law.place - x) < self.lead)
-        if law.stationary and law.place is not None and not self.at_place:
+            going = not self.at_place
+        if going:
             # on the way to the place: stiff and damped on every axis, no push, so the
             # tool arrives at the reference's pace (dropping off a rim onto the floor
             # under the phase's push along a soft axis hit it with 70 N); the phase's own
@@ -248,7 +251,7 @@ class ImpedanceLaw:
             if law.angular_velocity.any():
                 self._turn(law, turned, dt)
         if self.goal is not None and phase == len(self.phases) - 1:
-            past = not law.stationary and (x - self.goal) @ d >= 0.0
+            past = not law.in_place and (x - self.goal) @ d >= 0.0
             lateral = np.linalg.norm((x - self.goal) - ((x - self.goal) @ d) * d)
             there = np.linalg.norm(x - self.goal) < self.tol or (past and lateral < 3 * self.tol)
             if there and (turned is None or self._turned_enough(turned)):
