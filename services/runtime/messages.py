@@ -347,7 +347,7 @@ EPISODE_SUMMARY = MessageType(
         ("episode", "int", "episode index"),
         ("kind", "str", "demonstration | reproduction"),
         ("reason", "str", "why it ended: teacher_done | goal_reached | timeout | elapsed (ran its whole time with "
-                           "nothing to stop on) | safety | stopped"),
+                           "nothing to stop on) | safety:<reason> (e.g. safety:joint_limit) | stopped"),
         ("first_seq", "int", "first robot cycle of the episode"),
         ("last_seq", "int", "last robot cycle of the episode"),
         ("sim_seconds", "float", "simulated duration, s"),
