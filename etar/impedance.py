@@ -86,6 +86,14 @@ def _complete_basis(d: np.ndarray, hint: np.ndarray | None = None) -> np.ndarray
     return np.column_stack([d, c1, c2])
 
 
+def _stiffness(R: np.ndarray, n_compliant: int, stiff: float, soft: float) -> np.ndarray:
+    """K = R V R^T (symmetrised), V = diag(stiff, soft for the n_compliant axes after d, stiff)."""
+    V = np.full(3, stiff)
+    V[1 : 1 + n_compliant] = soft
+    K = R @ np.diag(V) @ R.T
+    return 0.5 * (K + K.T)
+
+
 def derive_impedance(
     velocities,
     forces,
@@ -158,12 +166,9 @@ def derive_impedance(
             R = _complete_basis(_complete_basis(n)[:, 1], n)
         else:
             R = np.eye(3)
-        V = np.full(3, stiffness)
-        V[1 : 1 + len(axes)] = compliant_stiffness
-        K = R @ np.diag(V) @ R.T
         return PhaseImpedance(
             direction=R[:, 0].copy(), n_compliant=len(axes), compliant_axes=R[:, 1 : 1 + len(axes)].T.copy(),
-            rotation=R, stiffness=0.5 * (K + K.T), mean_force=mean_f, mean_speed=0.0, n_samples=int(v.shape[0]),
+            rotation=R, stiffness=_stiffness(R, len(axes), stiffness, compliant_stiffness), mean_force=mean_f, mean_speed=0.0, n_samples=int(v.shape[0]),
             n_contact_samples=int(contact.sum()), angular_velocity=omega, mean_position=where, in_place=True,
         )
     moving = speed > min_speed_fraction * max(np.median(speed), 1e-12)
@@ -208,12 +213,9 @@ def derive_impedance(
             if axes[0] @ mean_fp < 0:
                 axes[0] = -axes[0]
     R = _complete_basis(d, axes[0] if len(axes) else None)
-    V = np.full(3, stiffness)
-    V[1 : 1 + len(axes)] = compliant_stiffness
-    K = R @ np.diag(V) @ R.T
     return PhaseImpedance(
         direction=d, n_compliant=len(axes), compliant_axes=R[:, 1 : 1 + len(axes)].T.copy(), rotation=R,
-        stiffness=0.5 * (K + K.T), mean_force=f[contact].mean(axis=0) if contact.any() else np.zeros(3), mean_speed=float(np.mean(v[moving] @ d)) if moving.any() else 0.0,
+        stiffness=_stiffness(R, len(axes), stiffness, compliant_stiffness), mean_force=f[contact].mean(axis=0) if contact.any() else np.zeros(3), mean_speed=float(np.mean(v[moving] @ d)) if moving.any() else 0.0,
         n_samples=int(v.shape[0]), n_contact_samples=int(contact.sum()), angular_velocity=omega,
         mean_position=where,
     )
