@@ -5,7 +5,9 @@ PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
-OUT ?= out
+# make run SCENARIO=scenarios/smoke.yaml OUT=out/smoke: another scenario, another folder
+SCENARIO ?= scenarios/valley.yaml
+OUT ?= out/$(basename $(notdir $(SCENARIO)))
 
 .PHONY: run test bench venv clean
 
@@ -19,8 +21,9 @@ venv: $(STAMP)
 
 # The main job: the thesis' valley experiment end to end over Zenoh -
 # 6 demonstrations, learning with BIC, 20 reproductions, report (out/valley/).
+# Its last line sums the run up; it exits non-zero when the run failed.
 run: $(STAMP)
-	$(BIN)/etar-bench run scenarios/valley.yaml --out $(OUT)/valley
+	$(BIN)/etar-bench run $(SCENARIO) --out $(OUT)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
@@ -30,4 +33,4 @@ bench: $(STAMP)
 	$(BIN)/python bench/sim_step.py
 
 clean:
-	rm -rf $(VENV) $(OUT) .pytest_cache
+	rm -rf $(VENV) out .pytest_cache

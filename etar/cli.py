@@ -86,16 +86,18 @@ def cmd_learn(args) -> int:
             raise SystemExit(f"etar learn: --phases must be 'auto' or a positive integer, got {args.phases!r}")
         model = ETAR(k, args.transitions, **options).fit(pairs, max_iter=args.max_iter, tol=args.tol,
                                                         seed=args.seed, progress=_say)
-    model.metadata["demonstrations"] = [str(p) for p in args.demos]
+    model.metadata["demonstrations"] = [str(Path(p).resolve()) for p in args.demos]
     dt = args.dt if args.dt is not None else float(demos[0].get("dt", 0.01))
     if model.n_state >= 3 and model.n_force >= 3:
         # a 6-column state is a pose: position and rotation vector (services.features)
         imps = phase_impedances(model, pairs, dt, rotation_columns=slice(3, 6) if model.n_state == 6 else None)
         model.metadata["impedance"] = [None if imp is None else imp.to_dict() for imp in imps]
         model.metadata["dt"] = dt
-    model.save(args.out)
+    out = Path(args.out).expanduser().resolve()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    model.save(out)
     r = model.fit_report_
-    _say(f"wrote {args.out}: {model.n_phases} phases, log-likelihood {r.log_likelihood:.2f}, "
+    _say(f"wrote {out}: {model.n_phases} phases, log-likelihood {r.log_likelihood:.2f}, "
          f"{r.n_iter} EM iterations, {r.seconds:.1f} s")
     return 0
 

@@ -45,7 +45,26 @@ def cmd_run(args) -> int:
         return 130
     print((Path(out) / "report.txt").read_text())
     _say(f"report: {out}/report.json, {out}/report.txt; recordings in {out}/recordings")
+    # the last line, for a newcomer: what came out and where to read more
+    print(summary_line(report, out), flush=True)
     return 0 if report["error"] is None else 1
+
+
+def summary_line(report: dict, out) -> str:
+    """One line: phases chosen, reproductions that reached the goal, online accuracy,
+    where the report is; or that the run failed, and why."""
+    s = report["summary"]
+    parts = []
+    if s.get("phases_chosen") is not None:
+        parts.append(f"{s['phases_chosen']} phases")
+    if s.get("reproductions"):
+        parts.append(f"{s['successes']} of {s['reproductions']} reproductions reached the goal")
+        acc = s.get("online_phase_accuracy")
+        parts.append(f"online phase accuracy {acc:.4f}" if acc is not None else "no online phase estimate")
+    where = f"report {Path(out) / 'report.txt'}"
+    if report["error"] is not None:
+        return f"{report['scenario']}: RUN FAILED ({report['error']}); " + "; ".join(parts + [f"partial {where}"])
+    return f"{report['scenario']}: " + "; ".join(parts + [where])
 
 
 def _interrupt(signum, frame):

@@ -33,7 +33,19 @@ class RecorderConfig:
     zenoh: ZenohOptions
     sched_fifo: int = 0  # SCHED_FIFO priority, 0: none
     cpus: tuple = ()  # CPU affinity of the whole process, (): any
-    out_dir: str = "recordings"
+    out_dir: str = "recordings"  # made absolute by the CLI: the folder every episode path is relative to
+
+
+def episode_path(out_dir, name) -> Path:
+    """Where the episode ``name`` goes: a path relative to ``out_dir``, the one stated
+    folder of this recorder.  An absolute path or one that climbs out is refused: a
+    runner and a recorder that disagree about the working directory (one relative
+    folder joined to another) once wrote out/valley/recordings/out/valley/recordings/."""
+    rel = Path(str(name))
+    if not str(name) or rel.is_absolute() or ".." in rel.parts:
+        raise ValueError(f"episode path {str(name)!r}: expected a file name relative to the recorder's "
+                         f"--out-dir ({out_dir}), not absolute and without '..'")
+    return Path(out_dir) / rel
 
 
 class RecorderProcess:
@@ -65,9 +77,7 @@ class RecorderProcess:
                 self._lock.notify_all()
 
     def begin(self, p: dict) -> str:
-        path = Path(p["path"])
-        if not path.is_absolute():
-            path = Path(self.config.out_dir) / path
+        path = episode_path(self.config.out_dir, p["path"])
         path.parent.mkdir(parents=True, exist_ok=True)
         with self._lock:
             if self.writer is not None:
@@ -122,14 +132,16 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--run-id", required=True)
     parser.add_argument("--clock", choices=("lockstep", "realtime"), default="lockstep",
                         help="accepted for symmetry: the recorder records whatever arrives")
-    parser.add_argument("--out-dir", default="recordings", help="directory for relative episode paths")
+    parser.add_argument("--out-dir", default="recordings",
+                        help="folder the episode files go into; the runner names them relative to it "
+                             "(default ./recordings, resolved when the recorder starts)")
     add_zenoh_arguments(parser)
     return parser
 
 
 def cli(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    return main(RecorderConfig(run_id=args.run_id, zenoh=zenoh_options(args), out_dir=args.out_dir,
+    return main(RecorderConfig(run_id=args.run_id, zenoh=zenoh_options(args), out_dir=str(Path(args.out_dir).resolve()),
                                sched_fifo=args.sched_fifo, cpus=args.cpus))
 
 

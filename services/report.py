@@ -122,9 +122,22 @@ def environment(clock: str, fifo: bool) -> dict:
             "python": platform.python_version(), "clock": clock, "sched_fifo": fifo}
 
 
+def _in_run(path, run_dir: Path) -> str | None:
+    """A path for report.json: relative to the run directory when it lies inside it
+    (a run directory can be moved or committed), absolute otherwise."""
+    if path is None:
+        return None
+    p = Path(path)
+    try:
+        return str(p.relative_to(run_dir))
+    except ValueError:
+        return str(p)
+
+
 def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: float) -> dict:
     st = runner.state
     sc = runner.scenario
+    out = Path(runner.out)
     # each recording is read once, for every figure taken from it, and let go
     # (a valley run's recordings do not fit in memory together)
     links, phases_of, quality = {}, {}, {}
@@ -147,7 +160,7 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
         # a hold run (stop_at_goal: false) keeps going after the goal: the commander said when
         reached = s["reason"] == "goal_reached" or s.get("goal_reached_at_s", -1.0) >= 0
         bounded = s["peak_contact_force"] <= r["max_contact_force"]
-        repro.append(dict(index=len(repro), path=r["path"], side=r["side"], start=r["start"], reason=s["reason"],
+        repro.append(dict(index=len(repro), path=_in_run(r["path"], out), side=r["side"], start=r["start"], reason=s["reason"],
                           reached_goal=reached, peak_contact_force=s["peak_contact_force"],
                           bounded_force=bounded, success=reached and bounded, sim_seconds=s["sim_seconds"],
                           wall_seconds=s["wall_seconds"], final_position=s["final_position"], phases=phases,
@@ -177,12 +190,15 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
         "error": error,
         "wall_seconds": wall_seconds,
         "environment": environment(sc.clock, any(loop.get("sched_fifo") for loop in loops)),
-        "demonstrations": [dict(path=d["path"], side=d["side"], start=d["start"], reason=d["summary"]["reason"],
+        "paths": "relative to the folder of this report, unless absolute",
+        "demonstrations": [dict(path=_in_run(d["path"], out), side=d["side"], start=d["start"], reason=d["summary"]["reason"],
                                 sim_seconds=d["summary"]["sim_seconds"], wall_seconds=d["summary"]["wall_seconds"],
                                 fri=d["summary"].get("fri"), fri_quality=timelines.get(d["path"], {}))
                            for d in st.demonstrations],
-        "learning": {"model": st.model_path, "selection": st.selection, "phase_to_truth": st.phase_to_truth,
-                     "goal": st.goal},
+        "learning": {"model": _in_run(st.model_path, out), "selection": st.selection,
+                     "phase_to_truth": st.phase_to_truth, "goal": st.goal,
+                     "demonstrations_read": [dict(path=_in_run(d["path"], out), samples=d["samples"])
+                                             for d in getattr(st, "learned_from", [])]},
         "reproductions": repro,
         "summary": {
             "phases_chosen": (st.selection or {}).get("best"),
@@ -210,7 +226,6 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
         },
         "exit_codes": exit_codes,
     }
-    out = Path(runner.out)
     (out / "report.json").write_text(json.dumps(report, indent=1, default=float) + "\n")
     (out / "report.txt").write_text(render_text(report))
     (out / "timing.txt").write_text(histograms_text(loops))

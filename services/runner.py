@@ -39,7 +39,7 @@ from etar import ETAR
 from etar.impedance import phase_impedances
 from etar.selection import fit_order
 from services import launch
-from services.recording import load_demonstration
+from services.recording import RecordingError, load_demonstration
 from services.runtime import topics
 from services.runtime.messages import EPISODE_SUMMARY, RUNNER_EVENT
 from services.runtime.service import now_ns, request
@@ -84,6 +84,7 @@ class RunState:
     selection: dict | None = None
     phase_to_truth: dict | None = None
     goal: list | None = None
+    learned_from: list = field(default_factory=list)  # dicts: path, samples (what the learn stage read)
 
 
 class Runner:
@@ -93,7 +94,11 @@ class Runner:
         self.scenario: Scenario = load_scenario(options.scenario)
         if options.clock:
             self.scenario = self.scenario.with_clock(options.clock)
-        self.out = Path(options.out)
+        # resolved once, here: every path handed to a service or written in the report
+        # follows from this absolute folder (a relative one, joined again by the
+        # recorder, doubled itself: out/valley/recordings/out/valley/recordings/)
+        self.out = Path(options.out).expanduser().resolve()
+        self.recordings = self.out / "recordings"
         self.run_id = options.run_id or f"{self.scenario.name}-{uuid.uuid4().hex[:8]}"
         source = Path(self.scenario.source)
         self.scenario_text = source.read_text() if source.is_file() else None  # attached to every recording
@@ -129,7 +134,7 @@ class Runner:
             "robot": ["--world", sc.world, "--seed", str(sc.seed), *self.options.robot_args],
             "teacher": ["--world", sc.world],
             "ft_sensor": ["--seed", str(sc.seed)],
-            "recorder": ["--out-dir", str(self.out / "recordings")],
+            "recorder": ["--out-dir", str(self.recordings)],
             "impedance_commander": list(self.options.commander_args),
         }.get(role, [])
         return common + extra
@@ -139,8 +144,7 @@ class Runner:
     def run(self) -> dict:
         from services.report import write_report
 
-        self.out.mkdir(parents=True, exist_ok=True)
-        (self.out / "recordings").mkdir(exist_ok=True)
+        self.recordings.mkdir(parents=True, exist_ok=True)
         t0 = time.monotonic()
         if self.options.zenoh is not None:
             zopts, endpoint = self.options.zenoh, ""
@@ -233,14 +237,26 @@ class Runner:
                 raise TimeoutError("the robot did not end its episode")
         return self._summary
 
-    def _prepare(self, kind, index, start, path):
-        self._req("recorder", "begin_episode", path=str(path), kind=kind, index=index, scenario=self.scenario_text,
-                  metadata={"start": json.dumps(list(start)), "scenario": self.scenario.name})
+    def _prepare(self, kind, index, start) -> Path:
+        """Open the episode's recording and put the arm at its start; returns the
+        recording's path as this runner sees it."""
+        name = f"{kind}_{index:02d}.mcap"
+        # the recorder is told the name relative to its --out-dir, the one folder both
+        # agree on: OUT/recordings (spawned), or a shared volume (--attach)
+        written = self._req("recorder", "begin_episode", path=name, kind=kind, index=index,
+                            scenario=self.scenario_text,
+                            metadata={"start": json.dumps(list(start)), "scenario": self.scenario.name})["path"]
         self._event("episode_begin", kind, index, {"start": list(start)})
         self._req("robot", "reset", start=list(start), episode=index, kind=kind)
         self._req("ft_sensor", "tare", samples=100)
         self._req("robot", "settle", cycles=200, wait_for=["ft"] if self.scenario.clock == "lockstep" else [],
                   timeout=120.0)
+        path = self.recordings / name
+        if self.options.attach and not path.exists():
+            raise RecordingError(f"the recorder writes {written}, which this runner does not see at {path}: "
+                                 f"with --attach the recorder's --out-dir must be this run's --out/recordings "
+                                 f"(the same folder, e.g. a shared volume)")
+        return path
 
     def _finish(self, kind, index, summary, topic_list):
         rec = self._req("recorder", "end_episode", last_seq=summary["last_seq"], topics=topic_list, timeout=30.0)
@@ -254,8 +270,7 @@ class Runner:
         starts = demonstration_starts(stage, sc.world, stage.seed)
         for i, (side, start) in enumerate(starts):
             index = len(self.state.demonstrations)
-            path = self.out / "recordings" / f"demonstration_{index:02d}.mcap"
-            self._prepare("demonstration", index, start, path)
+            path = self._prepare("demonstration", index, start)
             reset = dict(start=list(start), episode=index, seed=stage.seed * 1000 + i)
             if stage.goal_x is not None:
                 reset["goal_x"] = stage.goal_x
@@ -274,6 +289,8 @@ class Runner:
         demos = [load_demonstration(d["path"], state=sc.state, features=sc.features)
                  for d in self.state.demonstrations]
         pairs = [(d["states"], d["forces"]) for d in demos]
+        self.state.learned_from = [dict(path=d["path"], samples=len(s)) for d, (s, _) in
+                                   zip(self.state.demonstrations, pairs)]
         options = dict(n_restarts=stage.restarts)
         t = time.monotonic()
         if stage.phases == "auto":
@@ -333,8 +350,7 @@ class Runner:
         model_path = str(Path(self.state.model_path).resolve())
         for i, (side, start) in enumerate(starts):
             index = len(self.state.reproductions)
-            path = self.out / "recordings" / f"reproduction_{index:02d}.mcap"
-            self._prepare("reproduction", index, start, path)
+            path = self._prepare("reproduction", index, start)
             self._req("phase_estimator", "reset", model=model_path, episode=index, state=sc.state,
                       features=sc.features)
             goal = list(self.state.goal)

@@ -530,15 +530,16 @@ class Scenario:
         return tuple(s for s in self.stages if s.kind == "reproduce")
 
     def model_path(self) -> Path | None:
-        """The model file, a relative ``model`` taken from the scenario file's directory
-        (from the working directory for a scenario that came from a dict)."""
+        """The model file as an absolute path; a relative ``model`` is taken from the
+        scenario file's directory (from the working directory for a scenario that came
+        from a dict)."""
         if self.model is None:
             return None
-        path = Path(self.model)
-        if path.is_absolute():
-            return path
-        source = Path(self.source)
-        return (source.parent / path) if source.is_file() else path
+        path = Path(self.model).expanduser()
+        if not path.is_absolute():
+            source = Path(self.source)
+            path = (source.parent / path) if source.is_file() else path
+        return path.resolve()  # absolute: it is handed to other processes
 
     def with_clock(self, clock: str) -> Scenario:
         """A copy run on another clock: the same scenario, lockstep for CI, realtime for the lab."""

@@ -32,7 +32,7 @@ def content(run_dir: Path) -> dict:
 
 def check_recordings(run_dir: Path, report: dict) -> None:
     for d in report["demonstrations"] + report["reproductions"]:
-        ep = read_episode(d["path"])
+        ep = read_episode(run_dir / d["path"])
         assert ep.complete
         # every (topic, seq) once: nothing from another run, nothing twice
         counts = Counter((m.topic, json.loads(m.payload)["seq"]) for m in ep.messages

@@ -64,3 +64,13 @@ def test_errors_name_the_file_and_field(tmp_path, capsys):
 def test_console_script_help():
     out = subprocess.run([sys.executable, "-m", "etar.cli", "learn", "--help"], capture_output=True, text=True)
     assert out.returncode == 0 and "--phases" in out.stdout
+
+
+def test_learn_writes_to_a_relative_out_whose_folder_does_not_exist(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert main(["synth", "--out", "demos", "--demos", "2", "--length", "200", "--phases", "2", "--seed", "1"]) == 0
+    assert main(["learn", "demos/demo_00.npz", "demos/demo_01.npz", "--phases", "2", "--restarts", "1",
+                 "--out", "new/folder/model.json"]) == 0
+    data = json.loads((tmp_path / "new" / "folder" / "model.json").read_text())
+    # the demonstrations are named as absolute paths: the file can be read from anywhere
+    assert data["metadata"]["demonstrations"] == [str(tmp_path / "demos" / f"demo_0{i}.npz") for i in (0, 1)]

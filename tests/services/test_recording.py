@@ -440,3 +440,13 @@ def test_etar_cli_learns_three_phases_from_the_recording(tmp_path, simulated_dem
     capsys.readouterr()
     assert main(["learn", str(broken), "--phases", "2", "--out", str(tmp_path / "m2.json")]) == 2
     assert str(broken) in capsys.readouterr().err
+
+
+def test_the_recorder_takes_episode_paths_relative_to_its_one_folder_only(tmp_path):
+    from services.recorder import episode_path
+
+    assert episode_path(tmp_path, "demonstration_00.mcap") == tmp_path / "demonstration_00.mcap"
+    assert episode_path(tmp_path, "sub/reproduction_01.mcap") == tmp_path / "sub" / "reproduction_01.mcap"
+    for bad in ("/abs/demonstration_00.mcap", "../escape.mcap", "a/../../b.mcap", ""):
+        with pytest.raises(ValueError, match="relative to the recorder's --out-dir"):
+            episode_path(tmp_path, bad)
