@@ -63,9 +63,9 @@ def _pairs(demos):
 
 
 def cmd_learn(args) -> int:
-    from etar.impedance import phase_impedances
     from etar.model import ETAR
     from etar.selection import fit_order
+    from etar.task import FEATURES, STATES, TaskError, learn_task
 
     demos = load_demonstrations(args.demos)
     pairs = _pairs(demos)
@@ -86,16 +86,29 @@ def cmd_learn(args) -> int:
             raise SystemExit(f"etar learn: --phases must be 'auto' or a positive integer, got {args.phases!r}")
         model = ETAR(k, args.transitions, **options).fit(pairs, max_iter=args.max_iter, tol=args.tol,
                                                         seed=args.seed, progress=_say)
-    model.metadata["demonstrations"] = [str(Path(p).resolve()) for p in args.demos]
+    sources = [str(Path(p).resolve()) for p in args.demos]
+    model.metadata["demonstrations"] = sources
     dt = args.dt if args.dt is not None else float(demos[0].get("dt", 0.01))
-    if model.n_state >= 3 and model.n_force >= 3:
-        # a 6-column state is a pose: position and rotation vector (services.features)
-        imps = phase_impedances(model, pairs, dt, rotation_columns=slice(3, 6) if model.n_state == 6 else None)
-        model.metadata["impedance"] = [None if imp is None else imp.to_dict() for imp in imps]
-        model.metadata["dt"] = dt
     out = Path(args.out).expanduser().resolve()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    model.save(out)
+    task = None
+    if model.n_state in STATES.values() and model.n_force in FEATURES.values():
+        # the same learned task the scenario runner makes: a scenario's `model:` can reproduce it
+        try:
+            task = learn_task(model, demos, dt, selection=model.metadata.get("selection"), sources=sources,
+                              source=str(out))
+        except TaskError as exc:
+            _say(f"etar learn: warning: no task to reproduce ({exc}); writing the model alone")
+        if task is not None:
+            task.save(out)
+            matched = ", phases matched to the demonstrations' true labels" if task.phase_to_truth else ""
+            _say(f"task: goal {np.round(task.goal, 3).tolist()}, impedance for "
+                 f"{sum(i is not None for i in task.impedances)} of {task.n_phases} phases{matched}")
+    else:
+        _say(f"etar learn: a state of {model.n_state} and a force of {model.n_force} columns is no position/pose "
+             f"task: writing the model alone")
+    if task is None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        model.save(out)
     r = model.fit_report_
     _say(f"wrote {out}: {model.n_phases} phases, log-likelihood {r.log_likelihood:.2f}, "
          f"{r.n_iter} EM iterations, {r.seconds:.1f} s")

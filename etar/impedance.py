@@ -76,6 +76,16 @@ class PhaseImpedance:
         )
 
 
+def impedance_from_file(data: dict) -> PhaseImpedance:
+    """A phase's impedance as a model file stores it.  Files written before
+    ``in_place`` was learned do not say: such a phase counts as done in place when
+    its speed along d is below IN_PLACE_SPEED."""
+    imp = PhaseImpedance.from_dict(data)
+    if "in_place" not in data:
+        imp = replace(imp, in_place=imp.mean_speed < IN_PLACE_SPEED)
+    return imp
+
+
 def _complete_basis(d: np.ndarray, hint: np.ndarray | None = None) -> np.ndarray:
     """Right-handed orthonormal [d, c1, c2]; c1 follows ``hint`` where given."""
     if hint is None or np.linalg.norm(hint - (hint @ d) * d) < 1e-9:

@@ -420,9 +420,21 @@ class ETAR:
         model.goal = None if goal is None else np.array(goal, dtype=np.float64)
         model.metadata = dict(data.get("metadata", {}))
         try:
-            model._checked_parameters()
+            _, Sigma, _, _ = model._checked_parameters()
         except ValueError as exc:
             raise ValueError(f"{source}: {exc}") from None
+        # the header must describe the arrays, and every covariance must be one
+        for key, actual in (("n_state", model.n_state), ("n_force", model.n_force)):
+            if key in data and data[key] != actual:
+                raise ValueError(f"{source}: field '{key}' is {data[key]!r}, but the parameters have {actual}")
+        for j, S in enumerate(Sigma):
+            if not np.allclose(S, S.T, rtol=1e-9, atol=1e-12):
+                raise ValueError(f"{source}: field 'parameters.Sigma[{j}]' is not symmetric")
+            try:
+                np.linalg.cholesky(S)
+            except np.linalg.LinAlgError:
+                raise ValueError(f"{source}: field 'parameters.Sigma[{j}]' is not positive definite "
+                                 f"(eigenvalues {np.round(np.linalg.eigvalsh(S), 12).tolist()})") from None
         return model
 
     @classmethod
@@ -430,8 +442,14 @@ class ETAR:
         path = Path(path)
         try:
             data = json.loads(path.read_text())
+        except FileNotFoundError:
+            raise ValueError(f"{path}: no such model file") from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ValueError(f"{path}: cannot read the model file ({exc})") from None
         except json.JSONDecodeError as exc:
             raise ValueError(f"{path}: not a JSON model file ({exc})") from None
+        if not isinstance(data, dict):
+            raise ValueError(f"{path}: expected a JSON object (an etar-model file), got a {type(data).__name__}")
         return cls.from_dict(data, str(path))
 
 

@@ -48,7 +48,7 @@ standard_to_fri = fri_to_standard  # the permutation is its own inverse
 @dataclass
 class CycleResult:
     outcome: CycleOutcome
-    ft: RdtRecord  # the ATI record sampled at the end of the cycle
+    ft: RdtRecord | None  # the ATI record sampled at the end of the cycle (None: a cell without sensor)
     contact_force: np.ndarray  # (3,) true environment force on the tip, world axes
     touching: list  # geom names the tip touches
     tau: np.ndarray  # (7,) joint torques applied
@@ -58,7 +58,8 @@ class CycleResult:
 class RobotCell:
     def __init__(self, world: WorldSpec, *, seed: int = 0, fri_config: FriConfig | None = None,
                  ati_config: AtiConfig | None = None, krc_config: KrcConfig | None = None,
-                 faults: LinkFaults | None = None, joint_noise: float = JOINT_POSITION_NOISE):
+                 faults: LinkFaults | None = None, joint_noise: float = JOINT_POSITION_NOISE,
+                 with_sensor: bool = True):
         self.world = world
         self.sim = Simulation(world)
         self.kin = ArmKinematics()
@@ -68,7 +69,9 @@ class RobotCell:
             raise ValueError(f"FRI cycle {self.fri.config.cycle_ns} ns must equal the physics step "
                              f"{TIMESTEP * 1e9:.0f} ns (one physics step per cycle)")
         self.ati_config = ati_config or AtiConfig.mini45()
-        self.ati = AtiSensor(self.ati_config, seed)
+        # without_sensor: whoever runs the cell samples the tool wrench with its own
+        # sensor model (the ft_sensor node); end_cycle's ``ft`` is then None
+        self.ati = AtiSensor(self.ati_config, seed) if with_sensor else None
         self.cycle_ns = self.fri.config.cycle_ns
         self.cycle = 0
         self._q = np.zeros(7)
@@ -151,7 +154,7 @@ class RobotCell:
         self.sim.step()
         self.cycle += 1
         self._sense()
-        record = self.ati.read(self._true_wrench, self.t_ns)
+        record = self.ati.read(self._true_wrench, self.t_ns) if self.ati is not None else None
         return CycleResult(outcome, record, self._contact_force.copy(), list(self._touching), tau.copy(), self.t_ns)
 
     def _sense(self) -> None:

@@ -43,6 +43,7 @@ class Valley:
     half_width: float = 0.16  # m, horizontal extent of each plate from the groove
     thickness: float = 0.006
     angle: float = math.pi / 4
+    friction: float = 0.25  # sliding friction coefficient of the plates (aluminium on the tool tip)
 
     def plate_normal(self, side: int) -> np.ndarray:
         """Unit normal of the plate on side -1 (y < 0) or +1 (y > 0), pointing into the valley."""
@@ -115,7 +116,7 @@ def valley(geometry: Valley = Valley(), description: ArmDescription = LWR4) -> W
         plates.append(
             f'    <geom name="{name}" type="box" pos="{_f(centre)}" quat="{_f(quat)}" '
             f'size="{length / 2!r} {slope / 2!r} {g.thickness / 2!r}" contype="1" conaffinity="2" '
-            f'condim="4" friction="0.25 0.005 0.0001" rgba="0.75 0.77 0.8 1"/>'
+            f'condim="4" friction="{g.friction!r} 0.005 0.0001" rgba="0.75 0.77 0.8 1"/>'
         )
     stand = (
         f'    <geom name="valley_stand" type="box" pos="{xc!r} 0 {(g.groove_z - 0.02) / 2!r}" '

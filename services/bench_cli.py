@@ -22,6 +22,7 @@ def _say(msg: str) -> None:
 
 
 def cmd_run(args) -> int:
+    from etar.task import TaskError
     from services.runner import RunOptions, run
     from services.scenario import ScenarioError
 
@@ -35,9 +36,10 @@ def cmd_run(args) -> int:
     signal.signal(signal.SIGTERM, _interrupt)
     try:
         report = run(RunOptions(scenario=args.scenario, out=out, clock=args.clock, run_id=args.run_id, zenoh=zopts,
-                                attach=args.attach, ready_timeout=args.ready_timeout, sched_fifo=args.sched_fifo),
+                                transport=args.transport, attach=args.attach, ready_timeout=args.ready_timeout,
+                                sched_fifo=args.sched_fifo),
                      progress=_say)
-    except ScenarioError as exc:
+    except (ScenarioError, TaskError) as exc:
         _say(f"etar-bench run: error: {exc}")
         return 2
     except KeyboardInterrupt as exc:
@@ -110,6 +112,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="output directory (default runs/<scenario>-<time>)")
     p.add_argument("--clock", choices=("lockstep", "realtime"), help="override the scenario's clock")
     p.add_argument("--run-id", help="run id (default <scenario>-<random>)")
+    p.add_argument("--transport", choices=("zenoh", "inproc"), default="zenoh",
+                   help="zenoh: every role in its own process over Zenoh (the lab's layout, realtime or lockstep; "
+                        "default); inproc: every role in this process on an in-memory bus (lockstep only, "
+                        "several times faster, the same recordings)")
     p.add_argument("--attach", action="store_true",
                    help="drive services that are already running (docker-compose) instead of starting them")
     p.add_argument("--ready-timeout", type=float, default=60.0, help="seconds to wait for the services")

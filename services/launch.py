@@ -12,6 +12,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -107,3 +108,107 @@ def _wait_all(processes, seconds: float) -> None:
             p.popen.wait(max(0.0, deadline - time.monotonic()))
         except subprocess.TimeoutExpired:
             pass
+
+
+class ServiceProcesses:
+    """The runner's side of a run over Zenoh: one process per role (or, with
+    ``attach``, services somebody else started), control requests as Zenoh queries,
+    an episode as the robot's 'run' request and its ``robot/episode`` summary."""
+
+    def __init__(self, run_id: str, log_dir: Path, *, attach: bool = False, zenoh=None):
+        from services.runtime import topics
+        from services.runtime.session import ZenohOptions, open_session
+
+        self.run_id = run_id
+        self.log_dir = Path(log_dir)
+        self.attach = attach
+        if zenoh is not None:
+            self.zenoh, self.endpoint = zenoh, ""
+        else:
+            self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+            self.zenoh = ZenohOptions(listen=(self.endpoint,))
+        self.session = open_session(self.zenoh)
+        self.processes: list[ServiceProcess] = []
+        self._publishers = {}
+        self._episode_done = threading.Event()
+        self._summary = None
+        self._topics = topics
+        self._sub = self.session.declare_subscriber(topics.key(run_id, "robot/episode"), self._on_episode)
+        self._stopped = False
+        self._codes = {}
+
+    def start(self, args_of: dict, timeout: float) -> None:
+        """``args_of[role](connect endpoint)``: the flags of each role's process."""
+        if not self.attach:
+            for role, args in args_of.items():
+                self.processes.append(spawn(role, args(self.endpoint), self.log_dir))
+        wait_alive(self.session, self.run_id, list(args_of), self.processes, timeout=timeout)
+
+    def _on_episode(self, sample) -> None:
+        from services.runtime.messages import EPISODE_SUMMARY
+
+        try:
+            self._summary = EPISODE_SUMMARY.decode(sample.payload.to_bytes())
+        except ValueError:
+            return
+        self._episode_done.set()
+
+    def request(self, role: str, cmd: str, timeout: float = 30.0, **args) -> dict:
+        from services.runtime.service import request
+
+        return request(self.session, self.run_id, role, cmd, timeout=timeout, **args)
+
+    def run_episode(self, answers_from, stop_on, max_seconds) -> dict:
+        self._episode_done.clear()
+        self.request("robot", "run", wait_for=list(answers_from), stop_on=stop_on, max_seconds=max_seconds)
+        # lockstep runs at the pace of the slowest participant: allow a generous wall-clock budget
+        if not self._episode_done.wait(max(120.0, 30.0 * max_seconds)):
+            self.request("robot", "stop", timeout=10.0)
+            if not self._episode_done.wait(30.0):
+                raise TimeoutError("the robot did not end its episode")
+        return self._summary
+
+    def publish(self, topic: str, payload: bytes) -> None:
+        pub = self._publishers.get(topic)
+        if pub is None:
+            pub = self._publishers[topic] = self.session.declare_publisher(self._topics.key(self.run_id, topic))
+        pub.put(payload)
+
+    def statistics(self, roles) -> dict:
+        """Each service's own link statistics (receiving end), before they stop."""
+        out = {}
+        for role in roles:
+            try:
+                out[role] = self.request(role, "status", timeout=3.0)
+            except Exception as exc:  # a dead service has no statistics; the report says so
+                out[role] = {"error": f"{type(exc).__name__}: {exc}"}
+        return out
+
+    def post_mortem(self) -> list[str]:
+        return [f"--- {p.name} exited with {p.popen.returncode}; end of its log:\n{p.tail()}"
+                for p in self.processes if not p.alive()]
+
+    def _shutdown(self, roles) -> None:
+        for role in roles:
+            try:
+                self.request(role, "shutdown", timeout=2.0)
+            except Exception:  # already gone: stop's escalation handles it
+                pass
+
+    def stop(self, roles, before_report: bool) -> dict:
+        """Before the report: stop the processes this runner started (exit codes).  After
+        it: with ``attach``, shut the services down (containers stop with them, so only
+        once the report is written), and close the session."""
+        if before_report:
+            if not self.attach:
+                self._shutdown(roles)
+                self._codes = stop(self.processes)
+            return self._codes
+        if self._stopped:
+            return self._codes
+        self._stopped = True
+        if self.attach:
+            self._shutdown(roles)
+        self._sub.undeclare()
+        self.session.close()
+        return self._codes

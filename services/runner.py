@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import json
 import os
-import threading
 import time
 import uuid
 from dataclasses import dataclass, field
@@ -36,15 +35,19 @@ from pathlib import Path
 import numpy as np
 
 from etar import ETAR
-from etar.impedance import phase_impedances
 from etar.selection import fit_order
+from etar.task import LearnedTask, TaskError, learn_task, load_task
 from services import launch
+from services.nodes import (CommanderConfig, EstimatorConfig, FtSensorConfig, RecorderConfig, RobotConfig,
+                            TeacherConfig)
 from services.recording import RecordingError, load_demonstration
-from services.runtime import topics
-from services.runtime.messages import EPISODE_SUMMARY, RUNNER_EVENT
-from services.runtime.service import now_ns, request
-from services.runtime.session import ZenohOptions, open_session
-from services.scenario import Scenario, demonstration_starts, load_scenario, reproduction_starts
+from services.runtime.config import config_to_args, with_flags
+from services.runtime.inproc import InProcessCell
+from services.runtime.messages import RUNNER_EVENT
+from services.runtime.service import now_ns
+from services.runtime.session import ZenohOptions
+from services.runtime.threads import learning_threads
+from services.scenario import Scenario, ScenarioError, demonstration_starts, load_scenario, reproduction_starts
 
 # with isolate_robot: who gets the robot's CPU.  The sensor there too made it worse
 # (measured on 2 CPUs: FRI answered in time 57 % instead of 99 %, the sensor as far behind)
@@ -52,6 +55,7 @@ ROBOT_CPU_ROLES = ("robot",)
 
 DEMO_TOPICS = ["robot/state", "robot/contact", "ft/wrench", "teacher/wrench"]
 REPRO_TOPICS = ["robot/state", "robot/contact", "ft/wrench", "robot/command"]
+TRANSPORTS = ("zenoh", "inproc")
 
 
 @dataclass(frozen=True)
@@ -60,6 +64,9 @@ class RunOptions:
     out: str
     clock: str | None = None
     run_id: str | None = None
+    # zenoh: every node in its own process (the lab's layout, realtime or lockstep);
+    # inproc: every node in this process on an in-memory bus (lockstep only: speed, sweeps)
+    transport: str = "zenoh"
     zenoh: ZenohOptions | None = None  # None: the runner listens on a free loopback port
     robot_args: tuple = ()  # extra flags for the robot (e.g. fault injection)
     commander_args: tuple = ()
@@ -74,6 +81,11 @@ class RunOptions:
     # of sharing it with five processes that each wake a thousand times a second
     isolate_robot: bool = False
     ready_timeout: float = 60.0
+    learn_threads: int | None = None  # numba threads for learning; None: the CPUs this process may use
+
+    def __post_init__(self):
+        if self.transport not in TRANSPORTS:
+            raise ValueError(f"transport must be one of {TRANSPORTS}, got {self.transport!r}")
 
 
 @dataclass
@@ -85,6 +97,7 @@ class RunState:
     phase_to_truth: dict | None = None
     goal: list | None = None
     learned_from: list = field(default_factory=list)  # dicts: path, samples (what the learn stage read)
+    learn_seconds: float | None = None
 
 
 class Runner:
@@ -94,6 +107,11 @@ class Runner:
         self.scenario: Scenario = load_scenario(options.scenario)
         if options.clock:
             self.scenario = self.scenario.with_clock(options.clock)
+        if options.transport == "inproc" and self.scenario.clock != "lockstep":
+            raise ScenarioError("the in-process transport runs lockstep only; use --transport zenoh for realtime",
+                                path="clock", value=self.scenario.clock, source=self.scenario.source)
+        if options.transport == "inproc" and options.attach:
+            raise ValueError("--attach drives services over Zenoh; it cannot be combined with --transport inproc")
         # resolved once, here: every path handed to a service or written in the report
         # follows from this absolute folder (a relative one, joined again by the
         # recorder, doubled itself: out/valley/recordings/out/valley/recordings/)
@@ -103,8 +121,8 @@ class Runner:
         source = Path(self.scenario.source)
         self.scenario_text = source.read_text() if source.is_file() else None  # attached to every recording
         self.state = RunState()
-        self._episode_done = threading.Event()
-        self._summary = None
+        self.cell = None
+        self.service_stats = {}
 
     # --------------------------------------------------------------- roles
 
@@ -117,7 +135,24 @@ class Runner:
             roles += ["phase_estimator", "impedance_commander"]
         return roles
 
-    def _args(self, role: str, connect: str) -> list[str]:
+    def node_configs(self) -> dict:
+        """Each role's node config, from the scenario (and the options' extra flags)."""
+        sc, cell = self.scenario, self.scenario.cell
+        configs = {
+            "robot": RobotConfig(world=sc.world, seed=sc.seed, plate_friction=cell.plate_friction,
+                                 fri_packet_loss=cell.fri_packet_loss),
+            "ft_sensor": FtSensorConfig(seed=sc.seed, noise_scale=cell.sensor_noise),
+            "teacher": TeacherConfig(world=sc.world),
+            "recorder": RecorderConfig(out_dir=str(self.recordings)),
+            "phase_estimator": EstimatorConfig(),
+            "impedance_commander": CommanderConfig(),
+        }
+        configs["robot"] = with_flags(configs["robot"], self.options.robot_args)
+        configs["impedance_commander"] = with_flags(configs["impedance_commander"], self.options.commander_args)
+        return {role: configs[role] for role in self.roles()}
+
+    def process_args(self, role: str, config, connect: str) -> list[str]:
+        """The command-line flags of ``role``'s process (``services.runtime.process``)."""
         sc = self.scenario
         priority = dict(self.options.fifo_priorities).get(role) if self.options.sched_fifo else None
         common = ["--run-id", self.run_id, "--clock", sc.clock] + (["--sched-fifo", str(priority)] if priority else [])
@@ -130,14 +165,7 @@ class Runner:
             common += self.options.zenoh.to_args()
         else:
             common += ["--connect", connect]
-        extra = {
-            "robot": ["--world", sc.world, "--seed", str(sc.seed), *self.options.robot_args],
-            "teacher": ["--world", sc.world],
-            "ft_sensor": ["--seed", str(sc.seed)],
-            "recorder": ["--out-dir", str(self.recordings)],
-            "impedance_commander": list(self.options.commander_args),
-        }.get(role, [])
-        return common + extra
+        return common + config_to_args(config)
 
     # ----------------------------------------------------------------- run
 
@@ -146,96 +174,53 @@ class Runner:
 
         self.recordings.mkdir(parents=True, exist_ok=True)
         t0 = time.monotonic()
-        if self.options.zenoh is not None:
-            zopts, endpoint = self.options.zenoh, ""
-        else:
-            endpoint = f"tcp/127.0.0.1:{launch.free_port()}"
-            zopts = ZenohOptions(listen=(endpoint,))
         self.say(f"run {self.run_id}: scenario {self.scenario.name} ({self.scenario.source}), "
-                 f"clock {self.scenario.clock}, output {self.out}")
-        session = open_session(zopts)
-        self.session = session
-        self._pub_event = session.declare_publisher(topics.key(self.run_id, "runner/event"))
-        sub = session.declare_subscriber(topics.key(self.run_id, "robot/episode"), self._on_episode)
-        processes = []
+                 f"clock {self.scenario.clock}, transport {self.options.transport}, output {self.out}")
         error = None
+        codes = {}
         try:
-            if not self.options.attach:
-                for role in self.roles():
-                    processes.append(launch.spawn(role, self._args(role, endpoint), self.out / "logs"))
-            launch.wait_alive(session, self.run_id, self.roles(), processes, timeout=self.options.ready_timeout)
-            self.say(f"services ready ({', '.join(self.roles())}) after {time.monotonic() - t0:.1f} s")
             if self.scenario.model is not None:
-                self._use_model(self.scenario.model_path())
+                self._use_model(self.scenario.model_path())  # a bad model fails before anything starts
+            configs = self.node_configs()
+            if self.options.transport == "inproc":
+                self.cell = InProcessCell(self.run_id, configs)
+            else:
+                self.cell = launch.ServiceProcesses(self.run_id, self.out / "logs", attach=self.options.attach,
+                                                    zenoh=self.options.zenoh)
+                self.cell.start({role: (lambda role, cfg: lambda connect: self.process_args(role, cfg, connect))(
+                    role, cfg) for role, cfg in configs.items()}, timeout=self.options.ready_timeout)
+            self.say(f"services ready ({', '.join(self.roles())}) after {time.monotonic() - t0:.1f} s")
             for stage in self.scenario.stages:
                 getattr(self, f"stage_{stage.kind}")(stage)
             self._event("run_end", "", -1, {})
         except BaseException as exc:
             error = f"{type(exc).__name__}: {exc}"
             self.say(f"run failed: {error}")
-            for p in processes:
-                if not p.alive():
-                    self.say(f"--- {p.name} exited with {p.popen.returncode}; end of its log:\n{p.tail()}")
+            if self.cell is not None:
+                for line in self.cell.post_mortem():
+                    self.say(line)
             if isinstance(exc, KeyboardInterrupt):
                 raise
         finally:
-            self.service_stats = self._collect_stats()
-            codes = {}
-            if not self.options.attach:
-                self._shutdown_services()
-                codes = launch.stop(processes)
+            if self.cell is not None:
+                self.service_stats = self.cell.statistics(self.roles())
+                codes = self.cell.stop(self.roles(), before_report=True)
             try:
                 report = write_report(self, codes, error, time.monotonic() - t0)
             finally:
-                if self.options.attach:
-                    # containers stop with their services: only once the report is written
-                    self._shutdown_services()
-                sub.undeclare()
-                session.close()
+                if self.cell is not None:
+                    self.cell.stop(self.roles(), before_report=False)
         return report
-
-    def _collect_stats(self) -> dict:
-        """Each service's own link statistics (receiving end), before they stop."""
-        out = {}
-        for role in self.roles():
-            try:
-                out[role] = self._req(role, "status", timeout=3.0)
-            except Exception as exc:  # a dead service has no statistics; the report says so
-                out[role] = {"error": f"{type(exc).__name__}: {exc}"}
-        return out
-
-    def _shutdown_services(self):
-        for role in self.roles():
-            try:
-                request(self.session, self.run_id, role, "shutdown", timeout=2.0)
-            except Exception:  # already gone: launch.stop's escalation handles it
-                pass
 
     # ------------------------------------------------------------- helpers
 
     def _event(self, event, stage, episode, info):
-        self._pub_event.put(RUNNER_EVENT.encode(seq=0, stamp_ns=0, sent_ns=now_ns(), event=event, stage=stage,
-                                                episode=episode, info=info))
-
-    def _on_episode(self, sample):
-        try:
-            self._summary = EPISODE_SUMMARY.decode(sample.payload.to_bytes())
-        except ValueError:
-            return
-        self._episode_done.set()
+        if self.cell is not None:
+            self.cell.publish("runner/event", RUNNER_EVENT.encode(
+                seq=0, stamp_ns=0, sent_ns=now_ns(), event=event, stage=stage, episode=episode, info=info))
 
     def _req(self, role, cmd, timeout=30.0, **args):
-        return request(self.session, self.run_id, role, cmd, timeout=timeout, **args)
-
-    def _run_episode(self, wait_for, stop_on, max_seconds) -> dict:
-        self._episode_done.clear()
-        self._req("robot", "run", wait_for=wait_for, stop_on=stop_on, max_seconds=max_seconds)
-        # lockstep runs at the pace of the slowest participant: allow a generous wall-clock budget
-        if not self._episode_done.wait(max(120.0, 30.0 * max_seconds)):
-            self._req("robot", "stop", timeout=10.0)
-            if not self._episode_done.wait(30.0):
-                raise TimeoutError("the robot did not end its episode")
-        return self._summary
+        return self.cell.request(role, cmd, timeout=timeout, **args)
 
     def _prepare(self, kind, index, start) -> Path:
         """Open the episode's recording and put the arm at its start; returns the
@@ -249,6 +234,7 @@ class Runner:
         self._event("episode_begin", kind, index, {"start": list(start)})
         self._req("robot", "reset", start=list(start), episode=index, kind=kind)
         self._req("ft_sensor", "tare", samples=100)
+        # realtime: the robot subscribes to what it applies only, so it does not wait for the sensor
         self._req("robot", "settle", cycles=200, wait_for=["ft"] if self.scenario.clock == "lockstep" else [],
                   timeout=120.0)
         path = self.recordings / name
@@ -257,6 +243,12 @@ class Runner:
                                  f"with --attach the recorder's --out-dir must be this run's --out/recordings "
                                  f"(the same folder, e.g. a shared volume)")
         return path
+
+    def _run_episode(self, answers_from, stop_on, max_seconds) -> dict:
+        """One episode of cycles (the robot's 'run'); returns the robot's summary.  In
+        lockstep each cycle waits for ``answers_from``; in realtime a cycle closes as
+        soon as they have answered, or at its deadline."""
+        return self.cell.run_episode(answers_from, stop_on, max_seconds)
 
     def _finish(self, kind, index, summary, topic_list):
         rec = self._req("recorder", "end_episode", last_seq=summary["last_seq"], topics=topic_list, timeout=30.0)
@@ -275,8 +267,8 @@ class Runner:
             if stage.goal_x is not None:
                 reset["goal_x"] = stage.goal_x
             self._req("teacher", "reset", **reset)
-            wait = ["teacher"] if sc.clock == "lockstep" else []
-            summary = self._run_episode(wait, "teacher_done", stage.max_seconds)
+            summary = self._run_episode(["teacher"], "teacher_done", stage.max_seconds)
+            self._req("teacher", "idle")
             rec = self._finish("demonstration", index, summary, DEMO_TOPICS)
             self.state.demonstrations.append(dict(path=str(path), side=side, start=list(start), summary=summary,
                                                   recording=rec))
@@ -293,53 +285,41 @@ class Runner:
                                    zip(self.state.demonstrations, pairs)]
         options = dict(n_restarts=stage.restarts)
         t = time.monotonic()
-        if stage.phases == "auto":
-            self.say(f"learning: {stage.criterion.upper()} over {list(stage.candidates)} phases from "
-                     f"{len(pairs)} demonstrations ({sum(len(s) for s, _ in pairs)} samples)")
-            model, self.state.selection = fit_order(pairs, stage.candidates, stage.criterion, stage.selection,
-                                                    transitions=stage.transitions, seed=stage.seed,
-                                                    max_iter=stage.max_iter, progress=self.say, **options)
-        else:
-            model = ETAR(int(stage.phases), stage.transitions, **options).fit(
-                pairs, max_iter=stage.max_iter, seed=stage.seed)
-            self.state.selection = dict(criterion="fixed", best=int(stage.phases), scores={}, log_likelihoods={
-                str(stage.phases): model.fit_report_.log_likelihood}, n_parameters={})
-        dt = float(demos[0]["dt"])
-        pose = sc.state == "pose"  # the state's columns 3:6 are the orientation (services.features)
-        imps = phase_impedances(model, pairs, dt, rotation_columns=slice(3, 6) if pose else None)
-        model.metadata.update(impedance=[None if i is None else i.to_dict() for i in imps], dt=dt,
-                              state=sc.state, features=sc.features,
-                              demonstrations=[d["path"] for d in self.state.demonstrations],
-                              selection=self.state.selection)
-        # which learned phase is which true phase, judged on the demonstrations only
-        from etar.metrics import match_phases
+        with learning_threads(self.options.learn_threads):
+            if stage.phases == "auto":
+                self.say(f"learning: {stage.criterion.upper()} over {list(stage.candidates)} phases from "
+                         f"{len(pairs)} demonstrations ({sum(len(s) for s, _ in pairs)} samples)")
+                model, self.state.selection = fit_order(pairs, stage.candidates, stage.criterion, stage.selection,
+                                                        transitions=stage.transitions, seed=stage.seed,
+                                                        max_iter=stage.max_iter, progress=self.say, **options)
+            else:
+                model = ETAR(int(stage.phases), stage.transitions, **options).fit(
+                    pairs, max_iter=stage.max_iter, seed=stage.seed)
+                self.state.selection = dict(criterion="fixed", best=int(stage.phases), scores={}, log_likelihoods={
+                    str(stage.phases): model.fit_report_.log_likelihood}, n_parameters={})
+            # which learned phase is which true phase is judged on the demonstrations only
+            task = learn_task(model, demos, float(demos[0]["dt"]), state=sc.state, features=sc.features,
+                              selection=self.state.selection, sources=[d["path"] for d in demos])
+        path = task.save(self.out / "model.json")  # a later scenario can reproduce with this file alone
+        self._adopt(task, path)
+        self.state.learn_seconds = time.monotonic() - t
+        self.say(f"learned {model.n_phases} phases in {self.state.learn_seconds:.1f} s; model {path}")
 
-        truth = np.concatenate([d["phases"] for d in demos])
-        pred = np.concatenate([model.viterbi(s, f) for s, f in pairs])
-        self.state.phase_to_truth = match_phases(truth, pred, n_pred=model.n_phases)
-        self.state.goal = np.mean([s[-1][:3] for s, _ in pairs], axis=0).tolist()
-        # a later scenario can reproduce with this file alone (its `model` key)
-        if pose:
-            # the demonstrations' mean final turn, relative to each one's first orientation
-            model.metadata.update(goal_rotation=np.mean([s[-1][3:6] for s, _ in pairs], axis=0).tolist())
-        model.metadata.update(goal=self.state.goal,
-                              phase_to_truth={str(k): int(v) for k, v in self.state.phase_to_truth.items()})
-        path = self.out / "model.json"
-        model.save(path)
+    def _adopt(self, task: LearnedTask, path: Path) -> None:
         self.state.model_path = str(path)
-        self.say(f"learned {model.n_phases} phases in {time.monotonic() - t:.1f} s; model {path}")
+        self.state.goal = task.goal.tolist()
+        self.state.phase_to_truth = task.phase_to_truth
+        self.state.selection = task.selection
 
     def _use_model(self, path: Path) -> None:
-        model = ETAR.load(path)
-        meta = model.metadata
-        if not meta.get("impedance") or meta.get("goal") is None:
-            raise ValueError(f"{path}: the model has no per-phase impedance or goal in its metadata; "
-                             f"use a model.json written by a run's learn stage")
-        self.state.model_path = str(Path(path).resolve())
-        self.state.goal = list(meta["goal"])
-        self.state.phase_to_truth = {int(k): int(v) for k, v in (meta.get("phase_to_truth") or {}).items()} or None
-        self.state.selection = meta.get("selection")
-        self.say(f"model {path}: {model.n_phases} phases, goal {np.round(self.state.goal, 3).tolist()}")
+        """A scenario's stored model (checked before anything starts)."""
+        task = load_task(path)
+        if task.state != self.scenario.state or task.features != self.scenario.features:
+            raise TaskError(str(path), "metadata.state/features",
+                            f"the model sees {task.state}/{task.features}, the scenario "
+                            f"{self.scenario.state}/{self.scenario.features}", has_value=False)
+        self._adopt(task, Path(path))
+        self.say(f"model {path}: {task.n_phases} phases, goal {np.round(task.goal, 3).tolist()}")
 
     def stage_reproduce(self, stage):
         sc = self.scenario
@@ -351,13 +331,12 @@ class Runner:
         for i, (side, start) in enumerate(starts):
             index = len(self.state.reproductions)
             path = self._prepare("reproduction", index, start)
-            self._req("phase_estimator", "reset", model=model_path, episode=index, state=sc.state,
-                      features=sc.features)
+            self._req("phase_estimator", "reset", model=model_path, episode=index)
             goal = list(self.state.goal)
             self._req("impedance_commander", "reset", model=model_path, episode=index, goal=goal,
                       goal_tolerance=stage.goal_tolerance)
-            wait = ["command"] if sc.clock == "lockstep" else []
-            summary = self._run_episode(wait, "goal_reached" if stage.stop_at_goal else None, stage.max_seconds)
+            summary = self._run_episode(["command"], "goal_reached" if stage.stop_at_goal else None,
+                                        stage.max_seconds)
             rec = self._finish("reproduction", index, summary, REPRO_TOPICS)
             self.state.reproductions.append(dict(path=str(path), side=side, start=list(start), summary=summary,
                                                  recording=rec, max_contact_force=stage.max_contact_force))

@@ -20,6 +20,10 @@ Schema (every key optional unless marked required; unknown keys are errors)::
     features: force                   # force | force_torque: ETAR transition/effect features, default force
     model: models/smoke.json          # a model file learned earlier (relative to this file), default none:
                                       #   the reproductions use it instead of a learn stage
+    cell:                             # the simulated cell's physics and devices (all optional)
+      sensor_noise: 1.0               # ATI white noise as a multiple of the Mini45's, >= 0, default 1
+      plate_friction: 0.25            # valley only: sliding friction coefficient of the plates, > 0
+      fri_packet_loss: 0.0            # probability that a command packet is lost on the FRI link, [0, 1)
     stages:                           # required, non-empty list; each item has exactly one key
       - demonstrate:
           count: 6                    # int >= 1, required
@@ -429,6 +433,23 @@ class ReproduceStage(_MotionStage):
         return self.start_perturbation
 
 
+@dataclass(frozen=True)
+class CellSpec:
+    """The simulated cell's parameters a study may vary (``etar-bench sweep``)."""
+
+    sensor_noise: float = 1.0  # ATI white noise, as a multiple of the Mini45's
+    plate_friction: float = 0.25  # valley: sliding friction coefficient of the plates
+    fri_packet_loss: float = 0.0  # probability that a command packet is lost on the FRI link
+
+    def __post_init__(self):
+        _set(self, "sensor_noise", _number(self.sensor_noise, "sensor_noise", 0.0))
+        _set(self, "plate_friction", _number(self.plate_friction, "plate_friction", 0.0, strict=True))
+        loss = _number(self.fri_packet_loss, "fri_packet_loss", 0.0)
+        if loss >= 1.0:
+            raise ScenarioError("expected a probability in [0, 1)", path="fri_packet_loss", value=self.fri_packet_loss)
+        _set(self, "fri_packet_loss", loss)
+
+
 Stage = Union[DemonstrateStage, LearnStage, ReproduceStage]
 STAGE_TYPES: dict[str, type] = {"demonstrate": DemonstrateStage, "learn": LearnStage, "reproduce": ReproduceStage}
 
@@ -475,6 +496,7 @@ class Scenario:
     state: str = "position"
     features: str = "force"
     model: str | None = None
+    cell: CellSpec = CellSpec()
     stages: tuple[Stage, ...]
     source: str = "<dict>"
 
@@ -495,6 +517,11 @@ class Scenario:
         _choice(self.features, "features", FEATURES)
         if self.model is not None:
             _text(self.model, "model", non_empty=True)
+        if not isinstance(self.cell, CellSpec):
+            raise ScenarioError("expected a CellSpec", path="cell", value=self.cell)
+        if self.world != "valley" and self.cell.plate_friction != CellSpec.plate_friction:
+            raise ScenarioError("applies to the valley world only: omit it", path="cell.plate_friction",
+                                value=self.cell.plate_friction)
         stages = _list(self.stages, "stages", "stages")
         if not stages:
             raise ScenarioError("expected at least one stage", path="stages", value=self.stages)
@@ -554,6 +581,8 @@ class Scenario:
                                 value=data, source=source)
         fields = _construct_args(cls, data, "", source, exclude={"source"})
         fields["stages"] = _parse_stages(data["stages"], source)
+        if "cell" in fields:
+            fields["cell"] = _parse_cell(fields["cell"], source)
         return cls(**fields, source=source)
 
     def to_dict(self) -> dict[str, Any]:
@@ -562,6 +591,10 @@ class Scenario:
                if f.name not in ("stages", "source")}
         if self.model is None:
             del out["model"]
+        if self.cell == CellSpec():
+            del out["cell"]
+        else:
+            out["cell"] = dataclasses.asdict(self.cell)
         out["stages"] = [{stage.kind: _stage_dict(stage)} for stage in self.stages]
         return out
 
@@ -589,6 +622,18 @@ def _construct_args(cls: type, data: Mapping, path: str, source: str, exclude=fr
         if f.name in known and required and f.name not in data:
             raise ScenarioError("required field is missing", path=_join(path, f.name), source=source)
     return dict(data)
+
+
+def _parse_cell(value: Any, source: str) -> CellSpec:
+    if value is None:
+        return CellSpec()
+    if not isinstance(value, Mapping):
+        raise ScenarioError("expected a mapping of cell parameters", path="cell", value=value, source=source)
+    args = _construct_args(CellSpec, value, "cell", source)
+    try:
+        return CellSpec(**args)
+    except ScenarioError as err:
+        raise err.within("cell", source) from None
 
 
 def _parse_stages(value: Any, source: str) -> tuple[Stage, ...]:

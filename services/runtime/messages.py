@@ -117,6 +117,14 @@ class MessageType:
 
     def encode(self, **values) -> bytes:
         """JSON bytes of one message; every required field must be given."""
+        return self.pack(**values)[0]
+
+    def pack(self, **values) -> tuple[bytes, dict]:
+        """(JSON bytes, the message they decode to): ``decode(raw) == message``, with
+        the same types, for values that are Python scalars, strings, numpy arrays and
+        scalars, or lists and tuples of Python scalars (arrays become lists of floats,
+        tuples lists).  One process can hand the message to its subscribers without
+        parsing the bytes again (``services.runtime.inproc`` checks it on request)."""
         out = {}
         for f in self.fields:
             if f.name not in values:
@@ -126,12 +134,14 @@ class MessageType:
             v = values[f.name]
             if hasattr(v, "tolist"):
                 v = v.tolist()
+            elif type(v) is tuple:
+                v = list(v)
             out[f.name] = v
         extra = set(values) - {f.name for f in self.fields}
         if extra:
             raise MessageError(f"{self.name}: unknown field(s) {sorted(extra)}")
         try:
-            return dumps(out)
+            return dumps(out), out
         except ValueError as exc:
             bad = [k for k, v in out.items() if _has_non_finite(v)]
             raise MessageError(f"{self.name}: non-finite value in field(s) {bad} ({exc})") from None

@@ -69,15 +69,18 @@ class ControlRequest:
         self._query = query
         self.payload = payload
         self.cmd = payload.get("cmd")
+        self.replied = False
 
     def reply(self, **values) -> None:
         body = dict({"ok": True}, **values)
         self._query.reply(self._query.key_expr, json.dumps(body, default=_plain).encode())
         self._query.drop()
+        self.replied = True
 
     def fail(self, error: str) -> None:
         self._query.reply(self._query.key_expr, json.dumps({"ok": False, "error": error}).encode())
         self._query.drop()
+        self.replied = True
 
 
 class Service:
@@ -187,9 +190,16 @@ class Service:
                 req.fail(f"unknown command {req.cmd!r} ({known})")
                 continue
             try:
-                req.reply(**(handler(req.payload) or {}))
+                if getattr(handler, "replies_itself", False):
+                    # it replies, then goes on (the robot's 'run': the episode follows the reply)
+                    handler(req.payload, req.reply)
+                else:
+                    req.reply(**(handler(req.payload) or {}))
             except (KeyError, ValueError, TypeError, OSError) as exc:
-                req.fail(f"{type(exc).__name__}: {exc}")
+                if not req.replied:
+                    req.fail(f"{type(exc).__name__}: {exc}")
+                else:
+                    self.log(f"'{req.cmd}' failed after its reply: {type(exc).__name__}: {exc}")
 
     # ------------------------------------------------------------ publishing
 
@@ -230,6 +240,9 @@ class Service:
         ``every_tenth`` so that a tenth cycle is among them) and drops older ones
         without waking Python; one thread of this process drains it.  Never for
         the recorder or for lockstep, which need every message."""
+        if topic == "**":
+            self._subscribe_all(on_message)
+            return
         message_type: MessageType | None = BY_TOPIC.get(topic)
         stride = 10 if every_tenth else STRIDES.get(topic, 1)
         counters = self.links.setdefault(topic, LinkCounters(sequence=SequenceTracker(stride=stride)))
@@ -294,6 +307,18 @@ class Service:
         # callback that publishes (the sensor) then blocks reception, and the sensor fell
         # 150 ms behind instead of 0.75 ms (hold run, 2 CPUs); no gain for the FRI link
         self._subscribers.append(self.session.declare_subscriber(key, self.profile.wrap(callback)))
+
+
+    def _subscribe_all(self, on_sample) -> None:
+        """Every sample of the run, undecoded: ``on_sample(topic, receive time ns, raw bytes, None)``."""
+        prefix = topics.prefix(self.run_id) + "/"
+        cut = len(prefix)
+
+        def callback(sample: zenoh.Sample) -> None:
+            recv = now_ns()
+            on_sample(str(sample.key_expr)[cut:], recv, sample.payload.to_bytes(), None)
+
+        self._subscribers.append(self.session.declare_subscriber(prefix + "**", self.profile.wrap(callback)))
 
 
 _STAMP = re.compile(rb'^\{"seq":-?\d+,"stamp_ns":(\d+)')

@@ -46,9 +46,10 @@ def check_recordings(run_dir: Path, report: dict) -> None:
         assert "wrench" in json.loads(ep.channels["/ft/wrench"].schema_data)["properties"]
 
 
-def test_smoke_lockstep_twice_at_once_is_deterministic_and_isolated(tmp_path):
-    """Two runs of the same seed at the same time, under different run ids: both
-    complete, neither sees the other's messages, and they recorded the same thing."""
+def test_smoke_lockstep_twice_at_once_is_deterministic_isolated_and_the_same_in_process(tmp_path):
+    """Two runs of the same seed at the same time over Zenoh, under different run ids:
+    both complete, neither sees the other's messages, and they recorded the same thing;
+    a third run of the same seed with every node in one process records it too."""
     results = {}
 
     def go(name):
@@ -81,6 +82,25 @@ def test_smoke_lockstep_twice_at_once_is_deterministic_and_isolated(tmp_path):
     assert a.keys() == b.keys() and len(a) == 3
     for name in a:
         assert a[name] == b[name], f"{name} differs between two runs of the same seed"
+
+    # the same seed in one process on the in-memory bus: the same messages, the same results
+    t = time.monotonic()
+    report_c = run(RunOptions(scenario=SMOKE, out=str(tmp_path / "c"), transport="inproc", run_id="e2e-c"),
+                   progress=lambda m: print(f"[inproc] {m}"))
+    print(f"run c (inproc): {time.monotonic() - t:.1f} s wall")
+    assert report_c["error"] is None, report_c["error"]
+    check_recordings(tmp_path / "c", report_c)
+    c = content(tmp_path / "c")
+    assert c.keys() == a.keys()
+    for name in a:
+        assert c[name] == a[name], f"{name}: the in-process run recorded other messages than the run over Zenoh"
+    report_a = results["a"][0]
+    assert report_c["summary"]["phases_chosen"] == report_a["summary"]["phases_chosen"] == 3
+    for key in ("successes", "online_phase_accuracy", "mean_transition_error_s", "simulated_seconds"):
+        assert report_c["summary"][key] == report_a["summary"][key], key
+    for ra, rc in zip(report_a["reproductions"], report_c["reproductions"]):
+        assert (rc["reason"], rc["peak_contact_force"], rc["final_position"]) == \
+            (ra["reason"], ra["peak_contact_force"], ra["final_position"])
 
 
 def test_smoke_realtime_completes_with_its_deadline_report(tmp_path):

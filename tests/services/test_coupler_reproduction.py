@@ -17,7 +17,8 @@ from robot_sim.fri import CommandPacket
 from robot_sim.teacher import DOWN, HoseCouplerTeacher
 from robot_sim.worlds import hose_coupler
 from services.features import force_vector, pose_of, state_vector
-from services.impedance_commander import _CART_DAMPING, _CART_STIFFNESS, ImpedanceLaw
+from etar.policy import ReproductionPolicy as ImpedanceLaw
+from services.nodes.impedance_commander import CART_DAMPING as _CART_DAMPING, CART_STIFFNESS as _CART_STIFFNESS
 
 START = np.array([0.62, -0.08, 0.36])
 

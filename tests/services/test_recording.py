@@ -443,7 +443,7 @@ def test_etar_cli_learns_three_phases_from_the_recording(tmp_path, simulated_dem
 
 
 def test_the_recorder_takes_episode_paths_relative_to_its_one_folder_only(tmp_path):
-    from services.recorder import episode_path
+    from services.nodes.recorder import episode_path
 
     assert episode_path(tmp_path, "demonstration_00.mcap") == tmp_path / "demonstration_00.mcap"
     assert episode_path(tmp_path, "sub/reproduction_01.mcap") == tmp_path / "sub" / "reproduction_01.mcap"

@@ -4,7 +4,7 @@ phase's speed, a blocked tool is pushed with at most K times the lead, and the g
 import numpy as np
 
 from etar.impedance import derive_impedance
-from services.impedance_commander import ImpedanceLaw
+from etar.policy import ReproductionPolicy as ImpedanceLaw
 
 DOWN = np.diag([-1.0, 1.0, -1.0])
 
@@ -59,7 +59,7 @@ def rotvec(R):
 
 
 def test_a_turning_phase_turns_the_setpoint_at_its_rate_within_the_lead_and_stops_at_the_goal_turn():
-    from services.impedance_commander import ROT_LEAD
+    from etar.policy import ROT_LEAD
 
     imp = coupling(turn_rate=-0.6)
     assert abs(imp["angular_velocity"][2] + 0.6) < 0.01
@@ -88,7 +88,7 @@ def test_a_turning_phase_turns_the_setpoint_at_its_rate_within_the_lead_and_stop
 
 
 def test_a_phase_done_in_place_goes_there_stiffly_then_presses():
-    from services.impedance_commander import HOLD_STIFFNESS, PLACE_SPEED
+    from etar.policy import HOLD_STIFFNESS, PLACE_SPEED
 
     imp = coupling(place=(0.55, 0.0, 0.21), turn_rate=0.0)
     law = ImpedanceLaw([imp], goal=None)

@@ -1,0 +1,250 @@
+"""The reproduction policy: the learned per-phase Cartesian impedance, applied.
+
+Given the phase the online filter believes in, the policy turns each phase's
+learned impedance (``etar.impedance.PhaseImpedance``: direction d, compliant
+axes, K = R V R^T, mean contact force) into the force the controller should
+exert this cycle.  It moves a reference point along d at the phase's
+demonstrated speed (never more than ``lead`` ahead of the tool, so a blocked
+tool does not wind the spring up) and returns
+
+    F = K (x_ref - x) + F_ff - D v,   F_ff = -(mean contact force on the compliant axes)
+
+i.e. stiff along d and the other non-compliant axes, soft along the compliant
+axes, pressing into the surfaces as the teacher did.  At the goal (the
+demonstrations' mean end point) the reference stops and ``goal_reached`` is set.
+
+With a pose state each phase also has its mean angular velocity, and the task
+the demonstrations' mean final turn (``goal_rotation``).  A turning phase turns
+the setpoint orientation at its rate, never more than ``ROT_LEAD`` ahead of the
+tool and never past the goal's turn; the goal then also needs the turn.  A phase
+done in place (``in_place``: the coupler's press and turn) has no direction to
+follow: its reference goes, stiffly, to where the demonstrations did it, and
+there the phase's law presses along its compliant axis as the teacher did.
+
+Pure numpy: no messaging, no simulator, no clock (``step`` is told ``dt``).
+The impedance commander (``services``) wraps it; tests drive it directly.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from etar.impedance import PhaseImpedance, impedance_from_file
+
+DT = 0.001
+HOLD_STIFFNESS = 2000.0  # N/m on every axis: before any phase, at the goal, on the way to a place
+EFFECTIVE_MASS = 2.0  # kg, for the damping ratio of the commanded impedance
+# rad: the setpoint orientation turns at most this far ahead of the tool, 15 Nm at the
+# commander's 150 Nm/rad: enough to turn against a seal's friction, bounded if stuck
+ROT_LEAD = 0.1
+ROT_TOLERANCE = 0.1  # rad: how close to the goal's turn counts as there
+TURNING_RATE = 1e-3  # rad/s: a phase with a slower mean angular velocity does not turn
+PLACE_SPEED = 0.02  # m/s: how fast a phase done in place moves its reference to where it was demonstrated
+# m: the stiff axis pushes a blocked tool with at most K lead: 10 N at 2000 N/m, the
+# order of the demonstrated contact forces.  With 2 cm (40 N) the free-motion law slid
+# the tool down the plate faster than any demonstration, and the estimator, which
+# judges phases by their dynamics, flickered between free motion and plate.
+LEAD = 0.005
+
+
+def exp3(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix of the rotation vector ``w`` (Rodrigues)."""
+    theta = math.sqrt(float(w @ w))
+    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if theta < 1e-8:
+        return np.eye(3) + K + 0.5 * K @ K
+    return np.eye(3) + (math.sin(theta) / theta) * K + ((1.0 - math.cos(theta)) / theta ** 2) * K @ K
+
+
+def log3(R: np.ndarray) -> np.ndarray:
+    """Rotation vector of the rotation matrix ``R`` (the inverse of ``exp3`` for angles < pi)."""
+    c = min(1.0, max(-1.0, 0.5 * (float(np.trace(R)) - 1.0)))
+    theta = math.acos(c)
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if theta < 1e-6:
+        return 0.5 * v
+    if math.pi - theta < 1e-6:
+        # near a half turn the antisymmetric part vanishes: the axis from R + I
+        M = 0.5 * (R + np.eye(3))
+        axis = M[:, int(np.argmax(np.diag(M)))]
+        return theta * axis / np.linalg.norm(axis)
+    return (theta / (2.0 * math.sin(theta))) * v
+
+
+@dataclass(frozen=True)
+class PhaseLaw:
+    """One phase's impedance as the arrays a cycle needs, prepared once."""
+
+    direction: np.ndarray  # (3,)
+    stiffness: np.ndarray  # (3, 3) K = R V R^T
+    damping: np.ndarray  # (3, 3)
+    feedforward: np.ndarray  # (3,) -(mean contact force on the compliant axes)
+    speed: float  # m/s along the direction
+    angular_velocity: np.ndarray  # (3,) rad/s, axes of the episode's first orientation
+    in_place: bool  # demonstrated without going anywhere: go to where it happened and stay
+    place: np.ndarray | None  # (3,) the demonstrations' mean position in this phase
+    aim: np.ndarray | None  # (3,) free motion into a phase done in place: head for its place
+
+
+def _impedance(imp) -> PhaseImpedance | None:
+    if imp is None or isinstance(imp, PhaseImpedance):
+        return imp
+    return impedance_from_file(imp)
+
+
+class ReproductionPolicy:
+    """The per-phase law of one reproduction (``reset`` before the next)."""
+
+    def __init__(self, impedances, goal=None, *, lead: float = LEAD, damping_ratio: float = 0.7,
+                 goal_tolerance: float = 0.01, goal_rotation=None, rotation_tolerance: float = ROT_TOLERANCE):
+        self.zeta = damping_ratio
+        imps = [_impedance(i) for i in impedances]
+        self.phases = [None if imp is None else self._prepare(imp, imps) for imp in imps]
+        self.hold_stiffness = HOLD_STIFFNESS * np.eye(3)
+        self.hold_damping = self._damping(self.hold_stiffness)
+        self.goal = None if goal is None else np.asarray(goal, dtype=np.float64)
+        # the goal's turn counts only if the demonstrations turned noticeably
+        self.goal_rotation = None
+        if goal_rotation is not None and np.linalg.norm(goal_rotation) > rotation_tolerance:
+            self.goal_rotation = np.asarray(goal_rotation, dtype=np.float64)
+            self._goal_turn_T = exp3(self.goal_rotation).T
+        self.lead = lead
+        self.tol = goal_tolerance
+        self.rot_tol = rotation_tolerance
+        self.reset()
+
+    @classmethod
+    def for_task(cls, task, **options) -> "ReproductionPolicy":
+        """The policy of a learned task (``etar.task.LearnedTask``)."""
+        return cls(task.impedances, task.goal, goal_rotation=task.goal_rotation, **options)
+
+    def _prepare(self, imp: PhaseImpedance, impedances: list) -> PhaseLaw:
+        K = np.asarray(imp.stiffness, dtype=np.float64)
+        F_ff = np.zeros(3)
+        for a in np.asarray(imp.compliant_axes, dtype=np.float64).reshape(-1, 3):
+            F_ff -= (imp.mean_force @ a) * a
+        omega = np.asarray(imp.angular_velocity, dtype=np.float64)
+        if np.linalg.norm(omega) < TURNING_RATE:
+            omega = np.zeros(3)
+        in_place = bool(imp.in_place)
+        # free motion whose successor is done in place (the coupler's approach) heads for
+        # that place: a fixed direction from another start would miss a 36 mm socket
+        aim = None
+        nxt = imp.successor
+        if not in_place and imp.n_compliant == 0 and nxt is not None and 0 <= nxt < len(impedances):
+            follow = impedances[nxt]
+            if follow is not None and follow.in_place and follow.mean_position is not None:
+                aim = np.asarray(follow.mean_position, dtype=np.float64)
+        place = None if imp.mean_position is None else np.asarray(imp.mean_position, dtype=np.float64)
+        return PhaseLaw(np.asarray(imp.direction, dtype=np.float64), K, self._damping(K), F_ff,
+                        max(float(imp.mean_speed), 0.01), omega, in_place, place, aim)
+
+    def reset(self) -> None:
+        self.phase = None
+        self.ref = None
+        self.R_hold = None
+        self.turn_ref = np.zeros(3)  # setpoint orientation: R_hold exp(turn_ref); kept across phases
+        self.at_place = False  # a phase done in place: its tool has arrived where it was demonstrated
+        self.prev_x = None
+        self.v = np.zeros(3)
+        self.goal_reached = False
+
+    def _setpoint_rotation(self) -> np.ndarray:
+        if not self.turn_ref.any():
+            return self.R_hold
+        return self.R_hold @ exp3(self.turn_ref)
+
+    def _turn(self, law: PhaseLaw, turned: np.ndarray, dt: float) -> None:
+        """Advance the setpoint's turn at the phase's rate: at most ROT_LEAD ahead of
+        the tool's ``turned`` (rotation vector from R_hold), never past the goal's."""
+        w = law.angular_velocity
+        self.turn_ref = self.turn_ref + w * dt
+        ahead = self.turn_ref - turned
+        if np.linalg.norm(ahead) > ROT_LEAD:
+            self.turn_ref = turned + ahead * (ROT_LEAD / np.linalg.norm(ahead))
+        if self.goal_rotation is not None:
+            axis = w / np.linalg.norm(w)
+            beyond = (self.turn_ref - self.goal_rotation) @ axis
+            if beyond > 0.0:
+                self.turn_ref = self.turn_ref - beyond * axis
+
+    def _turned_enough(self, turned: np.ndarray) -> bool:
+        if self.goal_rotation is None:
+            return True
+        return bool(np.linalg.norm(log3(self._goal_turn_T @ exp3(turned))) < self.rot_tol)
+
+    def step(self, x: np.ndarray, R: np.ndarray, phase: int | None, dt: float = DT) -> tuple[np.ndarray, np.ndarray]:
+        """(force in base axes (3,), setpoint rotation) for this cycle; ``dt``: time since
+        the previous step (more than one cycle when realtime left measurements unanswered)."""
+        if self.R_hold is None:
+            self.R_hold = R.copy()
+        if self.prev_x is not None:
+            # a light low-pass on the finite-difference velocity (1 ms steps)
+            self.v = 0.7 * self.v + 0.3 * (x - self.prev_x) / dt
+        self.prev_x = x.copy()
+        law = self.phases[phase] if phase is not None and 0 <= phase < len(self.phases) else None
+        if phase != self.phase:
+            # a new phase starts its reference at the tool, already half a lead
+            # ahead along its direction: a flickering estimate must not stall the motion
+            self.phase = phase
+            self.at_place = False
+            moving = law is not None and not law.in_place
+            self.ref = x + law.direction * 0.5 * self.lead if moving else x.copy()
+        if self.goal_reached or law is None:
+            if self.ref is None:
+                self.ref = x.copy()
+            return self.hold_stiffness @ (self.ref - x) - self.hold_damping @ self.v, self._setpoint_rotation()
+        d = law.direction
+        if law.aim is not None and np.linalg.norm(law.aim - x) > self.lead:
+            # free space: K is isotropic, so turning d changes nothing else; the
+            # reference keeps only its lead along the new d
+            d = (law.aim - x) / np.linalg.norm(law.aim - x)
+            self.ref = x + max((self.ref - x) @ d, 0.0) * d
+        if not law.in_place:
+            self.ref = self.ref + d * law.speed * dt
+            ahead = (self.ref - x) @ d
+            if ahead > self.lead:
+                self.ref -= d * (ahead - self.lead)
+        elif law.place is not None:
+            # towards where the phase was demonstrated, at most a lead ahead of the tool
+            to_place = law.place - self.ref
+            step = min(np.linalg.norm(to_place), PLACE_SPEED * dt)
+            if step > 0.0:
+                self.ref = self.ref + to_place * (step / np.linalg.norm(to_place))
+            ahead = self.ref - x
+            if np.linalg.norm(ahead) > self.lead:
+                self.ref = x + ahead * (self.lead / np.linalg.norm(ahead))
+        going = law.in_place and law.place is not None and not self.at_place
+        if going:
+            self.at_place = bool(np.linalg.norm(law.place - self.ref) < 1e-6
+                                 and np.linalg.norm(law.place - x) < self.lead)
+            going = not self.at_place
+        if going:
+            # on the way to the place: stiff and damped on every axis, no push, so the
+            # tool arrives at the reference's pace (dropping off a rim onto the floor
+            # under the phase's push along a soft axis hit it with 70 N); the phase's own
+            # law, with its push, starts there
+            F = self.hold_stiffness @ (self.ref - x) - self.hold_damping @ self.v
+        else:
+            F = law.stiffness @ (self.ref - x) + law.feedforward - law.damping @ self.v
+        turned = None
+        if law.angular_velocity.any() or self.goal_rotation is not None:
+            turned = log3(self.R_hold.T @ R)
+            if law.angular_velocity.any():
+                self._turn(law, turned, dt)
+        if self.goal is not None and phase == len(self.phases) - 1:
+            past = not law.in_place and (x - self.goal) @ d >= 0.0
+            lateral = np.linalg.norm((x - self.goal) - ((x - self.goal) @ d) * d)
+            there = np.linalg.norm(x - self.goal) < self.tol or (past and lateral < 3 * self.tol)
+            if there and (turned is None or self._turned_enough(turned)):
+                self.goal_reached = True
+                self.ref = x.copy()
+        return F, self._setpoint_rotation()
+
+    def _damping(self, K):
+        w, V = np.linalg.eigh(0.5 * (K + K.T))
+        c = 2.0 * self.zeta * np.sqrt(np.maximum(w, 0.0) * EFFECTIVE_MASS)
+        return V @ np.diag(c) @ V.T

@@ -1,0 +1,21 @@
+"""The roles of the cell as nodes (``services.runtime.bus``): each takes decoded
+messages and the time, answers control requests and publishes through a bus.
+``services.<role>`` carries one in its own process over Zenoh;
+``services.runtime.inproc`` carries them all in one process."""
+
+from services.nodes.ft_sensor import FtSensorConfig, FtSensorNode
+from services.nodes.impedance_commander import CommanderConfig, ImpedanceCommanderNode
+from services.nodes.phase_estimator import EstimatorConfig, PhaseEstimatorNode
+from services.nodes.recorder import RecorderConfig, RecorderNode
+from services.nodes.robot import RobotConfig, RobotNode
+from services.nodes.teacher import TeacherConfig, TeacherNode
+
+# role -> (node class, its config class)
+NODES = {
+    "robot": (RobotNode, RobotConfig),
+    "ft_sensor": (FtSensorNode, FtSensorConfig),
+    "teacher": (TeacherNode, TeacherConfig),
+    "phase_estimator": (PhaseEstimatorNode, EstimatorConfig),
+    "impedance_commander": (ImpedanceCommanderNode, CommanderConfig),
+    "recorder": (RecorderNode, RecorderConfig),
+}

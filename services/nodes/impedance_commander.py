@@ -1,0 +1,203 @@
+"""The impedance_commander node: the learned task's reproduction policy, 1 kHz.
+
+Answers every FRI measurement (``robot/state``) with a command echoing its seq
+(``robot/command``).  The phase is the estimator's most likely phase
+(``estimator/phase``, 100 Hz; in lockstep the commander waits for the estimate of
+the same cycle every tenth cycle, and goes on with the last one if it does not
+come: after ``ESTIMATE_WAIT_S`` over a network, at once in one process, where
+nothing more can arrive).
+
+The force comes from ``etar.policy.ReproductionPolicy``.  FRI's own stiffness is
+diagonal in the tcp frame, so the full K = R V R^T is realised through addTcpFT
+(the superposed wrench, thesis eq. 79) with the KRC's translational stiffness at
+zero; the KRC's rotational stiffness holds (or turns) the setpoint orientation.
+
+On the realtime clock only answers that can still count are sent: the commander
+takes the newest measurement that has arrived (``latest``) and leaves unanswered
+one that is already a cycle old (``stale`` in its status): its answer could only
+reach the KRC late, which FRI counts as a miss all the same, and computing it
+would delay the answer to the cycle that is still open.  The policy then
+integrates over the cycles that passed (``dt``).  Lockstep answers every one.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from etar.policy import DT, LEAD, ReproductionPolicy
+from etar.task import load_task
+from robot_sim.cell import standard_to_fri
+from services.runtime.bus import Node, Publication, Subscription
+from services.runtime.config import option
+from services.runtime.loop import Sections
+from services.runtime.messages import ROBOT_COMMAND
+from services.runtime.timing import Histogram
+
+CYCLE_NS = 1_000_000  # the FRI cycle: an answer later than this after its measurement is late
+PERIOD_NS = 10_000_000  # the estimator's period (simulated time)
+ROT_STIFFNESS = 150.0
+ESTIMATE_WAIT_S = 2.0  # lockstep over a network: how long to wait for a cycle's estimate before going on
+CART_STIFFNESS = [0.0, 0.0, 0.0] + [ROT_STIFFNESS] * 3
+CART_DAMPING = [0.7] * 6
+
+
+@dataclass(frozen=True)
+class CommanderConfig:
+    model: str | None = option(None, "learned model file with per-phase impedance; can also come with reset",
+                               metavar="FILE")
+    lead: float = option(LEAD, "how far the reference may run ahead of the tool, m")
+    damping_ratio: float = option(0.7, "damping ratio of the commanded impedance")
+    stall_every: float = option(0.0, "fault injection: stall before answering every N s of simulated time")
+    stall_ms: float = option(0.0, "fault injection: stall length, ms")
+
+    def __post_init__(self):
+        if not self.lead > 0:
+            raise ValueError(f"lead must be > 0 m, got {self.lead!r}")
+
+
+class ImpedanceCommanderNode(Node):
+    name = "impedance_commander"
+
+    def __init__(self, config: CommanderConfig, bus, clock, *, run_id: str = "", mode: str = "lockstep", **_):
+        super().__init__(bus, clock)
+        self.config = config
+        self.lockstep = mode == "lockstep"
+        self.policy = None
+        self.episode = -1
+        self._lock = threading.Lock()
+        self._pending: dict[int, dict] = {}
+        self._phases: dict[int, int] = {}
+        self._latest_phase = None
+        self._latest_phase_seq = -1
+        self._waiting_since = None
+        self._last_answered_seq = None
+        self.missing_estimates = 0
+        self.stale = 0  # realtime: measurements left unanswered, already a cycle old when their turn came
+        # where an answer's time goes, and receive -> published (the commander's share of
+        # the FRI answer latency)
+        self.sections = Sections("decode", "law", "encode", "publish")
+        self.answer_time = Histogram()
+        self._recv_ns = 0
+        self.task = load_task(config.model) if config.model else None
+        self.publications = [Publication("robot/command", drop_when_congested=not self.lockstep)]
+        self.subscriptions = [Subscription("robot/state", self.on_state, latest=not self.lockstep),
+                              Subscription("estimator/phase", self.on_phase, latest=not self.lockstep)]
+
+    def on_phase(self, msg, recv_ns, raw):
+        with self._lock:
+            if msg["episode"] != self.episode:
+                return
+            self._latest_phase = msg["phase"]
+            self._latest_phase_seq = msg["seq"]
+            if self.lockstep:  # realtime uses the latest estimate, whatever its cycle
+                self._phases[msg["seq"]] = msg["phase"]
+                self._drain()
+
+    def on_state(self, msg, recv_ns, raw):
+        with self._lock:
+            # only the cycles of the reproduction this commander was reset for are
+            # answered: answers to others (demonstrations, the rest while the
+            # sensor is tared) would reach the FRI link at times that depend on
+            # the machine, and lockstep runs must not
+            if self.policy is None or msg["episode"] != self.episode:
+                return
+            t = self.clock.now_ns()
+            if not self.lockstep and t - msg["sent_ns"] >= CYCLE_NS:
+                self.stale += 1  # its cycle is over: an answer now could only be late
+                return
+            self.sections.cycles += 1
+            self.sections.add("decode", t - recv_ns)  # receive -> here: decoding and the lock
+            self._recv_ns = recv_ns
+            self._pending[msg["seq"]] = msg
+            self._drain()
+
+    def _drain(self, give_up: bool = False):
+        for seq in sorted(self._pending):
+            if self.lockstep and self._pending[seq]["stamp_ns"] % PERIOD_NS == 0 and seq not in self._phases:
+                if not give_up:
+                    if self._waiting_since is None:
+                        self._waiting_since = self.clock.now_ns()
+                    return  # wait for this cycle's estimate
+                # the estimate is not coming (the estimator skipped the sample): go on with the last one
+                self.missing_estimates += 1
+            self._waiting_since = None
+            state = self._pending.pop(seq)
+            phase = self._phases.pop(seq, None)
+            if phase is not None:
+                self._latest_phase = phase
+                self._latest_phase_seq = seq
+            self._answer(state)
+
+    def _answer(self, state):
+        c = self.config
+        seq, last = state["seq"], self._last_answered_seq
+        if c.stall_ms > 0 and c.stall_every > 0:
+            # injected fault: the first answer of every stall_every of simulated time comes late
+            # (the first one answered: realtime may have left the cycle on the mark unanswered)
+            every, stamp = int(c.stall_every * 1e9), state["stamp_ns"]
+            if stamp % every == 0 or (last is not None and stamp // every > (stamp - (seq - last) * CYCLE_NS) // every):
+                self.clock.sleep(c.stall_ms / 1e3)
+        now = self.clock.now_ns
+        t0 = now()
+        m = np.asarray(state["msr_cart_pos"]).reshape(3, 4)
+        R, x = m[:, :3], m[:, 3]
+        cycles = seq - last if last is not None and 0 < seq - last <= 100 else 1
+        self._last_answered_seq = seq
+        F, R_set = self.policy.step(x, R, self._latest_phase, cycles * DT)
+        add = standard_to_fri(np.concatenate([R.T @ F, np.zeros(3)]))
+        t1 = now()
+        packed = ROBOT_COMMAND.pack(
+            seq=state["seq"], stamp_ns=state["stamp_ns"], sent_ns=t1,
+            cart_pos=np.hstack([R_set, x[:, None]]).ravel(),
+            cart_stiffness=CART_STIFFNESS, cart_damping=CART_DAMPING,
+            add_tcp_ft=add, requested_mode=2, phase=-1 if self._latest_phase is None else int(self._latest_phase),
+            estimate_seq=self._latest_phase_seq,
+            goal_reached=bool(self.policy.goal_reached), episode=state["episode"])
+        t2 = now()
+        self.bus.publish("robot/command", *packed)
+        t3 = now()
+        sec = self.sections
+        sec.add("law", t1 - t0)
+        sec.add("encode", t2 - t1)
+        sec.add("publish", t3 - t2)
+        self.answer_time.add(t3 - self._recv_ns if self._recv_ns else 0)
+
+    def handlers(self):
+        return {"reset": self.reset}
+
+    def reset(self, p: dict) -> None:
+        task = load_task(p["model"]) if p.get("model") else self.task
+        if task is None:
+            raise ValueError("no model: pass 'model' with reset or --model")
+        goal = p.get("goal", task.goal)
+        goal_rotation = p.get("goal_rotation", task.goal_rotation)
+        with self._lock:
+            self.task = task
+            self.policy = ReproductionPolicy(task.impedances, goal, lead=self.config.lead,
+                                             damping_ratio=self.config.damping_ratio,
+                                             goal_tolerance=float(p.get("goal_tolerance", 0.01)),
+                                             goal_rotation=goal_rotation)
+            self.episode = int(p["episode"])
+            self._pending.clear()
+            self._phases.clear()
+            self._latest_phase = None
+            self._latest_phase_seq = -1
+            self._waiting_since = None
+            self._last_answered_seq = None
+
+    def idle(self, now_ns: int) -> None:
+        with self._lock:
+            if self._waiting_since is not None and now_ns - self._waiting_since > ESTIMATE_WAIT_S * 1e9:
+                self._drain(give_up=True)
+
+    def quiescent(self) -> None:
+        with self._lock:
+            if self._waiting_since is not None:
+                self._drain(give_up=True)
+
+    def status(self) -> dict:
+        return {"episode": self.episode, "missing_estimates": self.missing_estimates, "stale": self.stale,
+                "sections": self.sections.summary(), "receive_to_answer": self.answer_time.summary()}

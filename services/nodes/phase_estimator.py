@@ -1,0 +1,133 @@
+"""The phase_estimator node: the ETAR online forward filter on live data, 100 Hz.
+
+Every tenth robot cycle (10 ms of simulated time) it takes the robot state and
+the F/T wrench of that cycle, builds ETAR's state and force vectors
+(``services.features``, the same as the learner's) and publishes the
+normalised forward message on ``estimator/phase``.  It waits for both inputs of
+the same cycle (the wrench comes through the sensor, a hop later than the
+state); a cycle whose wrench has not come by the next tenth cycle is skipped and
+counted.  The other nine cycles' messages are not even decoded
+(``every_tenth``); realtime takes the newest tenth cycle (``latest``).
+Control: ``reset`` (episode, model file; state and features default to the
+task's).  A wrench with error status or a sample the filter rejects
+(non-finite) is skipped and counted; the filter keeps its state.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from etar.task import load_task
+from services.features import force_vector, pose_of, state_vector
+from services.runtime.bus import Node, Publication, Subscription
+from services.runtime.config import option
+from services.runtime.messages import ESTIMATOR_PHASE
+
+PERIOD_NS = 10_000_000  # 100 Hz on simulated time, the instants the learner's samples were taken at
+
+
+@dataclass(frozen=True)
+class EstimatorConfig:
+    model: str | None = option(None, "learned model file (etar learn --out); can also come with reset",
+                               metavar="FILE")
+
+
+class PhaseEstimatorNode(Node):
+    name = "phase_estimator"
+
+    def __init__(self, config: EstimatorConfig, bus, clock, *, run_id: str = "", mode: str = "lockstep", **_):
+        super().__init__(bus, clock)
+        self.task = load_task(config.model) if config.model else None
+        self.filter = None
+        self.episode = -1
+        self.state_kind, self.feature_kind = "position", "force"
+        self.R0 = None
+        self.skipped = 0
+        self.updates = 0
+        self._lock = threading.Lock()
+        self._states: dict[int, dict] = {}
+        self._wrenches: dict[int, dict] = {}
+        latest = mode == "realtime"
+        self.publications = [Publication("estimator/phase")]
+        self.subscriptions = [Subscription("robot/state", self.on_state, every_tenth=True, latest=latest),
+                              Subscription("ft/wrench", self.on_wrench, every_tenth=True, latest=latest)]
+
+    def on_state(self, msg, recv_ns, raw):
+        if msg["stamp_ns"] % PERIOD_NS:
+            return
+        with self._lock:
+            # a cycle still waiting for its wrench when the next one comes has lost it
+            stale = [k for k in self._states if k < msg["seq"]]
+            for k in stale:
+                del self._states[k]
+            if stale and self.filter is not None:
+                self.skipped += len(stale)
+            self._states[msg["seq"]] = msg
+            self._try(msg["seq"])
+
+    def on_wrench(self, msg, recv_ns, raw):
+        if msg["stamp_ns"] % PERIOD_NS:
+            return
+        with self._lock:
+            self._wrenches[msg["seq"]] = msg
+            self._try(msg["seq"])
+
+    def _try(self, seq):
+        state = self._states.get(seq)
+        wrench = self._wrenches.get(seq)
+        if state is None or wrench is None:
+            return  # wait for the other input of this very cycle
+        for store in (self._states, self._wrenches):
+            for k in [k for k in store if k <= seq]:
+                del store[k]
+        if self.filter is None or state["episode"] != self.episode:
+            return
+        if wrench["status"] != 0:
+            self.skipped += 1
+            return
+        if self.R0 is None:
+            self.R0 = pose_of(state["msr_cart_pos"])[0]
+        s = state_vector(state["msr_cart_pos"], self.state_kind, self.R0)
+        f = force_vector(wrench["wrench"], state["msr_cart_pos"], self.feature_kind)
+        try:
+            alpha = self.filter.update(s, f)
+        except ValueError:
+            self.skipped += 1
+            return
+        self.updates += 1
+        self.bus.publish("estimator/phase", *ESTIMATOR_PHASE.pack(
+            seq=seq, stamp_ns=state["stamp_ns"], sent_ns=self.clock.now_ns(), posterior=alpha,
+            phase=int(np.argmax(alpha)), input_seq=seq, ft_seq=wrench["seq"], episode=self.episode))
+
+    def handlers(self):
+        return {"reset": self.reset}
+
+    def reset(self, p: dict) -> dict:
+        task = load_task(p["model"]) if p.get("model") else self.task
+        if task is None:
+            raise ValueError("no model: pass 'model' (a model file) with reset or --model")
+        # the filter's compiled step is loaded on first use, which can take seconds on a
+        # busy machine: here, not at the first sample of the episode, where a lockstep
+        # commander waiting for the estimate went on without it (once three times in a row)
+        warm = task.model.filter()
+        try:
+            for _ in range(2):
+                warm.update(np.zeros(task.model.n_state), np.zeros(task.model.n_force))
+        except ValueError:
+            pass  # a sample this model finds impossible: the kernel is loaded all the same
+        with self._lock:
+            self.task = task
+            self.state_kind = p.get("state", task.state)
+            self.feature_kind = p.get("features", task.features)
+            self.filter = task.model.filter()
+            self.episode = int(p["episode"])
+            self.R0 = None
+            self._states.clear()
+            self._wrenches.clear()
+        return {"n_phases": task.n_phases}
+
+    def status(self) -> dict:
+        return {"episode": self.episode, "updates": self.updates, "skipped": self.skipped}

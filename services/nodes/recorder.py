@@ -1,0 +1,110 @@
+"""The recorder node: everything of a run, byte for byte, to MCAP - one file per episode.
+
+Takes every message of the run (``"**"``, undecoded) and writes its payload
+unchanged (``services.recording.EpisodeWriter``: chunked, zstd, a JSON Schema
+per channel so Foxglove plots the wrench and phase topics, the scenario
+attached).  Control: ``begin_episode`` (path relative to ``out_dir``, kind,
+index, scenario text), ``end_episode`` (finalises the file; says which listed
+topics had not reached ``last_seq``), ``status``.  ``close`` finalises an open
+file: nothing already recorded is lost.
+"""
+
+from __future__ import annotations
+
+import re
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+from services.recording import EpisodeWriter
+from services.runtime import topics
+from services.runtime.bus import Node, Subscription
+from services.runtime.config import option
+
+_SEQ = re.compile(rb'^\{"seq":(-?\d+)')
+
+
+@dataclass(frozen=True)
+class RecorderConfig:
+    out_dir: str = option("recordings", "folder the episode files go into; the runner names them relative to it "
+                                        "(resolved when the recorder starts)", metavar="DIR")
+
+
+def episode_path(out_dir, name) -> Path:
+    """Where the episode ``name`` goes: a path relative to ``out_dir``, the one stated
+    folder of this recorder.  An absolute path or one that climbs out is refused: a
+    runner and a recorder that disagree about the working directory (one relative
+    folder joined to another) once wrote out/valley/recordings/out/valley/recordings/."""
+    rel = Path(str(name))
+    if not str(name) or rel.is_absolute() or ".." in rel.parts:
+        raise ValueError(f"episode path {str(name)!r}: expected a file name relative to the recorder's "
+                         f"--out-dir ({out_dir}), not absolute and without '..'")
+    return Path(out_dir) / rel
+
+
+class RecorderNode(Node):
+    name = "recorder"
+
+    def __init__(self, config: RecorderConfig, bus, clock, *, run_id: str, mode: str = "lockstep", **_):
+        super().__init__(bus, clock)
+        self.run_id = topics.check_run_id(run_id)
+        self.out_dir = Path(config.out_dir).resolve()
+        self.prefix = topics.prefix(run_id) + "/"
+        self.writer: EpisodeWriter | None = None
+        self.lock = threading.Condition()  # a transport waits on it for messages still in flight
+        self.last_seq: dict[str, int] = {}
+        self.total = 0
+        self.subscriptions = [Subscription("**", self.on_sample, decode=False)]
+
+    def on_sample(self, topic: str, recv_ns: int, raw: bytes, message: dict | None = None) -> None:
+        with self.lock:
+            if self.writer is not None:
+                # a message already decoded (one process) needs no decoding for its publish time
+                self.writer.add(self.prefix + topic, raw, recv_ns,
+                                None if message is None else message["sent_ns"])
+                self.total += 1
+            if message is not None:
+                seq = message["seq"]
+            else:
+                m = _SEQ.match(raw)
+                seq = int(m.group(1)) if m else None
+            if seq is not None:
+                if seq > self.last_seq.get(topic, -1):
+                    self.last_seq[topic] = seq
+                self.lock.notify_all()
+
+    def lagging(self, wanted, last: int) -> list:
+        """The topics among ``wanted`` whose newest message is older than cycle ``last``."""
+        return [t for t in wanted if self.last_seq.get(t, -1) < last]
+
+    def handlers(self):
+        return {"begin_episode": lambda p: {"path": self.begin(p)}, "end_episode": self.end}
+
+    def begin(self, p: dict) -> str:
+        path = episode_path(self.out_dir, p["path"])
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with self.lock:
+            if self.writer is not None:
+                self.writer.finish()
+            self.writer = EpisodeWriter(path, run_id=self.run_id, episode_kind=p.get("kind", "episode"),
+                                        episode_index=int(p.get("index", 0)), scenario_text=p.get("scenario"),
+                                        metadata=p.get("metadata") or {})
+        return str(path)
+
+    def end(self, p: dict) -> dict:
+        with self.lock:
+            lagging = self.lagging(list(p.get("topics", [])), int(p.get("last_seq", -1)))
+            writer, self.writer = self.writer, None
+        if writer is None:
+            raise ValueError("no episode is being recorded")
+        writer.finish()
+        return {"messages": writer.messages_written, "bad_payloads": writer.bad_payloads, "lagging": lagging}
+
+    def status(self) -> dict:
+        return {"total": self.total, "recording": self.writer is not None, "last_seq": self.last_seq}
+
+    def close(self) -> None:
+        with self.lock:
+            if self.writer is not None:
+                self.writer.finish()
+                self.writer = None

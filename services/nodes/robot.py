@@ -1,0 +1,345 @@
+"""The robot node: the simulated LWR4+ behind its KRC/FRI link (``robot_sim.cell``).
+
+Every FRI cycle it publishes ``robot/state`` (the FRI measurement) and
+``robot/contact`` (the physics' truth for the F/T sensor and the labels); when
+the cycle closes it applies the impedance commander's answer (``robot/command``,
+echoing the measurement's seq) and the teacher's hand (``teacher/wrench``) and
+steps the physics.  When cycles open and close is the cycle engine's business
+(``services.runtime.cycle``): the node does the work of each.
+
+In lockstep an answer is taken to arrive ``LOCKSTEP_LATENCY_NS`` after its
+measurement; in realtime at its measured latency (receive time - publish time).
+
+Control: ``reset`` (start, episode, kind), ``status``; the transports add
+``settle``, ``run`` and ``stop``, which drive the engine (``plan`` checks them).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from robot_sim.cell import RobotCell
+from robot_sim.fri import CommandPacket, ControlMode, FriState, LinkFaults
+from robot_sim.krc import SafetyReason
+from robot_sim.labels import LABELERS
+from robot_sim.teacher import DOWN
+from robot_sim.worlds import WORLDS, Valley, valley
+from services.runtime.bus import Node, Publication, Subscription
+from services.runtime.config import option
+from services.runtime.cycle import PARTICIPANTS, EpisodePlan
+from services.runtime.loop import Sections
+from services.runtime.messages import EPISODE_SUMMARY, ROBOT_CONTACT, ROBOT_STATE
+from services.runtime.timing import Histogram
+
+LOCKSTEP_LATENCY_NS = 100_000
+# per-cycle sections (episode summary, loop.sections): waiting for the deadline or the
+# answers, handing the answers to the FRI link, the physics step (KRC law + MuJoCo +
+# sensing), measuring (FRI packet, labels), encoding, publishing
+SECTIONS = ("wait", "answers", "step", "measure", "encode", "publish")
+ANSWER_TOPICS = {"command": "robot/command", "teacher": "teacher/wrench", "ft": "ft/wrench",
+                 "phase": "estimator/phase"}
+assert set(ANSWER_TOPICS) == set(PARTICIPANTS)
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    world: str = option("valley", "task world", choices=sorted(WORLDS))
+    seed: int = option(0, "seed of the cell (joint measurement noise)")
+    answer_timeout: float = option(5.0, "lockstep: seconds to wait for a cycle's answers before counting a miss")
+    stall_every: float = option(0.0, "fault injection: stall the loop every N s")
+    stall_ms: float = option(0.0, "fault injection: stall length, ms")
+    plate_friction: float = option(Valley.friction, "valley: sliding friction coefficient of the plates")
+    fri_packet_loss: float = option(0.0, "probability that a command packet is lost on the FRI link")
+
+    def __post_init__(self):
+        if self.world not in WORLDS:
+            raise ValueError(f"world {self.world!r} unknown (known: {sorted(WORLDS)})")
+        if not self.answer_timeout > 0:
+            raise ValueError(f"answer_timeout must be > 0 s, got {self.answer_timeout!r}")
+        if not (math.isfinite(self.plate_friction) and self.plate_friction > 0):
+            raise ValueError(f"plate_friction must be a finite number > 0, got {self.plate_friction!r}")
+        if not 0.0 <= self.fri_packet_loss < 1.0:
+            raise ValueError(f"fri_packet_loss must be a probability in [0, 1), got {self.fri_packet_loss!r}")
+
+    def world_spec(self):
+        if self.world == "valley":
+            return valley(Valley(friction=self.plate_friction))
+        return WORLDS[self.world]()
+
+    def link_faults(self) -> LinkFaults | None:
+        if self.fri_packet_loss == 0.0:
+            return None
+        return LinkFaults(seed=self.seed, drop_probability=self.fri_packet_loss)
+
+
+class _Episode:
+    """What one run of cycles accumulates for its summary."""
+
+    def __init__(self, first_seq: int, fri0, wall0_ns: int):
+        self.first_seq = first_seq
+        self.fri0 = fri0  # the link's counters run for its whole session: report this episode's
+        self.wall0_ns = wall0_ns
+        self.peak = 0.0
+        self.answer = Histogram()
+        self.closed_loop = Histogram()
+        self.sent: dict[int, int] = {}
+        self.last_estimate = -1
+        self.goal_at = -1.0
+        self.run = 0
+        self.miss_run = 0
+        self.k = 0
+        self.sections = Sections(*SECTIONS)
+
+
+class RobotNode(Node):
+    name = "robot"
+
+    def __init__(self, config: RobotConfig, bus, clock, *, run_id: str = "", mode: str = "lockstep",
+                 sched_fifo=False):
+        super().__init__(bus, clock)
+        if mode not in ("lockstep", "realtime"):
+            raise ValueError(f"clock must be lockstep or realtime, got {mode!r}")
+        self.config = config
+        self.mode = mode
+        self.lockstep = mode == "lockstep"
+        self.fifo = sched_fifo
+        # the cell's own F/T sampling is the ft_sensor node's job: not done twice
+        self.cell = RobotCell(config.world_spec(), seed=config.seed, faults=config.link_faults(), with_sensor=False)
+        self.labeler = LABELERS[config.world]()
+        self.episode = -1
+        self.kind = "none"
+        # answers arrive on transport threads (Zenoh) while the engine's thread closes cycles
+        self.arrived = threading.Condition()
+        self.arrivals = 0  # bumped with every answer: a transport waits for it to change
+        self._answers: dict[str, dict] = {name: {} for name in ANSWER_TOPICS}
+        self._latest_teacher = None
+        self.ep = _Episode(0, self.cell.fri.statistics(), 0)
+        self.sections = self.ep.sections
+        self._episode_after = None
+        self._m = None
+        self._sent = 0
+        realtime = not self.lockstep
+        self.publications = [Publication("robot/state", drop_when_congested=realtime),
+                             Publication("robot/contact", drop_when_congested=realtime),
+                             Publication("robot/episode", express=False)]
+        # realtime needs only what it applies; lockstep also waits on the sensor and the estimator
+        self.subscriptions = [Subscription(topic, self._on_answer(name)) for name, topic in ANSWER_TOPICS.items()
+                              if self.lockstep or name in ("command", "teacher")]
+
+    # ------------------------------------------------------------- arrivals
+
+    def _on_answer(self, name):
+        store = self._answers[name]
+
+        def handler(msg, recv_ns, raw):
+            with self.arrived:
+                store[msg["seq"]] = (msg, recv_ns)
+                if len(store) > 4000:  # keep memory bounded on long realtime runs
+                    for k in sorted(store)[:2000]:
+                        del store[k]
+                if name == "teacher":
+                    self._latest_teacher = msg
+                self.arrivals += 1
+                self.arrived.notify_all()
+        return handler
+
+    def answered(self, names, seq) -> bool:
+        answers = self._answers
+        for n in names:
+            if seq not in answers[n]:
+                return False
+        return True
+
+    # ------------------------------------------------------------- control
+
+    def handlers(self):
+        return {"reset": self.reset}
+
+    def reset(self, p: dict) -> dict:
+        start = np.asarray(p["start"], dtype=np.float64)
+        if start.shape != (3,) or not np.all(np.isfinite(start)):
+            raise ValueError(f"start must be 3 finite numbers, got {p['start']!r}")
+        kind = p.get("kind", "demonstration")
+        if kind not in ("demonstration", "reproduction"):
+            raise ValueError(f"kind must be demonstration or reproduction, got {kind!r}")
+        self.episode = int(p.get("episode", -1))
+        self.kind = kind
+        cell = self.cell
+        q = cell.place_tcp(start, DOWN)
+        cell.krc.gravity_compensation = self.kind == "demonstration"
+        if cell.fri.state == 0:
+            cell.start()
+        if self.kind == "reproduction":
+            cell.fri.request_command_mode()
+        else:
+            cell.fri.request_monitor_mode()
+        self.labeler = LABELERS[self.config.world]()
+        with self.arrived:
+            for store in self._answers.values():
+                store.clear()
+        return {"q": q.tolist(), "seq": cell.fri.seq}
+
+    def plan(self, cmd: str, p: dict) -> EpisodePlan:
+        """The run of cycles a 'settle' or 'run' request asks for (ValueError if it makes no sense)."""
+        answers = tuple(p.get("wait_for", []))
+        if cmd == "settle":
+            n = int(p.get("cycles", 200))
+            if n < 1:
+                raise ValueError(f"cycles must be >= 1, got {n}")
+            return EpisodePlan(max_cycles=n, answers_from=answers, cycles=n)
+        seconds = float(p.get("max_seconds", 40.0))
+        if not (np.isfinite(seconds) and seconds > 0):
+            raise ValueError(f"max_seconds must be > 0, got {p.get('max_seconds')!r}")
+        return EpisodePlan(max_cycles=max(1, int(seconds * 1000)), answers_from=answers, stop_on=p.get("stop_on"))
+
+    def status(self) -> dict:
+        return {"episode": self.episode, "seq": self.cell.fri.seq, "fri_state": int(self.cell.fri.state),
+                "safety": int(self.cell.krc.safety), "fifo": self.fifo}
+
+    # ------------------------------------------------------------- episodes
+
+    def begin_episode(self, settle: bool = False) -> None:
+        """Before a run of cycles.  A settle's cycles (the arm resting while the sensor
+        is tared) belong to no episode: the estimator and the commander do not take
+        them as one."""
+        self._episode_after = None
+        if settle:
+            self._episode_after, self.episode = self.episode, -1
+        self.ep = _Episode(self.cell.fri.seq + 1, self.cell.fri.statistics(), self.clock.now_ns())
+        self.sections = self.ep.sections
+
+    def end_episode(self, engine) -> dict:
+        """After a run of cycles: its summary (what robot/episode carries)."""
+        try:
+            return self._summary(engine)
+        finally:
+            if self._episode_after is not None:
+                self.episode, self._episode_after = self._episode_after, None
+
+    def _summary(self, engine) -> dict:
+        cell, ep = self.cell, self.ep
+        stats = cell.fri.statistics()
+        now = self.clock.now_ns()
+        fri0 = ep.fri0
+        return dict(
+            seq=cell.fri.seq, stamp_ns=cell.t_ns, sent_ns=now, episode=self.episode, kind=self.kind,
+            reason=engine.reason, first_seq=ep.first_seq, last_seq=cell.fri.seq,
+            sim_seconds=engine.k * cell.cycle_ns / 1e9, wall_seconds=(now - ep.wall0_ns) / 1e9,
+            final_position=cell.sim.tcp_position(), peak_contact_force=ep.peak, safety=int(cell.krc.safety),
+            missed_answers=engine.missed_answers, goal_reached_at_s=ep.goal_at,
+            fri={"answered": stats.answered - fri0.answered, "missed": stats.missed - fri0.missed,
+                 "late": stats.late - fri0.late, "corrupt": stats.corrupt - fri0.corrupt,
+                 "longest_miss_run": ep.miss_run, "state": int(stats.state), "quality": int(stats.quality)},
+            loop=dict(engine.timing.summary(), clock=self.mode, sched_fifo=self.fifo,
+                      answer_latency=ep.answer.to_dict(), closed_loop_latency=ep.closed_loop.to_dict(),
+                      sections=ep.sections.summary(), wall_start_ns=ep.wall0_ns, wall_end_ns=now),
+        )
+
+    def publish_summary(self, summary: dict) -> None:
+        self.bus.publish("robot/episode", EPISODE_SUMMARY.encode(**summary))
+
+    # --------------------------------------------------------------- cycles
+
+    def open_cycle(self) -> tuple[int, int]:
+        """Measure and publish: the FRI measurement and the physics' truth."""
+        cell, ep, sec, now = self.cell, self.ep, self.ep.sections, self.clock.now_ns
+        t0 = now()
+        m = cell.begin_cycle()
+        sent = now()
+        sec.add("measure", sent - t0)
+        state = ROBOT_STATE.pack(
+            seq=m.seq, stamp_ns=m.stamp_ns, sent_ns=sent, reflected_seq=m.reflected_seq,
+            fri_state=int(m.state), fri_quality=int(m.quality), control_mode=int(m.control_mode),
+            msr_jnt_pos=m.msr_jnt_pos, msr_cart_pos=m.msr_cart_pos, est_ext_tcp_ft=m.est_ext_tcp_ft,
+            answer_rate=m.answer_rate, latency_s=m.latency_s, jitter_s=m.jitter_s, miss_rate=m.miss_rate,
+            safety=int(cell.krc.safety), gravity_compensation=bool(cell.krc.gravity_compensation),
+            episode=self.episode)
+        t1 = now()
+        self.bus.publish("robot/state", *state)
+        t2 = now()
+        sec.add("encode", t1 - sent)
+        sec.add("publish", t2 - t1)
+        wrench, contact, touching = cell.tool_wrench, cell.contact_force, cell.touching
+        true_phase = self.labeler.update(touching)
+        ep.peak = max(ep.peak, float(np.linalg.norm(contact)))
+        ep.sent[m.seq] = sent
+        if len(ep.sent) > 2000:  # the closed loop spans a few cycles: forget the old ones
+            for old in [k for k in ep.sent if k < m.seq - 1000]:
+                del ep.sent[old]
+        t3 = now()
+        contact_msg = ROBOT_CONTACT.pack(
+            seq=m.seq, stamp_ns=m.stamp_ns, sent_ns=t3, wrench=wrench, contact_force=contact,
+            touching=touching, true_phase=true_phase, episode=self.episode)
+        t4 = now()
+        self.bus.publish("robot/contact", *contact_msg)
+        sec.add("measure", t3 - t2)
+        sec.add("encode", t4 - t3)
+        sec.add("publish", now() - t4)
+        self._m, self._sent = m, sent
+        return m.seq, m.stamp_ns
+
+    def close_cycle(self, stop_on) -> str | None:
+        """Hand the open cycle's answers to the FRI link, apply the hand, step.
+        Returns why the episode ends, or None."""
+        cell, ep, m, sent = self.cell, self.ep, self._m, self._sent
+        sec = ep.sections
+        t0 = self.clock.now_ns()
+        with self.arrived:
+            # every answer that came since the last close: this cycle's, and late ones
+            # for cycles already closed, which the FRI link must see to count them late
+            commands = self._answers["command"]
+            cmd_entries = sorted(commands.items()) if commands else ()
+            commands.clear()
+            teacher_entry = self._answers["teacher"].pop(m.seq, None)
+            latest_teacher = self._latest_teacher
+        goal_reached = teacher_done = False
+        for seq, (msg, recv) in cmd_entries:
+            sent_at = sent if seq == m.seq else ep.sent.get(seq)
+            if sent_at is None:  # an answer to a cycle of no episode of ours
+                continue
+            ep.answer.add(recv - sent_at)
+            est = msg.get("estimate_seq", -1)
+            if est > ep.last_estimate and est in ep.sent:
+                # closed loop: this cycle's measurement -> sensor -> estimator -> commander -> here
+                ep.closed_loop.add(recv - ep.sent[est])
+                ep.last_estimate = est
+            stamp = m.stamp_ns - (m.seq - seq) * cell.cycle_ns
+            arrival = stamp + (LOCKSTEP_LATENCY_NS if self.lockstep else recv - sent_at)
+            cell.receive(CommandPacket(seq=msg["seq"], cart_pos=np.array(msg["cart_pos"]),
+                                       cart_stiffness=np.array(msg["cart_stiffness"]),
+                                       cart_damping=np.array(msg["cart_damping"]),
+                                       add_tcp_ft=np.array(msg["add_tcp_ft"]),
+                                       requested_mode=ControlMode(msg["requested_mode"])), arrival)
+            if seq == m.seq:
+                goal_reached = bool(msg["goal_reached"])
+                if goal_reached and ep.goal_at < 0:
+                    ep.goal_at = ep.k * cell.cycle_ns / 1e9
+        teacher_msg = teacher_entry[0] if teacher_entry is not None else (None if self.lockstep else latest_teacher)
+        hand = None
+        # episode indices count demonstrations and reproductions separately: the teacher
+        # still set up for demonstration 5 answered reproduction 5 and pushed the arm
+        if teacher_msg is not None and teacher_msg["episode"] == self.episode and self.kind == "demonstration":
+            hand = np.array(teacher_msg["wrench"])
+            teacher_done = bool(teacher_msg["done"])
+        t1 = self.clock.now_ns()
+        outcome = cell.end_cycle(hand).outcome
+        sec.add("answers", t1 - t0)
+        sec.add("step", self.clock.now_ns() - t1)
+        ep.k += 1
+        ep.run = 0 if outcome.answered else ep.run + 1
+        ep.miss_run = max(ep.miss_run, ep.run)
+        fri = cell.fri
+        if self.kind == "reproduction" and fri.state == FriState.MON and not fri.command_requested:
+            # as the KRL program of a lab set-up does: after a fall-back to monitor
+            # mode, ask for command mode again (entered once the link is PERFECT again)
+            fri.request_command_mode()
+        for flag, name in ((teacher_done, "teacher_done"), (goal_reached, "goal_reached")):
+            if flag and stop_on == name:
+                return name
+        if cell.krc.safety != 0:
+            return f"safety:{SafetyReason(cell.krc.safety).name.lower()}"
+        return None

@@ -1,0 +1,118 @@
+"""The teacher node: the simulated human guiding the arm during demonstrations.
+
+For every robot cycle it reads ``robot/state`` (the measured tcp pose) and
+``robot/contact`` (what the hand feels: the contact force and what the tool
+touches) and answers on ``teacher/wrench`` with the hand wrench for that cycle
+(``robot_sim.teacher``).  Velocities come from differences of consecutive
+measured poses.  Control: ``reset`` (episode, start, seed, goal_x), ``idle`` (the
+demonstration is over: answer nothing until the next reset).
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+
+from robot_sim.teacher import HoseCouplerTeacher, ValleyTeacher
+from robot_sim.worlds import HoseCoupler, Valley
+from services.runtime.bus import Node, Publication, Subscription
+from services.runtime.config import option
+from services.runtime.messages import TEACHER_WRENCH
+
+DT = 0.001
+
+
+@dataclass(frozen=True)
+class TeacherConfig:
+    world: str = option("valley", "task world", choices=("valley", "hose_coupler"))
+
+    def __post_init__(self):
+        if self.world not in ("valley", "hose_coupler"):
+            raise ValueError(f"world must be valley or hose_coupler, got {self.world!r}")
+
+
+class TeacherNode(Node):
+    name = "teacher"
+
+    def __init__(self, config: TeacherConfig, bus, clock, **_):
+        super().__init__(bus, clock)
+        self.config = config
+        self.teacher = None
+        self.episode = -1
+        self._lock = threading.Lock()
+        self._states: dict[int, dict] = {}
+        self._contacts: dict[int, dict] = {}
+        self._prev = None  # (seq, position, rotation)
+        self.publications = [Publication("teacher/wrench")]
+        self.subscriptions = [Subscription("robot/state", self.on_state),
+                              Subscription("robot/contact", self.on_contact)]
+
+    def on_state(self, msg, recv_ns, raw):
+        with self._lock:
+            self._states[msg["seq"]] = msg
+            self._try(msg["seq"])
+
+    def on_contact(self, msg, recv_ns, raw):
+        with self._lock:
+            self._contacts[msg["seq"]] = msg
+            self._try(msg["seq"])
+
+    def _try(self, seq):
+        if seq not in self._states or seq not in self._contacts:
+            return
+        state = self._states.pop(seq)
+        contact = self._contacts.pop(seq)
+        for store in (self._states, self._contacts):  # answers for older cycles are moot now
+            if store:
+                for k in [k for k in store if k < seq]:
+                    del store[k]
+        if self.teacher is None or state["episode"] != self.episode:
+            return
+        pose = np.asarray(state["msr_cart_pos"]).reshape(3, 4)
+        x, R = pose[:, 3], pose[:, :3]
+        if self._prev is not None and self._prev[0] == seq - 1:
+            v = (x - self._prev[1]) / DT
+            w = R @ pin.log3(self._prev[2].T @ R) / DT
+        else:
+            v = np.zeros(3)
+            w = np.zeros(3)
+        self._prev = (seq, x.copy(), R.copy())
+        hand = self.teacher.step(DT, x, v, R, w, np.asarray(contact["contact_force"]), contact["touching"])
+        done = bool(self.teacher.done)
+        if isinstance(self.teacher, HoseCouplerTeacher):
+            done = self.teacher.phase == 1 and self.teacher.rotation_done(R)
+        self.bus.publish("teacher/wrench", *TEACHER_WRENCH.pack(
+            seq=seq, stamp_ns=state["stamp_ns"], sent_ns=self.clock.now_ns(), wrench=hand,
+            script_phase=int(self.teacher.phase), done=done, episode=self.episode))
+
+    def handlers(self):
+        return {"reset": self.reset, "idle": self.idle_until_reset}
+
+    def idle_until_reset(self, p: dict) -> None:
+        """The demonstration is over: answer nothing until the next reset (a reproduction
+        whose index equals a demonstration's must not be answered, nor cost the work)."""
+        with self._lock:
+            self.teacher = None
+            self.episode = -1
+            self._prev = None
+
+    def reset(self, p: dict) -> None:
+        start = np.asarray(p["start"], dtype=np.float64)
+        if start.shape != (3,) or not np.all(np.isfinite(start)):
+            raise ValueError(f"start must be 3 finite numbers, got {p['start']!r}")
+        rng = np.random.default_rng(int(p.get("seed", 0)))
+        with self._lock:
+            if self.config.world == "valley":
+                self.teacher = ValleyTeacher(Valley(), start, float(p.get("goal_x", 0.42)), rng)
+            else:
+                self.teacher = HoseCouplerTeacher(HoseCoupler(), start, rng)
+            self.episode = int(p["episode"])
+            self._prev = None
+            self._states.clear()
+            self._contacts.clear()
+
+    def status(self) -> dict:
+        return {"episode": self.episode}
