@@ -137,6 +137,11 @@ class RobotCell:
     def receive(self, command: CommandPacket, t_arrival_ns: int) -> bool:
         return self.fri.receive(command, t_arrival_ns)
 
+    def deliver(self, command: CommandPacket, t_sent_ns: int) -> bool:
+        """A command sent at ``t_sent_ns`` through the link's fault model (loss, delay,
+        corruption; ``faults``), then received; without faults the same as ``receive``."""
+        return self.fri.deliver(command, t_sent_ns)
+
     def end_cycle(self, hand_wrench: np.ndarray | None = None) -> CycleResult:
         outcome = self.fri.end_cycle(self.t_ns + self.cycle_ns)
         cmd = outcome.command

@@ -1,6 +1,7 @@
 """``etar-bench``: run scenarios and read their reports.
 
-    etar-bench run SCENARIO [--out DIR] [--clock realtime|lockstep]
+    etar-bench run SCENARIO [--out DIR] [--clock realtime|lockstep] [--transport zenoh|inproc]
+    etar-bench sweep SCENARIO --param PATH=V1,V2,... [--repeats N] --out DIR [--cluster ADDRESS]
     etar-bench report RUN_DIR
     etar-bench router [--listen tcp/0.0.0.0:7447]
 """
@@ -69,6 +70,28 @@ def summary_line(report: dict, out) -> str:
     return f"{report['scenario']}: " + "; ".join(parts + [where])
 
 
+def cmd_sweep(args) -> int:
+    from etar.task import TaskError
+    from services.scenario import ScenarioError
+    from services.sweep import Parameter, SweepError, sweep
+
+    try:
+        params = [Parameter.parse(p) for p in args.param]
+        result = sweep(args.scenario, params, repeats=args.repeats, out=args.out, record=args.record,
+                       workers=args.workers, cluster=args.cluster, learn_threads=args.learn_threads, say=_say)
+    except (SweepError, ScenarioError, TaskError) as exc:
+        _say(f"etar-bench sweep: error: {exc}")
+        return 2
+    except KeyboardInterrupt:
+        _say(f"etar-bench sweep: interrupted; the runs finished so far are not tabulated (their folders are in "
+             f"{args.out}/runs)")
+        return 130
+    where = result["cluster"] or f"{result['workers']} local processes"
+    print(f"sweep: {result['runs']} runs ({result['failed']} failed) in {result['wall_seconds']:.0f} s on {where}; "
+          f"table {result['table']}; plots {', '.join(result['plots']) or 'none'}", flush=True)
+    return 0 if result["failed"] == 0 else 1
+
+
 def _interrupt(signum, frame):
     raise KeyboardInterrupt(signal.Signals(signum).name)
 
@@ -124,6 +147,24 @@ def build_parser() -> argparse.ArgumentParser:
                         "the two ends of the FRI link; the other services stay ordinary processes")
     add_zenoh_arguments(p)
     p.set_defaults(func=cmd_run)
+    p = sub.add_parser("sweep", help="run every combination of scenario parameters x seeds in parallel, "
+                                     "in-process; a table and plots",
+                       description=__import__("services.sweep", fromlist=["x"]).__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("scenario", help="scenario YAML file (see docs/scenarios.md)")
+    p.add_argument("--param", action="append", default=[], metavar="PATH=V1,V2,...",
+                   help="a scenario parameter and its values, e.g. cell.sensor_noise=0.5,1,2 or "
+                        "reproduce.start_perturbation=0.01,0.03 (repeatable: every combination runs)")
+    p.add_argument("--repeats", type=int, default=1, help="seeds per combination: the scenario's seed + 0..N-1")
+    p.add_argument("--out", required=True, help="folder for the table, the plots and the runs")
+    p.add_argument("--record", choices=("full", "summary", "none"), default="summary",
+                   help="what to keep of each run: everything, its report and model (default), or nothing")
+    p.add_argument("--workers", type=int, help="local processes (default: the CPUs this process may use)")
+    p.add_argument("--cluster", metavar="ADDRESS",
+                   help="a Dask scheduler, e.g. tcp://10.0.0.5:8786, to send the runs to instead")
+    p.add_argument("--learn-threads", type=int,
+                   help="numba threads per run's learner (default: the CPUs divided among the workers)")
+    p.set_defaults(func=cmd_sweep)
     p = sub.add_parser("report", help="print the report of a finished run")
     p.add_argument("run_dir")
     p.add_argument("--json", action="store_true", help="print report.json instead of the text")

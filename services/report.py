@@ -195,7 +195,8 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
                                 sim_seconds=d["summary"]["sim_seconds"], wall_seconds=d["summary"]["wall_seconds"],
                                 fri=d["summary"].get("fri"), fri_quality=timelines.get(d["path"], {}))
                            for d in st.demonstrations],
-        "learning": {"model": _in_run(st.model_path, out), "selection": st.selection,
+        "learning": {"model": _in_run(st.model_path, out), "seconds": getattr(st, "learn_seconds", None),
+                     "selection": st.selection,
                      "phase_to_truth": st.phase_to_truth, "goal": st.goal,
                      "demonstrations_read": [dict(path=_in_run(d["path"], out), samples=d["samples"])
                                              for d in getattr(st, "learned_from", [])]},
@@ -271,7 +272,8 @@ def plot_timing(report, loops, quality: dict, path) -> None:
         h = _pooled(loops, key)
         x = np.arange(h.counts.size) * h.bin_ns / 1e3
         ax.bar(x, h.counts, width=h.bin_ns / 1e3, align="edge")
-        ax.set_yscale("log")
+        if h.counts.any():
+            ax.set_yscale("log")
         ax.set_xlim(0, max(50.0, (np.flatnonzero(h.counts).max() + 2) * h.bin_ns / 1e3 if h.counts.any() else 50.0))
         ax.set_title(f"{title} (overflow >= {h.limit_ns / 1e6:.0f} ms: {h.overflow})")
         ax.set_xlabel("us (10 us bins)")
@@ -282,7 +284,8 @@ def plot_timing(report, loops, quality: dict, path) -> None:
     ax.set_yticks([0, 1, 2, 3], ["UNACC.", "BAD", "OK", "PERFECT"])
     ax.set_title("FRI quality over each episode")
     ax.set_xlabel("simulated time in episode [s]")
-    ax.legend(fontsize=7)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=7)
     fig.suptitle(f"run {report['run_id']} ({report['environment']['clock']})")
     fig.tight_layout()
     fig.savefig(path, dpi=100)

@@ -309,7 +309,7 @@ class RobotNode(Node):
                 ep.last_estimate = est
             stamp = m.stamp_ns - (m.seq - seq) * cell.cycle_ns
             arrival = stamp + (LOCKSTEP_LATENCY_NS if self.lockstep else recv - sent_at)
-            cell.receive(CommandPacket(seq=msg["seq"], cart_pos=np.array(msg["cart_pos"]),
+            cell.deliver(CommandPacket(seq=msg["seq"], cart_pos=np.array(msg["cart_pos"]),
                                        cart_stiffness=np.array(msg["cart_stiffness"]),
                                        cart_damping=np.array(msg["cart_damping"]),
                                        add_tcp_ft=np.array(msg["add_tcp_ft"]),

@@ -1,0 +1,94 @@
+"""The in-process transport on its own: control as calls, garbage counted, the scenario's
+cell parameters reaching the nodes, and the check that messages handed over in memory
+are what their bytes decode to."""
+
+import tempfile
+from pathlib import Path
+
+import pytest
+
+from services.nodes import CommanderConfig, EstimatorConfig, FtSensorConfig, RecorderConfig, RobotConfig
+from services.runner import RunOptions, Runner
+from services.runtime.bus import Node, Subscription
+from services.runtime.inproc import InProcessBus, InProcessCell
+from services.runtime.messages import ROBOT_CONTACT
+
+ROOT = Path(__file__).resolve().parents[2]
+MODEL = str(ROOT / "scenarios" / "models" / "smoke.json")
+START = [0.62, -0.06, 0.30]
+
+
+def cell(**robot):
+    return InProcessCell("inproc-test", {
+        "robot": RobotConfig(**robot), "ft_sensor": FtSensorConfig(),
+        "recorder": RecorderConfig(out_dir=tempfile.mkdtemp()), "phase_estimator": EstimatorConfig(),
+        "impedance_commander": CommanderConfig()})
+
+
+def reproduce(c, seconds):
+    c.request("robot", "reset", start=START, episode=0, kind="reproduction")
+    c.request("ft_sensor", "tare", samples=100)
+    c.request("robot", "settle", cycles=200, wait_for=["ft"])
+    c.request("phase_estimator", "reset", model=MODEL, episode=0)
+    c.request("impedance_commander", "reset", model=MODEL, episode=0)
+    return c.run_episode(["command"], None, seconds)
+
+
+def test_scenario_cell_parameters_reach_the_nodes(tmp_path):
+    scenario = tmp_path / "s.yaml"
+    scenario.write_text((ROOT / "scenarios" / "smoke.yaml").read_text() +
+                        "cell: {sensor_noise: 2.5, plate_friction: 0.4, fri_packet_loss: 0.1}\n")
+    configs = Runner(RunOptions(scenario=str(scenario), out=str(tmp_path / "out"), transport="inproc")).node_configs()
+    assert configs["ft_sensor"].noise_scale == 2.5
+    assert configs["robot"].plate_friction == 0.4 and configs["robot"].fri_packet_loss == 0.1
+    assert 'friction="0.4 ' in configs["robot"].world_spec().xml
+    assert configs["ft_sensor"].ati().noise_std[0] == pytest.approx(2.5 * FtSensorConfig().ati().noise_std[0])
+
+
+def test_fri_packet_loss_loses_commands_and_the_link_counts_them():
+    clean = reproduce(cell(), 1.5)
+    lossy = reproduce(cell(fri_packet_loss=0.2), 1.5)
+    assert clean["fri"]["missed"] == 0
+    cycles = lossy["fri"]["answered"] + lossy["fri"]["missed"]
+    assert 0.12 < lossy["fri"]["missed"] / cycles < 0.28, lossy["fri"]
+
+
+def test_control_errors_name_the_role_and_the_command():
+    c = cell()
+    with pytest.raises(RuntimeError, match="robot refused 'reset': ValueError: start must be 3 finite numbers"):
+        c.request("robot", "reset", start=[0.6, float("nan"), 0.3])
+    with pytest.raises(RuntimeError, match="ft_sensor refused 'explode'"):
+        c.request("ft_sensor", "explode")
+    with pytest.raises(RuntimeError, match="teacher is not part of this run"):
+        c.request("teacher", "reset")
+    assert c.request("robot", "status")["ok"]
+
+
+class Listener(Node):
+    name = "listener"
+
+    def __init__(self, bus, clock):
+        super().__init__(bus, clock)
+        self.got = []
+        self.subscriptions = [Subscription("robot/contact", lambda msg, t, raw: self.got.append(msg["seq"]))]
+
+
+def contact(seq, **extra):
+    return ROBOT_CONTACT.pack(seq=seq, stamp_ns=seq * 1_000_000, sent_ns=0, wrench=[0.0] * 6,
+                              contact_force=[0.0] * 3, touching=[], true_phase=0, episode=0, **extra)
+
+
+def test_garbage_is_counted_and_never_delivered_and_a_wrong_message_in_memory_is_caught():
+    bus = InProcessBus(check=True)
+    listener = Listener(bus, bus.clock)
+    bus.attach(listener)
+    bus.publish("robot/contact", b"\x00\xff not json")
+    bus.publish("robot/contact", *contact(1))
+    bus.drain()
+    assert listener.got == [1]
+    assert bus.bad[("listener", "robot/contact")] == 1 and "not JSON" in bus.links("listener")["robot/contact"][
+        "last_error"]
+    raw, msg = contact(2)
+    msg = dict(msg, seq=3)  # what a node would hand over is not what the bytes say
+    with pytest.raises(AssertionError, match="not what its bytes decode to"):
+        bus.publish("robot/contact", raw, msg)
