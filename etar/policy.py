@@ -88,6 +88,13 @@ class PhaseLaw:
     place: np.ndarray | None  # (3,) the demonstrations' mean position in this phase
     aim: np.ndarray | None  # (3,) free motion into a phase done in place: head for its place
 
+    @property
+    def turns(self) -> bool:
+        return self._turns
+
+    def __post_init__(self):
+        object.__setattr__(self, "_turns", bool(np.any(self.angular_velocity)))
+
 
 def _impedance(imp) -> PhaseImpedance | None:
     if imp is None or isinstance(imp, PhaseImpedance):
@@ -147,13 +154,15 @@ class ReproductionPolicy:
         self.ref = None
         self.R_hold = None
         self.turn_ref = np.zeros(3)  # setpoint orientation: R_hold exp(turn_ref); kept across phases
+        self.turned_setpoint = False  # turn_ref is not zero
         self.at_place = False  # a phase done in place: its tool has arrived where it was demonstrated
         self.prev_x = None
         self.v = np.zeros(3)
+        self._scratch = np.zeros(3)
         self.goal_reached = False
 
     def _setpoint_rotation(self) -> np.ndarray:
-        if not self.turn_ref.any():
+        if not self.turned_setpoint:
             return self.R_hold
         return self.R_hold @ exp3(self.turn_ref)
 
@@ -170,6 +179,7 @@ class ReproductionPolicy:
             beyond = (self.turn_ref - self.goal_rotation) @ axis
             if beyond > 0.0:
                 self.turn_ref = self.turn_ref - beyond * axis
+        self.turned_setpoint = bool(self.turn_ref.any())
 
     def _turned_enough(self, turned: np.ndarray) -> bool:
         if self.goal_rotation is None:
@@ -182,9 +192,17 @@ class ReproductionPolicy:
         if self.R_hold is None:
             self.R_hold = R.copy()
         if self.prev_x is not None:
-            # a light low-pass on the finite-difference velocity (1 ms steps)
-            self.v = 0.7 * self.v + 0.3 * (x - self.prev_x) / dt
-        self.prev_x = x.copy()
+            # a light low-pass on the finite-difference velocity (1 ms steps):
+            # v = 0.7 v + 0.3 (x - x_prev) / dt, in place, in that order
+            d_x = self._scratch
+            np.subtract(x, self.prev_x, out=d_x)
+            d_x *= 0.3
+            d_x /= dt
+            self.v *= 0.7
+            self.v += d_x
+            self.prev_x[:] = x
+        else:
+            self.prev_x = x.copy()
         law = self.phases[phase] if phase is not None and 0 <= phase < len(self.phases) else None
         if phase != self.phase:
             # a new phase starts its reference at the tool, already half a lead
@@ -231,9 +249,9 @@ class ReproductionPolicy:
         else:
             F = law.stiffness @ (self.ref - x) + law.feedforward - law.damping @ self.v
         turned = None
-        if law.angular_velocity.any() or self.goal_rotation is not None:
+        if law.turns or self.goal_rotation is not None:
             turned = log3(self.R_hold.T @ R)
-            if law.angular_velocity.any():
+            if law.turns:
                 self._turn(law, turned, dt)
         if self.goal is not None and phase == len(self.phases) - 1:
             past = not law.in_place and (x - self.goal) @ d >= 0.0

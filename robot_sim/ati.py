@@ -117,6 +117,7 @@ from typing import Any, ClassVar, Literal
 
 import numpy as np
 from filterpy.common import Q_discrete_white_noise
+from numba import njit
 from filterpy.kalman import KalmanFilter
 from scipy.linalg import block_diag, solve_discrete_are
 
@@ -167,6 +168,8 @@ SATURATION_BITS: tuple[AtiStatus, ...] = (
 _SAT_BITS_ARRAY = np.array([int(b) for b in SATURATION_BITS], dtype=np.int64)
 _STATUS_SATURATED = int(AtiStatus.ERROR | AtiStatus.FT_OUT_OF_RANGE)
 _STATUS_NONFINITE = int(AtiStatus.ERROR | AtiStatus.INPUT_NONFINITE)
+_STATUS_SATURATED_K = np.int64(_STATUS_SATURATED)  # constants the compiled sample kernel reads
+_INT32_MAX_F = float(_INT32_MAX)
 
 
 def _vec6(name: str, value: Any, *, positive: bool = False, nonnegative: bool = False) -> np.ndarray:
@@ -349,6 +352,14 @@ class RdtRecord:
             counts = counts.astype(np.int32)
         self.counts = counts
 
+    @classmethod
+    def trusted(cls, rdt_sequence: int, ft_sequence: int, status: int, counts: np.ndarray) -> "RdtRecord":
+        """A record from values the sensor model itself made (uint32 sequences, int32
+        counts): the checks of the constructor, which cost more than the sample, skipped."""
+        rec = cls.__new__(cls)
+        rec.rdt_sequence, rec.ft_sequence, rec.status, rec.counts = rdt_sequence, ft_sequence, status, counts
+        return rec
+
     def wrench(self, config: AtiConfig) -> np.ndarray:
         """(6,) float64 wrench in N / Nm: counts / counts-per-unit."""
         return self.counts / config.counts_per_unit
@@ -383,6 +394,63 @@ class RdtRecord:
         )
 
     __hash__ = None  # type: ignore[assignment]  # mutable
+
+
+_BLOCK = 1024  # normals drawn per block: the same stream as one draw of 6 per sample, fewer calls
+
+
+
+# rows of AtiSensor._const: what the compiled sample kernel reads, in one array
+_BIAS, _NOISE_STD, _RANGE, _FULL_SCALE, _CPU, _STEP, _DRIFT_STD, _SAT_BIT = range(8)
+# rows of AtiSensor._state
+_DRIFT, _TARE, _TARE_ACC = range(3)
+
+
+@njit(cache=True, nogil=True)
+def _sample_kernel(x, const, state, tare_state, noise, ni, drift_noise, di, drift_scale, clip,
+                   counts):  # pragma: no cover - compiled
+    """One sample: the offset's drift (a step of ``drift_scale`` = sqrt(dt) when time
+    advanced), raw = x + bias + drift + noise * std, saturation, tare, quantisation into
+    ``counts``; the same operations in the same order as the numpy version had.
+    ``tare_state`` = [samples still to average, samples in the average].  Returns the
+    status word."""
+    if drift_scale > 0.0:
+        for i in range(6):
+            d = drift_noise[di, i] * const[_DRIFT_STD, i]
+            d *= drift_scale
+            state[_DRIFT, i] += d
+    raw = np.empty(6)
+    status = 0
+    saturated = False
+    for i in range(6):
+        r = x[i] + const[_BIAS, i]
+        r += state[_DRIFT, i]
+        r += noise[ni, i] * const[_NOISE_STD, i]
+        if abs(r) > const[_RANGE, i]:
+            saturated = True
+            status |= np.int64(const[_SAT_BIT, i])
+        raw[i] = r
+    if saturated:
+        status |= _STATUS_SATURATED_K
+        if clip:
+            for i in range(6):
+                raw[i] = min(max(raw[i], -const[_FULL_SCALE, i]), const[_FULL_SCALE, i])
+    if tare_state[0] > 0:
+        for i in range(6):
+            state[_TARE_ACC, i] += raw[i]
+        tare_state[0] -= 1
+        if tare_state[0] == 0:
+            for i in range(6):
+                state[_TARE, i] = state[_TARE_ACC, i] / tare_state[1]
+    for i in range(6):
+        v = raw[i] - state[_TARE, i]
+        v *= const[_CPU, i]
+        v /= const[_STEP, i]
+        v = np.rint(v)
+        v *= const[_STEP, i]
+        v = min(max(v, -_INT32_MAX_F), _INT32_MAX_F)
+        counts[i] = np.int32(v)
+    return status
 
 
 class AtiSensor:
@@ -428,17 +496,18 @@ class AtiSensor:
         self._period_ns = config.sample_period_ns
 
         # Scratch buffers: read() allocates only the record's own counts.
-        self._raw = np.empty(6)
-        self._buf = np.empty(6)
-        self._abs = np.empty(6)
-        self._sat = np.empty(6, dtype=bool)
 
-        self._drift = np.zeros(6)
-        self._tare = np.zeros(6)
-        self._tare_acc = np.zeros(6)
-        self._tare_n = 0
-        self._tare_remaining = 0
+        self._const = np.stack([self._bias, self._noise_std, self._range, self._full_scale, self._cpu, self._step,
+                                self._drift_std, _SAT_BITS_ARRAY.astype(np.float64)])
+        self._state = np.zeros((3, 6))  # drift, tare, the tare's running sum
+        self._drift, self._tare, self._tare_acc = self._state  # views
+        self._tare_state = np.zeros(2, dtype=np.int64)  # [samples still to average, samples in the average]
         self._last_counts = np.zeros(6, dtype=np.int32)
+        # normals drawn a block at a time (exactly the numbers 6 per sample would give)
+        self._noise_block = np.empty((0, 6))
+        self._noise_i = 0
+        self._drift_block = np.empty((0, 6))
+        self._drift_i = 0
 
         self._next_rdt = int(rdt_sequence_start)
         self._ft_start = int(ft_sequence_start)
@@ -456,18 +525,17 @@ class AtiSensor:
         """
         if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) or n_samples < 1:
             raise ValueError(f"n_samples must be an integer >= 1, got {n_samples!r}")
-        self._tare_n = int(n_samples)
-        self._tare_remaining = int(n_samples)
+        self._tare_state[:] = (int(n_samples), int(n_samples))
         self._tare_acc[:] = 0.0
 
     def clear_tare(self) -> None:
         """Drop the tare (and any pending one): readings include bias and drift again."""
         self._tare[:] = 0.0
-        self._tare_remaining = 0
+        self._tare_state[0] = 0
 
     @property
     def tare_pending(self) -> bool:
-        return self._tare_remaining > 0
+        return bool(self._tare_state[0] > 0)
 
     @property
     def tare_offset(self) -> np.ndarray:
@@ -486,64 +554,49 @@ class AtiSensor:
         x = np.asarray(true_wrench, dtype=np.float64)
         if x.shape != (6,):
             raise ValueError(f"true_wrench must have shape (6,), got {x.shape}")
-        self._advance_time(int(t_ns))
+        drift_scale = self._advance_time(int(t_ns))
         rdt = self._next_rdt
         self._next_rdt = (rdt + 1) & _UINT32_MASK
         ft = (self._ft_start + self._sample_index) & _UINT32_MASK
+        di = 0
+        if drift_scale > 0.0:
+            di = self._drift_i
+            if di >= len(self._drift_block):
+                self._drift_block = self._drift_rng.standard_normal((_BLOCK, 6))
+                di = 0
+            self._drift_i = di + 1
 
         if not np.isfinite(x).all():
+            if drift_scale > 0.0:  # time advanced all the same: the offset drifted
+                self._drift += self._drift_block[di] * self._drift_std * drift_scale
             return RdtRecord(rdt, ft, _STATUS_NONFINITE, self._last_counts.copy())
 
-        raw = self._raw
-        np.add(x, self._bias, out=raw)
-        raw += self._drift
-        self._noise_rng.standard_normal(out=self._buf)
-        self._buf *= self._noise_std
-        raw += self._buf
-
-        status = 0
-        np.greater(np.abs(raw, out=self._abs), self._range, out=self._sat)
-        if self._sat.any():
-            status = _STATUS_SATURATED | int(_SAT_BITS_ARRAY[self._sat].sum())
-            if self._clip:
-                np.clip(raw, self._neg_full_scale, self._full_scale, out=raw)
-
-        if self._tare_remaining:
-            self._tare_acc += raw
-            self._tare_remaining -= 1
-            if self._tare_remaining == 0:
-                np.divide(self._tare_acc, self._tare_n, out=self._tare)
-
-        v = self._buf
-        np.subtract(raw, self._tare, out=v)
-        v *= self._cpu
-        v /= self._step
-        np.rint(v, out=v)
-        v *= self._step
-        # Only reachable in 'flag' mode or with a large tare: keep the int32 wire format valid.
-        np.clip(v, -_INT32_MAX, _INT32_MAX, out=v)
-        counts = v.astype(np.int32)
+        ni = self._noise_i
+        if ni >= len(self._noise_block):
+            self._noise_block = self._noise_rng.standard_normal((_BLOCK, 6))
+            ni = 0
+        self._noise_i = ni + 1
+        counts = np.empty(6, dtype=np.int32)
+        status = _sample_kernel(x, self._const, self._state, self._tare_state, self._noise_block, ni,
+                                self._drift_block, di, drift_scale, self._clip, counts)
         self._last_counts[:] = counts
-        return RdtRecord(rdt, ft, status, counts)
+        return RdtRecord.trusted(rdt, ft, int(status), counts)
 
-    def _advance_time(self, t_ns: int) -> None:
+    def _advance_time(self, t_ns: int) -> float:
+        """Advance the sensor's clock to ``t_ns``; the drift step's sqrt(dt) (0: no drift step)."""
         if self._t0_ns is None:
             self._t0_ns = self._last_t_ns = t_ns
-            return
+            return 0.0
         dt_ns = t_ns - self._last_t_ns
         # Time that goes backwards (a reset clock) neither undoes drift nor rewinds ft_sequence.
         if dt_ns <= 0:
-            return
-        if self._drift_on:
-            self._drift_rng.standard_normal(out=self._abs)
-            self._abs *= self._drift_std
-            self._abs *= math.sqrt(dt_ns * 1e-9)
-            self._drift += self._abs
+            return 0.0
         self._last_t_ns = t_ns
         # The record carries the latest completed internal sample.
         index = (t_ns - self._t0_ns) // self._period_ns
         if index > self._sample_index:
             self._sample_index = index
+        return math.sqrt(dt_ns * 1e-9) if self._drift_on else 0.0
 
 
 class WrenchKalmanFilter:

@@ -21,7 +21,7 @@ import pinocchio as pin
 from robot_sim.ati import AtiConfig, AtiSensor, RdtRecord
 from robot_sim.fri import CommandPacket, ControlMode, CycleOutcome, FriConfig, FriLink, LinkFaults, MeasurementPacket
 from robot_sim.kinematics import READY, ArmKinematics
-from robot_sim.krc import ImpedanceCommand, KrcConfig, KrcController, pose_to_cart_pos
+from robot_sim.krc import ImpedanceCommand, KrcConfig, KrcController
 from robot_sim.physics import Simulation
 from robot_sim.worlds import TIMESTEP, WorldSpec
 
@@ -43,6 +43,18 @@ def fri_to_standard(ft) -> np.ndarray:
 
 
 standard_to_fri = fri_to_standard  # the permutation is its own inverse
+
+_NOISE_BLOCK = 1000
+_REGULARISATION = 1e-9 * np.eye(6)
+try:
+    # np.linalg.solve's own kernel without its Python wrapper (8 of its 11 us here): the
+    # matrix is J J^T + 1e-9 I, positive definite, so the singular-matrix check is moot
+    from numpy.linalg._umath_linalg import solve1 as _solve1
+
+    def _solve(a, b):
+        return _solve1(a, b, signature="dd->d")
+except ImportError:  # a numpy without it: the public function, same result
+    _solve = np.linalg.solve
 
 
 @dataclass
@@ -82,6 +94,11 @@ class RobotCell:
         self._q_msr = np.zeros(7)
         self._joint_rng = np.random.default_rng([seed, 1])  # its own stream: the ATI's draws stay as they were
         self._tau_ext = np.zeros(7)
+        self._JJt = np.empty((6, 6))
+        self._Jtau = np.empty(6)
+        self._cart_pos = np.empty((3, 4))  # FRI's 3x4 row-major [R | p], filled from views of the kinematics
+        self._joint_noise_block = np.empty((0, 7))
+        self._joint_noise_i = 0
         self._true_wrench = np.zeros(6)
         self._last_measurement: MeasurementPacket | None = None
         self.place(READY)
@@ -114,13 +131,21 @@ class RobotCell:
         sim, kin = self.sim, self.kin
         sim.joint_positions(self._q)
         sim.joint_velocities(self._qd)
-        # the KRC reports measured joint positions, and the tcp pose from them
-        self._joint_rng.standard_normal(out=self._q_msr)
-        self._q_msr *= self.joint_noise
+        # the KRC reports measured joint positions, and the tcp pose from them; the
+        # noise is drawn a block at a time (the same numbers as 7 per cycle)
+        i = self._joint_noise_i
+        if i >= len(self._joint_noise_block):
+            self._joint_noise_block = self._joint_rng.standard_normal((_NOISE_BLOCK, 7))
+            i = 0
+        self._joint_noise_i = i + 1
+        np.multiply(self._joint_noise_block[i], self.joint_noise, out=self._q_msr)
         self._q_msr += self._q
         kin.update(self._q_msr)
-        oMtcp = kin.placement("tcp")
-        m = self.fri.measurement(self.t_ns, self._q_msr, pose_to_cart_pos(oMtcp),
+        R, p = kin.frame_views("tcp")
+        cart = self._cart_pos
+        cart[:, :3] = R
+        cart[:, 3] = p
+        m = self.fri.measurement(self.t_ns, self._q_msr, cart.reshape(12),
                                  standard_to_fri(self.external_wrench_tcp()))
         self._last_measurement = m
         return m
@@ -132,7 +157,10 @@ class RobotCell:
         J = self.kin.jacobian("tcp", pin.ReferenceFrame.LOCAL)
         # least squares J^T F = tau through the normal equations: J has full row
         # rank away from singularities, and this is 6x cheaper than lstsq
-        return np.linalg.solve(J @ J.T + 1e-9 * np.eye(6), J @ self._tau_ext)
+        np.matmul(J, J.T, out=self._JJt)
+        self._JJt += _REGULARISATION
+        np.matmul(J, self._tau_ext, out=self._Jtau)
+        return _solve(self._JJt, self._Jtau)
 
     def receive(self, command: CommandPacket, t_arrival_ns: int) -> bool:
         return self.fri.receive(command, t_arrival_ns)

@@ -143,7 +143,9 @@ class Runner:
                                  fri_packet_loss=cell.fri_packet_loss),
             "ft_sensor": FtSensorConfig(seed=sc.seed, noise_scale=cell.sensor_noise),
             "teacher": TeacherConfig(world=sc.world),
-            "recorder": RecorderConfig(out_dir=str(self.recordings)),
+            # in one process the recording's MCAP writing goes to a helper process: it took a fifth of each cycle
+            "recorder": RecorderConfig(out_dir=str(self.recordings),
+                                       writer_process=self.options.transport == "inproc"),
             "phase_estimator": EstimatorConfig(),
             "impedance_commander": CommanderConfig(),
         }

@@ -29,7 +29,6 @@ import numpy as np
 
 from etar.policy import DT, LEAD, ReproductionPolicy
 from etar.task import load_task
-from robot_sim.cell import standard_to_fri
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import option
 from services.runtime.loop import Sections
@@ -81,6 +80,7 @@ class ImpedanceCommanderNode(Node):
         self.sections = Sections("decode", "law", "encode", "publish")
         self.answer_time = Histogram()
         self._recv_ns = 0
+        self._cart_pos = np.empty((3, 4))  # the setpoint pose [R | p], packed into each command
         self.task = load_task(config.model) if config.model else None
         self.publications = [Publication("robot/command", drop_when_congested=not self.lockstep)]
         self.subscriptions = [Subscription("robot/state", self.on_state, latest=not self.lockstep),
@@ -142,16 +142,20 @@ class ImpedanceCommanderNode(Node):
                 self.clock.sleep(c.stall_ms / 1e3)
         now = self.clock.now_ns
         t0 = now()
-        m = np.asarray(state["msr_cart_pos"]).reshape(3, 4)
+        m = np.array(state["msr_cart_pos"]).reshape(3, 4)
         R, x = m[:, :3], m[:, 3]
         cycles = seq - last if last is not None and 0 < seq - last <= 100 else 1
         self._last_answered_seq = seq
         F, R_set = self.policy.step(x, R, self._latest_phase, cycles * DT)
-        add = standard_to_fri(np.concatenate([R.T @ F, np.zeros(3)]))
+        # the force in tcp axes; FRI orders the torques Tz, Ty, Tx (all zero here)
+        add = (R.T @ F).tolist() + [0.0, 0.0, 0.0]
+        cart = self._cart_pos
+        cart[:, :3] = R_set
+        cart[:, 3] = x
         t1 = now()
         packed = ROBOT_COMMAND.pack(
             seq=state["seq"], stamp_ns=state["stamp_ns"], sent_ns=t1,
-            cart_pos=np.hstack([R_set, x[:, None]]).ravel(),
+            cart_pos=cart.reshape(12),
             cart_stiffness=CART_STIFFNESS, cart_damping=CART_DAMPING,
             add_tcp_ft=add, requested_mode=2, phase=-1 if self._latest_phase is None else int(self._latest_phase),
             estimate_seq=self._latest_phase_seq,

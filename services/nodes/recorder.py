@@ -16,7 +16,7 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
-from services.recording import EpisodeWriter
+from services.recording import EpisodeWriter, WriterProcess
 from services.runtime import topics
 from services.runtime.bus import Node, Subscription
 from services.runtime.config import option
@@ -28,6 +28,8 @@ _SEQ = re.compile(rb'^\{"seq":(-?\d+)')
 class RecorderConfig:
     out_dir: str = option("recordings", "folder the episode files go into; the runner names them relative to it "
                                         "(resolved when the recorder starts)", metavar="DIR")
+    writer_process: bool = option(False, "write the MCAP files from a helper process (what an in-process run "
+                                         "does: its nodes share one CPU)")
 
 
 def episode_path(out_dir, name) -> Path:
@@ -55,6 +57,7 @@ class RecorderNode(Node):
         self.last_seq: dict[str, int] = {}
         self.total = 0
         self.subscriptions = [Subscription("**", self.on_sample, decode=False)]
+        self._writer_process = WriterProcess() if config.writer_process else None
 
     def on_sample(self, topic: str, recv_ns: int, raw: bytes, message: dict | None = None) -> None:
         with self.lock:
@@ -86,9 +89,13 @@ class RecorderNode(Node):
         with self.lock:
             if self.writer is not None:
                 self.writer.finish()
-            self.writer = EpisodeWriter(path, run_id=self.run_id, episode_kind=p.get("kind", "episode"),
-                                        episode_index=int(p.get("index", 0)), scenario_text=p.get("scenario"),
-                                        metadata=p.get("metadata") or {})
+            options = dict(run_id=self.run_id, episode_kind=p.get("kind", "episode"),
+                           episode_index=int(p.get("index", 0)), scenario_text=p.get("scenario"),
+                           metadata=p.get("metadata") or {})
+            if self._writer_process is not None:
+                self.writer = self._writer_process.open(path, **options)
+            else:
+                self.writer = EpisodeWriter(path, **options)
         return str(path)
 
     def end(self, p: dict) -> dict:
@@ -105,6 +112,11 @@ class RecorderNode(Node):
 
     def close(self) -> None:
         with self.lock:
-            if self.writer is not None:
-                self.writer.finish()
-                self.writer = None
+            try:
+                if self.writer is not None:
+                    self.writer.finish()
+                    self.writer = None
+            finally:
+                if self._writer_process is not None:
+                    self._writer_process.close()
+                    self._writer_process = None

@@ -265,7 +265,9 @@ class RobotNode(Node):
         sec.add("publish", t2 - t1)
         wrench, contact, touching = cell.tool_wrench, cell.contact_force, cell.touching
         true_phase = self.labeler.update(touching)
-        ep.peak = max(ep.peak, float(np.linalg.norm(contact)))
+        force = math.hypot(contact[0], contact[1], contact[2])
+        if force > ep.peak:
+            ep.peak = force
         ep.sent[m.seq] = sent
         if len(ep.sent) > 2000:  # the closed loop spans a few cycles: forget the old ones
             for old in [k for k in ep.sent if k < m.seq - 1000]:

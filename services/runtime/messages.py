@@ -112,6 +112,9 @@ class MessageType:
         self.fields = tuple(Field(*h) for h in HEADER) + tuple(f if isinstance(f, Field) else Field(*f) for f in fields)
         self._required = [f for f in self.fields if not f.optional]
         self._fast = [(f.name, _fast_check(f)) for f in self.fields]
+        fast = _compile_pack(self.fields, self._pack_checked)
+        if fast is not None:
+            self.pack = fast  # the same contract as the method below, a few microseconds sooner
 
     # -------------------------------------------------------------- wire
 
@@ -120,6 +123,9 @@ class MessageType:
         return self.pack(**values)[0]
 
     def pack(self, **values) -> tuple[bytes, dict]:
+        return self._pack_checked(values)
+
+    def _pack_checked(self, values: dict) -> tuple[bytes, dict]:
         """(JSON bytes, the message they decode to): ``decode(raw) == message``, with
         the same types, for values that are Python scalars, strings, numpy arrays and
         scalars, or lists and tuples of Python scalars (arrays become lists of floats,
@@ -187,6 +193,41 @@ class MessageType:
 
 
 _ABSENT = object()
+_PLAIN = frozenset({int, float, bool, str, list, dict, type(None)})
+
+
+def _plain_value(v):
+    if hasattr(v, "tolist"):
+        return v.tolist()
+    if type(v) is tuple:
+        return list(v)
+    return v
+
+
+def _compile_pack(fields, checked):
+    """``pack`` as one generated function of keyword arguments: every message of a
+    1 kHz stream is packed, and the general loop over the fields (a lookup and a
+    conversion check each) costs several microseconds more.  Anything unusual - a
+    field missing or unknown, a value JSON cannot hold - goes to ``checked``, the
+    general path, which names the problem.  None for a type with optional fields."""
+    if any(f.optional for f in fields):
+        return None
+    names = [f.name for f in fields]
+    missing = " or ".join(f"{n} is M" for n in names)
+    body = ", ".join(f"{n!r}: {n} if type({n}) in P else C({n})" for n in names)
+    src = (f"def pack(*, {', '.join(f'{n}=M' for n in names)}, **extra):\n"
+           f"    if extra or {missing}:\n"
+           f"        return checked({{k: v for k, v in dict({', '.join(f'{n}={n}' for n in names)}, **extra).items()"
+           f" if v is not M}})\n"
+           f"    out = {{{body}}}\n"
+           f"    try:\n"
+           f"        return dumps(out), out\n"
+           f"    except ValueError:\n"
+           f"        return checked(out)\n")
+    scope = {"P": _PLAIN, "C": _plain_value, "M": _ABSENT, "dumps": dumps, "checked": checked}
+    exec(src, scope)  # noqa: S102  (names come from the message definitions above, not from input)
+    return scope["pack"]
+
 _isfinite = math.isfinite
 
 
