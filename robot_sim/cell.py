@@ -194,8 +194,7 @@ class RobotCell:
         """The physics' truth of the current state, read once per step: the tool
         wrench on the sensor, the contact force on the tip, what it touches."""
         self.sim.sensor_wrench(self._true_wrench)
-        self._contact_force, _ = self.sim.contact_wrench()
-        self._touching = self.sim.touching()
+        self._contact_force, _, self._touching = self.sim.contacts()
 
     @property
     def tool_wrench(self) -> np.ndarray:

@@ -133,6 +133,7 @@ class Simulation:
         self._force_adr = m.sensor_adr[m.sensor("ft_force").id]
         self._torque_adr = m.sensor_adr[m.sensor("ft_torque").id]
         self._role_of_geom = {m.geom(name).id: role for name, role in world.contact_geoms.items()}
+        self._geom_names = [m.geom(i).name for i in range(m.ngeom)]
         self._hand_qfrc = np.zeros(m.nv)
         self._contact6 = np.zeros(6)
         self._tau = np.zeros(7)
@@ -242,35 +243,44 @@ class Simulation:
         np.negative(out, out=out)
         return out
 
-    def contact_wrench(self) -> tuple[np.ndarray, set]:
-        """Total force the environment exerts on the tool tip (world axes) and
-        the roles ('plate', 'coupler') of the geoms touched."""
+    def contacts(self) -> tuple[np.ndarray, set, list[str]]:
+        """What the tool tip touches, read once: the total force the environment
+        exerts on it (world axes), the roles ('plate', 'coupler') of the geoms
+        touched and their names."""
         total = np.zeros(3)
         roles = set()
+        names = []
         d = self.data
-        for k in range(d.ncon):
-            c = d.contact[k]
-            if c.geom1 == self._tip_geom:
-                other = c.geom2
-            elif c.geom2 == self._tip_geom:
-                other = c.geom1
+        n = d.ncon
+        if n == 0:
+            return total, roles, names
+        contact = d.contact
+        # the contact list's fields as arrays: one wrapper object per contact cost more than the rest
+        geom1, geom2, frames = contact.geom1.tolist(), contact.geom2.tolist(), contact.frame
+        tip = self._tip_geom
+        for k in range(n):
+            g1, g2 = geom1[k], geom2[k]
+            if g1 == tip:
+                other = g2
+            elif g2 == tip:
+                other = g1
             else:
                 continue
             mujoco.mj_contactForce(self.model, d, k, self._contact6)
             # the contact frame's rows are its axes, the first the normal from
             # geom1 to geom2; the force acts on geom2 along it
-            f_world = c.frame.reshape(3, 3).T @ self._contact6[:3]
-            total += f_world if c.geom2 == self._tip_geom else -f_world
+            f_world = frames[k].reshape(3, 3).T @ self._contact6[:3]
+            total += f_world if g2 == tip else -f_world
             roles.add(self._role_of_geom.get(other, "other"))
+            names.append(self._geom_names[other])
+        return total, roles, names
+
+    def contact_wrench(self) -> tuple[np.ndarray, set]:
+        """Total force the environment exerts on the tool tip (world axes) and
+        the roles ('plate', 'coupler') of the geoms touched."""
+        total, roles, _ = self.contacts()
         return total, roles
 
     def touching(self) -> list[str]:
         """Names of the geoms the tool tip touches."""
-        out = []
-        for k in range(self.data.ncon):
-            c = self.data.contact[k]
-            if c.geom1 == self._tip_geom:
-                out.append(self.model.geom(c.geom2).name)
-            elif c.geom2 == self._tip_geom:
-                out.append(self.model.geom(c.geom1).name)
-        return out
+        return self.contacts()[2]

@@ -163,9 +163,9 @@ class InProcessCell:
 
     def _cycles(self, robot, cmd: str, args: dict) -> dict:
         plan = robot.plan(cmd, args)
+        robot.begin_episode(settle=cmd == "settle")  # before the engine: it counts into the episode's sections
         engine = CycleEngine(robot, plan, self.clock, mode="lockstep", cycle_ns=robot.cell.cycle_ns,
                              answer_timeout_ns=int(robot.config.answer_timeout * 1e9))
-        robot.begin_episode(settle=cmd == "settle")
         bus, clock, nodes = self.bus, self.clock, list(self.nodes.values())
         while not engine.done:
             engine.tick(clock.now_ns())

@@ -49,6 +49,9 @@ def test_fri_packet_loss_loses_commands_and_the_link_counts_them():
     clean = reproduce(cell(), 1.5)
     lossy = reproduce(cell(fri_packet_loss=0.2), 1.5)
     assert clean["fri"]["missed"] == 0
+    # where a cycle's time went, per cycle: microseconds, not the episode's total
+    sections = clean["loop"]["sections"]
+    assert 1.0 < sections["step"]["mean_us"] < 5000.0 and 0.0 < sections["wait"]["mean_us"] < 5000.0, sections
     cycles = lossy["fri"]["answered"] + lossy["fri"]["missed"]
     assert 0.12 < lossy["fri"]["missed"] / cycles < 0.28, lossy["fri"]
 
