@@ -19,7 +19,6 @@ whole job >= 5x faster than over Zenoh lockstep.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 import time
@@ -29,25 +28,6 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
-
-WALL_CLOCK_TOPICS = {"/robot/episode", "/runner/event"}
-
-
-def content(run_dir: Path) -> dict:
-    from services.recording import read_episode
-
-    out = {}
-    for path in sorted((run_dir / "recordings").glob("*.mcap")):
-        msgs = []
-        for m in read_episode(path).messages:
-            if m.topic in WALL_CLOCK_TOPICS:
-                continue
-            d = json.loads(m.payload)
-            d.pop("sent_ns", None)
-            msgs.append((m.topic, d["seq"], json.dumps(d, sort_keys=True)))
-        out[path.name] = sorted(msgs)
-    return out
-
 
 def one(transport: str, scenario: str, out: Path) -> dict:
     from cpuwatch import CpuWatch
@@ -127,7 +107,9 @@ def main():
               f"{row['successes']}/{row['reproductions']:<6}  {acc}")
     if {"zenoh", "inproc"} <= set(rows):
         z, i = rows["zenoh"], rows["inproc"]
-        same = content(runs["zenoh"]["out"]) == content(runs["inproc"]["out"])
+        from services.recording import recorded_content
+
+        same = recorded_content(runs["zenoh"]["out"]) == recorded_content(runs["inproc"]["out"])
         print(f"in-process vs Zenoh: {i['rtf'] / z['rtf']:.1f}x the real-time factor over the episodes, "
               f"the whole job {z['wall'] / i['wall']:.1f}x faster; recordings "
               f"{'the same' if same else 'DIFFERENT'} (payloads without sent_ns)")

@@ -158,14 +158,27 @@ class ServiceProcesses:
 
         return request(self.session, self.run_id, role, cmd, timeout=timeout, **args)
 
-    def run_episode(self, answers_from, stop_on, max_seconds) -> dict:
+    def run_episode(self, answers_from, stop_on, max_seconds, progress=None) -> dict:
+        """One episode (the robot's 'run'); its summary from ``robot/episode``.
+        ``progress(simulated seconds)``, when given, is called about once a second
+        from the robot's status (which it serves every 100 cycles during an episode)."""
         self._episode_done.clear()
-        self.request("robot", "run", wait_for=list(answers_from), stop_on=stop_on, max_seconds=max_seconds)
+        first = self.request("robot", "run", wait_for=list(answers_from), stop_on=stop_on,
+                             max_seconds=max_seconds)["seq"]
         # lockstep runs at the pace of the slowest participant: allow a generous wall-clock budget
-        if not self._episode_done.wait(max(120.0, 30.0 * max_seconds)):
-            self.request("robot", "stop", timeout=10.0)
-            if not self._episode_done.wait(30.0):
-                raise TimeoutError("the robot did not end its episode")
+        deadline = time.monotonic() + max(120.0, 30.0 * max_seconds)
+        while not self._episode_done.wait(1.0 if progress is not None else max(0.0, deadline - time.monotonic())):
+            if time.monotonic() >= deadline:
+                self.request("robot", "stop", timeout=10.0)
+                if not self._episode_done.wait(30.0):
+                    raise TimeoutError("the robot did not end its episode")
+                break
+            try:
+                seq = self.request("robot", "status", timeout=0.5).get("seq")
+            except (TimeoutError, RuntimeError):
+                continue  # busy: the next second will tell
+            if seq is not None:
+                progress(max(0, seq - first) / 1000.0)
         return self._summary
 
     def publish(self, topic: str, payload: bytes) -> None:

@@ -419,6 +419,27 @@ class Episode:
 _READ_ERRORS = (McapError, struct.error, ValueError, EOFError, zstandard.ZstdError, RuntimeError, MemoryError)
 
 
+# topics whose payloads carry wall-clock durations and loop timing: not what a seed determines
+WALL_CLOCK_TOPICS = frozenset({"/robot/episode", "/runner/event"})
+
+
+def recorded_content(run_dir) -> dict:
+    """Per recording file of a run directory, what the seed determines: every message
+    but the wall-clock ones, as (topic, seq, payload without ``sent_ns``), sorted.  Two
+    runs of one seed compare equal, over Zenoh or in one process."""
+    out = {}
+    for path in sorted((Path(run_dir) / "recordings").glob("*.mcap")):
+        msgs = []
+        for m in read_episode(path).messages:
+            if m.topic in WALL_CLOCK_TOPICS:
+                continue
+            d = json.loads(m.payload)
+            d.pop("sent_ns", None)
+            msgs.append((m.topic, d["seq"], json.dumps(d, sort_keys=True)))
+        out[path.name] = sorted(msgs)
+    return out
+
+
 def read_episode(path) -> Episode:
     """Read one recording; see the module docstring for truncated files."""
     path = Path(path)

@@ -24,42 +24,62 @@ import numpy as np
 
 from etar.metrics import score_segmentation
 from services.recording import read_episode
-from services.runtime.messages import BY_TOPIC
+from services.runtime.messages import BY_TOPIC, loads
 from services.runtime.service import STRIDES
 from services.runtime.timing import Histogram, SequenceTracker, percentiles
 
 
-def episode_links(ep) -> dict:
-    """Per topic of one recorded episode: publish -> recorder latency percentiles,
-    and lost / out-of-order messages judged from the sequence numbers."""
-    per = {}
+# what the report reads of each topic: every one an integer (counts, sequence numbers, clocks, labels)
+REPORT_FIELDS = {"robot/state": ("seq", "sent_ns", "stamp_ns", "fri_quality", "fri_state"),
+                 "robot/contact": ("seq", "sent_ns", "true_phase"),
+                 "estimator/phase": ("seq", "sent_ns", "phase")}
+_HEADER = ("seq", "sent_ns")
+
+
+def decoded_messages(ep) -> tuple[dict, int]:
+    """What the report reads of one recorded episode, each message parsed once: per
+    topic, (log time ns, {field: int}).  A message that is not JSON, not an object, or
+    lacks one of those fields as an integer (garbage from a foreign peer, ``"seq":
+    Infinity``, a wrong schema) is counted, never read: one bad message must not cost a
+    run its report."""
+    per: dict[str, list] = {}
+    bad = 0
     for msg in ep.messages:
         topic = msg.topic.lstrip("/")
         if topic not in BY_TOPIC:
             continue
+        names = REPORT_FIELDS.get(topic, _HEADER)
         try:
-            d = json.loads(msg.payload)
-            seq, sent = int(d["seq"]), int(d["sent_ns"])
-        except (ValueError, KeyError, TypeError):
+            d = loads(msg.payload)
+            values = {k: d[k] for k in names}
+        except (ValueError, TypeError, KeyError, UnicodeDecodeError):
+            bad += 1
             continue
-        lat, tracker = per.setdefault(topic, ([], SequenceTracker(stride=STRIDES.get(topic, 1))))
-        lat.append(msg.log_time_ns - sent)
-        tracker.add(seq)
-    return {topic: dict(percentiles(lat), lost=tracker.lost, out_of_order=tracker.out_of_order)
-            for topic, (lat, tracker) in per.items()}
+        if not all(type(v) is int for v in values.values()):
+            bad += 1
+            continue
+        per.setdefault(topic, []).append((msg.log_time_ns, values))
+    return per, bad
 
 
-def reproduction_phases(ep, phase_to_truth: dict, dt: float = 0.01) -> dict:
+def episode_links(decoded: dict) -> dict:
+    """Per topic of one recorded episode: publish -> recorder latency percentiles,
+    and lost / out-of-order messages judged from the sequence numbers."""
+    out = {}
+    for topic, items in decoded.items():
+        tracker = SequenceTracker(stride=STRIDES.get(topic, 1))
+        lat = []
+        for log_time, d in items:
+            lat.append(log_time - d["sent_ns"])
+            tracker.add(d["seq"])
+        out[topic] = dict(percentiles(lat), lost=tracker.lost, out_of_order=tracker.out_of_order)
+    return out
+
+
+def reproduction_phases(decoded: dict, phase_to_truth: dict, dt: float = 0.01) -> dict:
     """Accuracy and transition-time error of the online estimate in one recorded reproduction."""
-    truth_by_seq, est_by_seq = {}, {}
-    for msg in ep.messages:
-        topic = msg.topic.lstrip("/")
-        if topic == "robot/contact":
-            d = json.loads(msg.payload)
-            truth_by_seq[d["seq"]] = d["true_phase"]
-        elif topic == "estimator/phase":
-            d = json.loads(msg.payload)
-            est_by_seq[d["seq"]] = d["phase"]
+    truth_by_seq = {d["seq"]: d["true_phase"] for _, d in decoded.get("robot/contact", ())}
+    est_by_seq = {d["seq"]: d["phase"] for _, d in decoded.get("estimator/phase", ())}
     seqs = sorted(s for s in est_by_seq if s in truth_by_seq)
     if not seqs:
         return {"updates": 0, "accuracy": None}
@@ -74,15 +94,13 @@ STATE_NAMES = ("OFF", "MON", "CMD")
 MAX_TRANSITIONS = 200  # per episode in report.json; a flapping link gets its count, not a list of thousands
 
 
-def fri_quality_series(ep) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def fri_quality_series(decoded: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(simulated time s, FRI quality, FRI state) of every robot_state in one recorded episode."""
     t, q, st = [], [], []
-    for m in ep.messages:
-        if m.topic == "/robot/state":
-            d = json.loads(m.payload)
-            t.append(d["stamp_ns"] / 1e9)
-            q.append(d["fri_quality"])
-            st.append(d["fri_state"])
+    for _, d in decoded.get("robot/state", ()):
+        t.append(d["stamp_ns"] / 1e9)
+        q.append(d["fri_quality"])
+        st.append(d["fri_state"])
     order = np.argsort(t, kind="stable")
     return np.asarray(t)[order], np.asarray(q, dtype=np.int64)[order], np.asarray(st, dtype=np.int64)[order]
 
@@ -140,18 +158,21 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
     out = Path(runner.out)
     # each recording is read once, for every figure taken from it, and let go
     # (a valley run's recordings do not fit in memory together)
-    links, phases_of, quality = {}, {}, {}
+    links, phases_of, quality, undecodable = {}, {}, {}, {}
     reproduction_paths = {r["path"] for r in st.reproductions}
     for d in st.demonstrations + st.reproductions:
         try:
             ep = read_episode(d["path"])
         except (OSError, ValueError):
             continue
-        for topic, v in episode_links(ep).items():
+        decoded, bad = decoded_messages(ep)
+        undecodable[d["path"]] = bad
+        for topic, v in episode_links(decoded).items():
             links.setdefault(topic, []).append(v)
         if d["path"] in reproduction_paths and st.phase_to_truth:
-            phases_of[d["path"]] = reproduction_phases(ep, st.phase_to_truth)
-        quality[d["path"]] = fri_quality_series(ep)
+            phases_of[d["path"]] = reproduction_phases(decoded, st.phase_to_truth)
+        quality[d["path"]] = fri_quality_series(decoded)
+        del ep, decoded
     timelines = {path: fri_quality_timeline(*series) for path, series in quality.items()}
     repro = []
     for r in st.reproductions:
@@ -165,7 +186,8 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
                           bounded_force=bounded, success=reached and bounded, sim_seconds=s["sim_seconds"],
                           wall_seconds=s["wall_seconds"], final_position=s["final_position"], phases=phases,
                           goal_reached_at_s=s.get("goal_reached_at_s", -1.0), fri=s.get("fri"),
-                          fri_quality=timelines.get(r["path"], {})))
+                          fri_quality=timelines.get(r["path"], {}),
+                          undecodable_messages=undecodable.get(r["path"], 0)))
     updates = sum(r["phases"].get("updates", 0) for r in repro)
     correct = sum(r["phases"].get("correct", 0) for r in repro)
     errors = [e for r in repro for e in r["phases"].get("transition_errors_s", [])]
@@ -193,7 +215,8 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
         "paths": "relative to the folder of this report, unless absolute",
         "demonstrations": [dict(path=_in_run(d["path"], out), side=d["side"], start=d["start"], reason=d["summary"]["reason"],
                                 sim_seconds=d["summary"]["sim_seconds"], wall_seconds=d["summary"]["wall_seconds"],
-                                fri=d["summary"].get("fri"), fri_quality=timelines.get(d["path"], {}))
+                                fri=d["summary"].get("fri"), fri_quality=timelines.get(d["path"], {}),
+                                undecodable_messages=undecodable.get(d["path"], 0))
                            for d in st.demonstrations],
         "learning": {"model": _in_run(st.model_path, out), "seconds": getattr(st, "learn_seconds", None),
                      "selection": st.selection,

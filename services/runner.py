@@ -46,6 +46,7 @@ from services.runtime.inproc import InProcessCell
 from services.runtime.messages import RUNNER_EVENT
 from services.runtime.service import now_ns
 from services.runtime.session import ZenohOptions
+from services.progress import EpisodeProgress
 from services.runtime.threads import learning_threads
 from services.scenario import Scenario, ScenarioError, demonstration_starts, load_scenario, reproduction_starts
 
@@ -246,11 +247,17 @@ class Runner:
                                  f"(the same folder, e.g. a shared volume)")
         return path
 
-    def _run_episode(self, answers_from, stop_on, max_seconds) -> dict:
+    def _run_episode(self, answers_from, stop_on, max_seconds, label="episode") -> dict:
         """One episode of cycles (the robot's 'run'); returns the robot's summary.  In
         lockstep each cycle waits for ``answers_from``; in realtime a cycle closes as
-        soon as they have answered, or at its deadline."""
-        return self.cell.run_episode(answers_from, stop_on, max_seconds)
+        soon as they have answered, or at its deadline.  On a terminal a bar shows its
+        simulated time and real-time factor."""
+        bar = EpisodeProgress(label, max_seconds)
+        try:
+            return self.cell.run_episode(answers_from, stop_on, max_seconds,
+                                         progress=bar.update if bar.enabled else None)
+        finally:
+            bar.close()
 
     def _finish(self, kind, index, summary, topic_list):
         rec = self._req("recorder", "end_episode", last_seq=summary["last_seq"], topics=topic_list, timeout=30.0)
@@ -269,7 +276,8 @@ class Runner:
             if stage.goal_x is not None:
                 reset["goal_x"] = stage.goal_x
             self._req("teacher", "reset", **reset)
-            summary = self._run_episode(["teacher"], "teacher_done", stage.max_seconds)
+            summary = self._run_episode(["teacher"], "teacher_done", stage.max_seconds,
+                                        label=f"demonstration {index + 1}/{len(starts)}")
             self._req("teacher", "idle")
             rec = self._finish("demonstration", index, summary, DEMO_TOPICS)
             self.state.demonstrations.append(dict(path=str(path), side=side, start=list(start), summary=summary,
@@ -338,7 +346,7 @@ class Runner:
             self._req("impedance_commander", "reset", model=model_path, episode=index, goal=goal,
                       goal_tolerance=stage.goal_tolerance)
             summary = self._run_episode(["command"], "goal_reached" if stage.stop_at_goal else None,
-                                        stage.max_seconds)
+                                        stage.max_seconds, label=f"reproduction {index + 1}/{len(starts)}")
             rec = self._finish("reproduction", index, summary, REPRO_TOPICS)
             self.state.reproductions.append(dict(path=str(path), side=side, start=list(start), summary=summary,
                                                  recording=rec, max_contact_force=stage.max_contact_force))

@@ -31,6 +31,7 @@ from services.runtime.messages import BY_TOPIC, EPISODE_SUMMARY, MessageError
 from services.runtime.service import _tenth_cycle
 
 _UNDECODED = object()
+PROGRESS_CYCLES = 500  # how often an episode tells its progress (simulated 0.5 s)
 
 
 def _same(a, b) -> bool:
@@ -167,7 +168,12 @@ class InProcessCell:
         engine = CycleEngine(robot, plan, self.clock, mode="lockstep", cycle_ns=robot.cell.cycle_ns,
                              answer_timeout_ns=int(robot.config.answer_timeout * 1e9))
         bus, clock, nodes = self.bus, self.clock, list(self.nodes.values())
+        progress = getattr(self, "_progress", None) if cmd == "run" else None
+        next_report = PROGRESS_CYCLES
         while not engine.done:
+            if progress is not None and engine.k >= next_report:
+                next_report += PROGRESS_CYCLES
+                progress(engine.k * robot.cell.cycle_ns / 1e9)
             engine.tick(clock.now_ns())
             bus.drain()
             if engine.awaiting():
@@ -183,9 +189,15 @@ class InProcessCell:
         # what a runner over Zenoh gets: the summary as it crosses the wire
         return EPISODE_SUMMARY.decode(EPISODE_SUMMARY.encode(**summary))
 
-    def run_episode(self, answers_from, stop_on, max_seconds) -> dict:
-        """One episode (the robot's 'run'), driven to its end; its summary."""
-        reply = self.request("robot", "run", wait_for=list(answers_from), stop_on=stop_on, max_seconds=max_seconds)
+    def run_episode(self, answers_from, stop_on, max_seconds, progress=None) -> dict:
+        """One episode (the robot's 'run'), driven to its end; its summary.
+        ``progress(simulated seconds)`` is called every PROGRESS_CYCLES cycles."""
+        self._progress = progress
+        try:
+            reply = self.request("robot", "run", wait_for=list(answers_from), stop_on=stop_on,
+                                 max_seconds=max_seconds)
+        finally:
+            self._progress = None
         reply.pop("ok", None)
         return reply
 

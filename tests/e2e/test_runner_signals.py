@@ -35,10 +35,14 @@ def test_sigterm_stops_the_services_and_writes_a_report(tmp_path):
          "--run-id", run_id], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 120
-        for line in runner.stderr:  # wait until the services run a demonstration
+        for line in runner.stderr:  # until the services are up
             if "services ready" in line or time.monotonic() > deadline:
                 break
-        time.sleep(2.0)
+        # until the first demonstration is being recorded: the recorder has written its first chunk
+        first = out / "recordings" / "demonstration_00.mcap"
+        while not (first.exists() and first.stat().st_size > 10_000) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert first.exists(), f"no recording after {deadline} s"
         services = [p for p in processes_of(run_id) if p != runner.pid]
         assert len(services) == 6, services
         runner.send_signal(signal.SIGTERM)

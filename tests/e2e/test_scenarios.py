@@ -7,27 +7,12 @@ from collections import Counter
 from pathlib import Path
 
 
-from services.recording import read_episode
+from services.recording import WALL_CLOCK_TOPICS, read_episode, recorded_content
 from services.runner import RunOptions, run
 
 ROOT = Path(__file__).resolve().parents[2]
 SMOKE = str(ROOT / "scenarios" / "smoke.yaml")
-WALL_CLOCK_TOPICS = {"/robot/episode", "/runner/event"}  # wall-clock durations and loop timing
-
-
-def content(run_dir: Path) -> dict:
-    """Per recording file: the messages as (topic, payload without sent_ns), in seq order."""
-    out = {}
-    for path in sorted((run_dir / "recordings").glob("*.mcap")):
-        msgs = []
-        for m in read_episode(path).messages:
-            if m.topic in WALL_CLOCK_TOPICS:
-                continue
-            d = json.loads(m.payload)
-            d.pop("sent_ns", None)
-            msgs.append((m.topic, d["seq"], json.dumps(d, sort_keys=True)))
-        out[path.name] = sorted(msgs)
-    return out
+content = recorded_content
 
 
 def check_recordings(run_dir: Path, report: dict) -> None:

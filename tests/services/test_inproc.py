@@ -95,3 +95,27 @@ def test_garbage_is_counted_and_never_delivered_and_a_wrong_message_in_memory_is
     msg = dict(msg, seq=3)  # what a node would hand over is not what the bytes say
     with pytest.raises(AssertionError, match="not what its bytes decode to"):
         bus.publish("robot/contact", raw, msg)
+
+
+def test_an_episode_tells_its_progress(monkeypatch):
+    import io
+    import sys as _sys
+
+    from services.progress import EpisodeProgress
+
+    seen = []
+    c = cell()
+    c.request("robot", "reset", start=START, episode=0, kind="reproduction")
+    c.request("ft_sensor", "tare", samples=100)
+    c.request("robot", "settle", cycles=200, wait_for=["ft"])
+    c.request("phase_estimator", "reset", model=MODEL, episode=0)
+    c.request("impedance_commander", "reset", model=MODEL, episode=0)
+    c.run_episode(["command"], None, 1.6, progress=seen.append)
+    assert seen == [0.5, 1.0, 1.5]  # simulated seconds, every 500 cycles
+    screen = io.StringIO()
+    monkeypatch.setattr(_sys, "stderr", screen)
+    bar = EpisodeProgress("reproduction 1/20", 40.0, enabled=True)
+    bar.update(2.0)
+    bar.close()
+    assert "reproduction 1/20: 2.0/40 sim s" in screen.getvalue() and "x real time" in screen.getvalue()
+    assert not EpisodeProgress("quiet", 1.0, enabled=False).enabled

@@ -13,6 +13,19 @@ from services.runtime.service import request
 from services.runtime.session import ZenohOptions, open_session
 
 
+def wait_until_matched(publisher, timeout: float = 10.0) -> bool:
+    """Until a subscriber somewhere matches ``publisher`` (Zenoh's matching status: an
+    event, not a guess at how long a subscription takes to propagate)."""
+    matched = threading.Event()
+    listener = publisher.declare_matching_listener(lambda status: status.matching and matched.set())
+    try:
+        if publisher.matching_status.matching:
+            return True
+        return matched.wait(timeout)
+    finally:
+        listener.undeclare()
+
+
 @pytest.fixture
 def ft_sensor(tmp_path):
     endpoint = f"tcp/127.0.0.1:{launch.free_port()}"
@@ -39,7 +52,7 @@ def test_garbage_is_dropped_and_counted_valid_messages_are_answered(ft_sensor):
 
     sub = session.declare_subscriber(topics.key(run_id, "ft/wrench"), on_wrench)
     pub = session.declare_publisher(topics.key(run_id, "robot/contact"))
-    time.sleep(0.2)  # let the subscription propagate to the peer
+    assert wait_until_matched(pub), "the sensor's subscription never reached this publisher"
     for junk in (b"\x00\xff not json", b'{"seq": "one"}', b'{"seq":1,"stamp_ns":0,"sent_ns":0,"wrench":[NaN,0,0,0,0,0],'
                  b'"contact_force":[0,0,0],"touching":[],"true_phase":0,"episode":0}'):
         pub.put(junk)

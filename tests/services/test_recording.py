@@ -450,3 +450,24 @@ def test_the_recorder_takes_episode_paths_relative_to_its_one_folder_only(tmp_pa
     for bad in ("/abs/demonstration_00.mcap", "../escape.mcap", "a/../../b.mcap", ""):
         with pytest.raises(ValueError, match="relative to the recorder's --out-dir"):
             episode_path(tmp_path, bad)
+
+
+def test_the_report_reads_past_garbage_in_a_recording_and_counts_it(tmp_path, rng):
+    """What a foreign peer could publish into a run (random bytes, a seq of Infinity, a
+    wrong schema) is recorded as received, and the report's reader skips it: it once
+    crashed the report of a run that had reached its goal."""
+    from services.report import decoded_messages, episode_links, fri_quality_series, reproduction_phases
+
+    messages = mixed_messages(60, rng)
+    garbage = [os.urandom(11), b'{"seq": Infinity, "stamp_ns": 0, "sent_ns": 0}', b'{"seq": 3}', b"[1, 2]",
+               b'{"seq": 1.5, "sent_ns": 0, "stamp_ns": 0, "fri_quality": 3, "fri_state": 2}']
+    messages += [(key("robot/state"), g, 5_030_000_000 + i) for i, g in enumerate(garbage)]
+    write_episode(tmp_path / "g.mcap", messages)
+    decoded, bad = decoded_messages(read_episode(tmp_path / "g.mcap"))
+    assert bad == len(garbage)
+    assert len(decoded["robot/state"]) == 60 and len(decoded["estimator/phase"]) == 6
+    links = episode_links(decoded)
+    assert links["robot/state"]["lost"] == 0 and links["robot/state"]["out_of_order"] == 0
+    t, q, state = fri_quality_series(decoded)
+    assert len(t) == 60 and set(q.tolist()) == {3} and set(state.tolist()) == {2}
+    assert reproduction_phases(decoded, {1: 1})["accuracy"] == 1.0
