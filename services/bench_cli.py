@@ -29,6 +29,10 @@ def cmd_run(args) -> int:
 
     out = args.out or f"runs/{Path(args.scenario).stem}-{time.strftime('%Y%m%d-%H%M%S')}"
     zopts = zenoh_options(args) if args.connect else None
+    if args.attach and args.transport == "inproc":
+        _say("etar-bench run: --attach drives services already running over Zenoh; it cannot be combined with "
+             "--transport inproc")
+        return 2
     if args.attach and (zopts is None or not args.run_id):
         _say("etar-bench run: --attach needs --connect (the router or a peer) and --run-id (the services')")
         return 2

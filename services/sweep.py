@@ -284,35 +284,48 @@ def write_table(rows: list[dict], out: Path) -> tuple[Path, Path]:
 
 
 def plot(rows: list[dict], parameters: list, out: Path) -> list[Path]:
-    """One PNG per parameter: each metric against it, every seed a dot, the mean a line."""
+    """One PNG per parameter: each metric against it, every seed a dot, the mean a line
+    (a log axis for positive values spanning a decade or more)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
     import numpy as np
 
     written = []
     for p in parameters:
         col = f"param {p.path}"
         numeric = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in p.values)
-        xs_all = list(p.values)
-        fig, axes = plt.subplots(1, len(METRICS), figsize=(4 * len(METRICS), 3.6))
-        for ax, (key, label) in zip(axes, METRICS):
+        values = list(p.values)
+        logx = numeric and min(values) > 0 and max(values) / min(values) >= 10
+        fig, axes = plt.subplots(2, 3, figsize=(13, 7))
+        for ax, (key, label) in zip(axes.ravel(), METRICS):
             means = []
-            for i, v in enumerate(xs_all):
-                ys = [r.get(key) for r in rows if r.get(col) == v and r.get(key) is not None]
+            for i, v in enumerate(values):
+                ys = [r.get(key) for r in rows if r.get(col) == v and r.get(key) is not None and not r.get("error")]
                 x = v if numeric else i
-                ax.scatter([x] * len(ys), ys, s=18, alpha=0.6, color="C0")
+                ax.scatter([x] * len(ys), ys, s=22, alpha=0.6, color="C0", label="one seed" if i == 0 else None)
                 means.append((x, float(np.mean(ys)) if ys else float("nan")))
-            ax.plot([m[0] for m in means], [m[1] for m in means], "-", color="C1", label="mean over seeds")
+            ax.plot([m[0] for m in means], [m[1] for m in means], "-o", ms=3, color="C1", label="mean over seeds")
+            if logx:
+                ax.set_xscale("log")
+                ax.set_xticks(values, [f"{v:g}" for v in values])
+            elif not numeric:
+                ax.set_xticks(range(len(values)), [str(v) for v in values])
+            if key == "phases_chosen":
+                ax.yaxis.set_major_locator(MaxNLocator(integer=True))
+                top = max([m[1] for m in means if m[1] == m[1]], default=1.0)
+                ax.set_ylim(0.5, top + 1.5)
             ax.set_xlabel(p.path)
             ax.set_ylabel(label)
-            ax.set_title(label, fontsize=9)
-            if not numeric:
-                ax.set_xticks(range(len(xs_all)), [str(v) for v in xs_all])
             ax.grid(alpha=0.3)
-        axes[0].legend(fontsize=7)
-        fig.suptitle(f"sweep over {p.path} ({len(rows)} runs)")
+        axes[0, 0].legend(fontsize=8)
+        axes.ravel()[-1].axis("off")
+        seeds = sorted({r.get("seed") for r in rows})
+        axes.ravel()[-1].text(0.0, 0.9, f"{len(rows)} runs: {len(values)} values x {len(seeds)} seed(s)\n"
+                              f"runs that failed to run: {sum(1 for r in rows if r.get('error'))}", fontsize=10, va="top")
+        fig.suptitle(f"sweep over {p.path}")
         fig.tight_layout()
         path = out / f"{p.path.replace('.', '_').replace('[', '_').replace(']', '')}.png"
         fig.savefig(path, dpi=90)
