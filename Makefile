@@ -14,7 +14,7 @@ OUT ?= out/$(basename $(notdir $(SCENARIO)))
 $(STAMP): pyproject.toml setup.py robot_sim/native/pinocchio_inplace.cpp
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade "pip>=24,<27"
-	$(BIN)/python -m pip install --quiet -e ".[test]"
+	$(BIN)/python -m pip install --quiet -e ".[test,cluster]"
 	touch $(STAMP)
 
 venv: $(STAMP)

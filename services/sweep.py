@@ -236,7 +236,11 @@ def execute(specs: list[RunSpec], workers: int, cluster: str | None, say=print) 
             + f"  [{len(rows)}/{len(specs)}, {time.monotonic() - t0:.0f} s]")
 
     if cluster:
-        from distributed import Client, as_completed as dask_completed
+        try:
+            from distributed import Client, as_completed as dask_completed
+        except ImportError:
+            raise SweepError("--cluster needs Dask distributed: pip install 'etar-testbench[cluster]' "
+                             "(make run and make test install it)") from None
 
         with Client(cluster, timeout="30s") as client:
             say(f"sweep: {len(specs)} runs on the Dask cluster at {cluster} "

@@ -36,7 +36,7 @@ def ft_sensor(tmp_path):
         launch.wait_alive(session, run_id, ["ft_sensor"], [proc], timeout=60)
         yield session, run_id, proc
     finally:
-        codes = launch.stop([proc])
+        codes = launch.stop([proc], grace=0.0)  # SIGINT at once: nobody asked it to shut down
         session.close()
         assert codes["ft_sensor"] == 0, proc.tail()  # SIGINT: a clean exit
 
