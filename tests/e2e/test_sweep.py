@@ -5,6 +5,7 @@ import csv
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
 import time
@@ -110,12 +111,9 @@ def dask_cluster(tmp_path):
         yield address
     finally:
         for p in (worker, scheduler):
-            p.terminate()
+            os.killpg(p.pid, signal.SIGKILL)  # nothing of theirs needs to outlive the test
         for p in (worker, scheduler):
-            try:
-                p.wait(30)
-            except subprocess.TimeoutExpired:
-                p.kill()
+            p.wait(30)
         for f in logs:
             f.close()
 
