@@ -87,13 +87,7 @@ class PhaseLaw:
     in_place: bool  # demonstrated without going anywhere: go to where it happened and stay
     place: np.ndarray | None  # (3,) the demonstrations' mean position in this phase
     aim: np.ndarray | None  # (3,) free motion into a phase done in place: head for its place
-
-    @property
-    def turns(self) -> bool:
-        return self._turns
-
-    def __post_init__(self):
-        object.__setattr__(self, "_turns", bool(np.any(self.angular_velocity)))
+    turns: bool  # the angular velocity is not zero
 
 
 def _impedance(imp) -> PhaseImpedance | None:
@@ -147,7 +141,7 @@ class ReproductionPolicy:
                 aim = np.asarray(follow.mean_position, dtype=np.float64)
         place = None if imp.mean_position is None else np.asarray(imp.mean_position, dtype=np.float64)
         return PhaseLaw(np.asarray(imp.direction, dtype=np.float64), K, self._damping(K), F_ff,
-                        max(float(imp.mean_speed), 0.01), omega, in_place, place, aim)
+                        max(float(imp.mean_speed), 0.01), omega, in_place, place, aim, bool(omega.any()))
 
     def reset(self) -> None:
         self.phase = None

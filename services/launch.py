@@ -17,6 +17,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from services.runtime import topics
 from services.runtime.service import alive_services
 
 MODULES = {
@@ -116,7 +117,6 @@ class ServiceProcesses:
     an episode as the robot's 'run' request and its ``robot/episode`` summary."""
 
     def __init__(self, run_id: str, log_dir: Path, *, attach: bool = False, zenoh=None):
-        from services.runtime import topics
         from services.runtime.session import ZenohOptions, open_session
 
         self.run_id = run_id
@@ -132,17 +132,17 @@ class ServiceProcesses:
         self._publishers = {}
         self._episode_done = threading.Event()
         self._summary = None
-        self._topics = topics
         self._sub = self.session.declare_subscriber(topics.key(run_id, "robot/episode"), self._on_episode)
         self._stopped = False
         self._codes = {}
 
-    def start(self, args_of: dict, timeout: float) -> None:
-        """``args_of[role](connect endpoint)``: the flags of each role's process."""
+    def start(self, roles, args_of, timeout: float) -> None:
+        """Spawn each role's process, ``args_of(role, endpoint to connect to)`` its flags
+        (none with ``attach``), and wait until every one is alive."""
         if not self.attach:
-            for role, args in args_of.items():
-                self.processes.append(spawn(role, args(self.endpoint), self.log_dir))
-        wait_alive(self.session, self.run_id, list(args_of), self.processes, timeout=timeout)
+            for role in roles:
+                self.processes.append(spawn(role, args_of(role, self.endpoint), self.log_dir))
+        wait_alive(self.session, self.run_id, list(roles), self.processes, timeout=timeout)
 
     def _on_episode(self, sample) -> None:
         from services.runtime.messages import EPISODE_SUMMARY
@@ -184,7 +184,7 @@ class ServiceProcesses:
     def publish(self, topic: str, payload: bytes) -> None:
         pub = self._publishers.get(topic)
         if pub is None:
-            pub = self._publishers[topic] = self.session.declare_publisher(self._topics.key(self.run_id, topic))
+            pub = self._publishers[topic] = self.session.declare_publisher(topics.key(self.run_id, topic))
         pub.put(payload)
 
     def statistics(self, roles) -> dict:

@@ -316,13 +316,10 @@ def _writer_main(requests, replies) -> None:
     """The helper process: open / add / finish / close requests, until the pipe closes."""
     writer = None
 
-    class _Reply:
-        @staticmethod
-        def send(value):
-            pickle.dump(value, replies, protocol=pickle.HIGHEST_PROTOCOL)
-            replies.flush()
+    def reply(value) -> None:
+        pickle.dump(value, replies, protocol=pickle.HIGHEST_PROTOCOL)
+        replies.flush()
 
-    conn = _Reply
     try:
         while True:
             try:
@@ -342,15 +339,15 @@ def _writer_main(requests, replies) -> None:
                     if writer is not None:
                         writer.finish()
                     writer = EpisodeWriter(request[1], **request[2])
-                    conn.send((True, None))
+                    reply((True, None))
                 elif kind == "finish":
                     w, writer = writer, None
                     if w is None:
                         raise RecordingError("no episode is being recorded")
                     w.finish()
-                    conn.send((True, (w.messages_written, w.bad_payloads)))
+                    reply((True, (w.messages_written, w.bad_payloads)))
             except Exception as exc:  # the parent raises it, naming the file
-                conn.send((False, f"{type(exc).__name__}: {exc}"))
+                reply((False, f"{type(exc).__name__}: {exc}"))
     finally:
         if writer is not None:
             writer.finish()
@@ -676,4 +673,8 @@ if __name__ == "__main__":
     if sys.argv[1:] != ["--writer-process"]:
         sys.exit("python -m services.recording --writer-process: the MCAP writer of an in-process run "
                  "(started by services.recording.WriterProcess, not by hand)")
-    _writer_main(sys.stdin.buffer, sys.stdout.buffer)
+    # the replies get their own copy of stdout, and stdout itself goes to stderr: a stray
+    # print in this process must not corrupt the pickled replies
+    replies = os.fdopen(os.dup(1), "wb")
+    os.dup2(2, 1)
+    _writer_main(sys.stdin.buffer, replies)

@@ -40,13 +40,13 @@ from etar.task import LearnedTask, TaskError, learn_task, load_task
 from services import launch
 from services.nodes import (CommanderConfig, EstimatorConfig, FtSensorConfig, RecorderConfig, RobotConfig,
                             TeacherConfig)
+from services.progress import EpisodeProgress
 from services.recording import RecordingError, load_demonstration
 from services.runtime.config import config_to_args, with_flags
 from services.runtime.inproc import InProcessCell
 from services.runtime.messages import RUNNER_EVENT
 from services.runtime.service import now_ns
 from services.runtime.session import ZenohOptions
-from services.progress import EpisodeProgress
 from services.runtime.threads import learning_threads
 from services.scenario import Scenario, ScenarioError, demonstration_starts, load_scenario, reproduction_starts
 
@@ -190,8 +190,8 @@ class Runner:
             else:
                 self.cell = launch.ServiceProcesses(self.run_id, self.out / "logs", attach=self.options.attach,
                                                     zenoh=self.options.zenoh)
-                self.cell.start({role: (lambda role, cfg: lambda connect: self.process_args(role, cfg, connect))(
-                    role, cfg) for role, cfg in configs.items()}, timeout=self.options.ready_timeout)
+                self.cell.start(configs, lambda role, connect: self.process_args(role, configs[role], connect),
+                                timeout=self.options.ready_timeout)
             self.say(f"services ready ({', '.join(self.roles())}) after {time.monotonic() - t0:.1f} s")
             for stage in self.scenario.stages:
                 getattr(self, f"stage_{stage.kind}")(stage)

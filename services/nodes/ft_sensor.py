@@ -52,7 +52,7 @@ class FtSensorNode(Node):
         self._lock = threading.Lock()
         self._wrench = np.zeros(6)
         self.publications = [Publication("ft/wrench")]
-        self.subscriptions = [Subscription("robot/contact", self.on_contact, latest=mode == "realtime")]
+        self.subscriptions = [Subscription("robot/contact", self.on_contact, latest=True)]
 
     def on_contact(self, msg, recv_ns, raw) -> None:
         with self._lock:

@@ -82,9 +82,9 @@ class ImpedanceCommanderNode(Node):
         self._recv_ns = 0
         self._cart_pos = np.empty((3, 4))  # the setpoint pose [R | p], packed into each command
         self.task = load_task(config.model) if config.model else None
-        self.publications = [Publication("robot/command", drop_when_congested=not self.lockstep)]
-        self.subscriptions = [Subscription("robot/state", self.on_state, latest=not self.lockstep),
-                              Subscription("estimator/phase", self.on_phase, latest=not self.lockstep)]
+        self.publications = [Publication("robot/command", drop_when_congested=True)]
+        self.subscriptions = [Subscription("robot/state", self.on_state, latest=True),
+                              Subscription("estimator/phase", self.on_phase, latest=True)]
 
     def on_phase(self, msg, recv_ns, raw):
         with self._lock:

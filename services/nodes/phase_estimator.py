@@ -50,10 +50,9 @@ class PhaseEstimatorNode(Node):
         self._lock = threading.Lock()
         self._states: dict[int, dict] = {}
         self._wrenches: dict[int, dict] = {}
-        latest = mode == "realtime"
         self.publications = [Publication("estimator/phase")]
-        self.subscriptions = [Subscription("robot/state", self.on_state, every_tenth=True, latest=latest),
-                              Subscription("ft/wrench", self.on_wrench, every_tenth=True, latest=latest)]
+        self.subscriptions = [Subscription("robot/state", self.on_state, every_tenth=True, latest=True),
+                              Subscription("ft/wrench", self.on_wrench, every_tenth=True, latest=True)]
 
     def on_state(self, msg, recv_ns, raw):
         if msg["stamp_ns"] % PERIOD_NS:

@@ -122,9 +122,8 @@ class RobotNode(Node):
         self._episode_after = None
         self._m = None
         self._sent = 0
-        realtime = not self.lockstep
-        self.publications = [Publication("robot/state", drop_when_congested=realtime),
-                             Publication("robot/contact", drop_when_congested=realtime),
+        self.publications = [Publication("robot/state", drop_when_congested=True),
+                             Publication("robot/contact", drop_when_congested=True),
                              Publication("robot/episode", express=False)]
         # realtime needs only what it applies; lockstep also waits on the sensor and the estimator
         self.subscriptions = [Subscription(topic, self._on_answer(name)) for name, topic in ANSWER_TOPICS.items()

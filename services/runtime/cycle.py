@@ -36,7 +36,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from services.runtime.loop import LoopTiming, Sections
+from services.runtime.loop import LoopTiming
 
 PHASE_PERIOD_NS = 10_000_000  # the estimator answers every tenth cycle (100 Hz of simulated time)
 PARTICIPANTS = ("command", "teacher", "ft", "phase")
@@ -81,7 +81,6 @@ class CycleEngine:
         self.stall_every = int(stall_every_cycles)
         self.stall_s = float(stall_s)
         self.timing = LoopTiming(self.period)
-        self.sections: Sections = participant.sections
         self.k = 0  # cycles closed
         self.missed_answers = 0
         self.reason = plan.default_reason
@@ -133,7 +132,7 @@ class CycleEngine:
                 if not quiescent and now - self._opened_at < self.answer_timeout:
                     return self._opened_at + self.answer_timeout
                 self.missed_answers += 1
-            self.sections.add("wait", now - self._opened_at)
+            self.p.sections.add("wait", now - self._opened_at)
             self._close(self.plan.stop_on)
             self.timing.record(0, self.clock.now_ns() - self._work_start, missed=False)
             if self._finished():
@@ -156,7 +155,7 @@ class CycleEngine:
             return self._deadline
         deadline = self._deadline
         if self._idle_since is not None:
-            self.sections.add("wait", now - self._idle_since)
+            self.p.sections.add("wait", now - self._idle_since)
         if self._open_seq is not None:
             self._close(self.plan.stop_on)  # unanswered: FRI counts the miss and bridges
             if self._finished():
@@ -174,7 +173,7 @@ class CycleEngine:
         return nxt
 
     def _open(self) -> None:
-        self.sections.cycles += 1
+        self.p.sections.cycles += 1
         self._open_seq, self._open_stamp = self.p.open_cycle()
 
     def _close(self, stop_on) -> None:

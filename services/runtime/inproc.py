@@ -58,6 +58,7 @@ class InProcessBus:
         self.received: dict[tuple, int] = {}  # (node, topic) -> messages handed over
         self.bad: dict[tuple, int] = {}  # (node, topic) -> messages that did not decode or whose handler raised
         self.last_error: dict[tuple, str] = {}
+        self._decode_error = ""
 
     def attach(self, node) -> None:
         for sub in node.subscriptions:
@@ -129,6 +130,7 @@ class InProcessCell:
         self.run_id = run_id
         self.bus = InProcessBus(self.clock)
         self.nodes = {}
+        self._progress = None  # run_episode's progress callback, for the cycles of that episode
         for role, config in configs.items():
             node_cls, _ = NODES[role]
             node = node_cls(config, self.bus, self.clock, run_id=run_id, mode="lockstep")
@@ -164,11 +166,11 @@ class InProcessCell:
 
     def _cycles(self, robot, cmd: str, args: dict) -> dict:
         plan = robot.plan(cmd, args)
-        robot.begin_episode(settle=cmd == "settle")  # before the engine: it counts into the episode's sections
+        robot.begin_episode(settle=cmd == "settle")
         engine = CycleEngine(robot, plan, self.clock, mode="lockstep", cycle_ns=robot.cell.cycle_ns,
                              answer_timeout_ns=int(robot.config.answer_timeout * 1e9))
         bus, clock, nodes = self.bus, self.clock, list(self.nodes.values())
-        progress = getattr(self, "_progress", None) if cmd == "run" else None
+        progress = self._progress if cmd == "run" else None
         next_report = PROGRESS_CYCLES
         while not engine.done:
             if progress is not None and engine.k >= next_report:

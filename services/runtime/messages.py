@@ -137,12 +137,7 @@ class MessageType:
                 if f.optional:
                     continue
                 raise MessageError(f"{self.name}: field '{f.name}' is missing")
-            v = values[f.name]
-            if hasattr(v, "tolist"):
-                v = v.tolist()
-            elif type(v) is tuple:
-                v = list(v)
-            out[f.name] = v
+            out[f.name] = _plain_value(values[f.name])
         extra = set(values) - {f.name for f in self.fields}
         if extra:
             raise MessageError(f"{self.name}: unknown field(s) {sorted(extra)}")

@@ -115,7 +115,7 @@ def _answered_first(fn):
 
 def drive_episode(node, svc: Service, plan, mode: str, clock, config, settle: bool = False) -> dict:
     """Run one episode of cycles on the wall clock; returns its summary."""
-    node.begin_episode(settle)  # before the engine: it counts into the episode's sections
+    node.begin_episode(settle)
     engine = CycleEngine(node, plan, clock, mode=mode, cycle_ns=node.cell.cycle_ns,
                          answer_timeout_ns=int(config.answer_timeout * 1e9),
                          stall_every_cycles=int(config.stall_every * 1000) if config.stall_ms > 0 else 0,
