@@ -84,6 +84,9 @@ def main():
     parser.add_argument("--isolate-robot", action="store_true")
     parser.add_argument("--cpu-latency-qos", action="store_true",
                         help="hold /dev/cpu_dma_latency at 0 during the run (idle CPUs poll; needs root)")
+    parser.add_argument("--profile", default="none",
+                        help="the runner's realtime profile (auto, none or parts: fifo,isolate,poll; default none: "
+                             "only the flags above apply)")
     parser.add_argument("--out", help="run directory (default: a temporary one)")
     args = parser.parse_args()
 
@@ -119,7 +122,8 @@ def main():
         if args.fifo_chain:
             priorities += (("ft_sensor", 50), ("phase_estimator", 45))
         report = run(RunOptions(scenario=str(scenario), out=str(out), run_id=run_id, sched_fifo=args.sched_fifo,
-                                isolate_robot=args.isolate_robot, fifo_priorities=priorities),
+                                isolate_robot=args.isolate_robot, fifo_priorities=priorities,
+                                realtime_profile=args.profile),
                      progress=lambda m: print(m, file=sys.stderr))
     finally:
         watch.stop()

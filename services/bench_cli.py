@@ -18,6 +18,16 @@ from pathlib import Path
 from services.runtime.session import add_zenoh_arguments, zenoh_options
 
 
+def _profile(text: str) -> str:
+    from services.realtime_profile import parse_profile
+
+    try:
+        parse_profile(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
 def _say(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
@@ -42,7 +52,7 @@ def cmd_run(args) -> int:
     try:
         report = run(RunOptions(scenario=args.scenario, out=out, clock=args.clock, run_id=args.run_id, zenoh=zopts,
                                 transport=args.transport, attach=args.attach, ready_timeout=args.ready_timeout,
-                                sched_fifo=args.sched_fifo),
+                                sched_fifo=args.sched_fifo, realtime_profile=args.realtime_profile),
                      progress=_say)
     except (ScenarioError, TaskError) as exc:
         _say(f"etar-bench run: error: {exc}")
@@ -146,9 +156,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--attach", action="store_true",
                    help="drive services that are already running (docker-compose) instead of starting them")
     p.add_argument("--ready-timeout", type=float, default=60.0, help="seconds to wait for the services")
+    p.add_argument("--realtime-profile", default="auto", type=_profile, metavar="auto|none|PARTS",
+                   help="with --clock realtime, what the run asks of the machine, each where permitted: fifo "
+                        "(SCHED_FIFO for the FRI chain: robot 60, commander and teacher 55, sensor 50, "
+                        "estimator 45), isolate (the robot alone on the last CPU), poll (idle CPUs poll: "
+                        "/dev/cpu_dma_latency 0). auto (default): all three; none; or a comma list. The report "
+                        "says what was granted")
     p.add_argument("--sched-fifo", action="store_true",
-                   help="SCHED_FIFO (where permitted) for the robot (priority 60) and the impedance commander (55), "
-                        "the two ends of the FRI link; the other services stay ordinary processes")
+                   help="SCHED_FIFO (where permitted) for the robot (priority 60) and the impedance commander (55) "
+                        "only, whatever the profile (the profile's fifo covers the whole chain)")
     add_zenoh_arguments(p)
     p.set_defaults(func=cmd_run)
     p = sub.add_parser("sweep", help="run every combination of scenario parameters x seeds in parallel, "

@@ -41,6 +41,7 @@ from services import launch
 from services.nodes import (CommanderConfig, EstimatorConfig, FtSensorConfig, RecorderConfig, RobotConfig,
                             TeacherConfig)
 from services.progress import EpisodeProgress
+from services.realtime_profile import FIFO_CHAIN, Grant, parse_profile, probe
 from services.recording import RecordingError, load_demonstration
 from services.runtime.config import config_to_args, with_flags
 from services.runtime.inproc import InProcessCell
@@ -83,10 +84,14 @@ class RunOptions:
     isolate_robot: bool = False
     ready_timeout: float = 60.0
     learn_threads: int | None = None  # numba threads for learning; None: the CPUs this process may use
+    # with the realtime clock: what to ask of the machine (services.realtime_profile);
+    # sched_fifo / isolate_robot above add to it with their own priorities
+    realtime_profile: str = "auto"
 
     def __post_init__(self):
         if self.transport not in TRANSPORTS:
             raise ValueError(f"transport must be one of {TRANSPORTS}, got {self.transport!r}")
+        parse_profile(self.realtime_profile)
 
 
 @dataclass
@@ -124,6 +129,8 @@ class Runner:
         self.state = RunState()
         self.cell = None
         self.service_stats = {}
+        realtime = self.scenario.clock == "realtime" and options.transport == "zenoh"
+        self.profile = Grant(parse_profile(options.realtime_profile) if realtime else frozenset())
 
     # --------------------------------------------------------------- roles
 
@@ -157,10 +164,13 @@ class Runner:
     def process_args(self, role: str, config, connect: str) -> list[str]:
         """The command-line flags of ``role``'s process (``services.runtime.process``)."""
         sc = self.scenario
-        priority = dict(self.options.fifo_priorities).get(role) if self.options.sched_fifo else None
+        if self.options.sched_fifo:
+            priority = dict(self.options.fifo_priorities).get(role)
+        else:
+            priority = dict(FIFO_CHAIN).get(role) if "fifo" in self.profile.granted else None
         common = ["--run-id", self.run_id, "--clock", sc.clock] + (["--sched-fifo", str(priority)] if priority else [])
         cpus = os.sched_getaffinity(0)
-        if self.options.isolate_robot and len(cpus) >= 2:
+        if (self.options.isolate_robot or "isolate" in self.profile.granted) and len(cpus) >= 2:
             last = max(cpus)
             mine = [last] if role in ROBOT_CPU_ROLES else sorted(cpus - {last})
             common += ["--cpus", ",".join(map(str, mine))]
@@ -185,6 +195,7 @@ class Runner:
             if self.scenario.model is not None:
                 self._use_model(self.scenario.model_path())  # a bad model fails before anything starts
             configs = self.node_configs()
+            self._apply_profile()
             if self.options.transport == "inproc":
                 self.cell = InProcessCell(self.run_id, configs)
             else:
@@ -208,12 +219,28 @@ class Runner:
             if self.cell is not None:
                 self.service_stats = self.cell.statistics(self.roles())
                 codes = self.cell.stop(self.roles(), before_report=True)
+            self.profile.release()
             try:
                 report = write_report(self, codes, error, time.monotonic() - t0)
             finally:
                 if self.cell is not None:
                     self.cell.stop(self.roles(), before_report=False)
         return report
+
+    def _apply_profile(self) -> None:
+        """Find out what the realtime profile is granted, before any service starts, and
+        say in one line what a refusal will cost."""
+        if not self.profile.requested:
+            return
+        if self.options.attach:
+            self.profile.refused = {p: "the services were started by someone else (--attach)"
+                                    for p in sorted(self.profile.requested)}
+        else:
+            self.profile = probe(self.profile.requested)
+        self.say(f"realtime profile: granted {', '.join(sorted(self.profile.granted)) or 'nothing'}")
+        warning = self.profile.warning()
+        if warning:
+            self.say(f"warning: {warning}")
 
     # ------------------------------------------------------------- helpers
 

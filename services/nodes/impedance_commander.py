@@ -86,6 +86,10 @@ class ImpedanceCommanderNode(Node):
         self.subscriptions = [Subscription("robot/state", self.on_state, latest=True),
                               Subscription("estimator/phase", self.on_phase, latest=True)]
 
+    @property
+    def listening(self) -> bool:
+        return self.policy is not None  # before its first reproduction it has nothing to answer
+
     def on_phase(self, msg, recv_ns, raw):
         with self._lock:
             if msg["episode"] != self.episode:

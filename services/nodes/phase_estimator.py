@@ -54,6 +54,10 @@ class PhaseEstimatorNode(Node):
         self.subscriptions = [Subscription("robot/state", self.on_state, every_tenth=True, latest=True),
                               Subscription("ft/wrench", self.on_wrench, every_tenth=True, latest=True)]
 
+    @property
+    def listening(self) -> bool:
+        return self.filter is not None  # before its first reproduction it has nothing to estimate
+
     def on_state(self, msg, recv_ns, raw):
         if msg["stamp_ns"] % PERIOD_NS:
             return

@@ -47,8 +47,9 @@ class TeacherNode(Node):
         self._contacts: dict[int, dict] = {}
         self._prev = None  # (seq, position, rotation)
         self.publications = [Publication("teacher/wrench")]
-        self.subscriptions = [Subscription("robot/state", self.on_state),
-                              Subscription("robot/contact", self.on_contact)]
+        # realtime: a hand reacts to the arm as it is now, not to a backlog
+        self.subscriptions = [Subscription("robot/state", self.on_state, latest=True),
+                              Subscription("robot/contact", self.on_contact, latest=True)]
 
     def on_state(self, msg, recv_ns, raw):
         with self._lock:
@@ -87,6 +88,10 @@ class TeacherNode(Node):
         self.bus.publish("teacher/wrench", *TEACHER_WRENCH.pack(
             seq=seq, stamp_ns=state["stamp_ns"], sent_ns=self.clock.now_ns(), wrench=hand,
             script_phase=int(self.teacher.phase), done=done, episode=self.episode))
+
+    @property
+    def listening(self) -> bool:
+        return self.teacher is not None
 
     def handlers(self):
         return {"reset": self.reset, "idle": self.idle_until_reset}

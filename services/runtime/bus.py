@@ -108,6 +108,16 @@ class Node:
     def status(self) -> dict:
         return {}
 
+    @property
+    def listening(self) -> bool:
+        """Whether the node has use for its subscriptions now.  A node with nothing to do
+        (the teacher between demonstrations, the commander before its first
+        reproduction) says False, and a realtime transport then stops its messages
+        from arriving at all: on two CPUs, a 1 kHz stream decoded only to be ignored
+        costs the FRI chain its deadlines.  Re-read after every control request;
+        lockstep and in-process transports deliver regardless."""
+        return True
+
     def idle(self, now_ns: int) -> None:
         """Called by a transport between events (at least every 50 ms while it serves)."""
 

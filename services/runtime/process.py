@@ -18,12 +18,14 @@ that arrives and at each deadline or answer timeout; the recorder's
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from dataclasses import dataclass
 
 from services.nodes import NODES
 from services.runtime.bus import MonotonicClock
+from services.runtime.collector import PausedCollector
 from services.runtime.config import add_config_arguments, config_from_args
 from services.runtime.cycle import CycleEngine
 from services.runtime.service import Service
@@ -31,6 +33,7 @@ from services.runtime.session import ZenohOptions, add_zenoh_arguments, zenoh_op
 
 CLOCKS = ("lockstep", "realtime")
 RECORDER_WAIT_S = 10.0  # end_episode: how long the recorder waits for messages still in flight
+RECORDER_BATCH_S = 0.005  # the recorder takes what has arrived every 5 ms, not each message as it comes
 PROGRAMS = {"robot": "etar-robot", "ft_sensor": "etar-ft-sensor", "teacher": "etar-teacher",
             "phase_estimator": "etar-phase-estimator", "impedance_commander": "etar-impedance-commander",
             "recorder": "etar-recorder"}
@@ -75,33 +78,88 @@ def run_node(role: str, node_config, process: ProcessConfig) -> int:
         node = node_cls(node_config, bus, clock, run_id=process.run_id, mode=process.clock,
                         sched_fifo=svc.sched_fifo)
         bus.declare(node.publications)
-        for sub in node.subscriptions:
-            svc.subscribe(sub.topic, sub.handler, decode=sub.decode, every_tenth=sub.every_tenth,
-                          latest=sub.latest and realtime)
-        handlers = dict(node.handlers())
+        collector = PausedCollector()
+        inputs = NodeInputs(node, svc, realtime, collector)
+        inputs.sync()
+        handlers = {cmd: inputs.after(h) for cmd, h in node.handlers().items()}
         if role == "robot":
-            handlers.update(_robot_handlers(node, svc, node_config, process.clock, clock))
+            handlers.update(_robot_handlers(node, svc, node_config, process.clock, clock, collector))
         if role == "recorder":
             handlers["end_episode"] = _recorder_end(node)
+
+        def idle():
+            collector.relieve()
+            node.idle(clock.now_ns())
+
+        if realtime:
+            collector.start()
         svc.log(f"ready: clock {process.clock}, SCHED_FIFO {'on' if svc.sched_fifo else 'off'}")
         try:
-            svc.serve(handlers, status=node.status, idle=lambda: node.idle(clock.now_ns()))
+            svc.serve(handlers, status=lambda: dict(node.status(), sched_fifo=svc.sched_fifo,
+                                                    cpus=sorted(os.sched_getaffinity(0)),
+                                                    gc_relieved=collector.relieved),
+                      idle=idle)
         finally:
+            collector.stop()
             node.close()
     return 0
 
 
+class NodeInputs:
+    """A node's subscriptions on its service.  In realtime they are declared only while
+    the node is ``listening``, re-read after every control request: Zenoh then stops
+    delivering what the node would ignore (a declaration takes a moment to reach the
+    publishers, which lockstep, where every message counts, cannot allow: there they
+    stay declared)."""
+
+    def __init__(self, node, svc: Service, realtime: bool, collector: PausedCollector | None = None):
+        self.node, self.svc, self.realtime = node, svc, realtime
+        self.collector = collector
+        self.declared = []
+
+    def sync(self) -> None:
+        want = self.node.listening or not self.realtime
+        if want and not self.declared:
+            self.declared = [self.svc.subscribe(s.topic, s.handler, decode=s.decode, every_tenth=s.every_tenth,
+                                                latest=s.latest and self.realtime,
+                                                batch_s=RECORDER_BATCH_S if s.topic == "**" else 0.0)
+                             for s in self.node.subscriptions]
+        elif not want and self.declared:
+            for s in self.declared:
+                self.svc.unsubscribe(s)
+            self.declared = []
+
+    def after(self, handler):
+        """``handler``, followed by ``sync``."""
+        def handled(*args):
+            try:
+                return handler(*args)
+            finally:
+                self.sync()
+                if self.collector is not None:
+                    self.collector.between_episodes()  # a control request: between episodes
+        handled.replies_itself = getattr(handler, "replies_itself", False)
+        return handled
+
+
 # ------------------------------------------------------------------ the robot's episodes
 
-def _robot_handlers(node, svc: Service, config, mode: str, clock) -> dict:
+def _robot_handlers(node, svc: Service, config, mode: str, clock, collector: PausedCollector) -> dict:
     def settle(p):
-        return drive_episode(node, svc, node.plan("settle", p), mode, clock, config, settle=True)
+        try:
+            return drive_episode(node, svc, node.plan("settle", p), mode, clock, config, settle=True,
+                                 collector=collector)
+        finally:
+            collector.between_episodes()
 
     def run(p, reply):
         plan = node.plan("run", p)  # a bad request fails before the episode starts
         reply(started=True, seq=node.cell.fri.seq + 1)
-        summary = drive_episode(node, svc, plan, mode, clock, config)
-        node.publish_summary(summary)
+        try:
+            summary = drive_episode(node, svc, plan, mode, clock, config, collector=collector)
+            node.publish_summary(summary)
+        finally:
+            collector.between_episodes()
 
     return {"settle": settle, "run": _answered_first(run),
             "stop": lambda p: {"stopped": False, "note": "no episode is running"}}
@@ -113,7 +171,8 @@ def _answered_first(fn):
     return fn
 
 
-def drive_episode(node, svc: Service, plan, mode: str, clock, config, settle: bool = False) -> dict:
+def drive_episode(node, svc: Service, plan, mode: str, clock, config, settle: bool = False,
+                  collector: PausedCollector | None = None) -> dict:
     """Run one episode of cycles on the wall clock; returns its summary."""
     node.begin_episode(settle)
     engine = CycleEngine(node, plan, clock, mode=mode, cycle_ns=node.cell.cycle_ns,
@@ -134,6 +193,8 @@ def drive_episode(node, svc: Service, plan, mode: str, clock, config, settle: bo
             break
         if engine.k >= checked + 100:  # during an episode only 'stop' and 'status' are served
             checked = engine.k
+            if collector is not None:
+                collector.relieve()
             if _stop_requested(node, svc):
                 engine.stop()
                 break

@@ -30,6 +30,9 @@ from services.runtime.timing import Histogram, SequenceTracker
 
 # topics whose sequence numbers (robot cycles) advance by more than one per message
 STRIDES = {"estimator/phase": 10}
+# a batched subscription's queue: ~10 s of every message of a run; when full, Zenoh
+# holds further samples back (the publishers' congestion control decides what drops)
+BATCH_CAPACITY = 50_000
 
 
 def now_ns() -> int:
@@ -134,6 +137,7 @@ class Service:
         self.stop.set()
         for sub in self._subscribers:
             sub.undeclare()
+        self._subscribers.clear()
         self._token.undeclare()
         self._queryable.undeclare()
         self.session.close()
@@ -219,8 +223,15 @@ class Service:
         self._publishers[topic] = pub
         return pub
 
+    def unsubscribe(self, subscriber) -> None:
+        """Undeclare one subscriber ``subscribe`` returned: its messages stop costing this
+        process anything (a node with nothing to do, e.g. the teacher between demonstrations)."""
+        if subscriber in self._subscribers:
+            self._subscribers.remove(subscriber)
+            subscriber.undeclare()
+
     def subscribe(self, topic: str, on_message, *, decode: bool = True, every_tenth: bool = False,
-                  latest: bool = False) -> None:
+                  latest: bool = False, batch_s: float = 0.0):
         """Deliver (message dict, receive time ns, raw bytes) for every valid
         sample on etar/<run_id>/<topic>; garbage is counted in ``links``, never raised.
 
@@ -239,10 +250,15 @@ class Service:
         samples in a ring (``zenoh.handlers.RingChannel``: 1 sample, 10 with
         ``every_tenth`` so that a tenth cycle is among them) and drops older ones
         without waking Python; one thread of this process drains it.  Never for
-        the recorder or for lockstep, which need every message."""
+        the recorder or for lockstep, which need every message.
+
+        ``batch_s`` (the wildcard subscription only): Zenoh queues the samples
+        (``FifoChannel``) and one thread takes what has come every ``batch_s``
+        seconds, so a consumer that needs every message but not at once (the
+        recorder) wakes a few hundred times a second instead of once per message.
+        Returns the subscriber (for ``unsubscribe``)."""
         if topic == "**":
-            self._subscribe_all(on_message)
-            return
+            return self._subscribe_all(on_message, batch_s)
         message_type: MessageType | None = BY_TOPIC.get(topic)
         stride = 10 if every_tenth else STRIDES.get(topic, 1)
         counters = self.links.setdefault(topic, LinkCounters(sequence=SequenceTracker(stride=stride)))
@@ -293,7 +309,7 @@ class Service:
             # started from the thread that subscribes: under --sched-fifo it inherits the policy
             threading.Thread(target=drain, name=f"latest {topic}", daemon=True).start()
             self._subscribers.append(sub)
-            return
+            return sub
 
         def callback(sample: zenoh.Sample) -> None:
             recv = now_ns()
@@ -306,19 +322,42 @@ class Service:
         # the network thread itself (Callback(indirect=False)) was measured worse: a
         # callback that publishes (the sensor) then blocks reception, and the sensor fell
         # 150 ms behind instead of 0.75 ms (hold run, 2 CPUs); no gain for the FRI link
-        self._subscribers.append(self.session.declare_subscriber(key, self.profile.wrap(callback)))
+        sub = self.session.declare_subscriber(key, self.profile.wrap(callback))
+        self._subscribers.append(sub)
+        return sub
 
-
-    def _subscribe_all(self, on_sample) -> None:
+    def _subscribe_all(self, on_sample, batch_s: float = 0.0):
         """Every sample of the run, undecoded: ``on_sample(topic, receive time ns, raw bytes, None)``."""
         prefix = topics.prefix(self.run_id) + "/"
         cut = len(prefix)
+        if batch_s > 0:
+            sub = self.session.declare_subscriber(prefix + "**", zenoh.handlers.FifoChannel(BATCH_CAPACITY))
+            fifo = sub.handler
+            stop = self.stop
 
-        def callback(sample: zenoh.Sample) -> None:
-            recv = now_ns()
-            on_sample(str(sample.key_expr)[cut:], recv, sample.payload.to_bytes(), None)
+            @self.profile.wrap
+            def take(sample) -> None:
+                on_sample(str(sample.key_expr)[cut:], now_ns(), sample.payload.to_bytes(), None)
 
-        self._subscribers.append(self.session.declare_subscriber(prefix + "**", self.profile.wrap(callback)))
+            def drain() -> None:
+                try:
+                    while True:
+                        take(fifo.recv())  # the first of a batch: blocks until something comes
+                        while (sample := fifo.try_recv()) is not None:
+                            take(sample)
+                        stop.wait(batch_s)
+                except zenoh.ZError:
+                    return  # undeclared: the channel is closed
+
+            threading.Thread(target=drain, name="batched **", daemon=True).start()
+        else:
+            def callback(sample: zenoh.Sample) -> None:
+                recv = now_ns()
+                on_sample(str(sample.key_expr)[cut:], recv, sample.payload.to_bytes(), None)
+
+            sub = self.session.declare_subscriber(prefix + "**", self.profile.wrap(callback))
+        self._subscribers.append(sub)
+        return sub
 
 
 _STAMP = re.compile(rb'^\{"seq":-?\d+,"stamp_ns":(\d+)')
