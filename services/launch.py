@@ -1,8 +1,13 @@
-"""Starting and stopping service processes (what the runner and the tests use).
+"""Starting, watching and stopping service processes (what the runner and the tests use).
 
 Each service runs as ``python -m services.<module>`` in its own process group,
 with its output in a log file.  Readiness is its liveliness token, never a
-sleep.  Stopping escalates SIGINT -> SIGTERM -> SIGKILL, each with a timeout.
+sleep.  Once ready, the runner watches every token: the moment one disappears
+(the process died, or its session did) that service is *lost*, an episode in
+progress is stopped by the robot (its summary kept) and ``ServiceLost`` names
+the service and when; a request to a lost service fails at once instead of
+waiting for its timeout.  Stopping escalates SIGINT -> SIGTERM -> SIGKILL, each
+with a timeout.
 """
 
 from __future__ import annotations
@@ -28,6 +33,16 @@ MODULES = {
     "impedance_commander": "services.impedance_commander",
     "recorder": "services.recorder",
 }
+
+
+class ServiceLost(RuntimeError):
+    """A service of the run disappeared.  ``summary``: the robot's summary of the
+    episode it then stopped (None if there was no episode, or the robot is the one lost)."""
+
+    def __init__(self, role: str, message: str, summary: dict | None = None):
+        super().__init__(message)
+        self.role = role
+        self.summary = summary
 
 
 def free_port() -> int:
@@ -130,11 +145,19 @@ class ServiceProcesses:
         self.session = open_session(self.zenoh)
         self.processes: list[ServiceProcess] = []
         self._publishers = {}
-        self._episode_done = threading.Event()
-        self._summary = None
+        # robot/episode summaries by the first cycle of their episode: the runner takes the
+        # one of the episode it started, never a duplicate or a stale one (a foreign peer's
+        # copy of an earlier summary once ended a demonstration after 1.5 s)
+        self._summaries: dict[int, dict] = {}
+        self._episode_first = None
         self._sub = self.session.declare_subscriber(topics.key(run_id, "robot/episode"), self._on_episode)
         self._stopped = False
         self._codes = {}
+        self._wake = threading.Event()  # an episode's summary came, or a service was lost
+        self.watched: set = set()  # the roles of this run, once ready
+        self.lost: dict = {}  # role -> monotonic time its token disappeared
+        self._t0 = time.monotonic()
+        self._alive_sub = None
 
     def start(self, roles, args_of, timeout: float) -> None:
         """Spawn each role's process, ``args_of(role, endpoint to connect to)`` its flags
@@ -143,43 +166,123 @@ class ServiceProcesses:
             for role in roles:
                 self.processes.append(spawn(role, args_of(role, self.endpoint), self.log_dir))
         wait_alive(self.session, self.run_id, list(roles), self.processes, timeout=timeout)
+        self.watch(roles)
+
+    def watch(self, roles) -> None:
+        """From now on, a role whose liveliness token disappears is lost."""
+        import zenoh
+
+        self.watched = set(roles)
+        self._t0 = time.monotonic()
+
+        def on_token(sample) -> None:
+            role = str(sample.key_expr).rsplit("/", 1)[-1]
+            if role in self.watched and sample.kind == zenoh.SampleKind.DELETE and role not in self.lost:
+                self.lost[role] = time.monotonic()
+                self._wake.set()
+
+        self._alive_sub = self.session.liveliness().declare_subscriber(topics.alive(self.run_id, "*"), on_token)
+        # a token that went away between wait_alive and the subscriber is missing now
+        missing = self.watched - alive_services(self.session, self.run_id, timeout=1.0)
+        for role in missing:
+            self.lost.setdefault(role, time.monotonic())
+
+    def unresponsive(self, roles, timeout: float = 1.0) -> list:
+        """The roles among ``roles`` that do not answer a status request within ``timeout``
+        (alive but stopped or hung); they are lost from now on."""
+        silent = []
+        for role in roles:
+            if role in self.lost:
+                continue
+            try:
+                self.request(role, "status", timeout=timeout)
+            except (TimeoutError, RuntimeError):
+                silent.append(role)
+                self.lost[role] = time.monotonic()
+        return silent
+
+    def lost_message(self, role: str, during: str = "") -> str:
+        at = self.lost[role] - self._t0
+        proc = next((p for p in self.processes if p.name == role), None)
+        code = proc.popen.poll() if proc is not None else None
+        how = f"its process exited with {code}" if code is not None else "its liveliness token disappeared"
+        return f"service {role} lost {at:.1f} s into the run{during}: {how}"
 
     def _on_episode(self, sample) -> None:
         from services.runtime.messages import EPISODE_SUMMARY
 
         try:
-            self._summary = EPISODE_SUMMARY.decode(sample.payload.to_bytes())
+            summary = EPISODE_SUMMARY.decode(sample.payload.to_bytes())
         except ValueError:
             return
-        self._episode_done.set()
+        self._summaries[summary["first_seq"]] = summary
+        if summary["first_seq"] == self._episode_first:
+            self._wake.set()
+
+    def _episode_summary(self, timeout: float = 0.0) -> dict | None:
+        """The summary of the episode in progress, waiting up to ``timeout`` for it."""
+        deadline = time.monotonic() + timeout
+        while (summary := self._summaries.get(self._episode_first)) is None and time.monotonic() < deadline:
+            self._wake.wait(min(0.1, max(0.0, deadline - time.monotonic())))
+            self._wake.clear()
+        return summary
 
     def request(self, role: str, cmd: str, timeout: float = 30.0, **args) -> dict:
         from services.runtime.service import request
 
+        if role in self.lost:
+            raise ServiceLost(role, self.lost_message(role) + f"; '{cmd}' not sent")
         return request(self.session, self.run_id, role, cmd, timeout=timeout, **args)
 
     def run_episode(self, answers_from, stop_on, max_seconds, progress=None) -> dict:
         """One episode (the robot's 'run'); its summary from ``robot/episode``.
         ``progress(simulated seconds)``, when given, is called about once a second
         from the robot's status (which it serves every 100 cycles during an episode)."""
-        self._episode_done.clear()
+        self._wake.clear()
+        self._summaries.clear()
         first = self.request("robot", "run", wait_for=list(answers_from), stop_on=stop_on,
                              max_seconds=max_seconds)["seq"]
+        self._episode_first = int(first)
+        started = time.monotonic()
         # lockstep runs at the pace of the slowest participant: allow a generous wall-clock budget
-        deadline = time.monotonic() + max(120.0, 30.0 * max_seconds)
-        while not self._episode_done.wait(1.0 if progress is not None else max(0.0, deadline - time.monotonic())):
+        deadline = started + max(120.0, 30.0 * max_seconds)
+        while (summary := self._episode_summary()) is None:
+            if self.lost:
+                self._lost_during_episode(started)
             if time.monotonic() >= deadline:
                 self.request("robot", "stop", timeout=10.0)
-                if not self._episode_done.wait(30.0):
+                summary = self._episode_summary(30.0)
+                if summary is None:
                     raise TimeoutError("the robot did not end its episode")
                 break
+            self._wake.wait(min(1.0, max(0.0, deadline - time.monotonic())))
+            self._wake.clear()
+            if progress is None or self.lost or self._episode_first in self._summaries:
+                continue
             try:
                 seq = self.request("robot", "status", timeout=0.5).get("seq")
             except (TimeoutError, RuntimeError):
                 continue  # busy: the next second will tell
             if seq is not None:
                 progress(max(0, seq - first) / 1000.0)
-        return self._summary
+        return summary
+
+    def _lost_during_episode(self, started: float) -> None:
+        """A service disappeared during the episode: the robot (if it is not the one lost)
+        stops the episode, which closes its open cycle and holds the arm where it is,
+        and its summary goes with the error."""
+        role = min(self.lost, key=self.lost.get)
+        during = f", {self.lost[role] - started:.1f} s into the episode"
+        summary = None
+        if "robot" not in self.lost:
+            try:
+                stopped = self.request("robot", "stop", timeout=10.0).get("stopped")
+                summary = self._episode_summary(10.0 if stopped else 0.0)
+            except (TimeoutError, RuntimeError):
+                summary = self._episode_summary()
+        if summary is not None:
+            during += f" (cycle {summary['last_seq']}, {summary['sim_seconds']:.3f} s simulated)"
+        raise ServiceLost(role, self.lost_message(role, during), summary)
 
     def publish(self, topic: str, payload: bytes) -> None:
         pub = self._publishers.get(topic)
@@ -203,6 +306,8 @@ class ServiceProcesses:
 
     def _shutdown(self, roles) -> None:
         for role in roles:
+            if role in self.lost:
+                continue  # it cannot answer: stop's escalation ends it
             try:
                 self.request(role, "shutdown", timeout=2.0)
             except Exception:  # already gone: stop's escalation handles it
@@ -214,6 +319,13 @@ class ServiceProcesses:
         once the report is written), and close the session."""
         if before_report:
             if not self.attach:
+                # a lost service that is still there is hung or stopped: it cannot shut down
+                for p in self.processes:
+                    if p.name in self.lost and p.alive():
+                        try:
+                            os.killpg(p.popen.pid, signal.SIGKILL)
+                        except ProcessLookupError:
+                            pass
                 self._shutdown(roles)
                 self._codes = stop(self.processes)
             return self._codes
@@ -222,6 +334,8 @@ class ServiceProcesses:
         self._stopped = True
         if self.attach:
             self._shutdown(roles)
+        if self._alive_sub is not None:
+            self._alive_sub.undeclare()
         self._sub.undeclare()
         self.session.close()
         return self._codes

@@ -224,7 +224,8 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
         s = r["summary"]
         phases = phases_of.get(r["path"], {})
         # a hold run (stop_at_goal: false) keeps going after the goal: the commander said when
-        reached = s["reason"] == "goal_reached" or s.get("goal_reached_at_s", -1.0) >= 0
+        reached = (s["reason"] == "goal_reached" or s.get("goal_reached_at_s", -1.0) >= 0) \
+            and not s["reason"].startswith(("lost:", "unanswered:"))  # an episode a lost service ended failed
         bounded = s["peak_contact_force"] <= r["max_contact_force"]
         repro.append(dict(index=len(repro), path=_in_run(r["path"], out), side=r["side"], start=r["start"], reason=s["reason"],
                           reached_goal=reached, peak_contact_force=s["peak_contact_force"],

@@ -44,6 +44,7 @@ from services.progress import EpisodeProgress
 from services.realtime_profile import FIFO_CHAIN, Grant, parse_profile, probe
 from services.recording import RecordingError, load_demonstration
 from services.runtime.config import config_to_args, with_flags
+from services.runtime.cycle import LOCKSTEP_GIVE_UP
 from services.runtime.inproc import InProcessCell
 from services.runtime.messages import RUNNER_EVENT
 from services.runtime.service import now_ns
@@ -55,6 +56,9 @@ from services.scenario import Scenario, ScenarioError, demonstration_starts, loa
 # (measured on 2 CPUs: FRI answered in time 57 % instead of 99 %, the sensor as far behind)
 ROBOT_CPU_ROLES = ("robot",)
 
+# the cycle engine's participants and the roles that answer for them
+PARTICIPANT_ROLES = {"command": "impedance_commander", "teacher": "teacher", "ft": "ft_sensor",
+                     "phase": "phase_estimator"}
 DEMO_TOPICS = ["robot/state", "robot/contact", "ft/wrench", "teacher/wrench"]
 REPRO_TOPICS = ["robot/state", "robot/contact", "ft/wrench", "robot/command"]
 TRANSPORTS = ("zenoh", "inproc")
@@ -129,6 +133,7 @@ class Runner:
         self.state = RunState()
         self.cell = None
         self.service_stats = {}
+        self._lost = None  # launch.ServiceLost, once a service disappeared during an episode
         realtime = self.scenario.clock == "realtime" and options.transport == "zenoh"
         self.profile = Grant(parse_profile(options.realtime_profile) if realtime else frozenset())
 
@@ -281,15 +286,51 @@ class Runner:
         simulated time and real-time factor."""
         bar = EpisodeProgress(label, max_seconds)
         try:
-            return self.cell.run_episode(answers_from, stop_on, max_seconds,
-                                         progress=bar.update if bar.enabled else None)
+            summary = self.cell.run_episode(answers_from, stop_on, max_seconds,
+                                            progress=bar.update if bar.enabled else None)
+            if summary["reason"].startswith("unanswered:"):
+                # lockstep: alive but silent (stopped, hung, cut off); the robot gave up on it.
+                # The one that went silent may be further up the chain (the commander waits
+                # for the estimator): whoever does not answer a status request is the one
+                silent = [PARTICIPANT_ROLES.get(p, p) for p in summary["reason"].split(":", 1)[1].split(",")]
+                stuck = self.cell.unresponsive(self.roles()) if hasattr(self.cell, "unresponsive") else []
+                who = stuck or silent
+                self._lost = launch.ServiceLost(
+                    who[0], f"service {', '.join(who)} stopped answering"
+                            f"{' (alive, no reply to a status request in 1 s)' if stuck else ''}: the robot's cycle "
+                            f"{summary['last_seq']} ({summary['sim_seconds']:.3f} s simulated) and the one before went "
+                            f"unanswered by {', '.join(silent)} for {LOCKSTEP_GIVE_UP} x the answer timeout, and "
+                            f"the robot ended the episode", summary)
+            return summary
+        except launch.ServiceLost as exc:
+            if exc.summary is None:
+                raise
+            # the robot stopped the episode when the service went: keep what it measured,
+            # as a failed episode, then end the run (_stop_if_lost) with the error
+            self._lost = exc
+            return dict(exc.summary, reason=f"lost:{exc.role}")
         finally:
             bar.close()
 
     def _finish(self, kind, index, summary, topic_list):
-        rec = self._req("recorder", "end_episode", last_seq=summary["last_seq"], topics=topic_list, timeout=30.0)
-        self._event("episode_end", kind, index, {"reason": summary["reason"]})
+        """The recorder closes the episode's file; with a service lost, whatever it can
+        (None if the recorder is the one lost: the robot's summary is kept anyway)."""
+        if self._lost is not None:
+            topic_list = []  # what a lost service would have sent is not coming: do not wait for it
+        try:
+            rec = self._req("recorder", "end_episode", last_seq=summary["last_seq"], topics=topic_list,
+                            timeout=30.0)
+        except (launch.ServiceLost, TimeoutError, RuntimeError):
+            if self._lost is None:
+                raise
+            rec = None
+        if self._lost is None:
+            self._event("episode_end", kind, index, {"reason": summary["reason"]})
         return rec
+
+    def _stop_if_lost(self) -> None:
+        if self._lost is not None:
+            raise self._lost
 
     # -------------------------------------------------------------- stages
 
@@ -305,13 +346,15 @@ class Runner:
             self._req("teacher", "reset", **reset)
             summary = self._run_episode(["teacher"], "teacher_done", stage.max_seconds,
                                         label=f"demonstration {index + 1}/{len(starts)}")
-            self._req("teacher", "idle")
+            if self._lost is None:
+                self._req("teacher", "idle")
             rec = self._finish("demonstration", index, summary, DEMO_TOPICS)
             self.state.demonstrations.append(dict(path=str(path), side=side, start=list(start), summary=summary,
                                                   recording=rec))
             self.say(f"demonstration {index + 1}/{len(starts)} ({side}): {summary['reason']} after "
                      f"{summary['sim_seconds']:.1f} s simulated / {summary['wall_seconds']:.1f} s wall, "
-                     f"{rec['messages']} messages recorded")
+                     f"{'recording unfinished' if rec is None else str(rec['messages']) + ' messages recorded'}")
+            self._stop_if_lost()
 
     def stage_learn(self, stage):
         sc = self.scenario
@@ -380,6 +423,7 @@ class Runner:
             self.say(f"reproduction {index + 1}/{len(starts)} ({side}): {summary['reason']}, peak contact "
                      f"{summary['peak_contact_force']:.1f} N, {summary['sim_seconds']:.1f} s simulated / "
                      f"{summary['wall_seconds']:.1f} s wall")
+            self._stop_if_lost()
 
 
 def run(options: RunOptions, progress=print) -> dict:

@@ -40,6 +40,7 @@ from services.runtime.loop import LoopTiming
 
 PHASE_PERIOD_NS = 10_000_000  # the estimator answers every tenth cycle (100 Hz of simulated time)
 PARTICIPANTS = ("command", "teacher", "ft", "phase")
+LOCKSTEP_GIVE_UP = 2  # consecutive timed-out cycles before a lockstep episode ends as unanswered
 
 
 @dataclass(frozen=True)
@@ -91,6 +92,7 @@ class CycleEngine:
         self._work_start = 0
         self._deadline = None  # realtime: the start of the next cycle
         self._idle_since = None
+        self._timeouts = 0  # lockstep: consecutive cycles closed at the answer timeout
 
     # ------------------------------------------------------------- state
 
@@ -128,12 +130,18 @@ class CycleEngine:
 
     def _tick_lockstep(self, now: int, quiescent: bool) -> int | None:
         if self._open_seq is not None:
+            silent = []
             if not self._answered():
                 if not quiescent and now - self._opened_at < self.answer_timeout:
                     return self._opened_at + self.answer_timeout
                 self.missed_answers += 1
+                if not quiescent:
+                    silent = [w for w in self._needed() if not self.p.answered([w], self._open_seq)]
+            self._timeouts = self._timeouts + 1 if silent else 0
             self.p.sections.add("wait", now - self._opened_at)
             self._close(self.plan.stop_on)
+            if self._timeouts >= LOCKSTEP_GIVE_UP and not self.done:
+                self.reason, self.done = "unanswered:" + ",".join(silent), True
             self.timing.record(0, self.clock.now_ns() - self._work_start, missed=False)
             if self._finished():
                 return None

@@ -33,6 +33,7 @@ from services.runtime.session import ZenohOptions, add_zenoh_arguments, zenoh_op
 
 CLOCKS = ("lockstep", "realtime")
 RECORDER_WAIT_S = 10.0  # end_episode: how long the recorder waits for messages still in flight
+STOP_CHECK_NS = 100_000_000  # during an episode the robot looks for a 'stop' at least this often
 RECORDER_BATCH_S = 0.005  # the recorder takes what has arrived every 5 ms, not each message as it comes
 PROGRAMS = {"robot": "etar-robot", "ft_sensor": "etar-ft-sensor", "teacher": "etar-teacher",
             "phase_estimator": "etar-phase-estimator", "impedance_commander": "etar-impedance-commander",
@@ -180,7 +181,7 @@ def drive_episode(node, svc: Service, plan, mode: str, clock, config, settle: bo
                          stall_every_cycles=int(config.stall_every * 1000) if config.stall_ms > 0 else 0,
                          stall_s=config.stall_ms / 1e3)
     lockstep = mode == "lockstep"
-    checked = 0
+    checked, checked_at = 0, clock.now_ns()
     arrived = node.arrived
     seen = node.arrivals
     while not engine.done:
@@ -191,13 +192,17 @@ def drive_episode(node, svc: Service, plan, mode: str, clock, config, settle: bo
         wake = engine.tick(now)
         if engine.done:
             break
-        if engine.k >= checked + 100:  # during an episode only 'stop' and 'status' are served
-            checked = engine.k
+        # during an episode only 'stop' and 'status' are served: every 100 cycles, and at
+        # least every 100 ms (a lockstep cycle waiting for a dead participant is slow)
+        if engine.k >= checked + 100 or now - checked_at > STOP_CHECK_NS:
+            checked, checked_at = engine.k, now
             if collector is not None:
                 collector.relieve()
             if _stop_requested(node, svc):
                 engine.stop()
                 break
+        if lockstep and not engine.awaiting():
+            continue  # the open cycle has all it needs (or needs nothing): close it now
         with arrived:
             if node.arrivals == seen:
                 left = (wake - clock.now_ns()) / 1e9

@@ -70,6 +70,39 @@ def test_lockstep_counts_a_missed_answer_at_the_timeout_or_at_once_when_nothing_
     assert e.missed_answers == 2 and [s for s, _ in arm.closed] == [1, 2]
 
 
+def test_lockstep_ends_the_episode_when_a_participant_is_silent_twice_in_a_row():
+    clock = FakeClock()
+    arm = Arm(clock)
+    e = engine(arm, clock, "lockstep", answers_from=("command", "ft"))
+    e.tick(0)
+    for seq in range(1, 4):  # both answer the first three cycles
+        arm.answers |= {("command", seq), ("ft", seq)}
+        e.tick(clock.t)
+    arm.answers.add(("command", 4))  # then the sensor goes silent
+    clock.advance(5 * MS)
+    e.tick(clock.t)
+    assert not e.done and e.missed_answers == 1  # one timeout: a slow cycle, not yet a silent sensor
+    arm.answers.add(("command", 5))
+    clock.advance(5 * MS)
+    e.tick(clock.t)
+    assert e.done and e.reason == "unanswered:ft" and e.k == 5 and e.missed_answers == 2
+    assert e.tick(clock.t) is None
+
+
+def test_lockstep_timeouts_that_are_not_in_a_row_do_not_end_the_episode():
+    clock = FakeClock()
+    arm = Arm(clock)
+    e = engine(arm, clock, "lockstep", answers_from=("command",))
+    e.tick(0)
+    for seq in range(1, 9):
+        if seq % 2:
+            clock.advance(5 * MS)  # every other cycle times out
+        else:
+            arm.answers.add(("command", seq))
+        e.tick(clock.t)
+    assert not e.done and e.missed_answers == 4 and e.k == 8
+
+
 def test_lockstep_waits_for_the_estimate_only_on_every_tenth_cycle():
     clock = FakeClock()
     arm = Arm(clock)

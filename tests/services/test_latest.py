@@ -1,17 +1,14 @@
 """A ``latest`` subscriber that falls behind takes the newest message, never a stale backlog;
 the default subscriber (lockstep, the recorder) gets every message."""
 
-import signal
 import threading
 import time
 
 import pytest
 
-from services.launch import free_port
 from services.runtime import topics
 from services.runtime.messages import ROBOT_CONTACT, ROBOT_STATE
-from services.runtime.service import Service
-from services.runtime.session import ZenohOptions, open_session
+from tests.services.conftest import service_with_peer
 
 
 def contact(seq):
@@ -29,19 +26,8 @@ def state(seq):
 @pytest.fixture
 def link():
     """A service (the subscriber) and a second session that publishes to it."""
-    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    run_id = f"latest-{int(time.time() * 1000)}"
-    svc = Service("subscriber", run_id, ZenohOptions(listen=(endpoint,)))
-    svc.__enter__()
-    publisher = open_session(ZenohOptions(connect=(endpoint,)))
-    try:
-        yield svc, run_id, publisher
-    finally:
-        publisher.close()
-        svc.__exit__(None, None, None)
-        for sig, h in handlers.items():
-            signal.signal(sig, h)
+    with service_with_peer("subscriber", "latest") as parts:
+        yield parts
 
 
 def wait_until_matched(publisher, timeout: float = 10.0) -> bool:

@@ -1,21 +1,17 @@
 """The realtime profile (what a run asks of the machine), the verdict on whether a run held
 its clock, and realtime nodes that stop their inputs while they have nothing to do."""
 
-import signal
 import threading
-import time
 
 import pytest
 
-from services.launch import free_port
 from services.nodes.teacher import TeacherConfig, TeacherNode
 from services.realtime_profile import PARTS, parse_profile, probe
 from services.report import REALTIME_MISS_LIMIT, clock_not_held
 from services.runtime import topics
 from services.runtime.bus import MonotonicClock
 from services.runtime.process import NodeInputs, ZenohBus
-from services.runtime.service import Service
-from services.runtime.session import ZenohOptions, open_session
+from tests.services.conftest import service_with_peer
 
 
 def test_profile_parts_parse_and_a_bad_part_is_named():
@@ -71,19 +67,8 @@ def test_a_run_that_did_not_hold_its_clock_says_what_was_missed_and_which_link_w
 
 @pytest.fixture
 def teacher_service():
-    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    run_id = f"inputs-{int(time.time() * 1000)}"
-    svc = Service("teacher", run_id, ZenohOptions(listen=(endpoint,)))
-    svc.__enter__()
-    robot = open_session(ZenohOptions(connect=(endpoint,)))
-    try:
-        yield svc, run_id, robot
-    finally:
-        robot.close()
-        svc.__exit__(None, None, None)
-        for sig, h in handlers.items():
-            signal.signal(sig, h)
+    with service_with_peer("teacher", "inputs") as parts:
+        yield parts
 
 
 def matched_within(publisher, want: bool, timeout: float = 10.0) -> bool:
