@@ -37,8 +37,16 @@ def cmd_run(args) -> int:
     from services.runner import RunOptions, run
     from services.scenario import ScenarioError
 
+    from services.runtime import topics
+
     out = args.out or f"runs/{Path(args.scenario).stem}-{time.strftime('%Y%m%d-%H%M%S')}"
-    zopts = zenoh_options(args) if args.connect else None
+    try:
+        zopts = zenoh_options(args) if args.connect else None
+        if args.run_id is not None:
+            topics.check_run_id(args.run_id)
+    except ValueError as exc:
+        _say(f"etar-bench run: error: {exc}")
+        return 2
     if args.attach and args.transport == "inproc":
         _say("etar-bench run: --attach drives services already running over Zenoh; it cannot be combined with "
              "--transport inproc")

@@ -23,13 +23,15 @@ import sys
 import time
 from dataclasses import dataclass
 
+import zenoh
+
 from services.nodes import NODES
 from services.runtime.bus import MonotonicClock
 from services.runtime.collector import PausedCollector
 from services.runtime.config import add_config_arguments, config_from_args
 from services.runtime.cycle import CycleEngine
 from services.runtime.service import Service
-from services.runtime.session import ZenohOptions, add_zenoh_arguments, zenoh_options
+from services.runtime.session import ZenohOptions, add_zenoh_arguments, zenoh_options, zenoh_reason
 
 CLOCKS = ("lockstep", "realtime")
 RECORDER_WAIT_S = 10.0  # end_episode: how long the recorder waits for messages still in flight
@@ -270,6 +272,9 @@ def node_process(role: str):
             return main(node_config, process)
         except (ValueError, OSError) as exc:
             print(f"{PROGRAMS[role]}: error: {exc}", file=sys.stderr)
+            return 2
+        except zenoh.ZError as exc:  # e.g. an endpoint it cannot listen on
+            print(f"{PROGRAMS[role]}: error: zenoh: {zenoh_reason(exc)}", file=sys.stderr)
             return 2
 
     return build_parser, main, cli

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 from dataclasses import dataclass
 
 import zenoh
@@ -28,15 +29,18 @@ class ZenohOptions:
     cfg: tuple = ()  # (key, json5 value) pairs
 
     def config(self) -> zenoh.Config:
+        """The Zenoh configuration; a value Zenoh refuses raises ValueError naming the flag."""
         conf = zenoh.Config()
         conf.insert_json5("mode", json.dumps(self.mode))
         conf.insert_json5("scouting/multicast/enabled", "false")
-        if self.listen:
-            conf.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
-        if self.connect:
-            conf.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
+        for flag, key, values in (("--listen", "listen/endpoints", self.listen),
+                                  ("--connect", "connect/endpoints", self.connect)):
+            for value in values:  # one at a time: the error names the endpoint at fault
+                _insert(conf, key, json.dumps([value]), f"{flag} {value}")
+            if values:
+                _insert(conf, key, json.dumps(list(values)), flag)
         for key, value in self.cfg:
-            conf.insert_json5(key, value)
+            _insert(conf, key, value, f"--cfg {key}:{value}")
         return conf
 
     def to_args(self) -> list[str]:
@@ -81,7 +85,28 @@ def cpu_list(text: str) -> tuple:
             cpus.update(range(int(lo), int(hi or lo) + 1))
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected CPUs like 1 or 0,2-3, got {text!r}") from None
+    usable = os.sched_getaffinity(0)
+    if not cpus or not cpus <= usable:
+        raise argparse.ArgumentTypeError(f"CPUs {text!r}: this process may use CPUs "
+                                         f"{','.join(map(str, sorted(usable)))}")
     return tuple(sorted(cpus))
+
+
+def zenoh_reason(exc: Exception) -> str:
+    """Zenoh's own words from one of its errors, without the Rust source locations."""
+    text = str(exc)
+    m = re.search(r'msg: "(.*?)(?: at /[^"]*)?"', text)
+    if m:
+        text = m.group(1)
+    text = re.sub(r" at /\S+\.rs:\d+\.?", "", text).strip()
+    return re.sub(r'^Str\("(.*)"\)$', r"\1", text)
+
+
+def _insert(conf: zenoh.Config, key: str, value: str, flag: str) -> None:
+    try:
+        conf.insert_json5(key, value)
+    except zenoh.ZError as exc:
+        raise ValueError(f"{flag}: {zenoh_reason(exc)}") from None
 
 
 def zenoh_options(args: argparse.Namespace) -> ZenohOptions:
@@ -98,7 +123,9 @@ def zenoh_options(args: argparse.Namespace) -> ZenohOptions:
             raise SystemExit(f"--cfg expects KEY:VALUE, got {item!r}")
         k, v = item.split(":", 1)
         cfg.append((k, v))
-    return ZenohOptions(args.mode, tuple(connect), tuple(listen), tuple(cfg))
+    options = ZenohOptions(args.mode, tuple(connect), tuple(listen), tuple(cfg))
+    options.config()  # a value Zenoh refuses is named now, not as a traceback when the session opens
+    return options
 
 
 def open_session(options: ZenohOptions) -> zenoh.Session:

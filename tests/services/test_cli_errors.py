@@ -1,0 +1,47 @@
+"""A bad flag on a service's or the runner's command line: one line naming the flag and the
+value, exit code 2, no traceback, nothing started."""
+
+import pytest
+
+from services import bench_cli
+from services.runtime.process import node_process
+
+SERVICE_CASES = [
+    (["--run-id", "a/b*"], "run id 'a/b*': use 1-64 letters"),
+    (["--run-id", "x", "--connect", "bogus"], "--connect bogus: Endpoints must be of the form"),
+    (["--run-id", "x", "--cfg", "nosuch/key:1"], "--cfg nosuch/key:1: unknown key"),
+    (["--run-id", "x", "--cpus", "99"], "argument --cpus: CPUs '99': this process may use CPUs"),
+    (["--run-id", "x", "--listen", "tcp/1.2.3.4:99999"], "zenoh: invalid port value"),
+    (["--run-id", "x", "--listen", "tcp/8.8.8.8:7447"], "zenoh: Can not create a new TCP listener bound to tcp/8.8.8.8:7447"),
+]
+
+
+def exit_code(call):
+    try:
+        return call()
+    except SystemExit as exc:  # argparse's own errors
+        return exc.code
+
+
+@pytest.mark.parametrize("argv,says", SERVICE_CASES, ids=[" ".join(a) for a, _ in SERVICE_CASES])
+def test_a_service_refuses_a_bad_flag_in_one_line(capsys, argv, says):
+    _, _, cli = node_process("ft_sensor")
+    assert exit_code(lambda: cli(argv)) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err and says in err[-1], err
+    assert err[-1].startswith("etar-ft-sensor: error: ")
+    assert not any("Traceback" in line for line in err)
+
+
+@pytest.mark.parametrize("argv,says", [
+    (["--connect", "bogus"], "--connect bogus: Endpoints must be of the form"),
+    (["--run-id", "a/b*"], "run id 'a/b*': use 1-64 letters"),
+    (["--realtime-profile", "fifo,turbo"], "unknown part 'turbo'"),
+])
+def test_the_runner_refuses_a_bad_flag_before_it_starts_anything(capsys, tmp_path, argv, says):
+    out = tmp_path / "run"
+    assert exit_code(lambda: bench_cli.main(["run", "scenarios/smoke.yaml", "--out", str(out), *argv])) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert says in err[-1] and err[-1].startswith("etar-bench run: error: "), err
+    assert not any("Traceback" in line for line in err)
+    assert not out.exists()  # nothing was started, nothing written
