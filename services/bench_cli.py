@@ -125,7 +125,12 @@ def cmd_report(args) -> int:
             _say(f"etar-bench report: {path / name} not found (is {path} a run directory?)")
             return 2
     if args.json:
-        print(json.dumps(json.loads((path / "report.json").read_text()), indent=1))
+        try:
+            report = json.loads((path / "report.json").read_bytes())
+        except (ValueError, UnicodeDecodeError) as exc:
+            _say(f"etar-bench report: {path / 'report.json'}: not a JSON report ({type(exc).__name__}: {exc})")
+            return 2
+        print(json.dumps(report, indent=1))
     else:
         print((path / "report.txt").read_text())
     return 0

@@ -45,3 +45,12 @@ def test_the_runner_refuses_a_bad_flag_before_it_starts_anything(capsys, tmp_pat
     assert says in err[-1] and err[-1].startswith("etar-bench run: error: "), err
     assert not any("Traceback" in line for line in err)
     assert not out.exists()  # nothing was started, nothing written
+
+
+@pytest.mark.parametrize("content", [b'{"a":', b"\xff\xfe garbage", b""])
+def test_report_json_on_a_corrupt_report_names_the_file(capsys, tmp_path, content):
+    (tmp_path / "report.txt").write_text("a report\n")
+    (tmp_path / "report.json").write_bytes(content)
+    assert bench_cli.main(["report", str(tmp_path), "--json"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"etar-bench report: {tmp_path / 'report.json'}: not a JSON report")
