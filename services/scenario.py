@@ -26,14 +26,14 @@ Schema (every key optional unless marked required; unknown keys are errors)::
       fri_packet_loss: 0.0            # probability that a command packet is lost on the FRI link, [0, 1)
     stages:                           # required, non-empty list; each item has exactly one key
       - demonstrate:
-          count: 6                    # int >= 1, required
+          count: 6                    # int, 1..10000, required
           sides: [left]               # left | right, cycled over the demonstrations; valley only
                                       #   (default [left]); hose_coupler: omit or [left]
           start: [0.68, -0.10, 0.40]  # tcp start for the LEFT side, m (the right side mirrors y);
                                       #   default valley [0.68, -0.10, 0.40], hose_coupler [0.62, -0.08, 0.36]
           start_spread: 0.01          # m >= 0: uniform random offset per axis, default 0.01
           goal_x: 0.42                # valley only: the teacher stops sliding at this x, default 0.42
-          max_seconds: 40             # > 0: simulated-time limit per demonstration, default 40
+          max_seconds: 40             # > 0, <= 3600: simulated-time limit per demonstration, default 40
           seed: 10                    # int >= 0, default: scenario seed + 1000 (+ j for the j-th demonstrate stage)
       - learn:
           phases: auto                # 'auto' or int >= 1, default auto
@@ -46,7 +46,7 @@ Schema (every key optional unless marked required; unknown keys are errors)::
           max_iter: 200               # int >= 1, default 200
           seed: 0                     # int >= 0, default: scenario seed
       - reproduce:
-          count: 20                   # int >= 1, required
+          count: 20                   # int, 1..10000, required
           sides: [left]               # as in demonstrate
           start: [0.68, -0.10, 0.40]  # nominal start (left side), default as in demonstrate
           start_perturbation: 0.03    # m >= 0: starts drawn uniformly within +- this per axis, default 0.03
@@ -55,7 +55,7 @@ Schema (every key optional unless marked required; unknown keys are errors)::
           goal_x: 0.42                # valley only, default 0.42
           goal_tolerance: 0.01        # m > 0, default 0.01
           max_contact_force: 60.0     # N > 0: a reproduction whose peak contact force exceeds this fails
-          max_seconds: 40             # > 0, default 40
+          max_seconds: 40             # > 0, <= 3600, default 40
           stop_at_goal: true          # bool, default true; false: run the whole max_seconds, holding at
                                       #   the goal (load and timing runs)
           seed: 20                    # int >= 0, default: scenario seed + 2000 (+ j for the j-th reproduce stage)
@@ -165,6 +165,12 @@ def _join(prefix: str, path: str) -> str:
 
 # --- value checks: each returns the normalised value or raises with the field's name ----
 
+# what one scenario may ask for, checked before anything starts: a typo such as
+# count: 1000000000000 was accepted and grew the runner's memory at 44 MB/s
+MAX_EPISODES = 10_000  # per stage
+MAX_EPISODE_SECONDS = 3600.0  # simulated, per episode
+
+
 def _bound_text(minimum: float | None, strict: bool) -> str:
     if minimum is None:
         return ""
@@ -176,10 +182,20 @@ def _is_int(value: Any) -> bool:
     return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
 
 
-def _int(value: Any, name: str, minimum: int | None = None) -> int:
-    if not _is_int(value) or (minimum is not None and value < minimum):
-        raise ScenarioError(f"expected an integer{_bound_text(minimum, False)}", path=name, value=value)
+def _int(value: Any, name: str, minimum: int | None = None, maximum: int | None = None) -> int:
+    if not _is_int(value) or (minimum is not None and value < minimum) or (maximum is not None and value > maximum):
+        bounds = _bound_text(minimum, False) + (f" and <= {maximum}" if maximum is not None else "")
+        raise ScenarioError(f"expected an integer{bounds}", path=name, value=value)
     return int(value)
+
+
+def _seconds(value: Any, name: str) -> float:
+    """An episode's simulated-time limit: > 0 and at most MAX_EPISODE_SECONDS."""
+    seconds = _number(value, name, 0.0, strict=True)
+    if seconds > MAX_EPISODE_SECONDS:
+        raise ScenarioError(f"expected at most {MAX_EPISODE_SECONDS:g} s of simulated time per episode",
+                            path=name, value=value)
+    return seconds
 
 
 def _seed(value: Any, name: str) -> int:
@@ -329,14 +345,14 @@ class DemonstrateStage(_MotionStage):
         return "demonstrate"
 
     def __post_init__(self):
-        _set(self, "count", _int(self.count, "count", 1))
+        _set(self, "count", _int(self.count, "count", 1, MAX_EPISODES))
         _set(self, "sides", _sides(self.sides, "sides"))
         if self.start is not None:
             _set(self, "start", _xyz(self.start, "start"))
         _set(self, "start_spread", _number(self.start_spread, "start_spread", 0.0))
         if self.goal_x is not None:
             _set(self, "goal_x", _number(self.goal_x, "goal_x"))
-        _set(self, "max_seconds", _number(self.max_seconds, "max_seconds", 0.0, strict=True))
+        _set(self, "max_seconds", _seconds(self.max_seconds, "max_seconds"))
         if self.seed is not None:
             _set(self, "seed", _seed(self.seed, "seed"))
 
@@ -413,7 +429,7 @@ class ReproduceStage(_MotionStage):
         return "reproduce"
 
     def __post_init__(self):
-        _set(self, "count", _int(self.count, "count", 1))
+        _set(self, "count", _int(self.count, "count", 1, MAX_EPISODES))
         _set(self, "sides", _sides(self.sides, "sides"))
         if self.start is not None:
             _set(self, "start", _xyz(self.start, "start"))
@@ -424,7 +440,7 @@ class ReproduceStage(_MotionStage):
             _set(self, "goal_x", _number(self.goal_x, "goal_x"))
         _set(self, "goal_tolerance", _number(self.goal_tolerance, "goal_tolerance", 0.0, strict=True))
         _set(self, "max_contact_force", _number(self.max_contact_force, "max_contact_force", 0.0, strict=True))
-        _set(self, "max_seconds", _number(self.max_seconds, "max_seconds", 0.0, strict=True))
+        _set(self, "max_seconds", _seconds(self.max_seconds, "max_seconds"))
         _set(self, "stop_at_goal", _bool(self.stop_at_goal, "stop_at_goal"))
         if self.seed is not None:
             _set(self, "seed", _seed(self.seed, "seed"))

@@ -169,7 +169,7 @@ def test_with_clock_returns_a_changed_copy():
 
 
 def test_constructors_validate_on_their_own():
-    with pytest.raises(ScenarioError, match=r"^count: expected an integer >= 1, got 0$"):
+    with pytest.raises(ScenarioError, match=r"^count: expected an integer >= 1 and <= 10000, got 0$"):
         DemonstrateStage(count=0)
     with pytest.raises(ScenarioError, match=r"^criterion: expected one of 'bic', 'aic', got 'mdl'$"):
         LearnStage(criterion="mdl")
@@ -309,6 +309,17 @@ def test_missing_required_field(tmp_path, field):
 def test_missing_stage_count(tmp_path):
     path = write(tmp_path, MINIMAL.replace("      count: 3\n", ""))
     with pytest.raises(ScenarioError, match=rf"^{path}: stages\[2\]\.reproduce\.count: required field is missing$"):
+        load_scenario(path)
+
+
+def test_a_count_or_a_time_limit_beyond_reason_is_refused_before_anything_starts(tmp_path):
+    path = write(tmp_path, MINIMAL.replace("      count: 3\n", "      count: 1000000000000\n"))
+    with pytest.raises(ScenarioError, match=rf"^{path}: stages\[2\]\.reproduce\.count: expected an integer >= 1 "
+                                            rf"and <= 10000, got 1000000000000$"):
+        load_scenario(path)
+    path = write(tmp_path, MINIMAL.replace("      count: 3\n", "      count: 3\n      max_seconds: 1e9\n"))
+    with pytest.raises(ScenarioError, match=rf"^{path}: stages\[2\]\.reproduce\.max_seconds: expected at most "
+                                            rf"3600 s of simulated time per episode"):
         load_scenario(path)
 
 
