@@ -66,7 +66,9 @@ def cmd_run(args) -> int:
         _say(f"etar-bench run: error: {exc}")
         return 2
     except KeyboardInterrupt as exc:
-        _say(f"etar-bench run: interrupted ({exc or 'SIGINT'}); services stopped, partial report in {out}")
+        written = (Path(out) / "report.json").exists()
+        _say(f"etar-bench run: interrupted ({exc or 'SIGINT'}); services stopped; "
+             + (f"partial report in {out}" if written else "no report was written"))
         return 130
     print((Path(out) / "report.txt").read_text())
     _say(f"report: {out}/report.json, {out}/report.txt; recordings in {out}/recordings")

@@ -27,6 +27,8 @@ from __future__ import annotations
 
 import json
 import os
+import signal
+import threading
 import time
 import uuid
 from dataclasses import dataclass, field
@@ -213,6 +215,8 @@ class Runner:
                 getattr(self, f"stage_{stage.kind}")(stage)
             self._event("run_end", "", -1, {})
         except BaseException as exc:
+            if isinstance(exc, KeyboardInterrupt):
+                self._escalate_on_next_interrupt()
             error = f"{type(exc).__name__}: {exc}"
             self.say(f"run failed: {error}")
             if self.cell is not None:
@@ -231,6 +235,25 @@ class Runner:
                 if self.cell is not None:
                     self.cell.stop(self.roles(), before_report=False)
         return report
+
+    def _escalate_on_next_interrupt(self) -> None:
+        """Interrupted once: the services are being stopped and the report written.  A
+        second Ctrl-C (or SIGTERM) must not abort that half-way (leaving orphans and no
+        report): it kills the services at once and lets the clean-up finish."""
+        if threading.current_thread() is not threading.main_thread():
+            return
+
+        def escalate(signum, frame):
+            processes = getattr(self.cell, "processes", [])
+            self.say(f"{signal.Signals(signum).name} again: killing the {len(processes)} service processes now")
+            for p in processes:
+                try:
+                    os.killpg(p.popen.pid, signal.SIGKILL)
+                except (ProcessLookupError, PermissionError):
+                    pass
+
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, escalate)
 
     def _apply_profile(self) -> None:
         """Find out what the realtime profile is granted, before any service starts, and

@@ -6,6 +6,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 import uuid
 from pathlib import Path
@@ -56,3 +57,45 @@ def test_sigterm_stops_the_services_and_writes_a_report(tmp_path):
     assert processes_of(run_id) == []
     report = json.loads((out / "report.json").read_text())
     assert "SIGTERM" in report["error"]
+
+
+def test_a_second_ctrl_c_kills_the_services_and_the_report_is_still_written(tmp_path):
+    run_id = f"sigint2-{uuid.uuid4().hex[:8]}"
+    out = tmp_path / "run"
+    runner = subprocess.Popen(
+        [sys.executable, "-m", "services.bench_cli", "run", str(ROOT / "scenarios" / "smoke.yaml"), "--out", str(out),
+         "--run-id", run_id], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    said = []
+    cleaning_up = threading.Event()
+
+    def read():  # a thread, so that a runner that hangs fails the test instead of hanging it
+        for line in runner.stderr:
+            said.append(line)
+            if "run failed: KeyboardInterrupt" in line:
+                cleaning_up.set()
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    try:
+        first = out / "recordings" / "demonstration_00.mcap"
+        deadline = time.monotonic() + 120
+        while not (first.exists() and first.stat().st_size > 10_000) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert first.exists(), "".join(said)
+        runner.send_signal(signal.SIGINT)
+        assert cleaning_up.wait(30), "".join(said)
+        runner.send_signal(signal.SIGINT)  # in the middle of the clean-up
+        assert runner.wait(timeout=60) == 130
+        reader.join(10)
+    finally:
+        if runner.poll() is None:
+            runner.kill()
+    text = "".join(said)
+    assert "SIGINT again: killing the 6 service processes now" in text, text
+    deadline = time.monotonic() + 10
+    while processes_of(run_id) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert processes_of(run_id) == []  # no orphan
+    report = json.loads((out / "report.json").read_text())
+    assert "KeyboardInterrupt" in report["error"]
+    assert f"partial report in {out}" in text.splitlines()[-1]

@@ -153,15 +153,15 @@ def quality_at(changes, t):
 
 
 def test_injected_commander_stall_shows_up_as_fri_misses_and_quality_drops(tmp_path):
-    """The commander sleeps 3 ms before one answer every simulated second (its
+    """The commander sleeps 3 ms before one answer every half simulated second (its
     --stall-every/--stall-ms fault injection); realtime, all processes over Zenoh,
     the two ends of the FRI link under SCHED_FIFO.  The stalled answer misses its
     deadline and the report counts it late; the measurements that came meanwhile are
     a cycle old by then and left unanswered (missed); the FRI quality falls at the
     stall instants."""
-    every, stall_ms = 1.0, 3.0
+    every, stall_ms = 0.5, 3.0
     t = time.monotonic()
-    report = run(RunOptions(scenario=hold_scenario(tmp_path, 10), out=str(tmp_path / "run"), sched_fifo=True,
+    report = run(RunOptions(scenario=hold_scenario(tmp_path, 6), out=str(tmp_path / "run"), sched_fifo=True,
                             isolate_robot=True,
                             commander_args=("--stall-every", str(every), "--stall-ms", str(stall_ms))),
                  progress=print)
