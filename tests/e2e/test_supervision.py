@@ -36,7 +36,8 @@ def service_pid(role: str, run_id: str) -> int | None:
 # run by hand: noticed within 11 cycles, the run over 5.7 s after the kill); the suite
 # keeps one of each mechanism to stay within its 10 minutes
 @pytest.mark.parametrize("role,clock,sig", [("ft_sensor", "realtime", signal.SIGKILL),
-                                            ("phase_estimator", "lockstep", signal.SIGSTOP)])
+                                            ("phase_estimator", "lockstep", signal.SIGSTOP),
+                                            ("recorder", "lockstep", signal.SIGKILL)])
 def test_a_service_killed_mid_reproduction_fails_the_run_at_once_and_keeps_the_episode(tmp_path, role, clock, sig):
     """SIGKILL: the process is gone and its liveliness token with it.  SIGSTOP: alive but
     silent; lockstep cycles wait for it and the robot gives up on it after two answer
