@@ -36,7 +36,6 @@ from services.runtime.session import ZenohOptions, add_zenoh_arguments, zenoh_op
 CLOCKS = ("lockstep", "realtime")
 RECORDER_WAIT_S = 10.0  # end_episode: how long the recorder waits for messages still in flight
 STOP_CHECK_NS = 100_000_000  # during an episode the robot looks for a 'stop' at least this often
-RECORDER_BATCH_S = 0.005  # the recorder takes what has arrived every 5 ms, not each message as it comes
 PROGRAMS = {"robot": "etar-robot", "ft_sensor": "etar-ft-sensor", "teacher": "etar-teacher",
             "phase_estimator": "etar-phase-estimator", "impedance_commander": "etar-impedance-commander",
             "recorder": "etar-recorder"}
@@ -124,8 +123,7 @@ class NodeInputs:
         want = self.node.listening or not self.realtime
         if want and not self.declared:
             self.declared = [self.svc.subscribe(s.topic, s.handler, decode=s.decode, every_tenth=s.every_tenth,
-                                                latest=s.latest and self.realtime,
-                                                batch_s=RECORDER_BATCH_S if s.topic == "**" else 0.0)
+                                                latest=s.latest and self.realtime)
                              for s in self.node.subscriptions]
         elif not want and self.declared:
             for s in self.declared:

@@ -30,8 +30,10 @@ from services.runtime.timing import Histogram, SequenceTracker
 
 # topics whose sequence numbers (robot cycles) advance by more than one per message
 STRIDES = {"estimator/phase": 10}
-# a batched subscription's queue: ~10 s of every message of a run; when full, Zenoh
-# holds further samples back (the publishers' congestion control decides what drops)
+# the wildcard subscription (the recorder's) takes what has arrived every BATCH_S, from
+# a queue of ~10 s of every message of a run; when full, Zenoh holds further samples
+# back (the publishers' congestion control decides what drops)
+BATCH_S = 0.005
 BATCH_CAPACITY = 50_000
 
 
@@ -231,7 +233,7 @@ class Service:
             subscriber.undeclare()
 
     def subscribe(self, topic: str, on_message, *, decode: bool = True, every_tenth: bool = False,
-                  latest: bool = False, batch_s: float = 0.0):
+                  latest: bool = False):
         """Deliver (message dict, receive time ns, raw bytes) for every valid
         sample on etar/<run_id>/<topic>; garbage is counted in ``links``, never raised.
 
@@ -252,13 +254,13 @@ class Service:
         without waking Python; one thread of this process drains it.  Never for
         the recorder or for lockstep, which need every message.
 
-        ``batch_s`` (the wildcard subscription only): Zenoh queues the samples
-        (``FifoChannel``) and one thread takes what has come every ``batch_s``
-        seconds, so a consumer that needs every message but not at once (the
-        recorder) wakes a few hundred times a second instead of once per message.
+        ``"**"`` (every topic of the run, undecoded: the recorder's): Zenoh queues
+        the samples (``FifoChannel``) and one thread takes what has come every
+        ``BATCH_S``, so a consumer that needs every message but not at once wakes a
+        few hundred times a second instead of once per message.
         Returns the subscriber (for ``unsubscribe``)."""
         if topic == "**":
-            return self._subscribe_all(on_message, batch_s)
+            return self._subscribe_all(on_message)
         message_type: MessageType | None = BY_TOPIC.get(topic)
         stride = 10 if every_tenth else STRIDES.get(topic, 1)
         counters = self.links.setdefault(topic, LinkCounters(sequence=SequenceTracker(stride=stride)))
@@ -326,36 +328,30 @@ class Service:
         self._subscribers.append(sub)
         return sub
 
-    def _subscribe_all(self, on_sample, batch_s: float = 0.0):
-        """Every sample of the run, undecoded: ``on_sample(topic, receive time ns, raw bytes, None)``."""
+    def _subscribe_all(self, on_sample):
+        """Every sample of the run, undecoded and in batches: ``on_sample(topic, receive
+        time ns, raw bytes, None)``, the receive time that of the batch's turn."""
         prefix = topics.prefix(self.run_id) + "/"
         cut = len(prefix)
-        if batch_s > 0:
-            sub = self.session.declare_subscriber(prefix + "**", zenoh.handlers.FifoChannel(BATCH_CAPACITY))
-            fifo = sub.handler
-            stop = self.stop
+        sub = self.session.declare_subscriber(prefix + "**", zenoh.handlers.FifoChannel(BATCH_CAPACITY))
+        fifo = sub.handler
+        stop = self.stop
 
-            @self.profile.wrap
-            def take(sample) -> None:
-                on_sample(str(sample.key_expr)[cut:], now_ns(), sample.payload.to_bytes(), None)
+        @self.profile.wrap
+        def take(sample) -> None:
+            on_sample(str(sample.key_expr)[cut:], now_ns(), sample.payload.to_bytes(), None)
 
-            def drain() -> None:
-                try:
-                    while True:
-                        take(fifo.recv())  # the first of a batch: blocks until something comes
-                        while (sample := fifo.try_recv()) is not None:
-                            take(sample)
-                        stop.wait(batch_s)
-                except zenoh.ZError:
-                    return  # undeclared: the channel is closed
+        def drain() -> None:
+            try:
+                while True:
+                    take(fifo.recv())  # the first of a batch: blocks until something comes
+                    while (sample := fifo.try_recv()) is not None:
+                        take(sample)
+                    stop.wait(BATCH_S)
+            except zenoh.ZError:
+                return  # undeclared: the channel is closed
 
-            threading.Thread(target=drain, name="batched **", daemon=True).start()
-        else:
-            def callback(sample: zenoh.Sample) -> None:
-                recv = now_ns()
-                on_sample(str(sample.key_expr)[cut:], recv, sample.payload.to_bytes(), None)
-
-            sub = self.session.declare_subscriber(prefix + "**", self.profile.wrap(callback))
+        threading.Thread(target=drain, name="batched **", daemon=True).start()
         self._subscribers.append(sub)
         return sub
 

@@ -28,12 +28,17 @@ def processes_of(run_id: str) -> list[int]:
     return pids
 
 
+def start_smoke_run(out: Path, run_id: str) -> subprocess.Popen:
+    """`etar-bench run scenarios/smoke.yaml` as its own process, its stderr readable as text."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "services.bench_cli", "run", str(ROOT / "scenarios" / "smoke.yaml"), "--out", str(out),
+         "--run-id", run_id], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+
 def test_sigterm_stops_the_services_and_writes_a_report(tmp_path):
     run_id = f"sigterm-{uuid.uuid4().hex[:8]}"
     out = tmp_path / "run"
-    runner = subprocess.Popen(
-        [sys.executable, "-m", "services.bench_cli", "run", str(ROOT / "scenarios" / "smoke.yaml"), "--out", str(out),
-         "--run-id", run_id], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    runner = start_smoke_run(out, run_id)
     try:
         deadline = time.monotonic() + 120
         for line in runner.stderr:  # until the services are up
@@ -62,9 +67,7 @@ def test_sigterm_stops_the_services_and_writes_a_report(tmp_path):
 def test_a_second_ctrl_c_kills_the_services_and_the_report_is_still_written(tmp_path):
     run_id = f"sigint2-{uuid.uuid4().hex[:8]}"
     out = tmp_path / "run"
-    runner = subprocess.Popen(
-        [sys.executable, "-m", "services.bench_cli", "run", str(ROOT / "scenarios" / "smoke.yaml"), "--out", str(out),
-         "--run-id", run_id], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    runner = start_smoke_run(out, run_id)
     said = []
     cleaning_up = threading.Event()
 
