@@ -38,7 +38,7 @@ def payloads(cycles):
                                                    wrench=rng.normal(size=6))))
         out.append(("robot/command", ROBOT_COMMAND.encode(
             **h, cart_pos=rng.normal(size=12), cart_stiffness=np.zeros(6), cart_damping=np.full(6, 0.7),
-            add_tcp_ft=rng.normal(size=6), requested_mode=2, phase=1, estimate_seq=k, goal_reached=False,
+            add_tcp_ft=rng.normal(size=6), requested_mode=2, phase=1, estimate_seq=k, goal_reached=False, hold="",
             episode=0)))
         if k % 10 == 0:
             out.append(("estimator/phase", ESTIMATOR_PHASE.encode(**h, posterior=[0.1, 0.8, 0.1], phase=1,

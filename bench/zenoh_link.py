@@ -34,7 +34,7 @@ def ponger(endpoint, mode, ready, stop):
     s = _session(connect=[endpoint])
     pub = s.declare_publisher(f"bench/{mode}/pong", express=True, priority=zenoh.Priority.REAL_TIME)
     cmd = dict(cart_pos=np.eye(3, 4).ravel(), cart_stiffness=np.zeros(6), cart_damping=np.full(6, 0.7),
-               add_tcp_ft=np.zeros(6), requested_mode=2, phase=1, estimate_seq=-1, goal_reached=False, episode=0)
+               add_tcp_ft=np.zeros(6), requested_mode=2, phase=1, estimate_seq=-1, goal_reached=False, hold="", episode=0)
 
     def on_ping(sample):
         raw = sample.payload.to_bytes()

@@ -24,6 +24,7 @@ import numpy as np
 
 from etar.metrics import score_segmentation
 from services.recording import read_episode
+from services.nodes.robot import HOLD_WATCH_S
 from services.runtime.messages import BY_TOPIC, loads
 from services.runtime.service import STRIDES
 from services.runtime.timing import Histogram, SequenceTracker, percentiles
@@ -185,6 +186,20 @@ def clock_not_held(demonstrations, reproductions, loops, received) -> str | None
             + "; ".join(problems[:2]) + more + late)
 
 
+def commander_held(reproductions) -> str | None:
+    """The run failed if the commander had to hold the arm: one line on the first hold."""
+    for rp in reproductions:
+        h = rp.get("hold")
+        if h:
+            age = h["seq"] - h["estimate_seq"] if h.get("estimate_seq", -1) >= 0 else None
+            return (f"reproduction {rp['index']}: the impedance commander held the arm {h['at_s']:.3f} s in "
+                    f"(cycle {h['seq']}, {h['reason']}: "
+                    + (f"the last phase estimate was {age} cycles old" if age is not None else "no phase estimate yet")
+                    + f"); in the {HOLD_WATCH_S:g} s after, the tcp moved {1e3 * h['max_displacement_m']:.1f} mm "
+                      f"and the contact force peaked at {h['peak_contact_force']:.1f} N")
+    return None
+
+
 def _in_run(path, run_dir: Path) -> str | None:
     """A path for report.json: relative to the run directory when it lies inside it
     (a run directory can be moved or committed), absolute otherwise."""
@@ -231,7 +246,7 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
                           reached_goal=reached, peak_contact_force=s["peak_contact_force"],
                           bounded_force=bounded, success=reached and bounded, sim_seconds=s["sim_seconds"],
                           wall_seconds=s["wall_seconds"], final_position=s["final_position"], phases=phases,
-                          goal_reached_at_s=s.get("goal_reached_at_s", -1.0), fri=s.get("fri"),
+                          goal_reached_at_s=s.get("goal_reached_at_s", -1.0), hold=s.get("hold"), fri=s.get("fri"),
                           fri_quality=timelines.get(r["path"], {}),
                           undecodable_messages=undecodable.get(r["path"], 0)))
     updates = sum(r["phases"].get("updates", 0) for r in repro)
@@ -253,6 +268,8 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
     wall_total = sum(e["wall_seconds"] for e in episodes)
     if sc.clock == "realtime" and error is None and loops:
         error = clock_not_held(st.demonstrations, repro, loops, received)
+    if error is None:  # after the clock: a machine that could not hold it also starves the estimator
+        error = commander_held(repro)
     stats = getattr(runner, "service_stats", None) or {}
     profile = getattr(runner, "profile", None)
     report = {

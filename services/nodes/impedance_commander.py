@@ -12,6 +12,16 @@ diagonal in the tcp frame, so the full K = R V R^T is realised through addTcpFT
 (the superposed wrench, thesis eq. 79) with the KRC's translational stiffness at
 zero; the KRC's rotational stiffness holds (or turns) the setpoint orientation.
 
+A stale phase estimate is a fault, as in a real cell: when the newest estimate
+is more than ``STALE_ESTIMATE_CYCLES`` cycles older than the measurement being
+answered (the estimator is dead, hung or cut off, or it skips every sample
+because the wrench stream stopped, saturated or went non-finite), the commander
+holds the arm stiffly where it is (the policy's hold: ``HOLD_STIFFNESS`` on every
+axis, no feed-forward) for the rest of the episode and says why in every command
+(``hold``).  Following the last phase on would drive the arm on a frozen belief
+(59-81 mm, up to 11 N, before this hold existed).  The robot ends the episode
+after watching the hold (``services.nodes.robot.HOLD_WATCH_S``).
+
 On the realtime clock only answers that can still count are sent: the commander
 takes the newest measurement that has arrived (``latest``) and leaves unanswered
 one that is already a cycle old (``stale`` in its status): its answer could only
@@ -38,6 +48,9 @@ from services.runtime.timing import Histogram
 CYCLE_NS = 1_000_000  # the FRI cycle: an answer later than this after its measurement is late
 PERIOD_NS = 10_000_000  # the estimator's period (simulated time)
 ROT_STIFFNESS = 150.0
+# five estimator periods: realtime estimates arrive up to a few cycles after their
+# measurement, so only a silence far past that is a fault
+STALE_ESTIMATE_CYCLES = 50
 ESTIMATE_WAIT_S = 2.0  # lockstep over a network: how long to wait for a cycle's estimate before going on
 CART_STIFFNESS = [0.0, 0.0, 0.0] + [ROT_STIFFNESS] * 3
 CART_DAMPING = [0.7] * 6
@@ -73,6 +86,8 @@ class ImpedanceCommanderNode(Node):
         self._latest_phase_seq = -1
         self._waiting_since = None
         self._last_answered_seq = None
+        self._first_seq = None
+        self.hold = None  # the episode's hold (reason, seq, estimate_seq), latched until the next reset
         self.missing_estimates = 0
         self.stale = 0  # realtime: measurements left unanswered, already a cycle old when their turn came
         # where an answer's time goes, and receive -> published (the commander's share of
@@ -120,7 +135,9 @@ class ImpedanceCommanderNode(Node):
 
     def _drain(self, give_up: bool = False):
         for seq in sorted(self._pending):
-            if self.lockstep and self._pending[seq]["stamp_ns"] % PERIOD_NS == 0 and seq not in self._phases:
+            # holding, it needs no estimate: it waits for none
+            if self.lockstep and self.hold is None and self._pending[seq]["stamp_ns"] % PERIOD_NS == 0 \
+                    and seq not in self._phases:
                 if not give_up:
                     if self._waiting_since is None:
                         self._waiting_since = self.clock.now_ns()
@@ -150,7 +167,15 @@ class ImpedanceCommanderNode(Node):
         R, x = m[:, :3], m[:, 3]
         cycles = seq - last if last is not None and 0 < seq - last <= 100 else 1
         self._last_answered_seq = seq
-        F, R_set = self.policy.step(x, R, self._latest_phase, cycles * DT)
+        if self._first_seq is None:
+            self._first_seq = seq
+        if self.hold is None:
+            fresh = self._latest_phase_seq if self._latest_phase_seq >= 0 else self._first_seq
+            if seq - fresh > STALE_ESTIMATE_CYCLES:
+                self.hold = dict(reason="stale_estimate", seq=seq, stamp_ns=state["stamp_ns"],
+                                 estimate_seq=self._latest_phase_seq)
+        # the policy holds stiffly where the tool is when it knows no phase
+        F, R_set = self.policy.step(x, R, None if self.hold else self._latest_phase, cycles * DT)
         # the force in tcp axes; FRI orders the torques Tz, Ty, Tx (all zero here)
         add = (R.T @ F).tolist() + [0.0, 0.0, 0.0]
         cart = self._cart_pos
@@ -161,9 +186,11 @@ class ImpedanceCommanderNode(Node):
             seq=state["seq"], stamp_ns=state["stamp_ns"], sent_ns=t1,
             cart_pos=cart.reshape(12),
             cart_stiffness=CART_STIFFNESS, cart_damping=CART_DAMPING,
-            add_tcp_ft=add, requested_mode=2, phase=-1 if self._latest_phase is None else int(self._latest_phase),
+            add_tcp_ft=add, requested_mode=2,
+            phase=-1 if self._latest_phase is None or self.hold else int(self._latest_phase),
             estimate_seq=self._latest_phase_seq,
-            goal_reached=bool(self.policy.goal_reached), episode=state["episode"])
+            goal_reached=bool(self.policy.goal_reached), hold=self.hold["reason"] if self.hold else "",
+            episode=state["episode"])
         t2 = now()
         self.bus.publish("robot/command", *packed)
         t3 = now()
@@ -195,6 +222,8 @@ class ImpedanceCommanderNode(Node):
             self._latest_phase_seq = -1
             self._waiting_since = None
             self._last_answered_seq = None
+            self._first_seq = None
+            self.hold = None
 
     def idle(self, now_ns: int) -> None:
         with self._lock:
@@ -208,4 +237,5 @@ class ImpedanceCommanderNode(Node):
 
     def status(self) -> dict:
         return {"episode": self.episode, "missing_estimates": self.missing_estimates, "stale": self.stale,
+                "hold": self.hold,
                 "sections": self.sections.summary(), "receive_to_answer": self.answer_time.summary()}

@@ -15,6 +15,7 @@ task's).  A wrench with error status or a sample the filter rejects
 
 from __future__ import annotations
 
+import math
 import threading
 from dataclasses import dataclass
 
@@ -33,6 +34,12 @@ PERIOD_NS = 10_000_000  # 100 Hz on simulated time, the instants the learner's s
 class EstimatorConfig:
     model: str | None = option(None, "learned model file (etar learn --out); can also come with reset",
                                metavar="FILE")
+    mute_after: float = option(0.0, "fault injection: publish no estimate after N s of each reproduction "
+                                    "(simulated time; 0: never)")
+
+    def __post_init__(self):
+        if not (math.isfinite(self.mute_after) and self.mute_after >= 0):
+            raise ValueError(f"mute_after must be a finite number of seconds >= 0, got {self.mute_after!r}")
 
 
 class PhaseEstimatorNode(Node):
@@ -41,6 +48,9 @@ class PhaseEstimatorNode(Node):
     def __init__(self, config: EstimatorConfig, bus, clock, *, run_id: str = "", mode: str = "lockstep", **_):
         super().__init__(bus, clock)
         self.task = load_task(config.model) if config.model else None
+        self.mute_after_ns = int(config.mute_after * 1e9)
+        self.muted = 0  # estimates left unpublished by the injected fault
+        self._t0 = None  # the episode's first estimated instant
         self.filter = None
         self.episode = -1
         self.state_kind, self.feature_kind = "position", "force"
@@ -101,6 +111,11 @@ class PhaseEstimatorNode(Node):
             self.skipped += 1
             return
         self.updates += 1
+        if self._t0 is None:
+            self._t0 = state["stamp_ns"]
+        if self.mute_after_ns and state["stamp_ns"] - self._t0 >= self.mute_after_ns:
+            self.muted += 1
+            return
         self.bus.publish("estimator/phase", *ESTIMATOR_PHASE.pack(
             seq=seq, stamp_ns=state["stamp_ns"], sent_ns=self.clock.now_ns(), posterior=alpha,
             phase=int(np.argmax(alpha)), input_seq=seq, ft_seq=wrench["seq"], episode=self.episode))
@@ -128,9 +143,11 @@ class PhaseEstimatorNode(Node):
             self.filter = task.model.filter()
             self.episode = int(p["episode"])
             self.R0 = None
+            self._t0 = None
             self._states.clear()
             self._wrenches.clear()
         return {"n_phases": task.n_phases}
 
     def status(self) -> dict:
-        return {"episode": self.episode, "updates": self.updates, "skipped": self.skipped}
+        return {"episode": self.episode, "updates": self.updates, "skipped": self.skipped,
+                "muted": self.muted}

@@ -36,6 +36,10 @@ from services.runtime.messages import EPISODE_SUMMARY, ROBOT_CONTACT, ROBOT_STAT
 from services.runtime.timing import Histogram
 
 LOCKSTEP_LATENCY_NS = 100_000
+# once the commander holds the arm the episode is lost: the robot watches the hold
+# this long (its summary says how far the tcp went, how hard it pressed) and ends it
+HOLD_WATCH_S = 1.0
+HOLD_WATCH_CYCLES = int(HOLD_WATCH_S * 1000)
 # per-cycle sections (episode summary, loop.sections): waiting for the deadline or the
 # answers, handing the answers to the FRI link, the physics step (KRC law + MuJoCo +
 # sensing), measuring (FRI packet, labels), encoding, publishing
@@ -89,6 +93,9 @@ class _Episode:
         self.sent: dict[int, int] = {}
         self.last_estimate = -1
         self.goal_at = -1.0
+        self.hold = None  # the commander's hold: when it began and what the arm did after
+        self.hold_at_k = 0
+        self.hold_x0 = None
         self.run = 0
         self.miss_run = 0
         self.k = 0
@@ -230,6 +237,7 @@ class RobotNode(Node):
             sim_seconds=engine.k * cell.cycle_ns / 1e9, wall_seconds=(now - ep.wall0_ns) / 1e9,
             final_position=cell.sim.tcp_position(), peak_contact_force=ep.peak, safety=int(cell.krc.safety),
             missed_answers=engine.missed_answers, goal_reached_at_s=ep.goal_at,
+            **({"hold": dict(ep.hold)} if ep.hold is not None else {}),
             fri={"answered": stats.answered - fri0.answered, "missed": stats.missed - fri0.missed,
                  "late": stats.late - fri0.late, "corrupt": stats.corrupt - fri0.corrupt,
                  "longest_miss_run": ep.miss_run, "state": int(stats.state), "quality": int(stats.quality)},
@@ -319,6 +327,12 @@ class RobotNode(Node):
                 goal_reached = bool(msg["goal_reached"])
                 if goal_reached and ep.goal_at < 0:
                     ep.goal_at = ep.k * cell.cycle_ns / 1e9
+            if msg.get("hold") and ep.hold is None:
+                ep.hold = dict(reason=msg["hold"], seq=seq, at_s=ep.k * cell.cycle_ns / 1e9,
+                               estimate_seq=msg.get("estimate_seq", -1), max_displacement_m=0.0,
+                               peak_contact_force=0.0)
+                ep.hold_at_k = ep.k
+                ep.hold_x0 = cell.sim.tcp_position()
         teacher_msg = teacher_entry[0] if teacher_entry is not None else (None if self.lockstep else latest_teacher)
         hand = None
         # episode indices count demonstrations and reproductions separately: the teacher
@@ -341,6 +355,14 @@ class RobotNode(Node):
         for flag, name in ((teacher_done, "teacher_done"), (goal_reached, "goal_reached")):
             if flag and stop_on == name:
                 return name
+        if ep.hold is not None:
+            # what the arm does once the commander holds it: how far the tcp goes, how hard it presses
+            h = ep.hold
+            h["max_displacement_m"] = max(h["max_displacement_m"],
+                                          float(np.linalg.norm(cell.sim.tcp_position() - ep.hold_x0)))
+            h["peak_contact_force"] = max(h["peak_contact_force"], math.hypot(*cell.contact_force[:3]))
+            if ep.k - ep.hold_at_k >= HOLD_WATCH_CYCLES:
+                return f"hold:{h['reason']}"
         if cell.krc.safety != 0:
             return f"safety:{SafetyReason(cell.krc.safety).name.lower()}"
         return None

@@ -371,6 +371,9 @@ ROBOT_COMMAND = MessageType(
         ("phase", "int", "phase whose impedance this command applies (-1: none)"),
         ("estimate_seq", "int", "robot cycle of the phase estimate this command used (-1: none)"),
         ("goal_reached", "bool", "the commander judges the task complete"),
+        ("hold", "str", "why the commander holds the arm stiffly where it was instead of following "
+                        "the task ('': it does not; 'stale_estimate': no phase estimate for "
+                        "STALE_ESTIMATE_CYCLES cycles)"),
         ("episode", "int", "reproduction index"),
     ),
 )
@@ -393,7 +396,8 @@ EPISODE_SUMMARY = MessageType(
         ("episode", "int", "episode index"),
         ("kind", "str", "demonstration | reproduction"),
         ("reason", "str", "why it ended: teacher_done | goal_reached | timeout | elapsed (ran its whole time with "
-                           "nothing to stop on) | safety:<reason> (e.g. safety:joint_limit) | stopped"),
+                           "nothing to stop on) | safety:<reason> (e.g. safety:joint_limit) | hold:<reason> "
+                           "(the commander held the arm; the robot watched it for HOLD_WATCH_S) | stopped"),
         ("first_seq", "int", "first robot cycle of the episode"),
         ("last_seq", "int", "last robot cycle of the episode"),
         ("sim_seconds", "float", "simulated duration, s"),
@@ -404,6 +408,10 @@ EPISODE_SUMMARY = MessageType(
         ("missed_answers", "int", "lockstep: cycles whose awaited answers did not come in time"),
         Field("goal_reached_at_s", "float", "simulated time into the episode when the commander first reported "
                                             "the goal reached (-1: never)", optional=True),
+        Field("hold", "object", "the commander's hold, if it held the arm: reason, seq and at_s of its first "
+                                "hold command, estimate_seq (the last estimate it had), and what the robot "
+                                "measured after it: max_displacement_m of the tcp, peak_contact_force",
+              optional=True),
         ("fri", "object", "FRI link statistics of this episode (counts) and at its end (state, quality)"),
         ("loop", "object", "timing statistics of the robot's 1 kHz loop"),
     ),

@@ -119,3 +119,40 @@ def test_an_episode_tells_its_progress(monkeypatch):
     bar.close()
     assert "reproduction 1/20: 2.0/40 sim s" in screen.getvalue() and "x real time" in screen.getvalue()
     assert not EpisodeProgress("quiet", 1.0, enabled=False).enabled
+
+
+def test_a_stale_phase_estimate_makes_the_commander_hold_the_arm_stiffly():
+    """The estimator goes silent 1 s into the reproduction (alive, publishing nothing):
+    the commander holds at the first answer whose newest estimate is more than
+    STALE_ESTIMATE_CYCLES old, says so in every command, and the robot ends the episode
+    after watching the hold; the arm stays put."""
+    from services.nodes.impedance_commander import STALE_ESTIMATE_CYCLES
+    from services.nodes.robot import HOLD_WATCH_S
+
+    c = InProcessCell("inproc-hold", {
+        "robot": RobotConfig(), "ft_sensor": FtSensorConfig(),
+        "recorder": RecorderConfig(out_dir=tempfile.mkdtemp()), "phase_estimator": EstimatorConfig(mute_after=1.0),
+        "impedance_commander": CommanderConfig()})
+    summary = reproduce(c, 6.0)
+    hold = summary["hold"]
+    assert summary["reason"] == "hold:stale_estimate", summary["reason"]
+    assert hold["reason"] == "stale_estimate"
+    assert hold["seq"] - hold["estimate_seq"] == STALE_ESTIMATE_CYCLES + 1, hold
+    assert 1.0 < hold["at_s"] < 1.0 + (STALE_ESTIMATE_CYCLES + 20) / 1000, hold
+    assert summary["sim_seconds"] == pytest.approx(hold["at_s"] + HOLD_WATCH_S, abs=0.003)
+    # stiff: the tool no longer follows the task, it stays within millimetres
+    assert hold["max_displacement_m"] < 0.005, hold
+    assert hold["peak_contact_force"] <= summary["peak_contact_force"] + 1e-9
+    status = c.request("impedance_commander", "status")
+    assert status["hold"]["seq"] == hold["seq"]
+    assert c.request("phase_estimator", "status")["muted"] > 0
+    # and the run fails with one line that says so
+    from services.report import commander_held
+
+    line = commander_held([dict(index=0, hold=hold)])
+    assert line.startswith("reproduction 0: the impedance commander held the arm 1.0") and "51 cycles old" in line
+
+
+def test_no_hold_while_the_estimates_come():
+    summary = reproduce(cell(), 2.0)
+    assert "hold" not in summary and summary["reason"] == "elapsed", summary["reason"]

@@ -18,7 +18,7 @@ def test_pack_gives_what_decoding_its_bytes_gives_for_numpy_inputs(rng):
     assert type(msg["seq"]) is int and type(msg["msr_cart_pos"]) is list and type(msg["gravity_compensation"]) is bool
     raw, msg = ROBOT_COMMAND.pack(seq=1, stamp_ns=0, sent_ns=0, cart_pos=np.eye(3, 4).ravel(), cart_stiffness=[0.0] * 6,
                                   cart_damping=[0.7] * 6, add_tcp_ft=-0.0 * np.ones(6), requested_mode=2, phase=-1,
-                                  estimate_seq=-1, goal_reached=False, episode=0)
+                                  estimate_seq=-1, goal_reached=False, hold="", episode=0)
     assert _same(ROBOT_COMMAND.decode(raw), msg)
 
 
@@ -29,11 +29,11 @@ def test_every_message_type_has_a_pack_with_the_general_contract():
     with pytest.raises(MessageError, match=r"unknown field\(s\) \['bogus'\]"):
         ROBOT_COMMAND.pack(seq=1, stamp_ns=0, sent_ns=0, cart_pos=[0.0] * 12, cart_stiffness=[0.0] * 6,
                            cart_damping=[0.7] * 6, add_tcp_ft=[0.0] * 6, requested_mode=2, phase=-1, estimate_seq=-1,
-                           goal_reached=False, episode=0, bogus=1)
+                           goal_reached=False, hold="", episode=0, bogus=1)
     with pytest.raises(MessageError, match=r"non-finite value in field\(s\) \['add_tcp_ft'\]"):
         ROBOT_COMMAND.pack(seq=1, stamp_ns=0, sent_ns=0, cart_pos=[0.0] * 12, cart_stiffness=[0.0] * 6,
                            cart_damping=[0.7] * 6, add_tcp_ft=np.array([np.inf, 0, 0, 0, 0, 0]), requested_mode=2,
-                           phase=-1, estimate_seq=-1, goal_reached=False, episode=0)
+                           phase=-1, estimate_seq=-1, goal_reached=False, hold="", episode=0)
     # a type with optional fields keeps the general path: an optional field may be left out
     raw, msg = EPISODE_SUMMARY.pack(seq=1, stamp_ns=0, sent_ns=0, episode=0, kind="reproduction", reason="elapsed",
                                     first_seq=1, last_seq=2, sim_seconds=0.002, wall_seconds=0.01,

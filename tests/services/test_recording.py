@@ -63,7 +63,7 @@ def mixed_messages(n_cycles, rng):
         out.append((key("robot/command"), ROBOT_COMMAND.encode(
             **header(seq), cart_pos=rng.normal(size=12), cart_stiffness=[1000.0] * 3 + [100.0] * 3,
             cart_damping=[0.7] * 6, add_tcp_ft=[0.0] * 6, requested_mode=2, phase=0, estimate_seq=-1,
-            goal_reached=False,
+            goal_reached=False, hold="",
             episode=0), t + 50_000))
         if seq % 10 == 0:
             out.append((key("estimator/phase"), ESTIMATOR_PHASE.encode(
