@@ -3,6 +3,7 @@
     etar-bench run SCENARIO [--out DIR] [--clock realtime|lockstep] [--transport zenoh|inproc]
     etar-bench sweep SCENARIO --param PATH=V1,V2,... [--repeats N] --out DIR [--cluster ADDRESS]
     etar-bench report RUN_DIR
+    etar-bench recover FILE... [--out FILE]
     etar-bench router [--listen tcp/0.0.0.0:7447]
 """
 
@@ -138,6 +139,25 @@ def cmd_report(args) -> int:
     return 0
 
 
+def cmd_recover(args) -> int:
+    from services.recording import RecordingError
+    from services.recovery import recover
+
+    if args.out is not None and len(args.files) > 1:
+        _say("etar-bench recover: --out names one output file: give one FILE with it")
+        return 2
+    failed = 0
+    for f in args.files:
+        try:
+            result = recover(f, args.out, overwrite=args.force)
+        except RecordingError as exc:
+            _say(f"etar-bench recover: error: {exc}")
+            failed += 1
+            continue
+        print(result.describe(), flush=True)
+    return 1 if failed else 0
+
+
 def cmd_router(args) -> int:
     """A real Zenoh router (the Python library in router mode) for multi-host or container runs."""
     import zenoh
@@ -204,6 +224,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("run_dir")
     p.add_argument("--json", action="store_true", help="print report.json instead of the text")
     p.set_defaults(func=cmd_report)
+    p = sub.add_parser("recover", help="make a truncated recording (a recorder killed mid-episode) a finished "
+                                       "MCAP file with every complete chunk; the original is kept",
+                       description=__import__("services.recovery", fromlist=["x"]).__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("files", nargs="+", metavar="FILE", help="truncated .mcap recording(s)")
+    p.add_argument("--out", help="output file (one FILE only; default FILE's name + .recovered.mcap beside it)")
+    p.add_argument("--force", action="store_true", help="replace the output file if it exists")
+    p.set_defaults(func=cmd_recover)
     p = sub.add_parser("router", help="run a Zenoh router (for docker-compose or several hosts)")
     p.add_argument("--listen", action="append", help="endpoint(s), default tcp/0.0.0.0:7447")
     p.set_defaults(func=cmd_router)

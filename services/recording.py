@@ -27,8 +27,8 @@ stream reader hands out the records of a chunk only once the whole chunk has
 been read and its CRC checked.  What a truncated file (a recorder killed
 mid-run) recovers is therefore: the metadata, the scenario attachment, and
 every message of every chunk that was completely written; the messages of the
-chunk being written when the process died (at most ~256 KiB of JSON, a few
-hundred robot cycles) are lost.  Such an episode has ``complete = False`` and
+chunk being written when the process died (at most ``CHUNK_SIZE`` of JSON,
+about 100 robot cycles) are lost.  Such an episode has ``complete = False`` and
 ``problem`` says what was lost; a file cut before its metadata record says
 nothing worth keeping and raises.  A file that is not MCAP, or a finished
 file (with its closing magic) that does not read through, raises
@@ -62,7 +62,10 @@ from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, IndexType, Writer
 from services.features import force_vector, state_vector
 from services.runtime.messages import BY_TOPIC, FT_WRENCH, ROBOT_CONTACT, ROBOT_STATE, MessageError, MessageType
 
-CHUNK_SIZE = 256 * 1024  # bytes of uncompressed records per chunk: what a killed recorder can lose
+# bytes of uncompressed records per chunk: what a killed recorder can lose.  A
+# reproduction records 1.94 MB per simulated second, a demonstration 1.60 MB
+# (smoke scenario over Zenoh), so a chunk holds 84 ms or 102 ms of the episode
+CHUNK_SIZE = 160 * 1024
 METADATA_NAME = "etar"
 SCENARIO_ATTACHMENT = "scenario.yaml"
 SCENARIO_MEDIA_TYPE = "application/yaml"
@@ -377,6 +380,7 @@ class RecordedMessage(NamedTuple):
     topic: str  # without the run prefix, e.g. "/robot/state"
     log_time_ns: int
     payload: bytes  # exactly as received
+    publish_time_ns: int = 0
 
 
 @dataclass(frozen=True)
@@ -524,7 +528,7 @@ class _Scan:
             ch = self.channels.get(record.channel_id)
             if ch is None:
                 raise McapError(f"message on unknown channel {record.channel_id}")
-            self.rows.append(RecordedMessage(ch.topic, record.log_time, record.data))
+            self.rows.append(RecordedMessage(ch.topic, record.log_time, record.data, record.publish_time))
         elif isinstance(record, Channel):
             if record.schema_id != 0 and record.schema_id not in self.schemas:
                 raise McapError(f"channel {record.topic!r} refers to unknown schema {record.schema_id}")
@@ -582,8 +586,8 @@ def load_demonstration(path, *, state: str = "position", features: str = "force"
     t+1); ``dt`` [s]; ``t`` (T,) [s] simulation time; ``seq`` (T,) robot
     cycles; ``skipped`` messages that did not decode or repeated a cycle;
     ``gaps`` sample instants between the first and the last with no complete
-    cycle; ``complete``; ``path``.  An incomplete recording raises unless
-    ``allow_incomplete``.
+    cycle; ``complete`` and ``problem`` (``read_episode``'s); ``path``.  An
+    incomplete recording raises unless ``allow_incomplete``.
     """
     path = Path(path)
     if state not in STATE_KINDS:
@@ -654,7 +658,7 @@ def load_demonstration(path, *, state: str = "position", features: str = "force"
     gaps = int((stamp_ns[-1] - stamp_ns[0]) // period_ns + 1 - len(chosen))
     return dict(states=states, forces=forces, phases=true_phase[1:], dt=period_ns * 1e-9, t=stamp_ns * 1e-9,
                 seq=np.array(chosen, dtype=np.int64), skipped=skipped, gaps=gaps, complete=episode.complete,
-                path=str(path))
+                problem=episode.problem, path=str(path))
 
 
 def _sample_period_ns(rate_hz: float) -> int:

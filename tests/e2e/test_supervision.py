@@ -71,6 +71,7 @@ def test_a_service_killed_mid_reproduction_fails_the_run_at_once_and_keeps_the_e
             pid = service_pid(role, run_id)
             if pid is not None:
                 kill_at["pid"] = pid
+                kill_at["seq"] = json.loads(sample.payload.to_bytes())["seq"]
                 os.kill(pid, sig)
                 kill_at["t"] = time.monotonic()
                 killed.set()
@@ -109,6 +110,15 @@ def test_a_service_killed_mid_reproduction_fails_the_run_at_once_and_keeps_the_e
     assert rp["reason"] == (f"lost:{role}" if sig == signal.SIGKILL else "unanswered:command") and not rp["success"]
     assert 0.3 <= rp["sim_seconds"] < 10.0
     assert on_disk["exit_codes"][role] == -9  # a stopped one too: the escalation ends in SIGKILL
+    if role == "recorder":
+        # what the killed recorder left is made a finished file; what it lost is the chunk
+        # in progress (CHUNK_SIZE, ~100 cycles) and what was on its way to the writer
+        from services.recovery import recover
+
+        recovered = recover(tmp_path / "run" / "recordings" / "reproduction_00.mcap")
+        lost = kill_at["seq"] - recovered.last_robot_seq
+        print(f"recorder SIGKILL: {recovered.describe()}; {lost} robot cycles lost before the kill")
+        assert 0 <= lost < 400, lost
 
 
 def test_a_stale_episode_summary_from_a_foreign_peer_does_not_end_the_episode_in_progress(tmp_path):

@@ -99,7 +99,7 @@ def test_round_trip_is_byte_identical_in_log_time_order(tmp_path, rng):
 
     ep = read_episode(path)
     assert ep.complete and ep.problem is None
-    assert [tuple(m) for m in ep.messages] == expected(messages)
+    assert [tuple(m)[:3] for m in ep.messages] == expected(messages)
     assert all(type(m.payload) is bytes for m in ep.messages)
     assert ep.scenario_text == SCENARIO
     assert ep.attachments == {"scenario.yaml": SCENARIO.encode()}
@@ -211,7 +211,7 @@ def test_writer_lifetime_and_misuse(tmp_path, rng):
 
 @pytest.fixture(scope="module")
 def long_episode(tmp_path_factory):
-    """An episode spanning several 256 KiB chunks."""
+    """An episode spanning several chunks (CHUNK_SIZE)."""
     rng = np.random.default_rng(11)
     messages = [(key("robot/state"), state_payload(s, rng), 1_000_000 * s) for s in range(1, 3001)]
     path = tmp_path_factory.mktemp("long") / "long.mcap"
@@ -238,7 +238,7 @@ def test_truncated_file_gives_complete_chunks_or_a_clear_error(tmp_path, long_ep
         assert not ep.complete
         assert ep.problem and "footer" in ep.problem
         # a prefix of what was written, byte for byte
-        assert [tuple(m) for m in ep.messages] == want[: len(ep.messages)]
+        assert [tuple(m)[:3] for m in ep.messages] == want[: len(ep.messages)]
         assert ep.metadata["run_id"] == RUN and ep.scenario_text == SCENARIO
         recovered[cut] = len(ep.messages)
     assert recovered[4] is None and recovered[20] is None  # not even the header
@@ -250,6 +250,46 @@ def test_truncated_file_gives_complete_chunks_or_a_clear_error(tmp_path, long_ep
     assert recovered[len(data) - 300] == len(want)
     with pytest.raises(RecordingError, match="incomplete"):
         load_demonstration(tmp_path / f"cut_{len(data) // 2}.mcap")
+
+
+def test_recover_makes_a_truncated_file_a_finished_one_with_every_complete_chunk(tmp_path, long_episode, capsys):
+    from services.bench_cli import main as bench
+    from services.recovery import recover
+
+    path, want = long_episode
+    data = path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) // 2])
+    kept = read_episode(cut)
+    assert not kept.complete and 0 < len(kept.messages) < len(want)
+    result = recover(cut)
+    assert result.path == tmp_path / "cut.recovered.mcap" and result.messages == len(kept.messages)
+    assert cut.read_bytes() == data[: len(data) // 2]  # the original is kept as it was
+    back = read_episode(result.path)
+    assert back.complete and back.problem is None
+    assert [tuple(m) for m in back.messages] == [tuple(m) for m in kept.messages]
+    assert [tuple(m)[:3] for m in back.messages] == want[: len(back.messages)]
+    assert back.scenario_text == SCENARIO and back.metadata["run_id"] == RUN
+    assert back.metadata["recovered_from"] == "cut.mcap" and "footer" in back.metadata["recovered"]
+    assert result.last_robot_seq == json.loads(kept.messages[-1].payload)["seq"]
+    # a seeking reader (what Foxglove and `mcap info` use) opens it: it has a summary
+    with open(result.path, "rb") as f:
+        reader = make_reader(f)
+        assert reader.get_summary().statistics.message_count == len(kept.messages)
+        assert sum(1 for _ in reader.iter_messages()) == len(kept.messages)
+    # the command line: one line per file; errors name the file, exit non-zero
+    assert bench(["recover", str(cut), "--out", str(tmp_path / "again.mcap")]) == 0
+    assert f"recovered {len(kept.messages)} messages" in capsys.readouterr().out
+    assert bench(["recover", str(cut)]) == 1
+    assert "exists (pass --force" in capsys.readouterr().err
+    assert bench(["recover", str(cut), "--force"]) == 0
+    assert bench(["recover", str(path)]) == 1
+    assert f"{path}: a finished recording" in capsys.readouterr().err
+    header_only = tmp_path / "header.mcap"
+    header_only.write_bytes(data[:20])
+    assert bench(["recover", str(header_only)]) == 1
+    assert str(header_only) in capsys.readouterr().err
+    assert bench(["recover", str(cut), str(path), "--out", str(tmp_path / "x.mcap")]) == 2
 
 
 def test_killed_writer_leaves_its_complete_chunks(tmp_path):
@@ -440,6 +480,24 @@ def test_etar_cli_learns_three_phases_from_the_recording(tmp_path, simulated_dem
     capsys.readouterr()
     assert main(["learn", str(broken), "--phases", "2", "--out", str(tmp_path / "m2.json")]) == 2
     assert str(broken) in capsys.readouterr().err
+
+
+def test_etar_learn_takes_a_truncated_recording_and_says_what_it_lost(tmp_path, simulated_demo, capsys):
+    from services.etar_cli import main
+
+    path, _ = simulated_demo
+    data = path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: int(len(data) * 0.8)])
+    whole = load_demonstration(path)
+    model = tmp_path / "model.json"
+    assert main(["learn", str(cut), "--phases", "3", "--out", str(model), "--restarts", "1",
+                 "--max-iter", "30"]) == 0
+    err = capsys.readouterr().err
+    assert f"warning: {cut}: incomplete recording, learning from the" in err and "no MCAP footer" in err
+    n = int(re.search(r"learning from the (\d+) samples", err).group(1))
+    assert 0.5 * len(whole["states"]) < n < len(whole["states"])
+    assert json.loads(model.read_text())["n_phases"] == 3
 
 
 def test_the_recorder_takes_episode_paths_relative_to_its_one_folder_only(tmp_path):
