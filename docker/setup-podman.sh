@@ -43,8 +43,11 @@ stamp="$state/wheelhouse.stamp"
 if [[ ! -f "$stamp" || "$root/pyproject.toml" -nt "$stamp" || "$root/setup.py" -nt "$stamp" \
       || -n "$(find "$root/etar" "$root/robot_sim" "$root/services" \( -name '*.py' -o -name '*.cpp' \) -newer "$stamp" -print -quit)" ]]; then
   echo "setup-podman: building the wheelhouse"
-  rm -rf "$root/docker/wheelhouse"
+  rm -rf "$root/docker/wheelhouse" "$root/docker/project-wheel"
   "$py" -m pip wheel -q --wheel-dir "$root/docker/wheelhouse" "$root" 2>"$state/wheel.log" >/dev/null
+  # the project's own wheel apart: the image installs the dependencies in a layer it can reuse
+  mkdir -p "$root/docker/project-wheel"
+  mv "$root"/docker/wheelhouse/etar_testbench-*.whl "$root/docker/project-wheel/"
   touch "$stamp"
 fi
 echo "setup-podman: ready (DOCKER_HOST=unix://$sock)"

@@ -34,15 +34,22 @@ def check_recordings(run_dir: Path, report: dict) -> None:
 def test_smoke_lockstep_twice_at_once_is_deterministic_isolated_and_the_same_in_process(tmp_path, monkeypatch):
     """Two runs of the same seed at the same time over Zenoh, under different run ids:
     both complete, neither sees the other's messages, and they recorded the same thing;
-    a third run of the same seed with every node in one process records it too."""
+    a third run of the same seed with every node in one process records it too.  The
+    second run over Zenoh stops after the demonstrations (the same seed's first stage):
+    what it is there to show, isolation and determinism of runs that share the network,
+    shows in its recordings, and learning and reproducing twice more would only add a
+    minute to the suite."""
+    smoke = Path(SMOKE).read_text()
+    demos_only = tmp_path / "smoke_demonstrations.yaml"
+    demos_only.write_text(smoke[:smoke.index("  - learn:")])
     results = {}
 
-    def go(name):
+    def go(name, scenario):
         t = time.monotonic()
-        results[name] = (run(RunOptions(scenario=SMOKE, out=str(tmp_path / name), run_id=f"e2e-{name}-{int(t)}"),
+        results[name] = (run(RunOptions(scenario=scenario, out=str(tmp_path / name), run_id=f"e2e-{name}-{int(t)}"),
                              progress=lambda m: print(f"[{name}] {m}")), time.monotonic() - t)
 
-    threads = [threading.Thread(target=go, args=(n,)) for n in ("a", "b")]
+    threads = [threading.Thread(target=go, args=(n, sc)) for n, sc in (("a", SMOKE), ("b", str(demos_only)))]
     for th in threads:
         th.start()
     for th in threads:
@@ -51,21 +58,23 @@ def test_smoke_lockstep_twice_at_once_is_deterministic_isolated_and_the_same_in_
         report, seconds = results[name]
         print(f"run {name}: {seconds:.1f} s wall")
         assert report["error"] is None, report["error"]
-        assert len(report["demonstrations"]) == 2 and len(report["reproductions"]) == 1
-        assert report["summary"]["phases_chosen"] == 3
+        assert len(report["demonstrations"]) == 2
         assert all(code == 0 for code in report["exit_codes"].values()), report["exit_codes"]
         check_recordings(tmp_path / name, report)
         text = (tmp_path / name / "report.txt").read_text()
         assert text.startswith("ETAR testbench run")
         # demonstrations run in gravity compensation: their unanswered FRI cycles are not shown as misses
         assert text.count("gravity compensation, nobody answers FRI") == 2
-        # the reproduction entered command mode within the episode (time from its start, not the run's)
-        row = next(line for line in text.splitlines() if line.startswith("  reproduction    0 "))
-        assert 0.0 <= float(row.split()[-1]) < report["reproductions"][0]["sim_seconds"]
-        assert (tmp_path / name / "model.json").exists()
+    report_a = results["a"][0]
+    assert len(report_a["reproductions"]) == 1 and report_a["summary"]["phases_chosen"] == 3
+    # the reproduction entered command mode within the episode (time from its start, not the run's)
+    text = (tmp_path / "a" / "report.txt").read_text()
+    row = next(line for line in text.splitlines() if line.startswith("  reproduction    0 "))
+    assert 0.0 <= float(row.split()[-1]) < report_a["reproductions"][0]["sim_seconds"]
+    assert (tmp_path / "a" / "model.json").exists()
     a, b = content(tmp_path / "a"), content(tmp_path / "b")
-    assert a.keys() == b.keys() and len(a) == 3
-    for name in a:
+    assert len(a) == 3 and sorted(b) == ["demonstration_00.mcap", "demonstration_01.mcap"]
+    for name in b:
         assert a[name] == b[name], f"{name} differs between two runs of the same seed"
 
     # the same seed in one process on the in-memory bus: the same messages, the same results;
@@ -81,7 +90,6 @@ def test_smoke_lockstep_twice_at_once_is_deterministic_isolated_and_the_same_in_
     assert c.keys() == a.keys()
     for name in a:
         assert c[name] == a[name], f"{name}: the in-process run recorded other messages than the run over Zenoh"
-    report_a = results["a"][0]
     assert report_c["summary"]["phases_chosen"] == report_a["summary"]["phases_chosen"] == 3
     for key in ("successes", "online_phase_accuracy", "mean_transition_error_s", "simulated_seconds"):
         assert report_c["summary"][key] == report_a["summary"][key], key
