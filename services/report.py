@@ -195,8 +195,10 @@ def commander_held(reproductions) -> str | None:
             return (f"reproduction {rp['index']}: the impedance commander held the arm {h['at_s']:.3f} s in "
                     f"(cycle {h['seq']}, {h['reason']}: "
                     + (f"the last phase estimate was {age} cycles old" if age is not None else "no phase estimate yet")
-                    + f"); in the {HOLD_WATCH_S:g} s after, the tcp moved {1e3 * h['max_displacement_m']:.1f} mm "
-                      f"and the contact force peaked at {h['peak_contact_force']:.1f} N")
+                    + f"); held {h.get('cycles', 0)} cycles in all (the robot ends the episode after "
+                      f"{HOLD_WATCH_S:g} s in one), while held the tcp moved at most "
+                      f"{1e3 * h['max_displacement_m']:.1f} mm and the contact force peaked at "
+                      f"{h['peak_contact_force']:.1f} N")
     return None
 
 

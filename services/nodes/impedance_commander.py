@@ -17,10 +17,14 @@ is more than ``STALE_ESTIMATE_CYCLES`` cycles older than the measurement being
 answered (the estimator is dead, hung or cut off, or it skips every sample
 because the wrench stream stopped, saturated or went non-finite), the commander
 holds the arm stiffly where it is (the policy's hold: ``HOLD_STIFFNESS`` on every
-axis, no feed-forward) for the rest of the episode and says why in every command
-(``hold``).  Following the last phase on would drive the arm on a frozen belief
-(59-81 mm, up to 11 N, before this hold existed).  The robot ends the episode
-after watching the hold (``services.nodes.robot.HOLD_WATCH_S``).
+axis, no feed-forward) and says why in every command (``hold``).  Following the
+last phase on would drive the arm on a frozen belief (59-81 mm, up to 11 N,
+before this hold existed).  In lockstep the hold lasts for the rest of the
+episode: nothing is ever late there, so a stale estimate is one that will not
+come.  On the realtime clock an estimate can be late and then come (a crowded
+CPU): the hold lasts while the estimate is stale, and the policy resumes with
+the next fresh one.  The robot ends the episode once a hold has lasted
+``services.nodes.robot.HOLD_WATCH_S``.
 
 On the realtime clock only answers that can still count are sent: the commander
 takes the newest measurement that has arrived (``latest``) and leaves unanswered
@@ -87,7 +91,9 @@ class ImpedanceCommanderNode(Node):
         self._waiting_since = None
         self._last_answered_seq = None
         self._first_seq = None
-        self.hold = None  # the episode's hold (reason, seq, estimate_seq), latched until the next reset
+        self.hold = None  # the hold in force (reason, seq, estimate_seq); lockstep: until the next reset
+        self.first_hold = None  # the episode's first
+        self.holds = 0  # holds begun this episode
         self.missing_estimates = 0
         self.stale = 0  # realtime: measurements left unanswered, already a cycle old when their turn came
         # where an answer's time goes, and receive -> published (the commander's share of
@@ -169,11 +175,17 @@ class ImpedanceCommanderNode(Node):
         self._last_answered_seq = seq
         if self._first_seq is None:
             self._first_seq = seq
-        if self.hold is None:
+        if self.hold is None or not self.lockstep:
             fresh = self._latest_phase_seq if self._latest_phase_seq >= 0 else self._first_seq
-            if seq - fresh > STALE_ESTIMATE_CYCLES:
+            stale = seq - fresh > STALE_ESTIMATE_CYCLES
+            if stale and self.hold is None:
                 self.hold = dict(reason="stale_estimate", seq=seq, stamp_ns=state["stamp_ns"],
                                  estimate_seq=self._latest_phase_seq)
+                self.holds += 1
+                if self.first_hold is None:
+                    self.first_hold = self.hold
+            elif not stale:
+                self.hold = None
         # the policy holds stiffly where the tool is when it knows no phase
         F, R_set = self.policy.step(x, R, None if self.hold else self._latest_phase, cycles * DT)
         # the force in tcp axes; FRI orders the torques Tz, Ty, Tx (all zero here)
@@ -223,7 +235,8 @@ class ImpedanceCommanderNode(Node):
             self._waiting_since = None
             self._last_answered_seq = None
             self._first_seq = None
-            self.hold = None
+            self.hold = self.first_hold = None
+            self.holds = 0
 
     def idle(self, now_ns: int) -> None:
         with self._lock:
@@ -237,5 +250,5 @@ class ImpedanceCommanderNode(Node):
 
     def status(self) -> dict:
         return {"episode": self.episode, "missing_estimates": self.missing_estimates, "stale": self.stale,
-                "hold": self.hold,
+                "hold": self.first_hold, "holds": self.holds,
                 "sections": self.sections.summary(), "receive_to_answer": self.answer_time.summary()}

@@ -93,9 +93,10 @@ class _Episode:
         self.sent: dict[int, int] = {}
         self.last_estimate = -1
         self.goal_at = -1.0
-        self.hold = None  # the commander's hold: when it began and what the arm did after
-        self.hold_at_k = 0
-        self.hold_x0 = None
+        self.hold = None  # the commander's first hold, and what the arm did while held
+        self.hold_run = 0  # cycles the current hold has lasted
+        self.hold_x0 = None  # the tcp where the current hold began
+        self.hold_estimate = -1  # the estimate the current cycle's command used
         self.run = 0
         self.miss_run = 0
         self.k = 0
@@ -306,6 +307,7 @@ class RobotNode(Node):
             teacher_entry = self._answers["teacher"].pop(m.seq, None)
             latest_teacher = self._latest_teacher
         goal_reached = teacher_done = False
+        cycle_hold = None  # this cycle's command: why it holds ('' it does not); None: no command
         for seq, (msg, recv) in cmd_entries:
             sent_at = sent if seq == m.seq else ep.sent.get(seq)
             if sent_at is None:  # an answer to a cycle of no episode of ours
@@ -327,12 +329,8 @@ class RobotNode(Node):
                 goal_reached = bool(msg["goal_reached"])
                 if goal_reached and ep.goal_at < 0:
                     ep.goal_at = ep.k * cell.cycle_ns / 1e9
-            if msg.get("hold") and ep.hold is None:
-                ep.hold = dict(reason=msg["hold"], seq=seq, at_s=ep.k * cell.cycle_ns / 1e9,
-                               estimate_seq=msg.get("estimate_seq", -1), max_displacement_m=0.0,
-                               peak_contact_force=0.0)
-                ep.hold_at_k = ep.k
-                ep.hold_x0 = cell.sim.tcp_position()
+                cycle_hold = msg.get("hold", "")
+                ep.hold_estimate = msg.get("estimate_seq", -1)
         teacher_msg = teacher_entry[0] if teacher_entry is not None else (None if self.lockstep else latest_teacher)
         hand = None
         # episode indices count demonstrations and reproductions separately: the teacher
@@ -355,14 +353,24 @@ class RobotNode(Node):
         for flag, name in ((teacher_done, "teacher_done"), (goal_reached, "goal_reached")):
             if flag and stop_on == name:
                 return name
-        if ep.hold is not None:
-            # what the arm does once the commander holds it: how far the tcp goes, how hard it presses
+        if cycle_hold:
+            if ep.hold is None:
+                ep.hold = dict(reason=cycle_hold, seq=m.seq, at_s=(ep.k - 1) * cell.cycle_ns / 1e9,
+                               estimate_seq=ep.hold_estimate, cycles=0, max_displacement_m=0.0,
+                               peak_contact_force=0.0)
+            if ep.hold_run == 0:
+                ep.hold_x0 = cell.sim.tcp_position()
+            ep.hold_run += 1
+            # what the arm does while the commander holds it: how far the tcp goes, how hard it presses
             h = ep.hold
+            h["cycles"] += 1
             h["max_displacement_m"] = max(h["max_displacement_m"],
                                           float(np.linalg.norm(cell.sim.tcp_position() - ep.hold_x0)))
             h["peak_contact_force"] = max(h["peak_contact_force"], math.hypot(*cell.contact_force[:3]))
-            if ep.k - ep.hold_at_k >= HOLD_WATCH_CYCLES:
+            if ep.hold_run >= HOLD_WATCH_CYCLES:
                 return f"hold:{h['reason']}"
+        elif cycle_hold is not None:
+            ep.hold_run = 0
         if cell.krc.safety != 0:
             return f"safety:{SafetyReason(cell.krc.safety).name.lower()}"
         return None

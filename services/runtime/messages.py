@@ -397,7 +397,7 @@ EPISODE_SUMMARY = MessageType(
         ("kind", "str", "demonstration | reproduction"),
         ("reason", "str", "why it ended: teacher_done | goal_reached | timeout | elapsed (ran its whole time with "
                            "nothing to stop on) | safety:<reason> (e.g. safety:joint_limit) | hold:<reason> "
-                           "(the commander held the arm; the robot watched it for HOLD_WATCH_S) | stopped"),
+                           "(the commander held the arm for HOLD_WATCH_S in one) | stopped"),
         ("first_seq", "int", "first robot cycle of the episode"),
         ("last_seq", "int", "last robot cycle of the episode"),
         ("sim_seconds", "float", "simulated duration, s"),
@@ -408,9 +408,10 @@ EPISODE_SUMMARY = MessageType(
         ("missed_answers", "int", "lockstep: cycles whose awaited answers did not come in time"),
         Field("goal_reached_at_s", "float", "simulated time into the episode when the commander first reported "
                                             "the goal reached (-1: never)", optional=True),
-        Field("hold", "object", "the commander's hold, if it held the arm: reason, seq and at_s of its first "
-                                "hold command, estimate_seq (the last estimate it had), and what the robot "
-                                "measured after it: max_displacement_m of the tcp, peak_contact_force",
+        Field("hold", "object", "if the commander held the arm: reason, seq and at_s of its first hold "
+                                "command, estimate_seq (the last estimate it had), cycles held in all, and "
+                                "what the robot measured while held: max_displacement_m of the tcp (from "
+                                "where each hold began), peak_contact_force",
               optional=True),
         ("fri", "object", "FRI link statistics of this episode (counts) and at its end (state, quality)"),
         ("loop", "object", "timing statistics of the robot's 1 kHz loop"),

@@ -125,7 +125,10 @@ def test_smoke_realtime_completes_with_its_deadline_report(tmp_path):
         fri["missed"] <= 0.01 * (fri["answered"] + fri["missed"]) and \
         report["reproductions"][0]["fri_quality"]["first_cmd_s"] is not None
     if held:
-        assert report["error"] is None, report["error"]
+        # a clock held by the robot can still leave the estimator's chain 50 ms behind
+        # on a crowded machine: the commander then holds the arm, and the run says so
+        assert report["error"] is None or report["error"].startswith(
+            "reproduction 0: the impedance commander held the arm"), report["error"]
     else:
         assert report["error"].startswith("the realtime clock was not held"), report["error"]
         assert "\n" not in report["error"]
@@ -175,7 +178,8 @@ def test_injected_commander_stall_shows_up_as_fri_misses_and_quality_drops(tmp_p
                  progress=print)
     print(f"stall run: {time.monotonic() - t:.1f} s wall")
     # the stalls cost cycles by design: a run that then did not hold its clock says so
-    assert report["error"] is None or report["error"].startswith("the realtime clock was not held"), report["error"]
+    assert report["error"] is None or report["error"].startswith(
+        ("the realtime clock was not held", "reproduction 0: the impedance commander held the arm")), report["error"]
     (rp,) = report["reproductions"]
     fri, q = rp["fri"], rp["fri_quality"]
     print(json.dumps({"fri": fri, "quality": {k: v for k, v in q.items() if not k.endswith("changes")}}))

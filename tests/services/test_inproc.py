@@ -156,3 +156,50 @@ def test_a_stale_phase_estimate_makes_the_commander_hold_the_arm_stiffly():
 def test_no_hold_while_the_estimates_come():
     summary = reproduce(cell(), 2.0)
     assert "hold" not in summary and summary["reason"] == "elapsed", summary["reason"]
+
+
+def test_on_the_realtime_clock_the_commander_holds_while_the_estimate_is_stale_and_resumes():
+    """Realtime: an estimate can be late and then come.  The commander holds while the
+    newest estimate is more than STALE_ESTIMATE_CYCLES old and follows the task again
+    with the next fresh one; lockstep keeps the hold (a stale estimate there will not come)."""
+    from services.nodes.impedance_commander import STALE_ESTIMATE_CYCLES, ImpedanceCommanderNode
+    from services.runtime.bus import FakeClock
+    from services.runtime.messages import ESTIMATOR_PHASE, ROBOT_STATE
+
+    def state(seq, clock):
+        return ROBOT_STATE.pack(seq=seq, stamp_ns=seq * 1_000_000, sent_ns=clock.now_ns(), reflected_seq=seq - 1,
+                                fri_state=2, fri_quality=3, control_mode=2, msr_jnt_pos=[0.0] * 7,
+                                msr_cart_pos=[1.0, 0, 0, 0.62, 0, -1.0, 0, -0.06, 0, 0, -1.0, 0.30],
+                                est_ext_tcp_ft=[0.0] * 6, answer_rate=1.0, latency_s=0.0, jitter_s=0.0,
+                                miss_rate=0.0, safety=0, gravity_compensation=False, episode=0)
+
+    def phase(seq, clock):
+        return ESTIMATOR_PHASE.pack(seq=seq, stamp_ns=seq * 1_000_000, sent_ns=clock.now_ns(),
+                                    posterior=[1.0, 0.0, 0.0], phase=0, input_seq=seq, ft_seq=seq, episode=0)
+
+    holds = {}
+    for mode in ("realtime", "lockstep"):
+        clock = FakeClock()
+        bus = InProcessBus(clock, check=True)
+        node = ImpedanceCommanderNode(CommanderConfig(), bus, clock, mode=mode)
+        bus.attach(node)
+        commands = []
+        sink = Listener(bus, clock)
+        sink.subscriptions = [Subscription("robot/command", lambda msg, t, raw: commands.append(msg))]
+        bus.attach(sink)
+        node.reset({"model": MODEL, "episode": 0})
+        for seq in range(1, 301):
+            if seq == 10 or (seq >= 200 and seq % 10 == 0):  # cycle 10, then none until 200
+                bus.publish("estimator/phase", *phase(seq, clock))
+            bus.publish("robot/state", *state(seq, clock))
+            bus.drain()
+            node.quiescent()  # lockstep: the estimate of a tenth cycle is not coming
+            bus.drain()
+            clock.advance(1_000_000)
+        hold = {c["seq"]: c["hold"] for c in commands}
+        holds[mode] = hold
+        assert hold[10 + STALE_ESTIMATE_CYCLES] == "" and hold[11 + STALE_ESTIMATE_CYCLES] == "stale_estimate"
+        assert node.status()["hold"]["estimate_seq"] == 10 and node.status()["holds"] == 1
+    assert holds["realtime"][199] == "stale_estimate" and holds["realtime"][200] == ""
+    assert all(holds["realtime"][s] == "" for s in range(200, 301))
+    assert all(holds["lockstep"][s] == "stale_estimate" for s in range(61, 301))
