@@ -1,7 +1,8 @@
 """The recorder node: everything of a run, byte for byte, to MCAP - one file per episode.
 
 Takes every message of the run (``"**"``, undecoded) and writes its payload
-unchanged (``services.recording.EpisodeWriter``: chunked, zstd, a JSON Schema
+unchanged (a payload over ``MAX_PAYLOAD_BYTES`` is counted, not recorded;
+``services.recording.EpisodeWriter``: chunked, zstd, a JSON Schema
 per channel so Foxglove plots the wrench and phase topics, the scenario
 attached).  Control: ``begin_episode`` (path relative to ``out_dir``, kind,
 index, scenario text), ``end_episode`` (finalises the file; says which listed
@@ -20,6 +21,7 @@ from services.recording import EpisodeWriter, WriterProcess
 from services.runtime import topics
 from services.runtime.bus import Node, Subscription
 from services.runtime.config import option
+from services.runtime.messages import MAX_PAYLOAD_BYTES
 
 _SEQ = re.compile(rb'^\{"seq":(-?\d+)')
 
@@ -56,10 +58,15 @@ class RecorderNode(Node):
         self.lock = threading.Condition()  # a transport waits on it for messages still in flight
         self.last_seq: dict[str, int] = {}
         self.total = 0
+        self.oversized = 0  # payloads over MAX_PAYLOAD_BYTES, not recorded
         self.subscriptions = [Subscription("**", self.on_sample, decode=False)]
         self._writer_process = WriterProcess() if config.writer_process else None
 
     def on_sample(self, topic: str, recv_ns: int, raw: bytes, message: dict | None = None) -> None:
+        if len(raw) > MAX_PAYLOAD_BYTES:
+            # no receiver reads it: recording it would only let a foreign peer fill the disk
+            self.oversized += 1
+            return
         with self.lock:
             if self.writer is not None:
                 # a message already decoded (one process) needs no decoding for its publish time
@@ -108,7 +115,8 @@ class RecorderNode(Node):
         return {"messages": writer.messages_written, "bad_payloads": writer.bad_payloads, "lagging": lagging}
 
     def status(self) -> dict:
-        return {"total": self.total, "recording": self.writer is not None, "last_seq": self.last_seq}
+        return {"total": self.total, "recording": self.writer is not None, "last_seq": self.last_seq,
+                "oversized": self.oversized}
 
     def close(self) -> None:
         with self.lock:

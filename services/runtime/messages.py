@@ -76,6 +76,12 @@ class MessageError(ValueError):
     """A message that does not decode or does not match its definition."""
 
 
+# the largest payload any receiver parses: the biggest message, an episode summary,
+# is ~8 KB; a bigger one is refused unread (a foreign peer must not make a service
+# parse megabytes at 1 kHz)
+MAX_PAYLOAD_BYTES = 64 * 1024
+
+
 @dataclass(frozen=True)
 class Field:
     name: str
@@ -149,6 +155,8 @@ class MessageType:
 
     def decode(self, data: bytes) -> dict:
         """Parse and check one message; raises MessageError naming the field."""
+        if len(data) > MAX_PAYLOAD_BYTES:
+            raise MessageError(f"{self.name}: payload of {len(data)} bytes is over the {MAX_PAYLOAD_BYTES} byte limit")
         try:
             msg = loads(data)
         except (UnicodeDecodeError, json.JSONDecodeError, TypeError) as exc:

@@ -25,7 +25,7 @@ from services.runtime import topics
 from services.runtime.messages import BY_TOPIC, MessageError, MessageType
 from services.runtime.profiling import ProcessProfile
 from services.runtime.session import ZenohOptions, open_session
-from services.runtime.timing import Histogram, SequenceTracker
+from services.runtime.timing import FRESH, STALE, Histogram, SequenceTracker
 
 
 # topics whose sequence numbers (robot cycles) advance by more than one per message
@@ -35,6 +35,10 @@ STRIDES = {"estimator/phase": 10}
 # back (the publishers' congestion control decides what drops)
 BATCH_S = 0.005
 BATCH_CAPACITY = 50_000
+# older messages in a row after which a link takes them as its stream again: a replayed
+# copy comes between new ones, the real stream behind a forged far-ahead seq does not
+# (50 cycles: FRI command mode drops, and comes back, rather than the link going silent)
+RESYNC_AFTER = 50
 
 
 def now_ns() -> int:
@@ -46,18 +50,26 @@ class LinkCounters:
     """Per subscribed topic, at the receiving end: what arrived, what was garbage,
     one-way latency (publish -> this callback, same-host CLOCK_MONOTONIC) and
     lost / out-of-order messages from the sequence numbers.  ``skipped``: messages
-    a ``latest`` subscriber passed over for a newer one (also in ``lost``)."""
+    a ``latest`` subscriber passed over for a newer one (also in ``lost``).
+    ``dropped``: duplicates and messages older than one already delivered, which
+    are counted (``duplicates``, ``out_of_order``) but not handed to the node;
+    ``resyncs``: times ``RESYNC_AFTER`` older messages in a row made the link take
+    them as its stream again (the newest had been forged far ahead)."""
 
     received: int = 0
     bad: int = 0
     skipped: int = 0
+    dropped: int = 0
+    resyncs: int = 0
+    stale_run: int = 0
     last_error: str = ""
     latency: Histogram = field(default_factory=Histogram)
     sequence: SequenceTracker = field(default_factory=SequenceTracker)
 
     def to_dict(self) -> dict:
         seq = self.sequence.to_dict()
-        return {"received": self.received, "bad": self.bad, "skipped": self.skipped, "last_error": self.last_error,
+        return {"received": self.received, "bad": self.bad, "skipped": self.skipped, "dropped": self.dropped,
+                "resyncs": self.resyncs, "last_error": self.last_error,
                 "latency": self.latency.summary(), "lost": seq["lost"], "out_of_order": seq["out_of_order"],
                 "duplicates": seq["duplicates"]}
 
@@ -235,7 +247,10 @@ class Service:
     def subscribe(self, topic: str, on_message, *, decode: bool = True, every_tenth: bool = False,
                   latest: bool = False):
         """Deliver (message dict, receive time ns, raw bytes) for every valid
-        sample on etar/<run_id>/<topic>; garbage is counted in ``links``, never raised.
+        sample on etar/<run_id>/<topic>; garbage (including payloads over
+        ``MAX_PAYLOAD_BYTES``) is counted in ``links``, never raised, and so are
+        duplicates and messages older than the newest delivered (by ``seq``),
+        which are dropped.
 
         ``every_tenth``: only the messages of every tenth robot cycle (stamp a
         multiple of 10 ms), told from the raw bytes before anything is decoded: a
@@ -276,7 +291,23 @@ class Service:
                     counters.last_error = str(exc)
                     return
                 counters.latency.add(recv - msg["sent_ns"])
-                counters.sequence.add(msg["seq"])
+                verdict = counters.sequence.add(msg["seq"])
+                if verdict is STALE:
+                    counters.stale_run += 1
+                    if counters.stale_run >= RESYNC_AFTER:
+                        # this many older ones in a row are the stream itself: the newest
+                        # seen was forged far ahead, and would otherwise silence the link
+                        counters.sequence.resync(msg["seq"])
+                        counters.resyncs += 1
+                        verdict = FRESH
+                if verdict is not FRESH:
+                    # a copy, or older than what was acted on: within a run every topic's
+                    # seq only grows (one robot, its FRI cycles), so this is a replay or a
+                    # duplicate from the network or a foreign peer; acting on it would
+                    # answer a cycle twice or go back in time
+                    counters.dropped += 1
+                    return
+                counters.stale_run = 0
             try:
                 on_message(msg, recv, raw)
             except Exception as exc:  # a bad message must not kill the subscriber thread

@@ -8,7 +8,7 @@ import pytest
 
 from services import launch
 from services.runtime import topics
-from services.runtime.messages import FT_WRENCH, ROBOT_CONTACT
+from services.runtime.messages import FT_WRENCH, MAX_PAYLOAD_BYTES, ROBOT_CONTACT
 from services.runtime.service import request
 from services.runtime.session import ZenohOptions, open_session
 
@@ -73,4 +73,42 @@ def test_garbage_is_dropped_and_counted_valid_messages_are_answered(ft_sensor):
     with pytest.raises(RuntimeError, match="unknown command"):
         request(session, run_id, "ft_sensor", "explode")
     assert proc.alive()
+
+    # from this foreign peer: exact copies, a stale message (an older cycle) and an
+    # oversized one are counted and dropped; the next new cycle is answered once
+    def contact(seq, **extra):
+        return ROBOT_CONTACT.pack(seq=seq, stamp_ns=seq * 1_000_000, sent_ns=time.monotonic_ns(),
+                                  wrench=np.zeros(6), contact_force=np.zeros(3), touching=[], true_phase=0,
+                                  episode=0)[0]
+
+    n = len(got)
+    oversized = contact(11)[:-1] + b',"pad":"' + b"x" * MAX_PAYLOAD_BYTES + b'"}'
+    for raw in (contact(5), contact(5), contact(8), contact(7), contact(10), oversized):
+        pub.put(raw)
+    # the sensor answers in order: once cycle 10's answer is here, any answer to the
+    # copies or the stale one would have come before it
+    deadline = time.monotonic() + 10
+    while not any(m["seq"] == 10 for m in got[n:]) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert [m["seq"] for m in got[n:]] == [8, 10], [m["seq"] for m in got]
+    while time.monotonic() < deadline:
+        links = request(session, run_id, "ft_sensor", "status")["links"]["robot/contact"]
+        if links["received"] == 14:
+            break
+        time.sleep(0.05)
+    assert links["dropped"] == 3 and links["duplicates"] == 2 and links["out_of_order"] == 1, links
+    assert links["bad"] == 4 and "byte limit" in links["last_error"], links
+    # a well-formed message forged far ahead is taken (it is the newest), then the real
+    # stream, older than it, is dropped until RESYNC_AFTER of it in a row resynchronise the link
+    from services.runtime.service import RESYNC_AFTER
+
+    n = len(got)
+    for seq in (10**12, *range(12, 81)):
+        pub.put(contact(seq))
+    deadline = time.monotonic() + 10
+    while not any(m["seq"] == 80 for m in got[n:]) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert [m["seq"] for m in got[n:]] == [10**12, *range(12 + RESYNC_AFTER - 1, 81)]
+    links = request(session, run_id, "ft_sensor", "status")["links"]["robot/contact"]
+    assert links["resyncs"] == 1 and links["dropped"] == 3 + RESYNC_AFTER - 1, links
     sub.undeclare()
