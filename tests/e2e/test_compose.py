@@ -6,6 +6,7 @@ import os
 import re
 import shlex
 import shutil
+import signal
 import subprocess
 import time
 import tomllib
@@ -75,6 +76,22 @@ def test_smoke_scenario_on_docker_compose_with_podman(tmp_path):
     ok, why = _podman_ready()
     if not ok:
         pytest.skip(why)
+    already = _podman_service_pids()
+    try:
+        _smoke_on_compose(tmp_path)
+    finally:
+        # the machine as it was: the service setup-podman.sh started would otherwise take
+        # CPU from every test after this one (the realtime ones notice)
+        for pid in _podman_service_pids() - already:
+            os.kill(pid, signal.SIGTERM)
+
+
+def _podman_service_pids() -> set[int]:
+    found = subprocess.run(["pgrep", "-f", "podman system service"], capture_output=True, text=True)
+    return {int(p) for p in found.stdout.split()}
+
+
+def _smoke_on_compose(tmp_path):
     t0 = time.monotonic()
     setup = subprocess.run(["bash", str(ROOT / "docker" / "setup-podman.sh")], capture_output=True, text=True,
                            timeout=1500)
