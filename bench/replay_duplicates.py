@@ -1,0 +1,129 @@
+"""A foreign Zenoh peer re-publishes a share of a run's 1 kHz messages: does any result change?
+
+Runs the smoke scenario twice over Zenoh on the lockstep clock with the same seed:
+once clean, once while a peer of the run (the one every service connects to, as to
+a router) re-publishes ``--share`` of every message on the FRI chain's topics,
+each both at once (an exact copy) and ``--late-ms`` later (a stale copy).  The
+receivers drop duplicates and older messages by seq, so the lockstep results must
+be the same to the last digit; the table says what was replayed, what the services
+dropped, and the results side by side.
+
+    python bench/replay_duplicates.py [--share 0.1] [--late-ms 30] [--seed 0]
+"""
+
+from __future__ import annotations
+
+import argparse
+import heapq
+import random
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from services.launch import free_port  # noqa: E402
+from services.runner import RunOptions, run  # noqa: E402
+from services.runtime import topics  # noqa: E402
+from services.runtime.session import ZenohOptions, open_session  # noqa: E402
+
+TOPICS = ("robot/state", "robot/contact", "ft/wrench", "estimator/phase", "robot/command")
+
+
+class Replayer:
+    """Re-publishes a share of what it sees, at once and ``late_s`` later."""
+
+    def __init__(self, session, run_id: str, share: float, late_s: float, seed: int):
+        self.rng = random.Random(seed)
+        self.share, self.late_s = share, late_s
+        self.pubs = {t: session.declare_publisher(topics.key(run_id, t)) for t in TOPICS}
+        self.subs = [session.declare_subscriber(topics.key(run_id, t), self._on(t)) for t in TOPICS]
+        self.replayed = {t: 0 for t in TOPICS}
+        self._later: list = []
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._late_loop, daemon=True)
+        self._thread.start()
+
+    def _on(self, topic):
+        def callback(sample):
+            if self.rng.random() >= self.share:
+                return
+            raw = sample.payload.to_bytes()
+            self.pubs[topic].put(raw)
+            with self._lock:
+                heapq.heappush(self._later, (time.monotonic() + self.late_s, id(raw), topic, raw))
+                self.replayed[topic] += 2
+        return callback
+
+    def _late_loop(self):
+        while not self._stop.wait(0.001):
+            now = time.monotonic()
+            with self._lock:
+                due = []
+                while self._later and self._later[0][0] <= now:
+                    due.append(heapq.heappop(self._later))
+            for _, _, topic, raw in due:
+                self.pubs[topic].put(raw)
+
+    def close(self):
+        self._stop.set()
+        self._thread.join(1)
+        for s in self.subs:
+            s.undeclare()
+
+
+def one_run(label: str, out: Path, share: float, late_s: float, seed: int) -> tuple[dict, dict]:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    run_id = f"replay-{label}-{int(time.time() * 1000)}"
+    peer = open_session(ZenohOptions(listen=(endpoint,)))
+    replayer = Replayer(peer, run_id, share, late_s, seed) if share > 0 else None
+    try:
+        report = run(RunOptions(scenario=str(ROOT / "scenarios" / "smoke.yaml"), out=str(out / label),
+                                run_id=run_id, zenoh=ZenohOptions(connect=(endpoint,))),
+                     progress=lambda m: print(f"[{label}] {m}", file=sys.stderr))
+    finally:
+        if replayer is not None:
+            replayer.close()
+        peer.close()
+    return report, (replayer.replayed if replayer else {t: 0 for t in TOPICS})
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--share", type=float, default=0.1, help="share of the messages re-published (default 0.1)")
+    p.add_argument("--late-ms", type=float, default=30.0, help="delay of the stale copy, ms (default 30)")
+    p.add_argument("--seed", type=int, default=0, help="seed of which messages are re-published")
+    args = p.parse_args(argv)
+    out = Path(tempfile.mkdtemp(prefix="replay_"))
+    clean, _ = one_run("clean", out, 0.0, 0.0, args.seed)
+    dirty, replayed = one_run("replayed", out, args.share, args.late_ms / 1e3, args.seed)
+    print(f"smoke scenario, lockstep over Zenoh; a foreign peer re-published {args.share:.0%} of the messages on "
+          f"{', '.join(TOPICS)}, each at once and {args.late_ms:g} ms later")
+    print("replayed copies: " + ", ".join(f"{t} {n}" for t, n in replayed.items()))
+    dropped = {k: v.get("dropped", 0) for k, v in dirty["timing"]["links_received"].items() if v.get("dropped")}
+    print("dropped by the receivers (duplicates and older than the newest): "
+          + (", ".join(f"{k} {v}" for k, v in sorted(dropped.items())) or "none"))
+    print(f"{'':28}{'clean':>22}{'replayed':>22}")
+    rows = [("error", lambda r: str(r["error"])), ("phases chosen", lambda r: r["summary"]["phases_chosen"]),
+            ("successes", lambda r: r["summary"]["successes"]),
+            ("online phase accuracy", lambda r: r["summary"]["online_phase_accuracy"])]
+    for i in range(len(clean["reproductions"])):
+        rows += [(f"repro {i} peak force [N]", lambda r, i=i: r["reproductions"][i]["peak_contact_force"]),
+                 (f"repro {i} FRI late", lambda r, i=i: r["reproductions"][i]["fri"]["late"]),
+                 (f"repro {i} FRI missed", lambda r, i=i: r["reproductions"][i]["fri"]["missed"]),
+                 (f"repro {i} final x [m]", lambda r, i=i: r["reproductions"][i]["final_position"][0])]
+    same = True
+    for name, get in rows:
+        a, b = get(clean), get(dirty)
+        same &= a == b
+        print(f"{name:28}{str(a):>22}{str(b):>22}")
+    print("results identical: " + ("yes" if same else "NO"))
+    return 0 if same else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
