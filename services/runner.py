@@ -155,7 +155,8 @@ class Runner:
         sc, cell = self.scenario, self.scenario.cell
         configs = {
             "robot": RobotConfig(world=sc.world, seed=sc.seed, plate_friction=cell.plate_friction,
-                                 fri_packet_loss=cell.fri_packet_loss),
+                                 fri_packet_loss=cell.fri_packet_loss, fri_delay_ms=cell.fri_delay_ms,
+                                 fri_jitter_ms=cell.fri_jitter_ms, fri_corruption=cell.fri_corruption),
             "ft_sensor": FtSensorConfig(seed=sc.seed, noise_scale=cell.sensor_noise),
             "teacher": TeacherConfig(world=sc.world),
             # in one process the recording's MCAP writing goes to a helper process: it took a fifth of each cycle

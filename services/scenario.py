@@ -24,6 +24,9 @@ Schema (every key optional unless marked required; unknown keys are errors)::
       sensor_noise: 1.0               # ATI white noise as a multiple of the Mini45's, >= 0, default 1
       plate_friction: 0.25            # valley only: sliding friction coefficient of the plates, > 0
       fri_packet_loss: 0.0            # probability that a command packet is lost on the FRI link, [0, 1)
+      fri_delay_ms: 0.0               # FRI link fault: every command packet arrives this much later, 0..1000 ms
+      fri_jitter_ms: 0.0              # and a further uniform 0..this, 0..1000 ms
+      fri_corruption: 0.0             # probability that a command packet arrives damaged, [0, 1)
     stages:                           # required, non-empty list; each item has exactly one key
       - demonstrate:
           count: 6                    # int, 1..10000, required
@@ -456,6 +459,9 @@ class CellSpec:
     sensor_noise: float = 1.0  # ATI white noise, as a multiple of the Mini45's
     plate_friction: float = 0.25  # valley: sliding friction coefficient of the plates
     fri_packet_loss: float = 0.0  # probability that a command packet is lost on the FRI link
+    fri_delay_ms: float = 0.0  # every command packet arrives this much later, ms
+    fri_jitter_ms: float = 0.0  # and a further uniform 0..this, ms
+    fri_corruption: float = 0.0  # probability that a command packet arrives damaged
 
     def __post_init__(self):
         _set(self, "sensor_noise", _number(self.sensor_noise, "sensor_noise", 0.0))
@@ -464,6 +470,15 @@ class CellSpec:
         if loss >= 1.0:
             raise ScenarioError("expected a probability in [0, 1)", path="fri_packet_loss", value=self.fri_packet_loss)
         _set(self, "fri_packet_loss", loss)
+        corruption = _number(self.fri_corruption, "fri_corruption", 0.0)
+        if corruption >= 1.0:
+            raise ScenarioError("expected a probability in [0, 1)", path="fri_corruption", value=self.fri_corruption)
+        _set(self, "fri_corruption", corruption)
+        for name in ("fri_delay_ms", "fri_jitter_ms"):
+            ms = _number(getattr(self, name), name, 0.0)
+            if ms > 1000.0:
+                raise ScenarioError("expected at most 1000 ms", path=name, value=getattr(self, name))
+            _set(self, name, ms)
 
 
 Stage = Union[DemonstrateStage, LearnStage, ReproduceStage]

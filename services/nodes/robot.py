@@ -58,6 +58,10 @@ class RobotConfig:
     stall_ms: float = option(0.0, "fault injection: stall length, ms")
     plate_friction: float = option(Valley.friction, "valley: sliding friction coefficient of the plates")
     fri_packet_loss: float = option(0.0, "probability that a command packet is lost on the FRI link")
+    fri_delay_ms: float = option(0.0, "FRI link fault: every command packet arrives this much later, ms")
+    fri_jitter_ms: float = option(0.0, "FRI link fault: and a further uniform 0..this, ms (reorders late answers)")
+    fri_corruption: float = option(0.0, "FRI link fault: probability that a command packet arrives damaged "
+                                        "(the KRC rejects it)")
 
     def __post_init__(self):
         if self.world not in WORLDS:
@@ -66,8 +70,12 @@ class RobotConfig:
             raise ValueError(f"answer_timeout must be > 0 s, got {self.answer_timeout!r}")
         if not (math.isfinite(self.plate_friction) and self.plate_friction > 0):
             raise ValueError(f"plate_friction must be a finite number > 0, got {self.plate_friction!r}")
-        if not 0.0 <= self.fri_packet_loss < 1.0:
-            raise ValueError(f"fri_packet_loss must be a probability in [0, 1), got {self.fri_packet_loss!r}")
+        for name in ("fri_packet_loss", "fri_corruption"):
+            if not 0.0 <= getattr(self, name) < 1.0:
+                raise ValueError(f"{name} must be a probability in [0, 1), got {getattr(self, name)!r}")
+        for name in ("fri_delay_ms", "fri_jitter_ms"):
+            if not (math.isfinite(getattr(self, name)) and 0.0 <= getattr(self, name) <= 1000.0):
+                raise ValueError(f"{name} must be a number of ms in [0, 1000], got {getattr(self, name)!r}")
 
     def world_spec(self):
         if self.world == "valley":
@@ -75,9 +83,11 @@ class RobotConfig:
         return WORLDS[self.world]()
 
     def link_faults(self) -> LinkFaults | None:
-        if self.fri_packet_loss == 0.0:
+        if not (self.fri_packet_loss or self.fri_delay_ms or self.fri_jitter_ms or self.fri_corruption):
             return None
-        return LinkFaults(seed=self.seed, drop_probability=self.fri_packet_loss)
+        return LinkFaults(seed=self.seed, drop_probability=self.fri_packet_loss,
+                          delay_ns=round(self.fri_delay_ms * 1e6), jitter_ns=round(self.fri_jitter_ms * 1e6),
+                          corrupt_probability=self.fri_corruption)
 
 
 class _Episode:

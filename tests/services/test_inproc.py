@@ -56,6 +56,35 @@ def test_fri_packet_loss_loses_commands_and_the_link_counts_them():
     assert 0.12 < lossy["fri"]["missed"] / cycles < 0.28, lossy["fri"]
 
 
+def test_fri_link_delay_jitter_and_corruption_degrade_the_link_as_fri_does(tmp_path):
+    """The link faults a scenario sets (cell.fri_delay_ms, fri_jitter_ms, fri_corruption),
+    in lockstep so the counts are exact: a 0.5 ms delay keeps every answer in time but
+    above PERFECT's latency, so command mode is never entered; 1.5 ms makes every
+    answer late; jitter makes the share beyond the deadline late; corruption is
+    counted and rejected."""
+    scenario = tmp_path / "s.yaml"
+    scenario.write_text((ROOT / "scenarios" / "smoke.yaml").read_text() +
+                        "cell: {fri_delay_ms: 0.5, fri_jitter_ms: 1.2, fri_corruption: 0.1}\n")
+    robot = Runner(RunOptions(scenario=str(scenario), out=str(tmp_path / "out"), transport="inproc")).node_configs()[
+        "robot"]
+    faults = robot.link_faults()
+    assert (faults.delay_ns, faults.jitter_ns, faults.corrupt_probability) == (500_000, 1_200_000, 0.1)
+    slow = reproduce(cell(fri_delay_ms=0.5), 1.5)
+    assert slow["fri"]["missed"] == 0 and slow["fri"]["state"] == 1, slow["fri"]  # in time, but never CMD
+    late = reproduce(cell(fri_delay_ms=1.5), 1.0)
+    assert late["fri"]["answered"] == 0 and late["fri"]["late"] > 900, late["fri"]
+    jittery = reproduce(cell(fri_jitter_ms=1.2), 1.5)
+    cycles = jittery["fri"]["answered"] + jittery["fri"]["missed"]
+    assert 0.18 < jittery["fri"]["late"] / cycles < 0.32, jittery["fri"]  # U(0.1, 1.3) ms past 1 ms: 25 %
+    damaged = reproduce(cell(fri_corruption=0.1), 1.5)
+    assert 0.06 < damaged["fri"]["corrupt"] / cycles < 0.14, damaged["fri"]
+    for bad, field in (("fri_delay_ms: -1", "fri_delay_ms"), ("fri_jitter_ms: 5000", "fri_jitter_ms"),
+                       ("fri_corruption: 1.0", "fri_corruption")):
+        scenario.write_text((ROOT / "scenarios" / "smoke.yaml").read_text() + f"cell: {{{bad}}}\n")
+        with pytest.raises(Exception, match=f"cell.{field}"):
+            Runner(RunOptions(scenario=str(scenario), out=str(tmp_path / "out"), transport="inproc"))
+
+
 def test_control_errors_name_the_role_and_the_command():
     c = cell()
     with pytest.raises(RuntimeError, match="robot refused 'reset': ValueError: start must be 3 finite numbers"):
