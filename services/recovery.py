@@ -29,7 +29,6 @@ class Recovered:
     path: Path
     messages: int
     chunks: int  # complete chunks the truncated file held
-    topics: dict[str, int]  # messages per topic
     last_robot_seq: int | None  # the last robot cycle whose state was kept
     problem: str
 
@@ -90,10 +89,8 @@ def recover(source, out=None, *, overwrite: bool = False) -> Recovered:
         tmp.unlink()
         raise RecordingError(f"{path}: the recovered file did not read back as written; nothing was written")
     tmp.replace(path)
-    topics: dict[str, int] = {}
     last_seq = None
     for m in episode.messages:
-        topics[m.topic] = topics.get(m.topic, 0) + 1
         if m.topic == "/robot/state":
             try:
                 msg = json.loads(m.payload)
@@ -102,7 +99,7 @@ def recover(source, out=None, *, overwrite: bool = False) -> Recovered:
             seq = msg.get("seq") if isinstance(msg, dict) else None
             if isinstance(seq, int) and (last_seq is None or seq > last_seq):
                 last_seq = seq
-    return Recovered(source, path, len(episode.messages), episode.chunks, topics, last_seq, episode.problem or "")
+    return Recovered(source, path, len(episode.messages), episode.chunks, last_seq, episode.problem or "")
 
 
 def _media_type(name: str) -> str:

@@ -106,7 +106,6 @@ class _Episode:
         self.hold = None  # the commander's first hold, and what the arm did while held
         self.hold_run = 0  # cycles the current hold has lasted
         self.hold_x0 = None  # the tcp where the current hold began
-        self.hold_estimate = -1  # the estimate the current cycle's command used
         self.run = 0
         self.miss_run = 0
         self.k = 0
@@ -318,6 +317,7 @@ class RobotNode(Node):
             latest_teacher = self._latest_teacher
         goal_reached = teacher_done = False
         cycle_hold = None  # this cycle's command: why it holds ('' it does not); None: no command
+        cycle_estimate = -1  # the estimate this cycle's command used
         for seq, (msg, recv) in cmd_entries:
             sent_at = sent if seq == m.seq else ep.sent.get(seq)
             if sent_at is None:  # an answer to a cycle of no episode of ours
@@ -339,8 +339,8 @@ class RobotNode(Node):
                 goal_reached = bool(msg["goal_reached"])
                 if goal_reached and ep.goal_at < 0:
                     ep.goal_at = ep.k * cell.cycle_ns / 1e9
-                cycle_hold = msg.get("hold", "")
-                ep.hold_estimate = msg.get("estimate_seq", -1)
+                cycle_hold = msg["hold"]
+                cycle_estimate = est
         teacher_msg = teacher_entry[0] if teacher_entry is not None else (None if self.lockstep else latest_teacher)
         hand = None
         # episode indices count demonstrations and reproductions separately: the teacher
@@ -366,7 +366,7 @@ class RobotNode(Node):
         if cycle_hold:
             if ep.hold is None:
                 ep.hold = dict(reason=cycle_hold, seq=m.seq, at_s=(ep.k - 1) * cell.cycle_ns / 1e9,
-                               estimate_seq=ep.hold_estimate, cycles=0, max_displacement_m=0.0,
+                               estimate_seq=cycle_estimate, cycles=0, max_displacement_m=0.0,
                                peak_contact_force=0.0)
             if ep.hold_run == 0:
                 ep.hold_x0 = cell.sim.tcp_position()
