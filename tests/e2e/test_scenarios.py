@@ -188,13 +188,16 @@ def test_injected_commander_stall_shows_up_as_fri_misses_and_quality_drops(tmp_p
     assert len(stalls) >= 8
     # a 3 ms stall costs about three cycles: each is missed; the stalled answer is counted when it comes late
     assert fri["missed"] >= len(stalls) and fri["late"] >= len(stalls), fri
-    # the quality the robot published falls right after a stall (three misses in the
-    # window of 100: PERFECT or OK -> at most BAD); from UNACCEPTABLE there is no lower
+    # the quality the robot published falls right after a stall that found the link
+    # healthy (PERFECT, or OK: at most 2 misses in the window of 100; the stall's misses
+    # take it to OK or below).  A stall that finds the link already BAD, after one of
+    # this VM's vCPU bursts (docs/runs/vcpu-bursts-2026-12-02.txt), proves nothing
+    # either way: BAD spans 3-10 misses, and UNACCEPTABLE has no lower.
     changes = q["quality_changes"]
-    fell = {s: quality_at(changes, s + 0.02) < quality_at(changes, s - 0.001) for s in stalls
-            if quality_at(changes, s - 0.001) > 0}
-    print("quality before -> after each stall:",
-          [(s, quality_at(changes, s - 0.001), quality_at(changes, s + 0.02)) for s in stalls])
-    assert len(fell) >= 2 and sum(fell.values()) >= len(fell) / 2, fell
+    before_after = [(s, quality_at(changes, s - 0.001), quality_at(changes, s + 0.02)) for s in stalls]
+    print("quality before -> after each stall:", before_after)
+    healthy = {s: after < before for s, before, after in before_after if before >= 2}
+    assert healthy, f"the link was never healthy at a stall: {before_after}"
+    assert sum(healthy.values()) >= len(healthy) / 2, healthy
     if q["first_perfect_s"] is not None and any(quality_at(changes, s - 0.001) == 3 for s in stalls):
         assert q["drops_from_perfect"] >= 1
