@@ -22,6 +22,8 @@ class ValleyLabeler:
         self._first_plate = None
 
     def update(self, touching) -> int:
+        if self.phase == 2 or not touching:  # the last phase is final; touching nothing changes nothing
+            return self.phase
         plates = {name for name in touching if name.startswith("plate")}
         if plates:
             if self.phase == 0:

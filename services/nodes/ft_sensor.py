@@ -62,7 +62,7 @@ class FtSensorNode(Node):
         self.bus.publish("ft/wrench", *FT_WRENCH.pack(
             seq=msg["seq"], stamp_ns=msg["stamp_ns"], sent_ns=self.clock.now_ns(),
             rdt_sequence=int(rec.rdt_sequence), ft_sequence=int(rec.ft_sequence), status=int(rec.status),
-            counts=[int(c) for c in rec.counts], counts_per_force=self._cpf, counts_per_torque=self._cpt,
+            counts=rec.counts.tolist(), counts_per_force=self._cpf, counts_per_torque=self._cpt,
             wrench=w))
 
     def handlers(self):

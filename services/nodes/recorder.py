@@ -54,6 +54,8 @@ class RecorderNode(Node):
         self.run_id = topics.check_run_id(run_id)
         self.out_dir = Path(config.out_dir).resolve()
         self.prefix = topics.prefix(run_id) + "/"
+        # one key string per topic: the writer's hand-over pickles a repeated object once per batch
+        self._keys: dict[str, str] = {}
         self.writer: EpisodeWriter | None = None
         self.lock = threading.Condition()  # a transport waits on it for messages still in flight
         self.last_seq: dict[str, int] = {}
@@ -70,7 +72,10 @@ class RecorderNode(Node):
         with self.lock:
             if self.writer is not None:
                 # a message already decoded (one process) needs no decoding for its publish time
-                self.writer.add(self.prefix + topic, raw, recv_ns,
+                key = self._keys.get(topic)
+                if key is None:
+                    key = self._keys[topic] = self.prefix + topic
+                self.writer.add(key, raw, recv_ns,
                                 None if message is None else message["sent_ns"])
                 self.total += 1
             if message is not None:
