@@ -32,6 +32,9 @@ from robot_sim.lwr4.description import LWR4
 from robot_sim.worlds import HoseCoupler, Valley
 
 DOWN = np.diag([-1.0, 1.0, -1.0])  # tcp z pointing down, x against the base x (the READY posture)
+_NORMALS_BLOCK = 3000  # the step's normal draws, a block at a time: the same numbers in the same order
+_XY = np.array([1.0, 1.0, 0.0])
+_Y_03 = np.array([0.0, 0.3, 0.0])
 
 
 @dataclass(frozen=True)
@@ -78,18 +81,30 @@ class Teacher:
         self._tremor = np.zeros((2, 3))
         self.target = None
         self.R_target = DOWN.copy()
+        self._normals = np.empty(0)
+        self._normals_i = 0
+
+    def _normal3(self) -> np.ndarray:
+        """The next three standard normals of ``rng``: what ``rng.normal(size=3)`` returns,
+        drawn a block at a time on first use (after every draw the constructors make)."""
+        i = self._normals_i
+        if i + 3 > len(self._normals):
+            self._normals = self.rng.normal(size=_NORMALS_BLOCK)
+            i = 0
+        self._normals_i = i + 3
+        return self._normals[i:i + 3]
 
     def _advance_noise(self, dt: float) -> np.ndarray:
         c = self.config
         a = math.exp(-dt / c.path_noise_time)
-        self._noise = a * self._noise + math.sqrt(1 - a * a) * c.path_noise * self.rng.normal(size=3)
+        self._noise = a * self._noise + math.sqrt(1 - a * a) * c.path_noise * self._normal3()
         return self._noise
 
     def _ramp(self) -> float:
         return min(1.0, self.time / self.config.ramp_time) if self.config.ramp_time > 0 else 1.0
 
     def _advance_tremor(self) -> np.ndarray:
-        new = self._a1 * self._tremor[0] + self._a2 * self._tremor[1] + self.rng.normal(size=3)
+        new = self._a1 * self._tremor[0] + self._a2 * self._tremor[1] + self._normal3()
         self._tremor[1] = self._tremor[0]
         self._tremor[0] = new
         return self._tremor_gain * new
@@ -132,7 +147,7 @@ class ValleyTeacher(Teacher):
         self.time += dt
         g = self.valley
         plates = {name for name in touching if name.startswith("plate")}
-        feels = np.linalg.norm(contact_force) > self.config.contact_threshold
+        feels = math.sqrt(contact_force.dot(contact_force)) > self.config.contact_threshold  # np.linalg.norm's own sum
         # the script advances on what the hand feels and where it is
         if self.phase == 0 and plates and feels:
             self.phase = 1
@@ -141,7 +156,7 @@ class ValleyTeacher(Teacher):
         noise = self._advance_noise(dt)
         if self.phase == 0:
             self._path[2] -= speed * dt
-            self.target = self._path + noise * np.array([1.0, 1.0, 0.0])
+            self.target = self._path + noise * _XY
         elif self.phase == 1:
             n = g.plate_normal(self.side)
             downhill = np.array([0.0, -self.side * math.cos(g.angle), -math.sin(g.angle)])
@@ -158,7 +173,7 @@ class ValleyTeacher(Teacher):
             self._path[1] = 0.0
             self._path[2] = g.groove_z + self.tip / math.cos(g.angle)
             self.target = self._path + np.array([0.0, 0.0, -self.press / self.config.hand_stiffness]) \
-                + noise * np.array([0.0, 0.3, 0.0])
+                + noise * _Y_03
             if x[0] <= self.goal_x:
                 self.done = True
         return self._hand(x, v, R, w)
