@@ -79,6 +79,40 @@ def information_criterion(log_likelihood: float, n_parameters: int, n_samples: i
     raise ValueError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
 
 
+def _fit_candidate(job: tuple) -> ETAR:
+    """One candidate's fit: a module-level function of plain values, so that a
+    process pool's ``map`` can run it (``fit_map``)."""
+    demos, k, transitions, model_options, max_iter, tol, seed = job
+    return ETAR(k, transitions, **model_options).fit(demos, max_iter=max_iter, tol=tol, seed=seed)
+
+
+def _candidates(demos, candidates, transitions, progress) -> tuple[list[int], dict, int]:
+    """(the candidates that have fewer parameters than steps, their parameter counts,
+    the number of steps); the others are reported through ``progress``."""
+    n, m = demos[0][0].shape[1], demos[0][1].shape[1]
+    d = n if transitions == "state" else m
+    n_samples = sum(s.shape[0] - 1 for s, _ in demos)
+    fit, params = [], {}
+    for k in candidates:
+        p = ETAR.count_free_parameters(k, n, m, d)
+        if p > n_samples:
+            if progress:
+                progress(f"K={k}: skipped, {p} parameters exceed {n_samples} steps")
+            continue
+        fit.append(k)
+        params[k] = p
+    return fit, params, n_samples
+
+
+def _check_candidates(criterion, candidates) -> list[int]:
+    if criterion not in CRITERIA:
+        raise ValueError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
+    candidates = sorted({int(k) for k in candidates})
+    if not candidates or candidates[0] < 1:
+        raise ValueError(f"candidates must be positive integers, got {candidates!r}")
+    return candidates
+
+
 def select_order(
     demos: Sequence,
     candidates: Sequence[int] = (1, 2, 3, 4, 5, 6),
@@ -89,6 +123,7 @@ def select_order(
     max_iter: int = 200,
     tol: float = 1e-7,
     progress: Callable[[str], None] | None = None,
+    fit_map: Callable = map,
     **model_options,
 ) -> OrderSelection:
     """Fit one model per candidate number of phases and score each.
@@ -96,34 +131,32 @@ def select_order(
     The parameter count is that of this model (``ETAR.count_free_parameters``),
     not of a plain Gaussian HMM.  Candidates with fewer steps than parameters
     are skipped (and reported through ``progress``); at least one must fit.
+    ``fit_map``: how the candidates' fits are run, ``map`` or a ``map`` that runs
+    them in parallel (``concurrent.futures.Executor.map``); each fit is seeded
+    alone, so the result does not depend on it.
     """
-    if criterion not in CRITERIA:
-        raise ValueError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
-    candidates = sorted({int(k) for k in candidates})
-    if not candidates or candidates[0] < 1:
-        raise ValueError(f"candidates must be positive integers, got {candidates!r}")
+    candidates = _check_candidates(criterion, candidates)
     demos = check_demonstrations(demos)
-    n, m = demos[0][0].shape[1], demos[0][1].shape[1]
-    d = n if transitions == "state" else m
-    n_samples = sum(s.shape[0] - 1 for s, _ in demos)
-    scores, lls, params, models = {}, {}, {}, {}
-    for k in candidates:
-        p = ETAR.count_free_parameters(k, n, m, d)
-        if p > n_samples:
-            if progress:
-                progress(f"K={k}: skipped, {p} parameters exceed {n_samples} steps")
-            continue
-        model = ETAR(k, transitions, **model_options).fit(demos, max_iter=max_iter, tol=tol, seed=seed)
+    fit, params, n_samples = _candidates(demos, candidates, transitions, progress)
+    jobs = [(demos, k, transitions, model_options, max_iter, tol, seed) for k in fit]
+    return _scored(dict(zip(fit, fit_map(_fit_candidate, jobs))), params, n_samples, criterion, candidates,
+                   progress)
+
+
+def _scored(fitted: dict, params: dict, n_samples: int, criterion: str, candidates, progress) -> OrderSelection:
+    scores, lls, models = {}, {}, {}
+    for k, model in fitted.items():
+        p = params[k]
         ll = model.fit_report_.log_likelihood
         scores[k] = information_criterion(ll, p, n_samples, criterion)
-        lls[k], params[k], models[k] = ll, p, model
+        lls[k], models[k] = ll, model
         if progress:
             progress(f"K={k}: log-likelihood {ll:.2f}, {p} parameters, {criterion.upper()} {scores[k]:.2f} "
                      f"({model.fit_report_.seconds:.1f} s)")
     if not scores:
         raise ValueError(f"no candidate in {candidates} has fewer parameters than the {n_samples} steps")
     best = min(scores, key=scores.get)
-    return OrderSelection(best, criterion, scores, lls, params, n_samples, models)
+    return OrderSelection(best, criterion, scores, lls, {k: params[k] for k in fitted}, n_samples, models)
 
 
 @dataclass(frozen=True)
@@ -162,18 +195,29 @@ def vote_order(
     criterion: str = "bic",
     *,
     progress: Callable[[str], None] | None = None,
-    **options,
+    transitions: str = "effect",
+    seed: int = 0,
+    max_iter: int = 200,
+    tol: float = 1e-7,
+    fit_map: Callable = map,
+    **model_options,
 ) -> OrderVote:
     """Score the candidates on each demonstration alone (``select_order`` with
     the same options) and take the number of phases most of them choose.
+    ``fit_map`` runs every (demonstration, candidate) fit, in one batch.
 
     The chosen model is not fitted here: fit it on all demonstrations with
     ``ETAR(vote.best, ...)``.
     """
+    candidates = _check_candidates(criterion, candidates)
     demos = check_demonstrations(demos)
+    plans = [_candidates([demo], candidates, transitions, None) for demo in demos]
+    jobs = [([demo], k, transitions, model_options, max_iter, tol, seed)
+            for demo, (fit, _, _) in zip(demos, plans) for k in fit]
+    models = iter(list(fit_map(_fit_candidate, jobs)))
     selections = []
-    for i, demo in enumerate(demos):
-        sel = select_order([demo], candidates, criterion, **options)
+    for i, (fit, params, n_samples) in enumerate(plans):
+        sel = _scored({k: next(models) for k in fit}, params, n_samples, criterion, candidates, None)
         if progress:
             progress(f"demonstration {i}: {criterion.upper()} chooses {sel.best} phases "
                      f"({sel.n_samples} steps; " + ", ".join(f"K={k} {v:.0f}" for k, v in sel.scores.items()) + ")")
@@ -197,16 +241,19 @@ def fit_order(
     max_iter: int = 200,
     tol: float = 1e-7,
     progress: Callable[[str], None] | None = None,
+    fit_map: Callable = map,
     **model_options,
 ) -> tuple[ETAR, dict]:
     """Choose the number of phases by ``method`` (``vote_order`` for
     per_demonstration, ``select_order`` for pooled) and return (the model with
     that many phases fitted to all demonstrations, the selection's JSON-ready
-    summary).  The tables go to ``progress``."""
+    summary).  The tables go to ``progress``; ``fit_map`` runs the candidates' fits
+    (``select_order``)."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     say = progress or (lambda msg: None)
-    options = dict(transitions=transitions, seed=seed, max_iter=max_iter, tol=tol, progress=progress, **model_options)
+    options = dict(transitions=transitions, seed=seed, max_iter=max_iter, tol=tol, progress=progress, fit_map=fit_map,
+                   **model_options)
     if method == "pooled":
         sel = select_order(demos, candidates, criterion, **options)
         say(sel.table())

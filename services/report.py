@@ -27,6 +27,7 @@ from services.recording import read_episode
 from services.nodes.robot import HOLD_WATCH_S
 from services.runtime.messages import BY_TOPIC, loads
 from services.runtime.service import STRIDES
+from services.runtime.threads import process_map
 from services.runtime.timing import Histogram, SequenceTracker, percentiles
 
 
@@ -214,27 +215,56 @@ def _in_run(path, run_dir: Path) -> str | None:
         return str(p)
 
 
+# recordings read at ~15 MB/s in one process: below this, a pool's start costs more than it saves
+PARALLEL_READ_BYTES = 32 << 20
+
+
+def _size(path) -> int:
+    try:
+        return os.path.getsize(path)
+    except OSError:
+        return 0
+
+
+def recording_figures(job: tuple):
+    """What the report takes from one recording, (path, phase_to_truth or None for no
+    phase scoring): (per-topic links, the reproduction's phase scores or None, the FRI
+    quality series, undecodable messages); None if it cannot be read.  Each recording
+    is read once, for every figure taken from it, and let go (a valley run's
+    recordings do not fit in memory together)."""
+    path, phase_to_truth = job
+    try:
+        ep = read_episode(path)
+    except (OSError, ValueError):
+        return None
+    decoded, bad = decoded_messages(ep)
+    del ep
+    phases = reproduction_phases(decoded, phase_to_truth) if phase_to_truth else None
+    return episode_links(decoded), phases, fri_quality_series(decoded), bad
+
+
 def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: float) -> dict:
     st = runner.state
     sc = runner.scenario
     out = Path(runner.out)
-    # each recording is read once, for every figure taken from it, and let go
-    # (a valley run's recordings do not fit in memory together)
     links, phases_of, quality, undecodable = {}, {}, {}, {}
     reproduction_paths = {r["path"] for r in st.reproductions}
-    for d in st.demonstrations + st.reproductions:
-        try:
-            ep = read_episode(d["path"])
-        except (OSError, ValueError):
-            continue
-        decoded, bad = decoded_messages(ep)
-        undecodable[d["path"]] = bad
-        for topic, v in episode_links(decoded).items():
-            links.setdefault(topic, []).append(v)
-        if d["path"] in reproduction_paths and st.phase_to_truth:
-            phases_of[d["path"]] = reproduction_phases(decoded, st.phase_to_truth)
-        quality[d["path"]] = fri_quality_series(decoded)
-        del ep, decoded
+    jobs = [(d["path"], st.phase_to_truth if d["path"] in reproduction_paths else None)
+            for d in st.demonstrations + st.reproductions]
+    # the recordings are independent: read on every CPU the run may use (a sweep's run: in
+    # this process), once they are worth a pool's start (~1.4 s of imports per process)
+    workers = getattr(getattr(runner, "options", None), "workers", 1)
+    if sum(_size(path) for path, _ in jobs) < PARALLEL_READ_BYTES:
+        workers = 1
+    with process_map(workers) as read_map:
+        for (path, _), read in zip(jobs, read_map(recording_figures, jobs)):
+            if read is None:
+                continue
+            episode_links_, phases, quality[path], undecodable[path] = read
+            for topic, v in episode_links_.items():
+                links.setdefault(topic, []).append(v)
+            if phases is not None:
+                phases_of[path] = phases
     timelines = {path: fri_quality_timeline(*series) for path, series in quality.items()}
     repro = []
     for r in st.reproductions:

@@ -25,6 +25,7 @@ own statistics (``services.report``).
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import signal
@@ -51,7 +52,7 @@ from services.runtime.inproc import InProcessCell
 from services.runtime.messages import RUNNER_EVENT
 from services.runtime.service import now_ns
 from services.runtime.session import ZenohOptions
-from services.runtime.threads import learning_threads
+from services.runtime.threads import learning_threads, process_map
 from services.scenario import Scenario, ScenarioError, demonstration_starts, load_scenario, reproduction_starts
 
 # with isolate_robot: who gets the robot's CPU.  The sensor there too made it worse
@@ -90,6 +91,9 @@ class RunOptions:
     isolate_robot: bool = False
     ready_timeout: float = 60.0
     learn_threads: int | None = None  # numba threads for learning; None: the CPUs this process may use
+    # processes for the run's own independent work (the candidate fits of a phase-count
+    # selection, reading the recordings for the report); None: one per CPU; a sweep gives 1
+    workers: int | None = None
     # with the realtime clock: what to ask of the machine (services.realtime_profile);
     # sched_fifo / isolate_robot above add to it with their own priorities
     realtime_profile: str = "auto"
@@ -382,20 +386,28 @@ class Runner:
 
     def stage_learn(self, stage):
         sc = self.scenario
-        demos = [load_demonstration(d["path"], state=sc.state, features=sc.features)
-                 for d in self.state.demonstrations]
+        # choosing the number of phases is many independent fits: worth a pool of processes,
+        # which then reads the demonstrations too (a fixed number of phases is one fit)
+        with process_map(self.options.workers if stage.phases == "auto" else 1) as work_map:
+            t = time.monotonic()
+            demos = list(work_map(functools.partial(load_demonstration, state=sc.state, features=sc.features),
+                                  [d["path"] for d in self.state.demonstrations]))
+            self.state.learned_from = [dict(path=d["path"], samples=len(s["states"])) for d, s in
+                                       zip(self.state.demonstrations, demos)]
+            self._learn(stage, demos, work_map, t)
+
+    def _learn(self, stage, demos, work_map, t: float) -> None:
+        sc = self.scenario
         pairs = [(d["states"], d["forces"]) for d in demos]
-        self.state.learned_from = [dict(path=d["path"], samples=len(s)) for d, (s, _) in
-                                   zip(self.state.demonstrations, pairs)]
         options = dict(n_restarts=stage.restarts)
-        t = time.monotonic()
         with learning_threads(self.options.learn_threads):
             if stage.phases == "auto":
                 self.say(f"learning: {stage.criterion.upper()} over {list(stage.candidates)} phases from "
                          f"{len(pairs)} demonstrations ({sum(len(s) for s, _ in pairs)} samples)")
                 model, self.state.selection = fit_order(pairs, stage.candidates, stage.criterion, stage.selection,
                                                         transitions=stage.transitions, seed=stage.seed,
-                                                        max_iter=stage.max_iter, progress=self.say, **options)
+                                                        max_iter=stage.max_iter, progress=self.say,
+                                                        fit_map=work_map, **options)
             else:
                 model = ETAR(int(stage.phases), stage.transitions, **options).fit(
                     pairs, max_iter=stage.max_iter, seed=stage.seed)

@@ -184,7 +184,8 @@ def run_one(spec: RunSpec) -> dict:
     row = dict(run=spec.name, **{f"param {k}": v for k, v in spec.params.items()}, seed=spec.seed)
     try:
         runner = Runner(RunOptions(scenario=spec.scenario_file, out=spec.out, transport="inproc",
-                                   run_id=f"sweep-{spec.name}", learn_threads=spec.learn_threads),
+                                   run_id=f"sweep-{spec.name}", learn_threads=spec.learn_threads,
+                                   workers=1),
                         progress=lines.append)
         report = runner.run()
     except Exception as exc:  # a run that cannot even start is a row with its error, not a dead sweep

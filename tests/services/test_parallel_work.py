@@ -1,0 +1,78 @@
+"""A run's own independent work in a pool of processes (services.runtime.threads.process_map):
+the candidate fits of a phase-count selection and the report's reading of recordings
+give what one process gives, in order, and an interrupted pool leaves no process behind."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from etar.selection import vote_order
+from etar.synthetic import make_task, sample_demonstrations
+from services.report import recording_figures
+from services.runtime.threads import process_map
+from tests.services.test_recording import mixed_messages, write_episode
+
+
+def _pid_and_square(x):
+    return os.getpid(), x * x
+
+
+def _fail_on_three(x):
+    if x == 3:
+        raise ValueError("three")
+    return x
+
+
+def test_a_pool_runs_the_pieces_in_other_processes_and_returns_them_in_order():
+    with process_map(2) as pool_map:
+        results = list(pool_map(_pid_and_square, range(8)))
+    assert [sq for _, sq in results] == [x * x for x in range(8)]
+    assert os.getpid() not in {pid for pid, _ in results}
+    with process_map(1) as plain:
+        assert plain is map
+
+
+def test_a_failing_piece_raises_in_the_caller_and_the_pool_is_gone():
+    with pytest.raises(ValueError, match="three"):
+        with process_map(2) as pool_map:
+            list(pool_map(_fail_on_three, range(6)))
+    import multiprocessing
+
+    assert not [p for p in multiprocessing.active_children() if p.is_alive()]
+
+
+def test_the_per_demonstration_vote_is_the_same_in_a_pool():
+    task = make_task(2, seed=3)
+    demos = [(s, f) for s, f, _ in sample_demonstrations(task, 3, 300, seed=13)]
+    here = vote_order(demos, [1, 2, 3], "bic", seed=0, n_restarts=1, max_iter=40)
+    with process_map(2) as pool_map:
+        pooled = vote_order(demos, [1, 2, 3], "bic", seed=0, n_restarts=1, max_iter=40, fit_map=pool_map)
+    assert pooled.to_dict() == here.to_dict()
+    for a, b in zip(here.per_demonstration, pooled.per_demonstration):
+        for k in a.models:
+            np.testing.assert_array_equal(a.models[k].A, b.models[k].A)
+            np.testing.assert_array_equal(a.models[k].W, b.models[k].W)
+
+
+def test_the_report_reads_recordings_in_a_pool_as_in_one_process(tmp_path, rng):
+    jobs = []
+    for i in range(3):
+        path = tmp_path / f"reproduction_{i:02d}.mcap"
+        write_episode(path, mixed_messages(80 + 20 * i, rng))
+        jobs.append((str(path), {0: 0, 1: 1}))
+    jobs.append((str(tmp_path / "missing.mcap"), None))
+    here = list(map(recording_figures, jobs))
+    with process_map(2) as pool_map:
+        pooled = list(pool_map(recording_figures, jobs))
+    assert here[-1] is None and pooled[-1] is None
+    for a, b in zip(here[:-1], pooled[:-1]):
+        links_a, phases_a, (t_a, q_a, s_a), bad_a = a
+        links_b, phases_b, (t_b, q_b, s_b), bad_b = b
+        assert links_a == links_b and bad_a == bad_b
+        # NaN where no transition was seen: compared as JSON writes them
+        assert json.dumps(phases_a, sort_keys=True) == json.dumps(phases_b, sort_keys=True)
+        assert phases_a["updates"] > 0
+        np.testing.assert_array_equal(t_a, t_b)
+        np.testing.assert_array_equal(q_a, q_b)
