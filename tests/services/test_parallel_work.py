@@ -19,10 +19,21 @@ def _pid_and_square(x):
     return os.getpid(), x * x
 
 
-def _fail_on_three(x):
+def _fail_on_three(job):
+    x, pids = job
+    with open(pids, "a") as f:
+        f.write(f"{os.getpid()}\n")
     if x == 3:
         raise ValueError("three")
     return x
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
 
 
 def test_a_pool_runs_the_pieces_in_other_processes_and_returns_them_in_order():
@@ -34,13 +45,14 @@ def test_a_pool_runs_the_pieces_in_other_processes_and_returns_them_in_order():
         assert plain is map
 
 
-def test_a_failing_piece_raises_in_the_caller_and_the_pool_is_gone():
+def test_a_failing_piece_raises_in_the_caller_and_the_pool_is_gone(tmp_path):
+    pids = tmp_path / "pids"
     with pytest.raises(ValueError, match="three"):
         with process_map(2) as pool_map:
-            list(pool_map(_fail_on_three, range(6)))
-    import multiprocessing
-
-    assert not [p for p in multiprocessing.active_children() if p.is_alive()]
+            list(pool_map(_fail_on_three, [(x, str(pids)) for x in range(6)]))
+    workers = {int(line) for line in pids.read_text().split()}
+    assert workers and os.getpid() not in workers
+    assert not [pid for pid in workers if _alive(pid)]
 
 
 def test_the_per_demonstration_vote_is_the_same_in_a_pool():
