@@ -86,22 +86,21 @@ def _fit_candidate(job: tuple) -> ETAR:
     return ETAR(k, transitions, **model_options).fit(demos, max_iter=max_iter, tol=tol, seed=seed)
 
 
-def _candidates(demos, candidates, transitions, progress) -> tuple[list[int], dict, int]:
-    """(the candidates that have fewer parameters than steps, their parameter counts,
-    the number of steps); the others are reported through ``progress``."""
+def _candidates(demos, candidates, transitions, progress) -> tuple[dict, int]:
+    """(parameter count of each candidate that has fewer parameters than steps, in
+    order; the number of steps); the others are reported through ``progress``."""
     n, m = demos[0][0].shape[1], demos[0][1].shape[1]
     d = n if transitions == "state" else m
     n_samples = sum(s.shape[0] - 1 for s, _ in demos)
-    fit, params = [], {}
+    params = {}
     for k in candidates:
         p = ETAR.count_free_parameters(k, n, m, d)
         if p > n_samples:
             if progress:
                 progress(f"K={k}: skipped, {p} parameters exceed {n_samples} steps")
             continue
-        fit.append(k)
         params[k] = p
-    return fit, params, n_samples
+    return params, n_samples
 
 
 def _check_candidates(criterion, candidates) -> list[int]:
@@ -137,9 +136,9 @@ def select_order(
     """
     candidates = _check_candidates(criterion, candidates)
     demos = check_demonstrations(demos)
-    fit, params, n_samples = _candidates(demos, candidates, transitions, progress)
-    jobs = [(demos, k, transitions, model_options, max_iter, tol, seed) for k in fit]
-    return _scored(dict(zip(fit, fit_map(_fit_candidate, jobs))), params, n_samples, criterion, candidates,
+    params, n_samples = _candidates(demos, candidates, transitions, progress)
+    jobs = [(demos, k, transitions, model_options, max_iter, tol, seed) for k in params]
+    return _scored(dict(zip(params, fit_map(_fit_candidate, jobs))), params, n_samples, criterion, candidates,
                    progress)
 
 
@@ -156,7 +155,7 @@ def _scored(fitted: dict, params: dict, n_samples: int, criterion: str, candidat
     if not scores:
         raise ValueError(f"no candidate in {candidates} has fewer parameters than the {n_samples} steps")
     best = min(scores, key=scores.get)
-    return OrderSelection(best, criterion, scores, lls, {k: params[k] for k in fitted}, n_samples, models)
+    return OrderSelection(best, criterion, scores, lls, params, n_samples, models)
 
 
 @dataclass(frozen=True)
@@ -213,11 +212,11 @@ def vote_order(
     demos = check_demonstrations(demos)
     plans = [_candidates([demo], candidates, transitions, None) for demo in demos]
     jobs = [([demo], k, transitions, model_options, max_iter, tol, seed)
-            for demo, (fit, _, _) in zip(demos, plans) for k in fit]
-    models = iter(list(fit_map(_fit_candidate, jobs)))
+            for demo, (params, _) in zip(demos, plans) for k in params]
+    models = fit_map(_fit_candidate, jobs)  # in order: each demonstration's candidates, one after the other
     selections = []
-    for i, (fit, params, n_samples) in enumerate(plans):
-        sel = _scored({k: next(models) for k in fit}, params, n_samples, criterion, candidates, None)
+    for i, (params, n_samples) in enumerate(plans):
+        sel = _scored({k: next(models) for k in params}, params, n_samples, criterion, candidates, None)
         if progress:
             progress(f"demonstration {i}: {criterion.upper()} chooses {sel.best} phases "
                      f"({sel.n_samples} steps; " + ", ".join(f"K={k} {v:.0f}" for k, v in sel.scores.items()) + ")")

@@ -386,17 +386,20 @@ class Runner:
 
     def stage_learn(self, stage):
         sc = self.scenario
+        t = time.monotonic()
         # choosing the number of phases is many independent fits: worth a pool of processes,
         # which then reads the demonstrations too (a fixed number of phases is one fit)
         with process_map(self.options.workers if stage.phases == "auto" else 1) as work_map:
-            t = time.monotonic()
             demos = list(work_map(functools.partial(load_demonstration, state=sc.state, features=sc.features),
                                   [d["path"] for d in self.state.demonstrations]))
             self.state.learned_from = [dict(path=d["path"], samples=len(s["states"])) for d, s in
                                        zip(self.state.demonstrations, demos)]
-            self._learn(stage, demos, work_map, t)
+            n_phases = self._learn(stage, demos, work_map)
+        self.state.learn_seconds = time.monotonic() - t
+        self.say(f"learned {n_phases} phases in {self.state.learn_seconds:.1f} s; model {self.state.model_path}")
 
-    def _learn(self, stage, demos, work_map, t: float) -> None:
+    def _learn(self, stage, demos, work_map) -> int:
+        """Fit the model, save and adopt the learned task; the number of phases."""
         sc = self.scenario
         pairs = [(d["states"], d["forces"]) for d in demos]
         options = dict(n_restarts=stage.restarts)
@@ -418,8 +421,7 @@ class Runner:
                               selection=self.state.selection, sources=[d["path"] for d in demos])
         path = task.save(self.out / "model.json")  # a later scenario can reproduce with this file alone
         self._adopt(task, path)
-        self.state.learn_seconds = time.monotonic() - t
-        self.say(f"learned {model.n_phases} phases in {self.state.learn_seconds:.1f} s; model {path}")
+        return model.n_phases
 
     def _adopt(self, task: LearnedTask, path: Path) -> None:
         self.state.model_path = str(path)

@@ -1,4 +1,4 @@
-"""How many threads learning may use.
+"""How many threads learning may use, and a pool of processes for a run's independent work.
 
 numba's parallel E-step spreads over every CPU it is allowed; when other work
 shares those CPUs its workers wait on each other (measured on a fresh clone: the
@@ -32,7 +32,6 @@ def learning_threads(n: int | None):
         yield want
     finally:
         numba.set_num_threads(before)
-
 
 
 def _worker_start() -> None:
