@@ -66,8 +66,9 @@ the lockstep clock) can drive it with synthetic times.
   does not count as a miss.
 - Control mode (POSITION / CART_IMP / JNT_IMP) is switched by the KRC side with
   ``switch_control_mode`` and only in MON, as in FRI 1.0.
-- Faults (``LinkFaults``): delay, uniform jitter, loss and corruption of
-  command packets, and loss of measurement packets, from an explicit seed.
+- Faults (``LinkFaults``): delay, uniform jitter, loss, corruption,
+  duplication and reordering of command packets, and loss of measurement
+  packets, from an explicit seed, optionally only within a window of time.
 
 Order of calls per cycle
 ------------------------
@@ -412,11 +413,18 @@ class LinkFaults:
     Command packets (remote -> KRC): lost with ``drop_probability``; otherwise
     damaged with ``corrupt_probability`` (one ``cart_pos`` element becomes NaN, on
     a copy) and delivered ``delay_ns`` plus a uniform 0..``jitter_ns`` later.
+    A delivered command packet also arrives a second time with
+    ``duplicate_probability`` (an exact copy, a uniform 0..``duplicate_spread_ns``
+    after the first: the KRC must not apply it twice), and is held back
+    ``reorder_lag_ns`` more with ``reorder_probability`` (1.5 ms by default: past
+    its own deadline and after the next cycle's answer, so it arrives out of order).
     Measurement packets (KRC -> remote) are lost with
     ``measurement_drop_probability``: the remote never sees them and so cannot
     answer.  Each kind of packet draws from its own stream, a fixed number of
     draws per packet, so the same seed and the same calls give the same faults,
-    and changing one probability does not reshuffle the others.
+    and changing one probability does not reshuffle the others.  While ``active``
+    is False (outside a scenario's fault window) the draws are made and ignored:
+    packets pass untouched and the streams stay where a whole-run fault has them.
     """
 
     seed: int
@@ -425,11 +433,19 @@ class LinkFaults:
     drop_probability: float = 0.0
     corrupt_probability: float = 0.0
     measurement_drop_probability: float = 0.0
+    duplicate_probability: float = 0.0
+    duplicate_spread_ns: int = 1_000_000
+    reorder_probability: float = 0.0
+    reorder_lag_ns: int = 1_500_000
+    active: bool = True
     dropped: int = field(default=0, init=False)
     corrupted: int = field(default=0, init=False)
+    duplicated: int = field(default=0, init=False)
+    reordered: int = field(default=0, init=False)
     measurements_dropped: int = field(default=0, init=False)
     _cmd_rng: np.random.Generator = field(init=False, repr=False, compare=False)
     _msr_rng: np.random.Generator = field(init=False, repr=False, compare=False)
+    _order_rng: np.random.Generator = field(init=False, repr=False, compare=False)
 
     def __post_init__(self):
         def need(ok: bool, name: str, what: str):
@@ -439,27 +455,39 @@ class LinkFaults:
         need(_is_int(self.seed), "seed", "must be an integer (faults are always seeded)")
         need(_is_int(self.delay_ns) and self.delay_ns >= 0, "delay_ns", "must be an integer >= 0")
         need(_is_int(self.jitter_ns) and self.jitter_ns >= 0, "jitter_ns", "must be an integer >= 0")
-        for name in ("drop_probability", "corrupt_probability", "measurement_drop_probability"):
+        for name in ("duplicate_spread_ns", "reorder_lag_ns"):
+            need(_is_int(getattr(self, name)) and getattr(self, name) >= 0, name, "must be an integer >= 0")
+        for name in ("drop_probability", "corrupt_probability", "measurement_drop_probability",
+                     "duplicate_probability", "reorder_probability"):
             v = getattr(self, name)
             need(isinstance(v, (int, float)) and 0.0 <= v <= 1.0, name, "must be a probability in [0, 1]")
-        cmd_seq, msr_seq = np.random.SeedSequence(self.seed).spawn(2)
+        # spawn keys are positional: the first two streams are what they were before the third existed
+        cmd_seq, msr_seq, order_seq = np.random.SeedSequence(self.seed).spawn(3)
         self._cmd_rng = np.random.default_rng(cmd_seq)
         self._msr_rng = np.random.default_rng(msr_seq)
+        self._order_rng = np.random.default_rng(order_seq)
 
     def measurement_lost(self) -> bool:
         """Whether the next measurement packet is lost on its way to the remote."""
-        if self._msr_rng.random() < self.measurement_drop_probability:
+        if self._msr_rng.random() < self.measurement_drop_probability and self.active:
             self.measurements_dropped += 1
             return True
         return False
 
-    def transmit(self, packet: CommandPacket, t_sent_ns: int) -> tuple[CommandPacket, int] | None:
-        """(packet as it arrives, arrival time) or None if the packet is lost."""
+    def transmit(self, packet: CommandPacket, t_sent_ns: int) -> list[tuple[CommandPacket, int]]:
+        """Each arrival of ``packet`` as (packet as it arrives, arrival time), in order of
+        arrival: none if it is lost, two if it is duplicated."""
         u_drop, u_corrupt, u_jitter, u_index = self._cmd_rng.random(4).tolist()
+        u_dup, u_spread, u_reorder = self._order_rng.random(3).tolist() if self._orders else (1.0, 0.0, 1.0)
+        if not self.active:
+            return [(packet, int(t_sent_ns))]
         if u_drop < self.drop_probability:
             self.dropped += 1
-            return None
+            return []
         arrival = int(t_sent_ns) + self.delay_ns + (int(u_jitter * (self.jitter_ns + 1)) if self.jitter_ns else 0)
+        if u_reorder < self.reorder_probability:
+            self.reordered += 1
+            arrival += self.reorder_lag_ns
         if u_corrupt < self.corrupt_probability:
             self.corrupted += 1
             try:
@@ -468,7 +496,16 @@ class LinkFaults:
                 packet = replace(packet, cart_pos=damaged)
             except Exception:
                 pass  # already beyond repair: deliver it as it is, the KRC rejects it anyway
-        return packet, arrival
+        if u_dup < self.duplicate_probability:
+            self.duplicated += 1
+            return [(packet, arrival), (packet, arrival + int(u_spread * (self.duplicate_spread_ns + 1)))]
+        return [(packet, arrival)]
+
+    @property
+    def _orders(self) -> bool:
+        # the third stream is drawn only where it is used: a run without these faults
+        # costs nothing more per packet
+        return self.duplicate_probability > 0.0 or self.reorder_probability > 0.0
 
 
 _NO_LATENCY = -1
@@ -726,10 +763,12 @@ class FriLink:
         """Send ``packet`` from the remote at ``t_sent_ns`` through the fault hook, then ``receive`` it."""
         if self.faults is None:
             return self.receive(packet, t_sent_ns)
-        arrived = self.faults.transmit(packet, t_sent_ns)
-        if arrived is None:
-            return False
-        return self.receive(*arrived)
+        accepted = False
+        # each arrival is judged by its arrival time against the cycle it reaches: a copy
+        # within the deadline is a duplicate, a packet held back past it is late
+        for arrived, t_ns in self.faults.transmit(packet, t_sent_ns):
+            accepted = self.receive(arrived, t_ns) or accepted
+        return accepted
 
     def end_cycle(self, t_ns: int) -> CycleOutcome:
         """Close the open cycle at its deadline and decide what the KRC applies."""

@@ -474,7 +474,7 @@ def render_text(r: dict) -> str:
                [("reproduction", rp["index"], rp) for rp in r["reproductions"]]
     if any(e.get("fri") for _, _, e in episodes):
         lines.append("FRI per episode:        answered   missed     late  longest miss run  at PERFECT  drops from "
-                     "PERFECT  CMD after [s]")
+                     "PERFECT  CMD after [s]  CMD left/entered  duplicates")
         for kind, i, e in episodes:
             f, fq = e.get("fri") or {}, e.get("fri_quality") or {}
             if not f:
@@ -492,7 +492,9 @@ def render_text(r: dict) -> str:
             cmd = None if cmd is None else cmd - fq.get("start_s", 0.0)
             lines.append(f"  {kind:<13} {i:3d} {f['answered']:10d} {f['missed']:8d} {f['late']:8d} "
                          f"{f['longest_miss_run']:17d}  {'-' if at is None else f'{at:9.1%}'}  "
-                         f"{fq.get('drops_from_perfect', 0):18d}  {'-' if cmd is None else f'{cmd:.3f}'}")
+                         f"{fq.get('drops_from_perfect', 0):18d}  {'-' if cmd is None else round(cmd, 3):>13}"
+                         f"  {f.get('command_mode_left', 0):7d}/{f.get('command_mode_entered', 0):<8d}"
+                         f"  {f.get('duplicate', 0):10d}")
     rtf = s["real_time_factor"]
     lines.append(f"simulated {s['simulated_seconds']:.1f} s in {s['episode_wall_seconds']:.1f} s of episodes: "
                  f"{'-' if rtf is None else f'{rtf:.2f}'} x real time")

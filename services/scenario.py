@@ -23,10 +23,15 @@ Schema (every key optional unless marked required; unknown keys are errors)::
     cell:                             # the simulated cell's physics and devices (all optional)
       sensor_noise: 1.0               # ATI white noise as a multiple of the Mini45's, >= 0, default 1
       plate_friction: 0.25            # valley only: sliding friction coefficient of the plates, > 0
-      fri_packet_loss: 0.0            # probability that a command packet is lost on the FRI link, [0, 1)
+      fri_packet_loss: 0.0            # probability that a command packet is lost on the FRI link, [0, 1]
       fri_delay_ms: 0.0               # FRI link fault: every command packet arrives this much later, 0..1000 ms
       fri_jitter_ms: 0.0              # and a further uniform 0..this, 0..1000 ms
-      fri_corruption: 0.0             # probability that a command packet arrives damaged, [0, 1)
+      fri_corruption: 0.0             # probability that a command packet arrives damaged, [0, 1]
+      fri_duplication: 0.0            # probability that a command packet arrives twice, [0, 1]
+      fri_reordering: 0.0             # probability that a command packet is held back 1.5 ms and so arrives
+                                      #   after the next cycle's, [0, 1]
+      fri_faults_from_s: 0.0          # the FRI faults above act from this many s into each episode, >= 0
+      fri_faults_until_s: .inf        # ... until this many s into it (> from; default: to the episode's end)
     stages:                           # required, non-empty list; each item has exactly one key
       - demonstrate:
           count: 6                    # int, 1..10000, required
@@ -462,23 +467,30 @@ class CellSpec:
     fri_delay_ms: float = 0.0  # every command packet arrives this much later, ms
     fri_jitter_ms: float = 0.0  # and a further uniform 0..this, ms
     fri_corruption: float = 0.0  # probability that a command packet arrives damaged
+    fri_duplication: float = 0.0  # probability that a command packet arrives twice
+    fri_reordering: float = 0.0  # probability that a command packet arrives after the next cycle's
+    fri_faults_from_s: float = 0.0  # the link faults act from this many seconds into each episode
+    fri_faults_until_s: float = math.inf  # ... until this many
 
     def __post_init__(self):
         _set(self, "sensor_noise", _number(self.sensor_noise, "sensor_noise", 0.0))
         _set(self, "plate_friction", _number(self.plate_friction, "plate_friction", 0.0, strict=True))
-        loss = _number(self.fri_packet_loss, "fri_packet_loss", 0.0)
-        if loss >= 1.0:
-            raise ScenarioError("expected a probability in [0, 1)", path="fri_packet_loss", value=self.fri_packet_loss)
-        _set(self, "fri_packet_loss", loss)
-        corruption = _number(self.fri_corruption, "fri_corruption", 0.0)
-        if corruption >= 1.0:
-            raise ScenarioError("expected a probability in [0, 1)", path="fri_corruption", value=self.fri_corruption)
-        _set(self, "fri_corruption", corruption)
+        for name in ("fri_packet_loss", "fri_corruption", "fri_duplication", "fri_reordering"):
+            p = _number(getattr(self, name), name, 0.0)
+            if p > 1.0:
+                raise ScenarioError("expected a probability in [0, 1]", path=name, value=getattr(self, name))
+            _set(self, name, p)
         for name in ("fri_delay_ms", "fri_jitter_ms"):
             ms = _number(getattr(self, name), name, 0.0)
             if ms > 1000.0:
                 raise ScenarioError("expected at most 1000 ms", path=name, value=getattr(self, name))
             _set(self, name, ms)
+        _set(self, "fri_faults_from_s", _number(self.fri_faults_from_s, "fri_faults_from_s", 0.0))
+        until = self.fri_faults_until_s
+        if not (isinstance(until, (int, float)) and not isinstance(until, bool) and until > self.fri_faults_from_s):
+            raise ScenarioError(f"expected a number of seconds > fri_faults_from_s ({self.fri_faults_from_s})",
+                                path="fri_faults_until_s", value=until)
+        _set(self, "fri_faults_until_s", float(until))
 
 
 Stage = Union[DemonstrateStage, LearnStage, ReproduceStage]

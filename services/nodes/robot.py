@@ -47,6 +47,7 @@ SECTIONS = ("wait", "answers", "step", "measure", "encode", "publish")
 ANSWER_TOPICS = {"command": "robot/command", "teacher": "teacher/wrench", "ft": "ft/wrench",
                  "phase": "estimator/phase"}
 assert set(ANSWER_TOPICS) == set(PARTICIPANTS)
+FAULT_PROBABILITIES = ("fri_packet_loss", "fri_corruption", "fri_duplication", "fri_reordering")
 
 
 @dataclass(frozen=True)
@@ -62,6 +63,12 @@ class RobotConfig:
     fri_jitter_ms: float = option(0.0, "FRI link fault: and a further uniform 0..this, ms (reorders late answers)")
     fri_corruption: float = option(0.0, "FRI link fault: probability that a command packet arrives damaged "
                                         "(the KRC rejects it)")
+    fri_duplication: float = option(0.0, "FRI link fault: probability that a command packet arrives twice "
+                                         "(the copy 0..1 ms after it)")
+    fri_reordering: float = option(0.0, "FRI link fault: probability that a command packet is held back 1.5 ms "
+                                        "(it arrives after the next cycle's)")
+    fri_faults_from_s: float = option(0.0, "the FRI link faults act from this many seconds into each episode")
+    fri_faults_until_s: float = option(math.inf, "... until this many seconds into it (default: to its end)")
 
     def __post_init__(self):
         if self.world not in WORLDS:
@@ -70,9 +77,12 @@ class RobotConfig:
             raise ValueError(f"answer_timeout must be > 0 s, got {self.answer_timeout!r}")
         if not (math.isfinite(self.plate_friction) and self.plate_friction > 0):
             raise ValueError(f"plate_friction must be a finite number > 0, got {self.plate_friction!r}")
-        for name in ("fri_packet_loss", "fri_corruption"):
-            if not 0.0 <= getattr(self, name) < 1.0:
-                raise ValueError(f"{name} must be a probability in [0, 1), got {getattr(self, name)!r}")
+        for name in FAULT_PROBABILITIES:
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must be a probability in [0, 1], got {getattr(self, name)!r}")
+        if not (0.0 <= self.fri_faults_from_s < self.fri_faults_until_s):
+            raise ValueError(f"the FRI fault window must satisfy 0 <= fri_faults_from_s < fri_faults_until_s, "
+                             f"got {self.fri_faults_from_s!r} and {self.fri_faults_until_s!r}")
         for name in ("fri_delay_ms", "fri_jitter_ms"):
             if not (math.isfinite(getattr(self, name)) and 0.0 <= getattr(self, name) <= 1000.0):
                 raise ValueError(f"{name} must be a number of ms in [0, 1000], got {getattr(self, name)!r}")
@@ -83,11 +93,15 @@ class RobotConfig:
         return WORLDS[self.world]()
 
     def link_faults(self) -> LinkFaults | None:
-        if not (self.fri_packet_loss or self.fri_delay_ms or self.fri_jitter_ms or self.fri_corruption):
+        if not (any(getattr(self, name) for name in FAULT_PROBABILITIES) or self.fri_delay_ms or self.fri_jitter_ms):
             return None
         return LinkFaults(seed=self.seed, drop_probability=self.fri_packet_loss,
                           delay_ns=round(self.fri_delay_ms * 1e6), jitter_ns=round(self.fri_jitter_ms * 1e6),
-                          corrupt_probability=self.fri_corruption)
+                          corrupt_probability=self.fri_corruption, duplicate_probability=self.fri_duplication,
+                          reorder_probability=self.fri_reordering)
+
+    def faults_active(self, episode_s: float) -> bool:
+        return self.fri_faults_from_s <= episode_s < self.fri_faults_until_s
 
 
 class _Episode:
@@ -108,6 +122,9 @@ class _Episode:
         self.hold_x0 = None  # the tcp where the current hold began
         self.run = 0
         self.miss_run = 0
+        self.cmd_left = 0  # CMD -> MON (the link's quality fell below OK)
+        self.cmd_entered = 0  # MON -> CMD
+        self.fri_state = fri0.state  # the link keeps its state from one episode into the next
         self.k = 0
         self.sections = Sections(*SECTIONS)
 
@@ -250,7 +267,9 @@ class RobotNode(Node):
             **({"hold": dict(ep.hold)} if ep.hold is not None else {}),
             fri={"answered": stats.answered - fri0.answered, "missed": stats.missed - fri0.missed,
                  "late": stats.late - fri0.late, "corrupt": stats.corrupt - fri0.corrupt,
-                 "longest_miss_run": ep.miss_run, "state": int(stats.state), "quality": int(stats.quality)},
+                 "duplicate": stats.duplicate - fri0.duplicate, "longest_miss_run": ep.miss_run,
+                 "command_mode_entered": ep.cmd_entered, "command_mode_left": ep.cmd_left,
+                 "state": int(stats.state), "quality": int(stats.quality)},
             loop=dict(engine.timing.summary(), clock=self.mode, sched_fifo=self.fifo,
                       answer_latency=ep.answer.to_dict(), closed_loop_latency=ep.closed_loop.to_dict(),
                       sections=ep.sections.summary(), wall_start_ns=ep.wall0_ns, wall_end_ns=now),
@@ -315,6 +334,9 @@ class RobotNode(Node):
             commands.clear()
             teacher_entry = self._answers["teacher"].pop(m.seq, None)
             latest_teacher = self._latest_teacher
+        faults = cell.fri.faults
+        if faults is not None:
+            faults.active = self.config.faults_active(ep.k * cell.cycle_ns / 1e9)
         goal_reached = teacher_done = False
         cycle_hold = None  # this cycle's command: why it holds ('' it does not); None: no command
         cycle_estimate = -1  # the estimate this cycle's command used
@@ -353,6 +375,12 @@ class RobotNode(Node):
         sec.add("answers", t1 - t0)
         sec.add("step", self.clock.now_ns() - t1)
         ep.k += 1
+        if outcome.state != ep.fri_state:
+            if outcome.state == FriState.CMD:
+                ep.cmd_entered += 1
+            elif ep.fri_state == FriState.CMD:
+                ep.cmd_left += 1
+            ep.fri_state = outcome.state
         ep.run = 0 if outcome.answered else ep.run + 1
         ep.miss_run = max(ep.miss_run, ep.run)
         fri = cell.fri

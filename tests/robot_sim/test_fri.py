@@ -550,7 +550,8 @@ def _faulty_run(faults: LinkFaults, n: int):
         if seen is not None:
             link.deliver(answer(seen), t + 50_000)
         out = link.end_cycle(t + CYCLE)
-        trace.append((out.answered, out.bridged, out.hold, int(out.state), int(out.quality)))
+        applied = None if out.command is None else int(out.command.add_tcp_ft[0])  # the answer's mark
+        trace.append((out.answered, out.bridged, out.hold, int(out.state), int(out.quality), applied))
     return link, trace
 
 
@@ -596,7 +597,7 @@ def test_delay_and_jitter_shift_arrival_times():
 
     late_link, trace = _faulty_run(LinkFaults(seed=5, delay_ns=CYCLE), 600)
     assert late_link.statistics().late == 600 and late_link.statistics().answered == 0
-    assert trace[-1][3:] == (int(FriState.MON), int(FriQuality.UNACCEPTABLE))
+    assert trace[-1][3:5] == (int(FriState.MON), int(FriQuality.UNACCEPTABLE))
     assert late_link.statistics().latency_s == pytest.approx((CYCLE + 50_000) * 1e-9)
 
 
@@ -611,7 +612,56 @@ def test_corruption_does_not_touch_the_senders_packet():
     assert link.statistics().corrupt == 1
 
 
-@pytest.mark.parametrize("field, value", [("drop_probability", 1.5), ("seed", None), ("delay_ns", -1), ("jitter_ns", 0.5)])
+def test_duplicated_answers_are_rejected_and_never_applied_twice():
+    n = 2000
+    faults = LinkFaults(seed=4, duplicate_probability=0.3)
+    link, trace = _faulty_run(faults, n)
+    s = link.statistics()
+    assert 0.25 * n < faults.duplicated < 0.35 * n
+    # the copy comes 0..1 ms after the original, which arrives 50 us into a 1 ms cycle: a copy
+    # within the deadline is a duplicate, one after it late; neither is applied
+    assert s.duplicate + s.late == faults.duplicated and s.duplicate > 0 and s.late > 0
+    assert s.answered == n and s.missed == 0
+    clean_link, clean_trace = _faulty_run(None, n)
+    assert trace == clean_trace  # what the KRC applied, cycle by cycle, is the clean run's
+
+
+def test_reordered_answers_arrive_after_the_next_cycles_and_are_late():
+    link = FriLink(faults=LinkFaults(seed=0, reorder_probability=1.0))
+    link.start(0)
+    m0 = link.measurement(0, Q, POSE, FT)
+    assert not link.deliver(answer(m0), 50_000)  # held back 1.5 ms: past its own deadline
+    out0 = link.end_cycle(CYCLE)
+    assert not out0.answered and link.statistics().late == 1
+    assert link.faults.reordered == 1
+    assert "deadline" in link.last_reject_reason
+
+
+def test_faults_act_only_while_active():
+    faults = LinkFaults(seed=2, drop_probability=1.0)
+    link = FriLink(faults=faults)
+    link.start(0)
+    answered = []
+    for k in range(300):
+        faults.active = 100 <= k < 160  # a 60 ms dropout
+        m = link.measurement(k * CYCLE, Q, POSE, FT)
+        link.deliver(answer(m), k * CYCLE + 50_000)
+        answered.append(link.end_cycle((k + 1) * CYCLE).answered)
+    assert faults.dropped == 60 and answered[100:160] == [False] * 60
+    assert all(answered[:100]) and all(answered[160:])
+
+
+def test_adding_the_order_faults_keeps_the_other_faults_streams():
+    """Duplication and reordering draw from a stream of their own: a seed's losses and
+    corruptions are the same with them as without."""
+    kw = dict(drop_probability=0.1, corrupt_probability=0.05)
+    plain, _ = _faulty_run(LinkFaults(seed=9, **kw), 1000)
+    ordered, _ = _faulty_run(LinkFaults(seed=9, duplicate_probability=0.2, **kw), 1000)
+    assert (plain.faults.dropped, plain.faults.corrupted) == (ordered.faults.dropped, ordered.faults.corrupted)
+
+
+@pytest.mark.parametrize("field, value", [("drop_probability", 1.5), ("seed", None), ("delay_ns", -1), ("jitter_ns", 0.5),
+                                          ("duplicate_probability", -0.1), ("reorder_lag_ns", 1.5)])
 def test_bad_fault_settings_name_field(field, value):
     kw = {"seed": 0, field: value}
     with pytest.raises(ValueError, match=rf"LinkFaults\.{field}"):
