@@ -417,7 +417,9 @@ class Episode:
 # what a damaged file can make the mcap library raise: its own errors, short
 # reads inside struct/str decoding, CRC and UTF-8 errors (ValueError), zstd's
 # and lz4's (RuntimeError) decompression errors, and a bogus size field
-_READ_ERRORS = (McapError, struct.error, ValueError, EOFError, zstandard.ZstdError, RuntimeError, MemoryError)
+# OverflowError: a damaged length field (e.g. 2^63) that the mcap reader passes on to read()
+_READ_ERRORS = (McapError, struct.error, ValueError, EOFError, zstandard.ZstdError, RuntimeError, MemoryError,
+                OverflowError)
 
 
 # topics whose payloads carry wall-clock durations and loop timing: not what a seed determines
