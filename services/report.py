@@ -193,9 +193,12 @@ def commander_held(reproductions) -> str | None:
         h = rp.get("hold")
         if h:
             age = h["seq"] - h["estimate_seq"] if h.get("estimate_seq", -1) >= 0 else None
+            if h["reason"].startswith("wrench_"):
+                why = f"the phase estimate of cycle {h['estimate_seq']} could not use its wrench"
+            else:
+                why = f"the last phase estimate was {age} cycles old" if age is not None else "no phase estimate yet"
             return (f"reproduction {rp['index']}: the impedance commander held the arm {h['at_s']:.3f} s in "
-                    f"(cycle {h['seq']}, {h['reason']}: "
-                    + (f"the last phase estimate was {age} cycles old" if age is not None else "no phase estimate yet")
+                    f"(cycle {h['seq']}, {h['reason']}: " + why
                     + f"); held {h.get('cycles', 0)} cycles in all (the robot ends the episode after "
                       f"{HOLD_WATCH_S:g} s in one), while held the tcp moved at most "
                       f"{1e3 * h['max_displacement_m']:.1f} mm and the contact force peaked at "

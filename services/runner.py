@@ -79,6 +79,7 @@ class RunOptions:
     zenoh: ZenohOptions | None = None  # None: the runner listens on a free loopback port
     robot_args: tuple = ()  # extra flags for the robot (e.g. fault injection)
     commander_args: tuple = ()
+    sensor_args: tuple = ()  # extra flags for the ft_sensor (e.g. --fault saturate)
     attach: bool = False  # the services are already running (docker-compose): do not spawn them
     # SCHED_FIFO (where permitted) for the two ends of the FRI link, the robot above the
     # commander; the others stay ordinary processes.  All six at one priority starve
@@ -174,6 +175,7 @@ class Runner:
         }
         configs["robot"] = with_flags(configs["robot"], self.options.robot_args)
         configs["impedance_commander"] = with_flags(configs["impedance_commander"], self.options.commander_args)
+        configs["ft_sensor"] = with_flags(configs["ft_sensor"], self.options.sensor_args)
         return {role: configs[role] for role in self.roles()}
 
     def process_args(self, role: str, config, connect: str) -> list[str]:

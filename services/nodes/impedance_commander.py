@@ -24,7 +24,9 @@ episode: nothing is ever late there, so a stale estimate is one that will not
 come.  On the realtime clock an estimate can be late and then come (a crowded
 CPU): the hold lasts while the estimate is stale, and the policy resumes with
 the next fresh one.  The robot ends the episode once a hold has lasted
-``services.nodes.robot.HOLD_WATCH_S``.
+``services.nodes.robot.HOLD_WATCH_S``.  An estimate that says its wrench could
+not be used (``input_fault``: the sensor saturated or read non-finite) is a fault
+of the same kind, acted on at once: the hold's reason is the estimate's.
 
 On the realtime clock only answers that can still count are sent: the commander
 takes the newest measurement that has arrived (``latest``) and leaves unanswered
@@ -85,9 +87,10 @@ class ImpedanceCommanderNode(Node):
         self.episode = -1
         self._lock = threading.Lock()
         self._pending: dict[int, dict] = {}
-        self._phases: dict[int, int] = {}
+        self._phases: dict[int, dict] = {}  # lockstep: the estimates by cycle, until answered
         self._latest_phase = None
         self._latest_phase_seq = -1
+        self._input_fault = ""  # the newest estimate's: why its wrench could not be used
         self._waiting_since = None
         self._last_answered_seq = None
         self._first_seq = None
@@ -115,11 +118,16 @@ class ImpedanceCommanderNode(Node):
         with self._lock:
             if msg["episode"] != self.episode:
                 return
-            self._latest_phase = msg["phase"]
-            self._latest_phase_seq = msg["seq"]
             if self.lockstep:  # realtime uses the latest estimate, whatever its cycle
-                self._phases[msg["seq"]] = msg["phase"]
+                self._phases[msg["seq"]] = msg
                 self._drain()
+            else:
+                self._take_estimate(msg)
+
+    def _take_estimate(self, msg) -> None:
+        self._latest_phase = msg["phase"]
+        self._latest_phase_seq = msg["seq"]
+        self._input_fault = msg.get("input_fault", "")
 
     def on_state(self, msg, recv_ns, raw):
         with self._lock:
@@ -152,10 +160,9 @@ class ImpedanceCommanderNode(Node):
                 self.missing_estimates += 1
             self._waiting_since = None
             state = self._pending.pop(seq)
-            phase = self._phases.pop(seq, None)
-            if phase is not None:
-                self._latest_phase = phase
-                self._latest_phase_seq = seq
+            estimate = self._phases.pop(seq, None)
+            if estimate is not None:
+                self._take_estimate(estimate)
             self._answer(state)
 
     def _answer(self, state):
@@ -177,14 +184,14 @@ class ImpedanceCommanderNode(Node):
             self._first_seq = seq
         if self.hold is None or not self.lockstep:
             fresh = self._latest_phase_seq if self._latest_phase_seq >= 0 else self._first_seq
-            stale = seq - fresh > STALE_ESTIMATE_CYCLES
-            if stale and self.hold is None:
-                self.hold = dict(reason="stale_estimate", seq=seq, stamp_ns=state["stamp_ns"],
+            fault = "stale_estimate" if seq - fresh > STALE_ESTIMATE_CYCLES else self._input_fault
+            if fault and self.hold is None:
+                self.hold = dict(reason=fault, seq=seq, stamp_ns=state["stamp_ns"],
                                  estimate_seq=self._latest_phase_seq)
                 self.holds += 1
                 if self.first_hold is None:
                     self.first_hold = self.hold
-            elif not stale:
+            elif not fault:
                 self.hold = None
         # the policy holds stiffly where the tool is when it knows no phase
         F, R_set = self.policy.step(x, R, None if self.hold else self._latest_phase, cycles * DT)
@@ -232,6 +239,7 @@ class ImpedanceCommanderNode(Node):
             self._phases.clear()
             self._latest_phase = None
             self._latest_phase_seq = -1
+            self._input_fault = ""
             self._waiting_since = None
             self._last_answered_seq = None
             self._first_seq = None

@@ -10,7 +10,11 @@ counted.  The other nine cycles' messages are not even decoded
 (``every_tenth``); realtime takes the newest tenth cycle (``latest``).
 Control: ``reset`` (episode, model file; state and features default to the
 task's).  A wrench with error status or a sample the filter rejects
-(non-finite) is skipped and counted; the filter keeps its state.
+(non-finite) is skipped and counted; the filter keeps its state.  A wrench the
+sensor flags (saturated, non-finite input) is a fault the commander must act
+on at once: the estimate of that cycle is still published, with the last
+posterior and ``input_fault`` saying why it did not move.  A wrench that never
+comes shows as estimates that stop (the commander's stale-estimate hold).
 """
 
 from __future__ import annotations
@@ -25,7 +29,10 @@ from etar.task import load_task
 from services.features import force_vector, pose_of, state_vector
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import option
+from robot_sim.ati import AtiStatus
 from services.runtime.messages import ESTIMATOR_PHASE
+
+_SATURATED = int(AtiStatus.FT_OUT_OF_RANGE)
 
 PERIOD_NS = 10_000_000  # 100 Hz on simulated time, the instants the learner's samples were taken at
 
@@ -57,6 +64,8 @@ class PhaseEstimatorNode(Node):
         self.R0 = None
         self.skipped = 0
         self.updates = 0
+        self.input_faults = 0  # estimates published with input_fault
+        self._alpha = None  # the last posterior the filter gave
         self._lock = threading.Lock()
         self._states: dict[int, dict] = {}
         self._wrenches: dict[int, dict] = {}
@@ -98,19 +107,26 @@ class PhaseEstimatorNode(Node):
                 del store[k]
         if self.filter is None or state["episode"] != self.episode:
             return
+        fault = None
         if wrench["status"] != 0:
             self.skipped += 1
-            return
-        if self.R0 is None:
-            self.R0 = pose_of(state["msr_cart_pos"])[0]
-        s = state_vector(state["msr_cart_pos"], self.state_kind, self.R0)
-        f = force_vector(wrench["wrench"], state["msr_cart_pos"], self.feature_kind)
-        try:
-            alpha = self.filter.update(s, f)
-        except ValueError:
-            self.skipped += 1
-            return
-        self.updates += 1
+            fault = "wrench_saturated" if wrench["status"] & _SATURATED else "wrench_invalid"
+            self.input_faults += 1
+            alpha = self._alpha
+            if alpha is None:  # nothing estimated yet: no phase is more likely than another
+                alpha = np.full(self.task.n_phases, 1.0 / self.task.n_phases)
+        else:
+            if self.R0 is None:
+                self.R0 = pose_of(state["msr_cart_pos"])[0]
+            s = state_vector(state["msr_cart_pos"], self.state_kind, self.R0)
+            f = force_vector(wrench["wrench"], state["msr_cart_pos"], self.feature_kind)
+            try:
+                alpha = self.filter.update(s, f)
+            except ValueError:
+                self.skipped += 1
+                return
+            self.updates += 1
+            self._alpha = alpha
         if self._t0 is None:
             self._t0 = state["stamp_ns"]
         if self.mute_after_ns and state["stamp_ns"] - self._t0 >= self.mute_after_ns:
@@ -118,7 +134,8 @@ class PhaseEstimatorNode(Node):
             return
         self.bus.publish("estimator/phase", *ESTIMATOR_PHASE.pack(
             seq=seq, stamp_ns=state["stamp_ns"], sent_ns=self.clock.now_ns(), posterior=alpha,
-            phase=int(np.argmax(alpha)), input_seq=seq, ft_seq=wrench["seq"], episode=self.episode))
+            phase=int(np.argmax(alpha)), input_seq=seq, ft_seq=wrench["seq"], episode=self.episode,
+            **({"input_fault": fault} if fault else {})))
 
     def handlers(self):
         return {"reset": self.reset}
@@ -144,10 +161,11 @@ class PhaseEstimatorNode(Node):
             self.episode = int(p["episode"])
             self.R0 = None
             self._t0 = None
+            self._alpha = None
             self._states.clear()
             self._wrenches.clear()
         return {"n_phases": task.n_phases}
 
     def status(self) -> dict:
         return {"episode": self.episode, "updates": self.updates, "skipped": self.skipped,
-                "muted": self.muted}
+                "input_faults": self.input_faults, "muted": self.muted}

@@ -75,6 +75,8 @@ class Subscription:
     # realtime: take the newest message when the node gets to it, skip the backlog
     # (the transport decides how; lockstep and in-process always deliver every one)
     latest: bool = False
+    # with latest: a tenth cycle's message in the backlog is delivered, not skipped
+    keep_tenth: bool = False
 
 
 @dataclass(frozen=True)

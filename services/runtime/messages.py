@@ -364,6 +364,9 @@ ESTIMATOR_PHASE = MessageType(
         ("input_seq", "int", "robot cycle of the newest state used"),
         ("ft_seq", "int", "robot cycle of the newest wrench used"),
         ("episode", "int", "reproduction index"),
+        Field("input_fault", "str", "present when this cycle's wrench could not be used: 'wrench_saturated' "
+                                    "or 'wrench_invalid' (the sensor's status bits); the filter was not "
+                                    "updated and posterior/phase are the last ones", optional=True),
     ),
 )
 
@@ -381,7 +384,8 @@ ROBOT_COMMAND = MessageType(
         ("goal_reached", "bool", "the commander judges the task complete"),
         ("hold", "str", "why the commander holds the arm stiffly where it was instead of following "
                         "the task ('': it does not; 'stale_estimate': no phase estimate for "
-                        "STALE_ESTIMATE_CYCLES cycles)"),
+                        "STALE_ESTIMATE_CYCLES cycles; 'wrench_saturated', 'wrench_invalid': the estimate "
+                        "says its wrench could not be used)"),
         ("episode", "int", "reproduction index"),
     ),
 )

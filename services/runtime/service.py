@@ -245,7 +245,7 @@ class Service:
             subscriber.undeclare()
 
     def subscribe(self, topic: str, on_message, *, decode: bool = True, every_tenth: bool = False,
-                  latest: bool = False):
+                  latest: bool = False, keep_tenth: bool = False):
         """Deliver (message dict, receive time ns, raw bytes) for every valid
         sample on etar/<run_id>/<topic>; garbage (including payloads over
         ``MAX_PAYLOAD_BYTES``) is counted in ``links``, never raised, and so are
@@ -267,7 +267,10 @@ class Service:
         samples in a ring (``zenoh.handlers.RingChannel``: 1 sample, 10 with
         ``every_tenth`` so that a tenth cycle is among them) and drops older ones
         without waking Python; one thread of this process drains it.  Never for
-        the recorder or for lockstep, which need every message.
+        the recorder or for lockstep, which need every message.  ``keep_tenth``
+        (with ``latest``): a tenth cycle's message in the backlog is delivered
+        before the newest instead of skipped (the sensor: the estimator needs the
+        wrench of every tenth cycle); the ring then holds 10.
 
         ``"**"`` (every topic of the run, undecoded: the recorder's): Zenoh queues
         the samples (``FifoChannel``) and one thread takes what has come every
@@ -316,7 +319,8 @@ class Service:
 
         key = topics.key(self.run_id, topic)
         if latest:
-            sub = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(10 if every_tenth else 1))
+            sub = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(
+                10 if every_tenth or keep_tenth else 1))
             deliver = self.profile.wrap(deliver)
             ring = sub.handler  # not the subscriber: undeclaring it while a thread waits in its recv() fails
 
@@ -332,7 +336,10 @@ class Service:
                             if every_tenth and not _tenth_cycle(newer):
                                 continue
                             if raw is not None:
-                                counters.skipped += 1
+                                if keep_tenth and _tenth_cycle(raw):
+                                    deliver(raw, recv)
+                                else:
+                                    counters.skipped += 1
                             raw, recv = newer, now_ns()
                         if raw is not None:
                             deliver(raw, recv)

@@ -163,3 +163,23 @@ def test_a_stale_episode_summary_from_a_foreign_peer_does_not_end_the_episode_in
             peer.close()
         cell.stop(["robot"], before_report=True)
         cell.stop(["robot"], before_report=False)
+
+
+def test_a_saturating_sensor_over_zenoh_holds_the_arm_and_fails_the_run(tmp_path):
+    """The ATI sensor process saturates 2 s into a realtime reproduction (its --fault flag):
+    the estimator flags its estimate, the commander holds the arm stiffly at once, the
+    robot ends the episode after a second of hold, and the run fails naming the hold."""
+    report = run(RunOptions(scenario=hold_scenario(tmp_path, 10), out=str(tmp_path / "run"), clock="realtime",
+                            run_id=f"saturate-{int(time.time() * 1000)}",
+                            sensor_args=("--fault", "saturate", "--fault-after", "2")), progress=print)
+    (rp,) = report["reproductions"]
+    hold = rp["hold"]
+    print(f"saturated sensor: hold {hold}")
+    assert rp["reason"] == "hold:wrench_saturated" and not rp["success"], rp["reason"]
+    # the fault begins on the sensor's clock 2 s into the episode; realtime answers within
+    # a few estimator periods (generous: this VM's vCPU bursts)
+    assert 0.0 <= hold["at_s"] - 2.0 < 0.2, hold
+    assert hold["max_displacement_m"] < 0.005 and hold["peak_contact_force"] < 20.0, hold
+    assert report["error"] is not None
+    sensor = report["timing"]["services"]["ft_sensor"]
+    assert sensor["fault"] == "saturate" and sensor["faulted"] > 500, sensor

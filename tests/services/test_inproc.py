@@ -280,3 +280,30 @@ def test_fri_fault_window_and_order_faults_are_checked_in_the_scenario(tmp_path)
         scenario.write_text(base + f"cell: {body}\n")
         with pytest.raises(Exception, match=f"cell.{field}"):
             Runner(RunOptions(scenario=str(scenario), out=str(tmp_path / "out"), transport="inproc"))
+
+
+@pytest.mark.parametrize("fault, reason, within", [("stop", "stale_estimate", 51), ("saturate", "wrench_saturated", 10),
+                                                   ("nan", "wrench_invalid", 10)])
+def test_a_failing_sensor_makes_the_commander_hold_the_arm(fault, reason, within):
+    """The ATI stream stops, saturates or reads NaN 1.5 s into a reproduction: the commander
+    holds the arm stiffly where it is (a saturated or invalid wrench at the next estimate,
+    a stopped stream once the estimate is STALE_ESTIMATE_CYCLES old) and the robot ends
+    the episode after a second of hold; in that second the tool stays within 2 mm and
+    presses with less than the reproduction's own peak."""
+    c = InProcessCell("sensor-fault", {
+        "robot": RobotConfig(), "ft_sensor": FtSensorConfig(fault=fault, fault_after=1.5),
+        "recorder": RecorderConfig(out_dir=tempfile.mkdtemp()), "phase_estimator": EstimatorConfig(),
+        "impedance_commander": CommanderConfig()})
+    summary = reproduce(c, 4.0)
+    hold = summary["hold"]
+    assert summary["reason"] == f"hold:{reason}" and hold["reason"] == reason, summary["reason"]
+    assert 0 <= hold["at_s"] - 1.5 <= within / 1000 + 1e-9, hold  # cycles from the fault to the hold
+    assert hold["max_displacement_m"] < 0.002 and hold["peak_contact_force"] < 10.0, hold
+    assert c.request("ft_sensor", "status")["faulted"] > 0
+
+
+def test_sensor_fault_flags_are_checked():
+    with pytest.raises(ValueError, match="fault must be one of none, stop, saturate, nan"):
+        FtSensorConfig(fault="melt")
+    with pytest.raises(ValueError, match="fault_after"):
+        FtSensorConfig(fault="stop", fault_after=-1.0)
