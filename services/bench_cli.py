@@ -36,9 +36,9 @@ def _say(msg: str) -> None:
 def cmd_run(args) -> int:
     from etar.task import TaskError
     from services.runner import RunOptions, run
-    from services.scenario import ScenarioError
-
     from services.runtime import topics
+    from services.runtime.secure import CredentialsError
+    from services.scenario import ScenarioError
 
     out = args.out or f"runs/{Path(args.scenario).stem}-{time.strftime('%Y%m%d-%H%M%S')}"
     try:
@@ -52,6 +52,10 @@ def cmd_run(args) -> int:
         _say("etar-bench run: --attach drives services already running over Zenoh; it cannot be combined with "
              "--transport inproc")
         return 2
+    if args.tls is not None and (args.attach or zopts is not None or args.transport == "inproc"):
+        _say("etar-bench run: --tls makes this runner the run's router; it cannot be combined with --connect, "
+             "--attach or --transport inproc")
+        return 2
     if args.attach and (zopts is None or not args.run_id):
         _say("etar-bench run: --attach needs --connect (the router or a peer) and --run-id (the services')")
         return 2
@@ -61,9 +65,9 @@ def cmd_run(args) -> int:
     try:
         report = run(RunOptions(scenario=args.scenario, out=out, clock=args.clock, run_id=args.run_id, zenoh=zopts,
                                 transport=args.transport, attach=args.attach, ready_timeout=args.ready_timeout,
-                                sched_fifo=args.sched_fifo, realtime_profile=args.realtime_profile),
+                                sched_fifo=args.sched_fifo, realtime_profile=args.realtime_profile, tls=args.tls),
                      progress=_say)
-    except (ScenarioError, TaskError) as exc:
+    except (ScenarioError, TaskError, CredentialsError) as exc:
         _say(f"etar-bench run: error: {exc}")
         return 2
     except KeyboardInterrupt as exc:
@@ -158,6 +162,19 @@ def cmd_recover(args) -> int:
     return 1 if failed else 0
 
 
+def cmd_certs(args) -> int:
+    from services.runtime.secure import ROLES, CredentialsError, make_credentials
+
+    try:
+        out = make_credentials(args.dir, hosts=tuple(args.host or ["127.0.0.1"]), roles=ROLES + tuple(args.role))
+    except CredentialsError as exc:
+        _say(f"etar-bench certs: error: {exc}")
+        return 2
+    print(f"{out}: ca.pem (ca.key signs: keep it off the hosts), router.pem/.key, and a certificate per role "
+          f"({', '.join(ROLES + tuple(args.role))}); use with: etar-bench run SCENARIO --tls {out}", flush=True)
+    return 0
+
+
 def cmd_router(args) -> int:
     """A real Zenoh router (the Python library in router mode) for multi-host or container runs."""
     import zenoh
@@ -200,6 +217,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sched-fifo", action="store_true",
                    help="SCHED_FIFO (where permitted) for the robot (priority 60) and the impedance commander (55) "
                         "only, whatever the profile (the profile's fifo covers the whole chain)")
+    p.add_argument("--tls", metavar="DIR",
+                   help="the run's credentials (etar-bench certs DIR): the runner is the run's Zenoh router, which "
+                        "takes mutual TLS only and lets only the run's roles publish or read")
     add_zenoh_arguments(p)
     p.set_defaults(func=cmd_run)
     p = sub.add_parser("sweep", help="run every combination of scenario parameters x seeds in parallel, "
@@ -232,6 +252,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="output file (one FILE only; default FILE's name + .recovered.mcap beside it)")
     p.add_argument("--force", action="store_true", help="replace the output file if it exists")
     p.set_defaults(func=cmd_recover)
+    p = sub.add_parser("certs", help="make a run's credentials for mutual TLS (openssl): a CA of the run's own, "
+                                     "a router certificate, one per role")
+    p.add_argument("dir", help="folder for the certificates (an existing CA there is kept and signs the new ones)")
+    p.add_argument("--host", action="append", metavar="IP",
+                   help="an address the router listens on (repeatable; default 127.0.0.1)")
+    p.add_argument("--role", action="append", default=[], metavar="NAME",
+                   help="a further certificate beside the run's roles (repeatable)")
+    p.set_defaults(func=cmd_certs)
+
     p = sub.add_parser("router", help="run a Zenoh router (for docker-compose or several hosts)")
     p.add_argument("--listen", action="append", help="endpoint(s), default tcp/0.0.0.0:7447")
     p.set_defaults(func=cmd_router)

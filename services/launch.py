@@ -142,7 +142,7 @@ class ServiceProcesses:
     ``attach``, services somebody else started), control requests as Zenoh queries,
     an episode as the robot's 'run' request and its ``robot/episode`` summary."""
 
-    def __init__(self, run_id: str, log_dir: Path, *, attach: bool = False, zenoh=None):
+    def __init__(self, run_id: str, log_dir: Path, *, attach: bool = False, zenoh=None, tls=None, host: str = "127.0.0.1"):
         from services.runtime.session import ZenohOptions, open_session
 
         self.run_id = run_id
@@ -150,6 +150,13 @@ class ServiceProcesses:
         self.attach = attach
         if zenoh is not None:
             self.zenoh, self.endpoint = zenoh, ""
+        elif tls is not None:
+            # the runner's session is the run's router: mutual TLS and access control
+            # (services.runtime.secure); every service is its client
+            from services.runtime.secure import router_options
+
+            self.endpoint = f"tls/{host}:{free_port()}"
+            self.zenoh = router_options(tls, run_id, self.endpoint)
         else:
             self.endpoint = f"tcp/127.0.0.1:{free_port()}"
             self.zenoh = ZenohOptions(listen=(self.endpoint,))

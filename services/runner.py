@@ -50,6 +50,7 @@ from services.runtime.config import config_to_args, with_flags
 from services.runtime.cycle import LOCKSTEP_GIVE_UP
 from services.runtime.inproc import InProcessCell
 from services.runtime.messages import RUNNER_EVENT
+from services.runtime.secure import client_options, router_options
 from services.runtime.service import now_ns
 from services.runtime.session import ZenohOptions
 from services.runtime.threads import learning_threads, process_map
@@ -80,6 +81,9 @@ class RunOptions:
     robot_args: tuple = ()  # extra flags for the robot (e.g. fault injection)
     commander_args: tuple = ()
     sensor_args: tuple = ()  # extra flags for the ft_sensor (e.g. --fault saturate)
+    # the run's credentials (etar-bench certs DIR): the runner is the run's router, mutual
+    # TLS only, and only the run's roles may use its keys (services.runtime.secure)
+    tls: str | None = None
     attach: bool = False  # the services are already running (docker-compose): do not spawn them
     # SCHED_FIFO (where permitted) for the two ends of the FRI link, the robot above the
     # commander; the others stay ordinary processes.  All six at one priority starve
@@ -129,6 +133,14 @@ class Runner:
                                 path="clock", value=self.scenario.clock, source=self.scenario.source)
         if options.transport == "inproc" and options.attach:
             raise ValueError("--attach drives services over Zenoh; it cannot be combined with --transport inproc")
+        if options.tls is not None:
+            if options.transport == "inproc" or options.zenoh is not None or options.attach:
+                raise ValueError("--tls makes the runner the run's router over Zenoh: it cannot be combined with "
+                                 "--transport inproc, --connect or --attach")
+            # every credential checked before anything starts (CredentialsError names the file)
+            router_options(options.tls, "check", "tls/127.0.0.1:1")
+            for role in self.roles():
+                client_options(options.tls, role, "tls/127.0.0.1:1")
         # resolved once, here: every path handed to a service or written in the report
         # follows from this absolute folder (a relative one, joined again by the
         # recorder, doubled itself: out/valley/recordings/out/valley/recordings/)
@@ -193,6 +205,8 @@ class Runner:
             common += ["--cpus", ",".join(map(str, mine))]
         if self.options.zenoh is not None:
             common += self.options.zenoh.to_args()
+        elif self.options.tls is not None:
+            common += client_options(self.options.tls, role, connect).to_args()
         else:
             common += ["--connect", connect]
         return common + config_to_args(config)
@@ -217,7 +231,7 @@ class Runner:
                 self.cell = InProcessCell(self.run_id, configs)
             else:
                 self.cell = launch.ServiceProcesses(self.run_id, self.out / "logs", attach=self.options.attach,
-                                                    zenoh=self.options.zenoh)
+                                                    zenoh=self.options.zenoh, tls=self.options.tls)
                 self.cell.start(configs, lambda role, connect: self.process_args(role, configs[role], connect),
                                 timeout=self.options.ready_timeout)
             self.say(f"services ready ({', '.join(self.roles())}) after {time.monotonic() - t0:.1f} s")
