@@ -37,6 +37,7 @@ def cmd_run(args) -> int:
     from etar.task import TaskError
     from services.runner import RunOptions, run
     from services.runtime import topics
+    from services.hosts import HostsError
     from services.runtime.secure import CredentialsError
     from services.scenario import ScenarioError
 
@@ -65,9 +66,10 @@ def cmd_run(args) -> int:
     try:
         report = run(RunOptions(scenario=args.scenario, out=out, clock=args.clock, run_id=args.run_id, zenoh=zopts,
                                 transport=args.transport, attach=args.attach, ready_timeout=args.ready_timeout,
-                                sched_fifo=args.sched_fifo, realtime_profile=args.realtime_profile, tls=args.tls),
+                                sched_fifo=args.sched_fifo, realtime_profile=args.realtime_profile, tls=args.tls,
+                                hosts=args.hosts),
                      progress=_say)
-    except (ScenarioError, TaskError, CredentialsError) as exc:
+    except (ScenarioError, TaskError, CredentialsError, HostsError) as exc:
         _say(f"etar-bench run: error: {exc}")
         return 2
     except KeyboardInterrupt as exc:
@@ -220,6 +222,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tls", metavar="DIR",
                    help="the run's credentials (etar-bench certs DIR): the runner is the run's Zenoh router, which "
                         "takes mutual TLS only and lets only the run's roles publish or read")
+    p.add_argument("--hosts", metavar="ROLES:ROLES:...",
+                   help="the services on hosts of this machine, each a network namespace with its own address "
+                        "(root and iproute2 needed), roles by host, e.g. robot,ft_sensor:phase_estimator,"
+                        "impedance_commander:recorder,teacher; the runner is the run's Zenoh router")
     add_zenoh_arguments(p)
     p.set_defaults(func=cmd_run)
     p = sub.add_parser("sweep", help="run every combination of scenario parameters x seeds in parallel, "

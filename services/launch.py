@@ -78,11 +78,13 @@ class ServiceProcess:
             return ""
 
 
-def spawn(name: str, args: list[str], log_dir: Path, env: dict | None = None) -> ServiceProcess:
+def spawn(name: str, args: list[str], log_dir: Path, env: dict | None = None, prefix=()) -> ServiceProcess:
+    """``prefix``: what runs the process elsewhere (``ip netns exec NS``: on a host of
+    services.hosts; it execs the service, so the pid is still the service's)."""
     log_dir.mkdir(parents=True, exist_ok=True)
     log_path = log_dir / f"{name}.log"
     log = open(log_path, "ab")
-    popen = subprocess.Popen([sys.executable, "-m", MODULES[name], *args], stdout=log, stderr=subprocess.STDOUT,
+    popen = subprocess.Popen([*prefix, sys.executable, "-m", MODULES[name], *args], stdout=log, stderr=subprocess.STDOUT,
                              stdin=subprocess.DEVNULL, start_new_session=True, env=env)
     log.close()
     return ServiceProcess(name, popen, log_path)
@@ -142,21 +144,33 @@ class ServiceProcesses:
     ``attach``, services somebody else started), control requests as Zenoh queries,
     an episode as the robot's 'run' request and its ``robot/episode`` summary."""
 
-    def __init__(self, run_id: str, log_dir: Path, *, attach: bool = False, zenoh=None, tls=None, host: str = "127.0.0.1"):
+    def __init__(self, run_id: str, log_dir: Path, *, attach: bool = False, zenoh=None, tls=None, hosts=None):
+        """``tls``: the run's credentials (services.runtime.secure); ``hosts``: the services
+        on hosts in network namespaces (services.hosts).  With either, the runner's
+        session is the run's router and every service is its client."""
         from services.runtime.session import ZenohOptions, open_session
 
         self.run_id = run_id
         self.log_dir = Path(log_dir)
         self.attach = attach
+        self.hosts = hosts
+        address = "127.0.0.1"
+        lease = ()
+        if hosts is not None:
+            from services.hosts import LEASE_MS, ROUTER_ADDRESS
+
+            address, lease = ROUTER_ADDRESS, (("transport/link/tx/lease", str(LEASE_MS)),)
         if zenoh is not None:
             self.zenoh, self.endpoint = zenoh, ""
         elif tls is not None:
-            # the runner's session is the run's router: mutual TLS and access control
-            # (services.runtime.secure); every service is its client
             from services.runtime.secure import router_options
 
-            self.endpoint = f"tls/{host}:{free_port()}"
-            self.zenoh = router_options(tls, run_id, self.endpoint)
+            self.endpoint = f"tls/{address}:{free_port()}"
+            options = router_options(tls, run_id, self.endpoint)
+            self.zenoh = ZenohOptions(options.mode, options.connect, options.listen, options.cfg + lease)
+        elif hosts is not None:
+            self.endpoint = f"tcp/{address}:{free_port()}"
+            self.zenoh = ZenohOptions(mode="router", connect=(), listen=(self.endpoint,), cfg=lease)
         else:
             self.endpoint = f"tcp/127.0.0.1:{free_port()}"
             self.zenoh = ZenohOptions(listen=(self.endpoint,))
@@ -182,7 +196,8 @@ class ServiceProcesses:
         (none with ``attach``), and wait until every one is alive."""
         if not self.attach:
             for role in roles:
-                self.processes.append(spawn(role, args_of(role, self.endpoint), self.log_dir))
+                prefix = self.hosts.command_prefix(role) if self.hosts is not None else ()
+                self.processes.append(spawn(role, args_of(role, self.endpoint), self.log_dir, prefix=prefix))
         wait_alive(self.session, self.run_id, list(roles), self.processes, timeout=timeout)
         self.watch(roles)
 
@@ -224,7 +239,9 @@ class ServiceProcesses:
         proc = next((p for p in self.processes if p.name == role), None)
         code = proc.popen.poll() if proc is not None else None
         how = f"its process exited with {code}" if code is not None else "its liveliness token disappeared"
-        return f"service {role} lost {at:.1f} s into the run{during}: {how}"
+        host = self.hosts.host_of(role) if self.hosts is not None else None
+        where = f" on {host.describe()}" if host is not None else ""
+        return f"service {role}{where} lost {at:.1f} s into the run{during}: {how}"
 
     def _on_episode(self, sample) -> None:
         from services.runtime.messages import EPISODE_SUMMARY

@@ -352,6 +352,9 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
                          for role, st_ in (getattr(runner, "service_stats", None) or {}).items()},
         },
         "exit_codes": exit_codes,
+        # where each service ran (services.hosts), when the run was split across hosts
+        "hosts": [{"name": h.name, "address": h.address, "namespace": h.namespace, "roles": list(h.roles)}
+                  for h in (runner.hosts.hosts if getattr(runner, "hosts", None) is not None else ())],
     }
     (out / "report.json").write_text(json.dumps(report, indent=1, default=float) + "\n")
     (out / "report.txt").write_text(render_text(report))

@@ -41,6 +41,7 @@ from etar import ETAR
 from etar.selection import fit_order
 from etar.task import LearnedTask, TaskError, learn_task, load_task
 from services import launch
+from services.hosts import LEASE_MS, Hosts, parse_layout
 from services.nodes import (CommanderConfig, EstimatorConfig, FtSensorConfig, RecorderConfig, RobotConfig,
                             TeacherConfig)
 from services.progress import EpisodeProgress
@@ -84,6 +85,9 @@ class RunOptions:
     # the run's credentials (etar-bench certs DIR): the runner is the run's router, mutual
     # TLS only, and only the run's roles may use its keys (services.runtime.secure)
     tls: str | None = None
+    # the services on hosts in network namespaces (services.hosts), roles by host:
+    # 'robot,ft_sensor:phase_estimator,impedance_commander:recorder,teacher'
+    hosts: str | None = None
     attach: bool = False  # the services are already running (docker-compose): do not spawn them
     # SCHED_FIFO (where permitted) for the two ends of the FRI link, the robot above the
     # commander; the others stay ordinary processes.  All six at one priority starve
@@ -133,6 +137,12 @@ class Runner:
                                 path="clock", value=self.scenario.clock, source=self.scenario.source)
         if options.transport == "inproc" and options.attach:
             raise ValueError("--attach drives services over Zenoh; it cannot be combined with --transport inproc")
+        self.hosts = None
+        if options.hosts is not None:
+            if options.transport == "inproc" or options.zenoh is not None or options.attach:
+                raise ValueError("--hosts starts the services on hosts of this machine over Zenoh: it cannot be "
+                                 "combined with --transport inproc, --connect or --attach")
+            self.hosts = Hosts(parse_layout(options.hosts, self.roles()))
         if options.tls is not None:
             if options.transport == "inproc" or options.zenoh is not None or options.attach:
                 raise ValueError("--tls makes the runner the run's router over Zenoh: it cannot be combined with "
@@ -205,8 +215,14 @@ class Runner:
             common += ["--cpus", ",".join(map(str, mine))]
         if self.options.zenoh is not None:
             common += self.options.zenoh.to_args()
-        elif self.options.tls is not None:
-            common += client_options(self.options.tls, role, connect).to_args()
+        elif self.options.tls is not None or self.hosts is not None:
+            # a client of the runner's router (peers listening on loopback cannot reach
+            # one another across hosts), with the router's short lease on a host
+            zo = (client_options(self.options.tls, role, connect) if self.options.tls is not None
+                  else ZenohOptions(mode="client", connect=(connect,), listen=()))
+            if self.hosts is not None:
+                zo = ZenohOptions(zo.mode, zo.connect, zo.listen, zo.cfg + (("transport/link/tx/lease", str(LEASE_MS)),))
+            common += zo.to_args()
         else:
             common += ["--connect", connect]
         return common + config_to_args(config)
@@ -230,8 +246,11 @@ class Runner:
             if self.options.transport == "inproc":
                 self.cell = InProcessCell(self.run_id, configs)
             else:
+                if self.hosts is not None:
+                    self.hosts.up()
+                    self.say("hosts: " + "; ".join(f"{h.describe()}: {', '.join(h.roles)}" for h in self.hosts.hosts))
                 self.cell = launch.ServiceProcesses(self.run_id, self.out / "logs", attach=self.options.attach,
-                                                    zenoh=self.options.zenoh, tls=self.options.tls)
+                                                    zenoh=self.options.zenoh, tls=self.options.tls, hosts=self.hosts)
                 self.cell.start(configs, lambda role, connect: self.process_args(role, configs[role], connect),
                                 timeout=self.options.ready_timeout)
             self.say(f"services ready ({', '.join(self.roles())}) after {time.monotonic() - t0:.1f} s")
@@ -258,6 +277,8 @@ class Runner:
             finally:
                 if self.cell is not None:
                     self.cell.stop(self.roles(), before_report=False)
+                if self.hosts is not None:
+                    self.hosts.down()
         return report
 
     def _escalate_on_next_interrupt(self) -> None:
