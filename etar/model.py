@@ -349,12 +349,15 @@ class ETAR:
             raise ValueError("the demonstration is impossible under every phase path of this model")
         return path
 
-    def filter(self, goal=None) -> "PhaseFilter":
+    def filter(self, goal=None, start: str = "first") -> "PhaseFilter":
         """An online forward filter (what the phase estimator runs).
 
-        For STAR, ``goal`` overrides the model's stored end point.
+        For STAR, ``goal`` overrides the model's stored end point.  ``start``: "first"
+        (a task from its beginning: the learned initial-phase prior) or "uniform" (a
+        filter joining a task under way, e.g. a restarted estimator: every phase
+        equally likely until the samples say which).
         """
-        return PhaseFilter(self, goal)
+        return PhaseFilter(self, goal, start)
 
     # ------------------------------------------------------------------
     # file format
@@ -459,10 +462,15 @@ class PhaseFilter:
     Returns the normalised forward message p(rho_{t-1} | samples 0..t) as (K,)
     probabilities.  The very first sample returns the prior of the first phase.
     A non-finite sample raises ``ValueError`` and leaves the filter unchanged.
-    The compiled step is the same kernel as the batch forward pass.
+    The compiled step is the same kernel as the batch forward pass.  With
+    ``start="uniform"`` the first sample gives every phase the same probability
+    instead of the learned initial-phase prior (a filter that joins a task under way).
     """
 
-    def __init__(self, model: ETAR, goal=None):
+    def __init__(self, model: ETAR, goal=None, start: str = "first"):
+        if start not in ("first", "uniform"):
+            raise ValueError(f"start must be 'first' or 'uniform', got {start!r}")
+        self.start = start
         C, Sigma, W, stored_goal = model._checked_parameters()
         self._C, self._W = C, W
         self._chol_inv, self._log_norm = em.emission_arrays(Sigma)
@@ -515,5 +523,10 @@ class PhaseFilter:
             raise ValueError(f"non-finite sample: state={s.tolist()} force={f.tolist()}; filter unchanged")
         if status == 2:
             raise ValueError("sample impossible under every phase (check units); filter unchanged")
+        if self.n_updates == 0 and self.start == "uniform":
+            # the first sample only forms the prior of its phase: joining a task under
+            # way, the learned prior (of the task's first phase) would be wrong
+            self._alpha[:] = 1.0 / self.n_phases
+            self._log_alpha[:] = -math.log(self.n_phases)
         self.n_updates += 1
         return self._alpha.copy()

@@ -35,6 +35,9 @@ MODULES = {
 }
 
 
+MAX_RESTARTS = 3  # per role and run: a service that keeps dying is lost
+
+
 class ServiceLost(RuntimeError):
     """A service of the run disappeared.  ``summary``: the robot's summary of the
     episode it then stopped (None if there was no episode, or the robot is the one lost)."""
@@ -190,16 +193,58 @@ class ServiceProcesses:
         self.lost: dict = {}  # role -> monotonic time its token disappeared
         self._t0 = time.monotonic()
         self._alive_sub = None
+        # restart policies (scenario 'restart:'): the roles started again when lost, at most
+        # MAX_RESTARTS times each; on_restart(role) re-synchronises one that is back
+        self.restartable: set = set()
+        self.on_restart = None
+        self.restarts: list = []
+        self._args: dict = {}
 
     def start(self, roles, args_of, timeout: float) -> None:
         """Spawn each role's process, ``args_of(role, endpoint to connect to)`` its flags
         (none with ``attach``), and wait until every one is alive."""
         if not self.attach:
             for role in roles:
-                prefix = self.hosts.command_prefix(role) if self.hosts is not None else ()
-                self.processes.append(spawn(role, args_of(role, self.endpoint), self.log_dir, prefix=prefix))
+                self._args[role] = args_of(role, self.endpoint)
+                self.processes.append(self._spawn(role))
         wait_alive(self.session, self.run_id, list(roles), self.processes, timeout=timeout)
         self.watch(roles)
+
+    def _spawn(self, role: str) -> ServiceProcess:
+        prefix = self.hosts.command_prefix(role) if self.hosts is not None else ()
+        return spawn(role, self._args[role], self.log_dir, prefix=prefix)
+
+    def restart(self, role: str, timeout: float = 60.0) -> dict:
+        """Start a lost role's process again (its restart policy) and wait until it is alive;
+        then ``on_restart(role)`` re-synchronises it.  What happened goes in ``restarts``."""
+        lost_at = self.lost[role]
+        i = next(i for i, p in enumerate(self.processes) if p.name == role)
+        old = self.processes[i]
+        if old.alive():  # hung or cut off: it must not come back beside its successor
+            try:
+                os.killpg(old.popen.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+            old.popen.wait(10)
+        self.processes[i] = self._spawn(role)
+        wait_alive(self.session, self.run_id, [role], [self.processes[i]], timeout=timeout)
+        del self.lost[role]
+        record = {"role": role, "lost_at_s": round(lost_at - self._t0, 3), "exit_code": old.popen.returncode,
+                  "back_after_s": round(time.monotonic() - lost_at, 3)}
+        self.restarts.append(record)
+        if self.on_restart is not None:
+            self.on_restart(role)
+        return record
+
+    def _may_restart(self, role: str) -> bool:
+        return (role in self.restartable and not self.attach
+                and sum(r["role"] == role for r in self.restarts) < MAX_RESTARTS)
+
+    def _restart_lost(self) -> None:
+        """Every lost role with a restart policy left is started again (one lost while
+        another was being restarted too)."""
+        while waiting := [r for r in self.lost if self._may_restart(r)]:
+            self.restart(min(waiting, key=self.lost.get))
 
     def watch(self, roles) -> None:
         """From now on, a role whose liveliness token disappears is lost."""
@@ -265,6 +310,8 @@ class ServiceProcesses:
     def request(self, role: str, cmd: str, timeout: float = 30.0, **args) -> dict:
         from services.runtime.service import request
 
+        if role in self.lost and self._may_restart(role):
+            self.restart(role)
         if role in self.lost:
             raise ServiceLost(role, self.lost_message(role) + f"; '{cmd}' not sent")
         return request(self.session, self.run_id, role, cmd, timeout=timeout, **args)
@@ -282,6 +329,8 @@ class ServiceProcesses:
         # lockstep runs at the pace of the slowest participant: allow a generous wall-clock budget
         deadline = started + max(120.0, 30.0 * max_seconds)
         while (summary := self._episode_summary()) is None:
+            if self.lost:
+                self._restart_lost()  # a role with a restart policy is back, and the episode goes on
             if self.lost:
                 self._lost_during_episode(started)
             if time.monotonic() >= deadline:

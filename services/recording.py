@@ -45,6 +45,7 @@ import math
 import numbers
 import os
 import pickle
+import re
 import struct
 import threading
 import time
@@ -684,3 +685,29 @@ if __name__ == "__main__":
     replies = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
     _writer_main(sys.stdin.buffer, replies)
+
+
+_STATE_SEQ = re.compile(rb'^\{"seq":(-?\d+)')
+
+
+def recording_gaps(paths) -> list:
+    """The robot cycles that none of an episode's recording parts holds (a recorder
+    restarted mid-episode wrote on in a further part): per pair of consecutive parts,
+    the last robot_state cycle of the one and the first of the next, and how many
+    cycles lie between; with each part's problem if it was cut short."""
+    ranges = []
+    for path in paths:
+        try:
+            ep = read_episode(path)
+        except RecordingError as exc:
+            ranges.append((str(path), None, None, str(exc)))
+            continue
+        seqs = [int(m.group(1)) for msg in ep.messages if msg.topic == "/robot/state"
+                for m in [_STATE_SEQ.match(msg.payload)] if m]
+        ranges.append((str(path), min(seqs, default=None), max(seqs, default=None), ep.problem or ""))
+    gaps = []
+    for (path, _, last, problem), (nxt, first, _, _) in zip(ranges, ranges[1:]):
+        missing = first - last - 1 if last is not None and first is not None else None
+        gaps.append({"part": path, "last_cycle": last, "next_part": nxt, "next_first_cycle": first,
+                     "cycles_missing": missing, "part_problem": problem})
+    return gaps

@@ -235,15 +235,34 @@ def recording_figures(job: tuple):
     quality series, undecodable messages); None if it cannot be read.  Each recording
     is read once, for every figure taken from it, and let go (a valley run's
     recordings do not fit in memory together)."""
-    path, phase_to_truth = job
-    try:
-        ep = read_episode(path)
-    except (OSError, ValueError):
-        return None
-    decoded, bad = decoded_messages(ep)
-    del ep
+    path, phase_to_truth, *more = job
+    parts = more[0] if more else ()  # further parts (a recorder restarted mid-episode), in order
+    decoded, bad = {}, 0
+    for i, part in enumerate([path, *parts]):
+        try:
+            ep = read_episode(part)
+        except (OSError, ValueError):
+            if i == 0:
+                return None
+            continue
+        part_decoded, part_bad = decoded_messages(ep)
+        del ep
+        for topic, items in part_decoded.items():
+            decoded.setdefault(topic, []).extend(items)
+        bad += part_bad
     phases = reproduction_phases(decoded, phase_to_truth) if phase_to_truth else None
     return episode_links(decoded), phases, fri_quality_series(decoded), bad
+
+
+def _parts_of(episode: dict, run_dir: Path) -> dict:
+    """An episode recorded in parts (its recorder restarted): the further files and the
+    cycles no part holds."""
+    rec = episode.get("recording") or {}
+    if not rec.get("parts"):
+        return {}
+    gaps = [dict(g, part=_in_run(g["part"], run_dir), next_part=_in_run(g["next_part"], run_dir))
+            for g in rec.get("gaps", [])]
+    return {"recording_parts": [_in_run(p, run_dir) for p in rec["parts"]], "recording_gaps": gaps}
 
 
 def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: float) -> dict:
@@ -252,15 +271,16 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
     out = Path(runner.out)
     links, phases_of, quality, undecodable = {}, {}, {}, {}
     reproduction_paths = {r["path"] for r in st.reproductions}
-    jobs = [(d["path"], st.phase_to_truth if d["path"] in reproduction_paths else None)
+    jobs = [(d["path"], st.phase_to_truth if d["path"] in reproduction_paths else None,
+             tuple((d.get("recording") or {}).get("parts", ())))
             for d in st.demonstrations + st.reproductions]
     # the recordings are independent: read on every CPU the run may use (a sweep's run: in
     # this process), once they are worth a pool's start (~1.4 s of imports per process)
     workers = getattr(getattr(runner, "options", None), "workers", 1)
-    if sum(_size(path) for path, _ in jobs) < PARALLEL_READ_BYTES:
+    if sum(_size(path) for path, _, _ in jobs) < PARALLEL_READ_BYTES:
         workers = 1
     with process_map(workers) as read_map:
-        for (path, _), read in zip(jobs, read_map(recording_figures, jobs)):
+        for (path, _, _), read in zip(jobs, read_map(recording_figures, jobs)):
             if read is None:
                 continue
             episode_links_, phases, quality[path], undecodable[path] = read
@@ -283,7 +303,8 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
                           wall_seconds=s["wall_seconds"], final_position=s["final_position"], phases=phases,
                           goal_reached_at_s=s.get("goal_reached_at_s", -1.0), hold=s.get("hold"), fri=s.get("fri"),
                           fri_quality=timelines.get(r["path"], {}),
-                          undecodable_messages=undecodable.get(r["path"], 0)))
+                          undecodable_messages=undecodable.get(r["path"], 0),
+                          **_parts_of(r, out)))
     updates = sum(r["phases"].get("updates", 0) for r in repro)
     correct = sum(r["phases"].get("correct", 0) for r in repro)
     errors = [e for r in repro for e in r["phases"].get("transition_errors_s", [])]
@@ -319,7 +340,7 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
         "demonstrations": [dict(path=_in_run(d["path"], out), side=d["side"], start=d["start"], reason=d["summary"]["reason"],
                                 sim_seconds=d["summary"]["sim_seconds"], wall_seconds=d["summary"]["wall_seconds"],
                                 fri=d["summary"].get("fri"), fri_quality=timelines.get(d["path"], {}),
-                                undecodable_messages=undecodable.get(d["path"], 0))
+                                undecodable_messages=undecodable.get(d["path"], 0), **_parts_of(d, out))
                            for d in st.demonstrations],
         "learning": {"model": _in_run(st.model_path, out), "seconds": getattr(st, "learn_seconds", None),
                      "selection": st.selection,
@@ -352,6 +373,8 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
                          for role, st_ in (getattr(runner, "service_stats", None) or {}).items()},
         },
         "exit_codes": exit_codes,
+        # services lost and started again by their restart policy (scenario 'restart:')
+        "restarts": list(getattr(getattr(runner, "cell", None), "restarts", None) or []),
         # where each service ran (services.hosts), when the run was split across hosts
         "hosts": [{"name": h.name, "address": h.address, "namespace": h.namespace, "roles": list(h.roles)}
                   for h in (runner.hosts.hosts if getattr(runner, "hosts", None) is not None else ())],
@@ -436,6 +459,19 @@ def render_text(r: dict) -> str:
                      + (f"; SCHED_FIFO {', '.join(f'{k} {v}' for k, v in fifo.items())}" if fifo else ""))
     if r["error"]:
         lines.append(f"RUN FAILED: {r['error']}")
+    for rs in r.get("restarts") or []:
+        lines.append(f"service {rs['role']} lost {rs['lost_at_s']:.1f} s into the run (exit code {rs['exit_code']}), "
+                     f"restarted by its policy, back after {rs['back_after_s']:.1f} s")
+    for kind in ("demonstrations", "reproductions"):
+        for i, e in enumerate(r[kind]):
+            for g in e.get("recording_gaps") or []:
+                if g["cycles_missing"] is None:
+                    what = "the robot cycles between them are unknown"
+                else:
+                    what = (f"robot cycles {g['last_cycle'] + 1}..{g['next_first_cycle'] - 1} not recorded "
+                            f"({g['cycles_missing']} cycles)")
+                lines.append(f"{kind[:-1]} {i}: the recorder restarted; the recording goes on in "
+                             f"{g['next_part']}: {what}")
     lines.append("")
     lines.append(f"demonstrations: {len(r['demonstrations'])}")
     for i, d in enumerate(r["demonstrations"]):

@@ -46,7 +46,7 @@ from services.nodes import (CommanderConfig, EstimatorConfig, FtSensorConfig, Re
                             TeacherConfig)
 from services.progress import EpisodeProgress
 from services.realtime_profile import FIFO_CHAIN, Grant, parse_profile, probe
-from services.recording import RecordingError, load_demonstration
+from services.recording import RecordingError, load_demonstration, recording_gaps
 from services.runtime.config import config_to_args, with_flags
 from services.runtime.cycle import LOCKSTEP_GIVE_UP
 from services.runtime.inproc import InProcessCell
@@ -163,6 +163,11 @@ class Runner:
         self.cell = None
         self.service_stats = {}
         self._lost = None  # launch.ServiceLost, once a service disappeared during an episode
+        # what a restarted service rejoins (scenario 'restart:'): the episode in progress,
+        # its recording's further parts, the estimator's reset
+        self._episode = None
+        self._parts: list = []
+        self._estimator_reset = None
         realtime = self.scenario.clock == "realtime" and options.transport == "zenoh"
         self.profile = Grant(parse_profile(options.realtime_profile) if realtime else frozenset())
 
@@ -251,6 +256,8 @@ class Runner:
                     self.say("hosts: " + "; ".join(f"{h.describe()}: {', '.join(h.roles)}" for h in self.hosts.hosts))
                 self.cell = launch.ServiceProcesses(self.run_id, self.out / "logs", attach=self.options.attach,
                                                     zenoh=self.options.zenoh, tls=self.options.tls, hosts=self.hosts)
+                self.cell.restartable = {role for role, policy in self.scenario.restart if policy == "on_failure"}
+                self.cell.on_restart = self._on_restart
                 self.cell.start(configs, lambda role, connect: self.process_args(role, configs[role], connect),
                                 timeout=self.options.ready_timeout)
             self.say(f"services ready ({', '.join(self.roles())}) after {time.monotonic() - t0:.1f} s")
@@ -325,10 +332,30 @@ class Runner:
     def _req(self, role, cmd, timeout=30.0, **args):
         return self.cell.request(role, cmd, timeout=timeout, **args)
 
+    def _on_restart(self, role: str) -> None:
+        """A service with a restart policy is back: it rejoins the episode in progress.
+        The recorder writes on in a further part of the episode's recording (the gap is
+        reported); the estimator's filter starts again where the reproduction is."""
+        r = self.cell.restarts[-1]
+        self.say(f"service {role} lost {r['lost_at_s']:.1f} s into the run (exit code {r['exit_code']}): "
+                 f"restarted (restart: on_failure), back after {r['back_after_s']:.1f} s")
+        if self._episode is None:
+            return
+        kind, index, start = self._episode
+        if role == "recorder":
+            name = f"{kind}_{index:02d}.part{len(self._parts) + 2}.mcap"
+            self._req("recorder", "begin_episode", path=name, kind=kind, index=index, scenario=self.scenario_text,
+                      metadata={"start": json.dumps(list(start)), "scenario": self.scenario.name,
+                                "part": str(len(self._parts) + 2)})
+            self._parts.append(self.recordings / name)
+        elif role == "phase_estimator" and self._estimator_reset is not None:
+            self._req("phase_estimator", "reset", resync=True, **self._estimator_reset)
+
     def _prepare(self, kind, index, start) -> Path:
         """Open the episode's recording and put the arm at its start; returns the
         recording's path as this runner sees it."""
         name = f"{kind}_{index:02d}.mcap"
+        self._episode, self._parts = (kind, index, tuple(start)), []
         # the recorder is told the name relative to its --out-dir, the one folder both
         # agree on: OUT/recordings (spawned), or a shared volume (--attach)
         written = self._req("recorder", "begin_episode", path=name, kind=kind, index=index,
@@ -394,6 +421,13 @@ class Runner:
             rec = None
         if self._lost is None:
             self._event("episode_end", kind, index, {"reason": summary["reason"]})
+        if self._parts:
+            # the recorder was restarted during the episode: its first file ends where the
+            # killed one stopped writing; say which cycles no part holds
+            first = self.recordings / f"{kind}_{index:02d}.mcap"
+            rec = dict(rec or {}, parts=[str(p) for p in self._parts],
+                       gaps=recording_gaps([first, *self._parts]))
+        self._episode, self._parts, self._estimator_reset = None, [], None
         return rec
 
     def _stop_if_lost(self) -> None:
@@ -489,7 +523,8 @@ class Runner:
         for i, (side, start) in enumerate(starts):
             index = len(self.state.reproductions)
             path = self._prepare("reproduction", index, start)
-            self._req("phase_estimator", "reset", model=model_path, episode=index)
+            self._estimator_reset = dict(model=model_path, episode=index)
+            self._req("phase_estimator", "reset", **self._estimator_reset)
             goal = list(self.state.goal)
             self._req("impedance_commander", "reset", model=model_path, episode=index, goal=goal,
                       goal_tolerance=stage.goal_tolerance)

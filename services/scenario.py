@@ -20,6 +20,10 @@ Schema (every key optional unless marked required; unknown keys are errors)::
     features: force                   # force | force_torque: ETAR transition/effect features, default force
     model: models/smoke.json          # a model file learned earlier (relative to this file), default none:
                                       #   the reproductions use it instead of a learn stage
+    restart:                          # per service, what the runner does if it dies mid-run (optional):
+      recorder: on_failure            #   never (default: the run fails) | on_failure (started again: a
+      phase_estimator: on_failure     #   recorder writes on in a new file and the report names the gap,
+                                      #   an estimator re-synchronises its filter); these two roles only
     cell:                             # the simulated cell's physics and devices (all optional)
       sensor_noise: 1.0               # ATI white noise as a multiple of the Mini45's, >= 0, default 1
       plate_friction: 0.25            # valley only: sliding friction coefficient of the plates, > 0
@@ -103,6 +107,11 @@ import yaml
 
 WORLDS = ("valley", "hose_coupler")
 CLOCKS = ("lockstep", "realtime")
+RESTART_POLICIES = ("never", "on_failure")
+# where a restart mid-run is meaningful: the recorder (a new file, the gap reported) and the
+# estimator (its filter re-synchronised); the others hold state a restart would lose (the
+# robot's FRI session, the sensor's tare, the commander's and the teacher's episode)
+RESTARTABLE = ("recorder", "phase_estimator")
 STATES = ("position", "pose")
 FEATURES = ("force", "force_torque")
 SIDES = ("left", "right")
@@ -540,6 +549,7 @@ class Scenario:
     features: str = "force"
     model: str | None = None
     cell: CellSpec = CellSpec()
+    restart: Any = ()  # {role: policy} in YAML; stored as sorted (role, policy) pairs
     stages: tuple[Stage, ...]
     source: str = "<dict>"
 
@@ -565,6 +575,7 @@ class Scenario:
         if self.world != "valley" and self.cell.plate_friction != CellSpec.plate_friction:
             raise ScenarioError("applies to the valley world only: omit it", path="cell.plate_friction",
                                 value=self.cell.plate_friction)
+        _set(self, "restart", _restart(self.restart))
         stages = _list(self.stages, "stages", "stages")
         if not stages:
             raise ScenarioError("expected at least one stage", path="stages", value=self.stages)
@@ -634,6 +645,10 @@ class Scenario:
                if f.name not in ("stages", "source")}
         if self.model is None:
             del out["model"]
+        if not self.restart:
+            del out["restart"]
+        else:
+            out["restart"] = dict(self.restart)
         if self.cell == CellSpec():
             del out["cell"]
         else:
@@ -665,6 +680,22 @@ def _construct_args(cls: type, data: Mapping, path: str, source: str, exclude=fr
         if f.name in known and required and f.name not in data:
             raise ScenarioError("required field is missing", path=_join(path, f.name), source=source)
     return dict(data)
+
+
+def _restart(value: Any) -> tuple:
+    items = value.items() if isinstance(value, Mapping) else value
+    try:
+        pairs = [(role, policy) for role, policy in items]
+    except (TypeError, ValueError):
+        raise ScenarioError("expected a mapping of role: policy (e.g. recorder: on_failure)", path="restart",
+                            value=value) from None
+    for role, policy in pairs:
+        if role not in RESTARTABLE:
+            raise ScenarioError(f"a restart is meaningful for {' and '.join(RESTARTABLE)} only (the others "
+                                "hold state a restart would lose: the FRI session, the tare, the episode)",
+                                path=f"restart.{role}", value=role)
+        _choice(policy, f"restart.{role}", RESTART_POLICIES)
+    return tuple(sorted(pairs))
 
 
 def _parse_cell(value: Any, source: str) -> CellSpec:

@@ -9,7 +9,8 @@ state); a cycle whose wrench has not come by the next tenth cycle is skipped and
 counted.  The other nine cycles' messages are not even decoded
 (``every_tenth``); realtime takes the newest tenth cycle (``latest``).
 Control: ``reset`` (episode, model file; state and features default to the
-task's).  A wrench with error status or a sample the filter rejects
+task's; ``resync``: the filter joins a reproduction under way, every phase
+equally likely at first, as after a restart).  A wrench with error status or a sample the filter rejects
 (non-finite) is skipped and counted; the filter keeps its state.  A wrench the
 sensor flags (saturated, non-finite input) is a fault the commander must act
 on at once: the estimate of that cycle is still published, with the last
@@ -157,7 +158,9 @@ class PhaseEstimatorNode(Node):
             self.task = task
             self.state_kind = p.get("state", task.state)
             self.feature_kind = p.get("features", task.features)
-            self.filter = task.model.filter()
+            # resync: a restarted estimator joins the reproduction under way, where the
+            # learned prior of the task's first phase would be wrong
+            self.filter = task.model.filter(start="uniform" if p.get("resync") else "first")
             self.episode = int(p["episode"])
             self.R0 = None
             self._t0 = None

@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from services.launch import free_port
+from services.recording import read_episode
 from services.runner import RunOptions, run
 from services.runtime import topics
 from services.runtime.session import ZenohOptions, open_session
@@ -183,3 +184,53 @@ def test_a_saturating_sensor_over_zenoh_holds_the_arm_and_fails_the_run(tmp_path
     assert report["error"] is not None
     sensor = report["timing"]["services"]["ft_sensor"]
     assert sensor["fault"] == "saturate" and sensor["faulted"] > 500, sensor
+
+
+def test_services_with_a_restart_policy_come_back_and_the_run_goes_on(tmp_path):
+    """restart: {recorder: on_failure, phase_estimator: on_failure}.  The recorder is killed
+    300 cycles into a lockstep reproduction and the estimator 1500 cycles in: each is started
+    again, the recorder writes on in a second file and the report names the cycles that no
+    file holds, the estimator's filter re-synchronises (uniform start) and its estimates
+    carry the reproduction to its end, and the run succeeds."""
+    scenario = Path(hold_scenario(tmp_path, 6))
+    scenario.write_text(scenario.read_text() + "restart:\n  recorder: on_failure\n  phase_estimator: on_failure\n")
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    run_id = f"restart-{int(time.time() * 1000)}"
+    peer = open_session(ZenohOptions(listen=(endpoint,)))
+    killed = {}
+    seen = [0]
+
+    def on_state(sample):
+        if b'"episode":0' not in sample.payload.to_bytes():
+            return
+        seen[0] += 1
+        for role, at in (("recorder", 300), ("phase_estimator", 1500)):
+            if seen[0] >= at and role not in killed:
+                pid = service_pid(role, run_id)
+                if pid is not None:
+                    os.kill(pid, signal.SIGKILL)
+                    killed[role] = json.loads(sample.payload.to_bytes())["seq"]
+
+    sub = peer.declare_subscriber(topics.key(run_id, "robot/state"), on_state)
+    try:
+        report = run(RunOptions(scenario=str(scenario), out=str(tmp_path / "run"), clock="lockstep", run_id=run_id,
+                                zenoh=ZenohOptions(connect=(endpoint,))), progress=print)
+    finally:
+        sub.undeclare()
+        peer.close()
+    assert set(killed) == {"recorder", "phase_estimator"}, killed
+    assert report["error"] is None, report["error"]
+    assert sorted(r["role"] for r in report["restarts"]) == ["phase_estimator", "recorder"]
+    assert all(r["exit_code"] == -9 and r["back_after_s"] < 30 for r in report["restarts"]), report["restarts"]
+    (rp,) = report["reproductions"]
+    assert rp["reason"] == "elapsed" and rp["hold"] is None, (rp["reason"], rp["hold"])
+    (gap,) = rp["recording_gaps"]
+    print(f"recorder killed at cycle {killed['recorder']}: {gap}")
+    assert gap["last_cycle"] < killed["recorder"] + 5 and 0 < gap["cycles_missing"] < 6000, gap
+    part2 = tmp_path / "run" / rp["recording_parts"][0]
+    messages = read_episode(part2).messages
+    assert messages and read_episode(part2).complete
+    # the restarted estimator published again for the rest of the reproduction
+    estimates = [json.loads(m.payload)["seq"] for m in messages if m.topic == "/estimator/phase"]
+    assert estimates and max(estimates) > killed["phase_estimator"] + 1000, (killed, estimates[-3:])
+    assert "the recorder restarted; the recording goes on in" in (tmp_path / "run" / "report.txt").read_text()

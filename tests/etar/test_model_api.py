@@ -133,3 +133,26 @@ def test_inference_checks_dimensions_against_the_model(task_and_demos):
     s, f = demos[0]
     with pytest.raises(DemonstrationError, match="forces has 2 columns, expected 3"):
         task.model.posterior(s, f[:, :2])
+
+
+def test_a_filter_joining_a_task_under_way_starts_uniform_and_finds_the_phase(task_and_demos):
+    """A restarted estimator's filter: started in the middle of a demonstration, the
+    'uniform' start gives every phase the same weight at the first sample, then follows
+    the samples; it agrees with the true phase at least as often as the learned
+    initial-phase prior (which assumes the task begins there) over the next 50 samples."""
+    task, demos = task_and_demos
+    data = sample_demonstrations(task, 3, 300, seed=1)
+    hits = {"first": 0, "uniform": 0}
+    for s, f, truth in data:
+        later = np.flatnonzero(truth > 0)
+        t0 = int(later[0]) + 5 if later.size else len(s) // 2  # under way: past the first phase
+        for start in hits:
+            filt = task.model.filter(start=start)
+            first = filt.update(s[t0], f[t0])
+            if start == "uniform":
+                np.testing.assert_allclose(first, 1.0 / 3)
+            for t in range(t0 + 1, min(t0 + 51, len(s))):
+                hits[start] += int(np.argmax(filt.update(s[t], f[t])) == truth[t - 1])
+    assert hits["uniform"] >= hits["first"] and hits["uniform"] > 0.8 * 150, hits
+    with pytest.raises(ValueError, match="start must be"):
+        task.model.filter(start="middle")

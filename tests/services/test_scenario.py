@@ -505,3 +505,16 @@ def test_hold_file_reproduces_with_the_stored_smoke_model_for_a_minute():
 
     meta = ETAR.load(s.model_path()).metadata
     assert len(meta["goal"]) == 3 and meta["impedance"] and meta["phase_to_truth"]
+
+
+def test_restart_policies_are_parsed_and_limited_to_where_a_restart_is_meaningful():
+    s = Scenario.from_dict(minimal(restart={"recorder": "on_failure", "phase_estimator": "never"}))
+    assert s.restart == (("phase_estimator", "never"), ("recorder", "on_failure"))
+    assert Scenario.from_dict(s.to_dict()) == s
+    assert Scenario.from_dict(minimal()).restart == () and "restart" not in Scenario.from_dict(minimal()).to_dict()
+    for bad, says in (({"robot": "on_failure"}, "restart.robot: a restart is meaningful for recorder and "
+                                                "phase_estimator only"),
+                      ({"recorder": "always"}, "restart.recorder: expected one of 'never', 'on_failure'"),
+                      (["recorder"], "restart: expected a mapping of role: policy")):
+        with pytest.raises(ScenarioError, match=says):
+            Scenario.from_dict(minimal(restart=bad), "x.yaml")
