@@ -117,7 +117,10 @@ def main() -> int:
     roles = sorted({r for _, d in samples for r in d})
     print(f"{'minute':>6} {'cycles':>7} {'p50 us':>7} {'p99 us':>7} {'max us':>8} {'late':>7}  "
           + "  ".join(f"{r[:10]:>10}" for r in roles) + "   (RSS MiB at the minute's end)")
+    samples = [(t, d) for t, d in samples if all(d.values())]  # the services' own, not after they ended
     for row in rows:
+        if row["cycles"] < 1000:
+            continue  # the run's last few cycles, not a minute
         at = [d for t, d in samples if t <= 60 * (row["minute"] + 1)]
         rss = at[-1] if at else {}
         print(f"{row['minute']:6d} {row['cycles']:7d} {row['p50_us'] or 0:7.0f} {row['p99_us'] or 0:7.0f} "

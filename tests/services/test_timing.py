@@ -68,3 +68,22 @@ def test_absolute_deadline_timer_skips_overruns_instead_of_bursting():
     # the next deadline after the stall is in the future, not one of the missed ones
     assert timer.next_deadline > w1
     assert (timer.next_deadline - d0) % 2_000_000 == 0
+
+
+def test_a_long_histogram_keeps_bounded_memory_and_percentiles_within_half_a_microsecond():
+    from services.runtime.timing import EXACT_SAMPLES
+
+    rng = np.random.default_rng(0)
+    values = np.concatenate([rng.gamma(4.0, 70_000.0, size=3 * EXACT_SAMPLES),  # ~280 us, a long tail
+                             rng.uniform(5_000_000, 9_000_000, size=200)]).astype(np.int64)  # overflow
+    rng.shuffle(values)
+    h = Histogram()
+    for v in values:
+        h.add(int(v))
+    assert h.samples is None  # past EXACT_SAMPLES the samples are let go
+    exact, approx = percentiles(values), h.summary()
+    for k in ("p50_us", "p99_us", "p99_9_us"):
+        assert abs(approx[k] - exact[k]) <= 0.5 + 1e-9, (k, approx[k], exact[k])
+    for k in ("max_us", "min_us", "mean_us", "count"):
+        assert approx[k] == pytest.approx(exact[k]), k
+    assert approx["overflow"] == 200 and h.total == values.size
