@@ -4,6 +4,8 @@
     etar-bench sweep SCENARIO --param PATH=V1,V2,... [--repeats N] --out DIR [--cluster ADDRESS]
     etar-bench report RUN_DIR
     etar-bench recover FILE... [--out FILE]
+    etar-bench figures RUN_DIR
+    etar-bench certs DIR [--host IP]
     etar-bench router [--listen tcp/0.0.0.0:7447]
 """
 
@@ -164,6 +166,21 @@ def cmd_recover(args) -> int:
     return 1 if failed else 0
 
 
+def cmd_figures(args) -> int:
+    from services.figures import FiguresError, write_figures
+
+    try:
+        written, skipped = write_figures(args.run_dir, progress=_say)
+    except FiguresError as exc:
+        _say(f"etar-bench figures: error: {exc}")
+        return 2
+    for path in written:
+        print(path, flush=True)
+    for why in skipped:
+        _say(f"skipped: {why}")
+    return 0
+
+
 def cmd_certs(args) -> int:
     from services.runtime.secure import ROLES, CredentialsError, make_credentials
 
@@ -258,6 +275,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="output file (one FILE only; default FILE's name + .recovered.mcap beside it)")
     p.add_argument("--force", action="store_true", help="replace the output file if it exists")
     p.set_defaults(func=cmd_recover)
+    p = sub.add_parser("figures", help="draw the thesis' figures (section 6) from a finished run into "
+                                       "RUN_DIR/figures/ (every run also does)")
+    p.add_argument("run_dir", help="a finished run's folder (report.json, model.json, recordings/)")
+    p.set_defaults(func=cmd_figures)
+
     p = sub.add_parser("certs", help="make a run's credentials for mutual TLS (openssl): a CA of the run's own, "
                                      "a router certificate, one per role")
     p.add_argument("dir", help="folder for the certificates (an existing CA there is kept and signs the new ones)")

@@ -88,6 +88,9 @@ class RunOptions:
     # the services on hosts in network namespaces (services.hosts), roles by host:
     # 'robot,ft_sensor:phase_estimator,impedance_commander:recorder,teacher'
     hosts: str | None = None
+    # the thesis' figures (RUN_DIR/figures/) and report.html after the report; a sweep's
+    # runs leave them out (their table and plots are the sweep's)
+    figures: bool = True
     attach: bool = False  # the services are already running (docker-compose): do not spawn them
     # SCHED_FIFO (where permitted) for the two ends of the FRI link, the robot above the
     # commander; the others stay ordinary processes.  All six at one priority starve
@@ -281,12 +284,35 @@ class Runner:
             self.profile.release()
             try:
                 report = write_report(self, codes, error, time.monotonic() - t0)
+                if self.options.figures:
+                    self._figures()
             finally:
                 if self.cell is not None:
                     self.cell.stop(self.roles(), before_report=False)
                 if self.hosts is not None:
                     self.hosts.down()
         return report
+
+    def _figures(self) -> None:
+        """The thesis' figures and the HTML report; a figure that cannot be drawn must not
+        cost the run its report (the reason goes in figures.error)."""
+        from services.figures import write_figures
+        from services.html_report import write_html
+
+        t = time.monotonic()
+        try:
+            written, skipped = write_figures(self.out)
+        except Exception as exc:
+            (self.out / "figures.error").write_text(f"{type(exc).__name__}: {exc}\n")
+            written, skipped = [], [f"{type(exc).__name__}: {exc}"]
+        if skipped:
+            (self.out / "figures.skipped").write_text("".join(f"{why}\n" for why in skipped))
+        try:
+            write_html(self.out)
+        except Exception as exc:
+            (self.out / "report.html.error").write_text(f"{type(exc).__name__}: {exc}\n")
+        self.say(f"figures: {len(written)} in {self.out / 'figures'}, report.html "
+                 f"({time.monotonic() - t:.1f} s)")
 
     def _escalate_on_next_interrupt(self) -> None:
         """Interrupted once: the services are being stopped and the report written.  A

@@ -183,7 +183,7 @@ def run_one(spec: RunSpec) -> dict:
     lines = []
     row = dict(run=spec.name, **{f"param {k}": v for k, v in spec.params.items()}, seed=spec.seed)
     try:
-        runner = Runner(RunOptions(scenario=spec.scenario_file, out=spec.out, transport="inproc",
+        runner = Runner(RunOptions(scenario=spec.scenario_file, out=spec.out, transport="inproc", figures=False,
                                    run_id=f"sweep-{spec.name}", learn_threads=spec.learn_threads,
                                    workers=1),
                         progress=lines.append)

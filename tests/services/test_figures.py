@@ -1,0 +1,85 @@
+"""The thesis' figures and the HTML report, from a small run in one process (the smoke
+scenario with the phase count chosen by BIC, so that every figure has its data)."""
+
+import base64
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from services import bench_cli
+from services.figures import write_figures
+from services.runner import RunOptions, run
+
+ROOT = Path(__file__).resolve().parents[2]
+FIGURES = ["demonstrations_position_and_force.png", "bic_by_phase_count.png", "forward_variable_demonstrations.png",
+           "tool_path_by_phase.png", "prediction_error_by_step.png", "prediction_error_by_phase.png",
+           "reproduction_00_force_phase_alpha.png"]
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("figures")
+    text = (ROOT / "scenarios" / "smoke.yaml").read_text().replace(
+        "      phases: 3\n", "      phases: auto\n      candidates: [2, 3]\n")
+    scenario = out / "smoke_bic.yaml"
+    scenario.write_text(text)
+    report = run(RunOptions(scenario=str(scenario), out=str(out / "run"), transport="inproc", run_id="figures"))
+    assert report["error"] is None, report["error"]
+    return out / "run"
+
+
+def test_every_run_writes_every_figure_as_a_png(run_dir):
+    written = sorted(p.name for p in (run_dir / "figures").glob("*.png"))
+    assert written == sorted(FIGURES), written
+    for name in FIGURES:
+        data = (run_dir / "figures" / name).read_bytes()
+        width, height = int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+        assert data.startswith(PNG) and width >= 600 and height >= 300, (name, width, height)
+    assert not (run_dir / "figures.error").exists()
+
+
+def test_the_figures_command_draws_them_again_and_refuses_a_folder_that_is_no_run(run_dir, tmp_path, capsys):
+    for p in (run_dir / "figures").glob("*.png"):
+        p.unlink()
+    assert bench_cli.main(["figures", str(run_dir)]) == 0
+    printed = capsys.readouterr().out.split()
+    assert sorted(Path(p).name for p in printed) == sorted(FIGURES)
+    assert bench_cli.main(["figures", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == f"etar-bench figures: error: {tmp_path / 'report.json'}: missing (is {tmp_path} a " \
+                      "finished run's folder?)"
+
+
+def test_a_run_without_demonstrations_says_which_figures_it_skips(tmp_path):
+    report = run(RunOptions(scenario=str(ROOT / "scenarios" / "fri_dropout.yaml"), out=str(tmp_path / "run"),
+                            transport="inproc", run_id="nodemos"))
+    assert report["error"] is None
+    written, skipped = write_figures(tmp_path / "run")
+    assert [p.name for p in written] == ["reproduction_00_force_phase_alpha.png"]
+    assert any("no demonstrations" in s for s in skipped) and any("no selection scores" in s for s in skipped)
+
+
+def test_the_html_report_embeds_every_figure(run_dir):
+    page = (run_dir / "report.html").read_text()
+    images = page.count('src="data:image/png;base64,')
+    assert images == len(FIGURES) + 1  # and the timing plot
+    first = page.index("data:image/png;base64,") + len("data:image/png;base64,")
+    assert base64.b64decode(page[first:page.index('"', first)]).startswith(PNG)
+    assert "smoke" in page and "Number of phases" in page and "Reproductions" in page
+
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed (make test installs Debian's chromium as root)")
+def test_the_html_report_renders_in_a_headless_browser_with_every_image_loaded(run_dir, tmp_path):
+    dom = subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                          "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                          f"--user-data-dir={tmp_path / 'profile'}", "--virtual-time-budget=5000", "--dump-dom",
+                          (run_dir / "report.html").as_uri()], capture_output=True, text=True, timeout=120)
+    assert dom.returncode == 0, dom.stderr[-2000:]
+    n = len(FIGURES) + 1
+    assert f'data-images="{n}/{n}"' in dom.stdout, dom.stdout[:500]
