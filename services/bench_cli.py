@@ -5,6 +5,7 @@
     etar-bench report RUN_DIR
     etar-bench recover FILE... [--out FILE]
     etar-bench figures RUN_DIR
+    etar-bench compare RUN_DIR [--seeds N]
     etar-bench certs DIR [--host IP]
     etar-bench router [--listen tcp/0.0.0.0:7447]
 """
@@ -181,6 +182,22 @@ def cmd_figures(args) -> int:
     return 0
 
 
+def cmd_compare(args) -> int:
+    from services.compare import compare_run
+    from services.figures import FiguresError
+
+    if args.seeds < 1:
+        _say(f"etar-bench compare: error: --seeds must be >= 1, got {args.seeds}")
+        return 2
+    try:
+        compare_run(args.run_dir, seeds=tuple(range(args.seeds)), progress=_say)
+    except FiguresError as exc:
+        _say(f"etar-bench compare: error: {exc}")
+        return 2
+    print((Path(args.run_dir) / "comparison.txt").read_text(), end="", flush=True)
+    return 0
+
+
 def cmd_certs(args) -> int:
     from services.runtime.secure import ROLES, CredentialsError, make_credentials
 
@@ -279,6 +296,12 @@ def build_parser() -> argparse.ArgumentParser:
                                        "RUN_DIR/figures/ (every run also does)")
     p.add_argument("run_dir", help="a finished run's folder (report.json, model.json, recordings/)")
     p.set_defaults(func=cmd_figures)
+
+    p = sub.add_parser("compare", help="ETAR against STAR (thesis 6.3) on a finished run's demonstrations: both "
+                                       "transition models fitted over several seeds, scored against the true phases")
+    p.add_argument("run_dir", help="a finished run's folder with demonstrations and a learned model")
+    p.add_argument("--seeds", type=int, default=3, help="seeds per transition model (default 3)")
+    p.set_defaults(func=cmd_compare)
 
     p = sub.add_parser("certs", help="make a run's credentials for mutual TLS (openssl): a CA of the run's own, "
                                      "a router certificate, one per role")

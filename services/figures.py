@@ -245,10 +245,8 @@ def reproduction_figure(path: Path, index: int, model, state: str, features: str
     return _save(fig, out / f"reproduction_{index:02d}_force_phase_alpha.png")
 
 
-def write_figures(run_dir, progress=None) -> tuple[list[Path], list[str]]:
-    """Every figure the run has data for, into RUN_DIR/figures/: (files written, what was
-    skipped and why)."""
-    run_dir = Path(run_dir)
+def read_run_report(run_dir: Path) -> dict:
+    """A finished run's report.json; FiguresError naming the file if there is none."""
     report_path = run_dir / "report.json"
     try:
         report = json.loads(report_path.read_text())
@@ -258,6 +256,14 @@ def write_figures(run_dir, progress=None) -> tuple[list[Path], list[str]]:
         raise FiguresError(f"{report_path}: {exc}") from None
     if not isinstance(report, dict) or "learning" not in report:
         raise FiguresError(f"{report_path}: not a run report (no 'learning')")
+    return report
+
+
+def write_figures(run_dir, progress=None) -> tuple[list[Path], list[str]]:
+    """Every figure the run has data for, into RUN_DIR/figures/: (files written, what was
+    skipped and why)."""
+    run_dir = Path(run_dir)
+    report = read_run_report(run_dir)
     out = run_dir / FIGURES_DIR
     out.mkdir(exist_ok=True)
     say = progress or (lambda _m: None)

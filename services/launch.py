@@ -358,14 +358,20 @@ class ServiceProcesses:
         role = min(self.lost, key=self.lost.get)
         during = f", {self.lost[role] - started:.1f} s into the episode"
         summary = None
+        why = ""
         if "robot" not in self.lost:
             try:
                 stopped = self.request("robot", "stop", timeout=10.0).get("stopped")
                 summary = self._episode_summary(10.0 if stopped else 0.0)
-            except (TimeoutError, RuntimeError):
+                if summary is None:
+                    why = f"; the robot {'stopped' if stopped else 'had no episode to stop'} but sent no summary"
+            except (TimeoutError, RuntimeError) as exc:
                 summary = self._episode_summary()
+                why = f"; the robot did not stop the episode ({type(exc).__name__}: {exc})"
         if summary is not None:
             during += f" (cycle {summary['last_seq']}, {summary['sim_seconds']:.3f} s simulated)"
+        else:
+            during += why
         raise ServiceLost(role, self.lost_message(role, during), summary)
 
     def publish(self, topic: str, payload: bytes) -> None:

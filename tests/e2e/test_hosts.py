@@ -120,6 +120,7 @@ def test_a_host_cut_off_mid_reproduction_makes_the_arm_hold_and_the_report_name_
     assert not thread.is_alive(), "the run did not end after the cut"
     report = result["report"]
     noticed = result["done"] - cut["t"]
+    assert len(report["reproductions"]) == 1, report["error"]  # the robot's summary of the episode it stopped
     (rp,) = report["reproductions"]
     moved = np.linalg.norm(np.array(rp["final_position"]) - cut["tcp"])
     print(f"host h2 cut at cycle {cut['seq']}: run over {noticed:.1f} s later, {rp['reason']} at "

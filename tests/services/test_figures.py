@@ -83,3 +83,18 @@ def test_the_html_report_renders_in_a_headless_browser_with_every_image_loaded(r
     assert dom.returncode == 0, dom.stderr[-2000:]
     n = len(FIGURES) + 1
     assert f'data-images="{n}/{n}"' in dom.stdout, dom.stdout[:500]
+
+
+def test_compare_scores_etar_against_star_on_the_runs_demonstrations_and_draws_fig_26(run_dir, capsys):
+    import json
+
+    assert bench_cli.main(["compare", str(run_dir), "--seeds", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "the thesis' claim" in out and ("HOLDS" in out or "does NOT hold" in out)
+    result = json.loads((run_dir / "comparison.json").read_text())
+    assert set(result["summary"]) == {"ETAR", "STAR"} and result["demonstrations"] == 2
+    assert [e["transitions"] for e in result["evaluations"]] == ["effect", "state"]
+    for e in result["evaluations"]:
+        assert 0.0 <= e["filtered"]["accuracy"] <= 1.0 and e["error_near_transitions"] >= 0.0
+    assert (run_dir / "figures" / "etar_vs_star_phases.png").read_bytes().startswith(PNG)
+    assert bench_cli.main(["compare", str(run_dir), "--seeds", "0"]) == 2

@@ -1,0 +1,132 @@
+"""ETAR against STAR on the same demonstrations (thesis 6.3), offline.
+
+The thesis' claim: phase transitions driven by the effect of the action (the
+measured force, ETAR) are smoother and more accurate than transitions driven by
+the state (the tool's position relative to the goal, STAR), and STAR's
+predictions are worse at the transitions.  ``evaluate`` scores one fitted model
+against the true phases: the Viterbi segmentation and the online filter's
+most likely phase (what a reproduction acts on), each as accuracy after
+Hungarian matching, transition-time error and spurious switches; and the
+one-step prediction error of the parameters of the filter's phase, near the
+true transitions and away from them.  ``compare_transitions`` fits both
+transition models on the same data over several seeds and evaluates each.
+Pure functions over arrays; nothing here reads files.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from etar.metrics import SegmentationScore, score_demonstrations
+from etar.model import ETAR
+
+NEAR_TRANSITION_STEPS = 5  # a step within this many of a true transition is "at" it
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    transitions: str  # "effect" (ETAR) or "state" (STAR)
+    seed: int
+    log_likelihood: float
+    viterbi: SegmentationScore
+    filtered: SegmentationScore
+    error_near_transitions: float  # mean squared one-step error, filter's phase's parameters, [state units^2]
+    error_elsewhere: float
+    filtered_labels: tuple = ()  # the filter's phase of every step, per demonstration (not in to_dict)
+
+    def to_dict(self) -> dict:
+        return {"transitions": self.transitions, "seed": self.seed, "log_likelihood": self.log_likelihood,
+                "viterbi": self.viterbi.to_dict(), "filtered": self.filtered.to_dict(),
+                "error_near_transitions": self.error_near_transitions, "error_elsewhere": self.error_elsewhere}
+
+
+def filtered_phases(model: ETAR, states, forces) -> np.ndarray:
+    """(T-1,) the online filter's most likely phase of every step: the phase of step
+    t -> t+1 is known once sample t+1 has come."""
+    filt = model.filter()
+    filt.update(states[0], forces[0])
+    return np.array([int(np.argmax(filt.update(states[t], forces[t]))) for t in range(1, len(states))],
+                    dtype=np.int64)
+
+
+def prediction_error_by_label(model: ETAR, states, forces, labels) -> np.ndarray:
+    """(T-1,) squared one-step error of predicting s_{t+1} with the parameters of
+    ``labels[t]``'s phase (thesis eq. 80-81)."""
+    A, B = np.asarray(model.A), np.asarray(model.B)
+    u = np.hstack([forces[:-1], np.ones((len(states) - 1, 1))])
+    lab = np.asarray(labels, dtype=np.int64)
+    pred = np.einsum("tij,tj->ti", A[lab], states[:-1]) + np.einsum("tij,tj->ti", B[lab], u)
+    return ((pred - states[1:]) ** 2).sum(axis=1)
+
+
+def near_transitions(truth, steps: int = NEAR_TRANSITION_STEPS) -> np.ndarray:
+    """(T-1,) bool: within ``steps`` of a change of the true phase."""
+    truth = np.asarray(truth)
+    near = np.zeros(truth.shape, dtype=bool)
+    for b in np.flatnonzero(np.diff(truth)) + 1:
+        near[max(0, b - steps):b + steps] = True
+    return near
+
+
+def evaluate(model: ETAR, demos: Sequence, truths: Sequence, dt: float, seed: int = 0,
+             n_true: int | None = None) -> Evaluation:
+    """Score a fitted model against the true phases of ``demos`` (see the module doc)."""
+    demos = [(np.asarray(s, dtype=np.float64), np.asarray(f, dtype=np.float64)) for s, f in demos]
+    truths = [np.asarray(t, dtype=np.int64) for t in truths]
+    for i, ((s, _), t) in enumerate(zip(demos, truths)):
+        if t.shape != (len(s) - 1,):
+            raise ValueError(f"truths[{i}] must have one phase per step ({len(s) - 1}), got {t.shape}")
+    vit = [model.viterbi(s, f) for s, f in demos]
+    filt = [filtered_phases(model, s, f) for s, f in demos]
+    K = model.n_phases
+    v_score, _ = score_demonstrations(truths, vit, dt, n_true, K)
+    f_score, _ = score_demonstrations(truths, filt, dt, n_true, K)
+    err = np.concatenate([prediction_error_by_label(model, s, f, lab) for (s, f), lab in zip(demos, filt)])
+    near = np.concatenate([near_transitions(t) for t in truths])
+    return Evaluation(model.transitions, seed, float(model.log_likelihood(demos)), v_score, f_score,
+                      float(err[near].mean()) if near.any() else float("nan"),
+                      float(err[~near].mean()) if (~near).any() else float("nan"), tuple(filt))
+
+
+def compare_transitions(demos: Sequence, truths: Sequence, n_phases: int, dt: float, seeds=(0, 1, 2),
+                        max_iter: int = 200, n_restarts: int = 4, progress=None) -> list[Evaluation]:
+    """Fit ETAR and STAR with ``n_phases`` on the same demonstrations, once per seed, and
+    evaluate each against the truth: [effect seed 0, state seed 0, effect seed 1, ...]."""
+    out = []
+    for seed in seeds:
+        for transitions in ("effect", "state"):
+            model = ETAR(n_phases, transitions, n_restarts=n_restarts).fit(demos, max_iter=max_iter, seed=int(seed))
+            out.append(evaluate(model, demos, truths, dt, int(seed)))
+            if progress is not None:
+                e = out[-1]
+                progress(f"{'ETAR' if transitions == 'effect' else 'STAR'} seed {seed}: filter accuracy "
+                         f"{e.filtered.accuracy:.3f}, Viterbi {e.viterbi.accuracy:.3f}")
+    return out
+
+
+def summarise(evaluations: Sequence[Evaluation]) -> dict:
+    """Per transition model: mean and spread over the seeds of each figure."""
+    out = {}
+    for transitions in ("effect", "state"):
+        es = [e for e in evaluations if e.transitions == transitions]
+        if not es:
+            continue
+
+        def stat(values):
+            a = np.asarray(values, dtype=np.float64)
+            return {"mean": float(np.nanmean(a)), "min": float(np.nanmin(a)), "max": float(np.nanmax(a))}
+
+        out["ETAR" if transitions == "effect" else "STAR"] = {
+            "seeds": [e.seed for e in es],
+            "viterbi_accuracy": stat([e.viterbi.accuracy for e in es]),
+            "filter_accuracy": stat([e.filtered.accuracy for e in es]),
+            "filter_mean_transition_error_s": stat([e.filtered.mean_transition_error for e in es]),
+            "filter_spurious_switches": stat([e.filtered.spurious_switches for e in es]),
+            "filter_missed_transitions": stat([e.filtered.missed_transitions for e in es]),
+            "error_near_transitions": stat([e.error_near_transitions for e in es]),
+            "error_elsewhere": stat([e.error_elsewhere for e in es]),
+        }
+    return out
