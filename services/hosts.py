@@ -37,6 +37,12 @@ NETWORK = "10.231.0"
 ROUTER_ADDRESS = f"{NETWORK}.1"
 # how long a silent link lives: the default 10 s would let a cut host go unnoticed that long
 LEASE_MS = 1000
+# Zenoh settings of every session of a run on hosts (router and clients): the lease, and
+# how long a message sent with congestion control BLOCK may wait for a full queue before
+# the link is closed (default 5 s: the router forwarding to a cut host stalled the robot's
+# traffic that long, and the runner's 'stop' went unanswered)
+ZENOH_CFG = (("transport/link/tx/lease", str(LEASE_MS)),
+             ("transport/link/tx/queue/congestion_control/block/wait_before_close", str(LEASE_MS * 1000)))
 MAX_HOSTS = 20
 _NAMESPACE = re.compile(rf"^{PREFIX}-h\d+$")
 _LINK = re.compile(rf"^{PREFIX}-(h\d+-[rn]|br0)$")

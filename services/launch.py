@@ -160,9 +160,9 @@ class ServiceProcesses:
         address = "127.0.0.1"
         lease = ()
         if hosts is not None:
-            from services.hosts import LEASE_MS, ROUTER_ADDRESS
+            from services.hosts import ROUTER_ADDRESS, ZENOH_CFG
 
-            address, lease = ROUTER_ADDRESS, (("transport/link/tx/lease", str(LEASE_MS)),)
+            address, lease = ROUTER_ADDRESS, ZENOH_CFG
         if zenoh is not None:
             self.zenoh, self.endpoint = zenoh, ""
         elif tls is not None:

@@ -41,7 +41,7 @@ from etar import ETAR
 from etar.selection import fit_order
 from etar.task import LearnedTask, TaskError, learn_task, load_task
 from services import launch
-from services.hosts import LEASE_MS, Hosts, parse_layout
+from services.hosts import ZENOH_CFG as HOSTS_ZENOH_CFG, Hosts, parse_layout
 from services.nodes import (CommanderConfig, EstimatorConfig, FtSensorConfig, RecorderConfig, RobotConfig,
                             TeacherConfig)
 from services.progress import EpisodeProgress
@@ -229,7 +229,7 @@ class Runner:
             zo = (client_options(self.options.tls, role, connect) if self.options.tls is not None
                   else ZenohOptions(mode="client", connect=(connect,), listen=()))
             if self.hosts is not None:
-                zo = ZenohOptions(zo.mode, zo.connect, zo.listen, zo.cfg + (("transport/link/tx/lease", str(LEASE_MS)),))
+                zo = ZenohOptions(zo.mode, zo.connect, zo.listen, zo.cfg + HOSTS_ZENOH_CFG)
             common += zo.to_args()
         else:
             common += ["--connect", connect]

@@ -408,8 +408,9 @@ def request(session: zenoh.Session, run_id: str, service: str, cmd: str, *, time
             **args) -> dict:
     """Send a control request and return the service's reply; raise on failure."""
     payload = json.dumps(dict(args, cmd=cmd)).encode()
-    replies = list(session.get(topics.control(run_id, service), payload=payload, timeout=timeout))
-    for r in replies:
+    # the first reply is the answer: the query itself ends only once every route Zenoh
+    # sent it on has answered or timed out (a host cut off mid-run held it 10 s)
+    for r in session.get(topics.control(run_id, service), payload=payload, timeout=timeout):
         if r.ok is not None:
             body = json.loads(r.ok.payload.to_bytes())
             if not body.get("ok"):
