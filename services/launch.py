@@ -366,7 +366,9 @@ class ServiceProcesses:
                 if summary is None:
                     why = f"; the robot {'stopped' if stopped else 'had no episode to stop'} but sent no summary"
             except (TimeoutError, RuntimeError) as exc:
-                summary = self._episode_summary()
+                # the robot may have stopped and its answer be held up on the way: a host cut
+                # off held the robot's traffic to the runner ~10 s once (not understood)
+                summary = self._episode_summary(10.0)
                 why = f"; the robot did not stop the episode ({type(exc).__name__}: {exc})"
         if summary is not None:
             during += f" (cycle {summary['last_seq']}, {summary['sim_seconds']:.3f} s simulated)"
