@@ -72,7 +72,8 @@ def cmd_run(args) -> int:
                                 sched_fifo=args.sched_fifo, realtime_profile=args.realtime_profile, tls=args.tls,
                                 hosts=args.hosts),
                      progress=_say)
-    except (ScenarioError, TaskError, CredentialsError, HostsError) as exc:
+    except (ScenarioError, TaskError, CredentialsError, HostsError, ValueError) as exc:
+        # ValueError: the run's options refused before anything started (e.g. --hosts)
         _say(f"etar-bench run: error: {exc}")
         return 2
     except KeyboardInterrupt as exc:

@@ -38,6 +38,8 @@ def test_a_service_refuses_a_bad_flag_in_one_line(capsys, argv, says):
     (["--run-id", "a/b*"], "run id 'a/b*': use 1-64 letters"),
     (["--realtime-profile", "fifo,turbo"], "unknown part 'turbo'"),
     (["--tls", "/nonexistent"], "/nonexistent/ca.pem: missing (make the run's credentials with: etar-bench certs"),
+    (["--hosts", "robot"], "--hosts 'robot': no host for ft_sensor"),
+    (["--hosts", "robot,ft_sensor,recorder,teacher", "--transport", "inproc"], "--hosts starts the services on hosts"),
 ])
 def test_the_runner_refuses_a_bad_flag_before_it_starts_anything(capsys, tmp_path, argv, says):
     out = tmp_path / "run"
