@@ -91,15 +91,12 @@ def main():
     args = parser.parse_args()
 
     from cpuwatch import CpuWatch
+    from hold import hold_scenario
     from services.runner import RunOptions, run
 
     out = Path(args.out or tempfile.mkdtemp(prefix="realtime_load-"))
     out.mkdir(parents=True, exist_ok=True)
-    text = (ROOT / "scenarios" / "hold.yaml").read_text()
-    text = text.replace("model: models/smoke.json", f"model: {ROOT / 'scenarios' / 'models' / 'smoke.json'}")
-    text = text.replace("max_seconds: 60", f"max_seconds: {args.seconds:g}")
-    scenario = out / "hold.yaml"
-    scenario.write_text(text)
+    scenario = hold_scenario(out, args.seconds)
     run_id = f"rtload-{uuid.uuid4().hex[:8]}"
 
     qos = None

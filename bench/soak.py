@@ -89,15 +89,12 @@ def main() -> int:
     if not args.minutes > 0:
         parser.error(f"--minutes must be > 0, got {args.minutes}")
 
+    from hold import hold_scenario
     from services.runner import RunOptions, Runner
 
     out = Path(args.out or tempfile.mkdtemp(prefix="soak-"))
     out.mkdir(parents=True, exist_ok=True)
-    text = (ROOT / "scenarios" / "hold.yaml").read_text()
-    text = text.replace("model: models/smoke.json", f"model: {ROOT / 'scenarios' / 'models' / 'smoke.json'}")
-    text = text.replace("max_seconds: 60", f"max_seconds: {args.minutes * 60:g}")
-    scenario = out / "hold.yaml"
-    scenario.write_text(text)
+    scenario = hold_scenario(out, args.minutes * 60)
     runner = Runner(RunOptions(scenario=str(scenario), out=str(out), run_id=f"soak-{uuid.uuid4().hex[:8]}"),
                     progress=lambda m: print(m, file=sys.stderr, flush=True))
     stop, samples = threading.Event(), []

@@ -43,13 +43,17 @@ class Evaluation:
                 "error_near_transitions": self.error_near_transitions, "error_elsewhere": self.error_elsewhere}
 
 
-def filtered_phases(model: ETAR, states, forces) -> np.ndarray:
-    """(T-1,) the online filter's most likely phase of every step: the phase of step
-    t -> t+1 is known once sample t+1 has come."""
+def filtered_messages(model: ETAR, states, forces) -> np.ndarray:
+    """(T-1, K) the online filter's normalised forward message of every step: the phase
+    of step t -> t+1 is known once sample t+1 has come."""
     filt = model.filter()
     filt.update(states[0], forces[0])
-    return np.array([int(np.argmax(filt.update(states[t], forces[t]))) for t in range(1, len(states))],
-                    dtype=np.int64)
+    return np.array([filt.update(states[t], forces[t]) for t in range(1, len(states))])
+
+
+def filtered_phases(model: ETAR, states, forces) -> np.ndarray:
+    """(T-1,) the online filter's most likely phase of every step."""
+    return np.argmax(filtered_messages(model, states, forces), axis=1).astype(np.int64)
 
 
 def prediction_error_by_label(model: ETAR, states, forces, labels) -> np.ndarray:

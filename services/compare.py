@@ -18,7 +18,7 @@ import numpy as np
 
 from etar.comparison import compare_transitions, filtered_phases, summarise
 from etar.task import load_task
-from services.figures import FIGURES_DIR, FiguresError, _plt, _save, read_run_report
+from services.figures import FIGURES_DIR, FiguresError, _plt, _save, in_run, read_run_report
 from services.recording import load_demonstration
 
 
@@ -28,11 +28,9 @@ def _demonstrations(run_dir: Path):
     model_path = (report.get("learning") or {}).get("model")
     if not model_path or not report.get("demonstrations"):
         raise FiguresError(f"{report_path}: the run has no demonstrations and learned model to compare on")
-    task = load_task(model_path if Path(model_path).is_absolute() else run_dir / model_path)
-    demos = []
-    for d in report["demonstrations"]:
-        p = Path(d["path"]) if Path(d["path"]).is_absolute() else run_dir / d["path"]
-        demos.append(load_demonstration(p, state=task.state, features=task.features))
+    task = load_task(in_run(run_dir, model_path))
+    demos = [load_demonstration(in_run(run_dir, d["path"]), state=task.state, features=task.features)
+             for d in report["demonstrations"]]
     return task, demos
 
 

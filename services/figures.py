@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from etar.analysis import prediction_errors
+from etar.comparison import filtered_messages
 from etar.task import load_task
 from services.recording import load_demonstration, read_episode
 
@@ -66,13 +67,6 @@ def _save(fig, path: Path) -> Path:
     fig.savefig(path, dpi=110)
     _plt().close(fig)
     return path
-
-
-def _forward(model, s, f) -> np.ndarray:
-    """(T-1, K) normalised forward variable: p(phase of step t | samples 0..t+1)."""
-    filt = model.filter()
-    filt.update(s[0], f[0])
-    return np.array([filt.update(s[t], f[t]) for t in range(1, len(s))])
 
 
 def demonstrations_figure(demos, out: Path) -> Path:
@@ -122,7 +116,7 @@ def forward_figure(model, demos, out: Path) -> Path:
     fig, axes = plt.subplots(len(demos), 1, figsize=(10, 1.8 * len(demos) + 1), sharex=False, squeeze=False)
     for i, d in enumerate(demos):
         ax = axes[i, 0]
-        alpha = _forward(model, d["states"], d["forces"])
+        alpha = filtered_messages(model, d["states"], d["forces"])
         t = d["t"][1:] - d["t"][0]
         for k in range(model.n_phases):
             ax.plot(t, alpha[:, k], color=colors[k], lw=1.2, label=f"phase {k}")
@@ -245,6 +239,11 @@ def reproduction_figure(path: Path, index: int, model, state: str, features: str
     return _save(fig, out / f"reproduction_{index:02d}_force_phase_alpha.png")
 
 
+def in_run(run_dir: Path, path) -> Path:
+    """A path report.json names: relative to the run's folder unless absolute."""
+    return Path(path) if Path(path).is_absolute() else run_dir / path
+
+
 def read_run_report(run_dir: Path) -> dict:
     """A finished run's report.json; FiguresError naming the file if there is none."""
     report_path = run_dir / "report.json"
@@ -271,12 +270,11 @@ def write_figures(run_dir, progress=None) -> tuple[list[Path], list[str]]:
     model_path = report["learning"].get("model")
     if not model_path:
         return written, ["no learned model in the run"]
-    model_path = Path(model_path) if Path(model_path).is_absolute() else run_dir / model_path
-    task = load_task(model_path)
+    task = load_task(in_run(run_dir, model_path))
     model = task.model
     demos = []
     for d in report.get("demonstrations", []):
-        p = Path(d["path"]) if Path(d["path"]).is_absolute() else run_dir / d["path"]
+        p = in_run(run_dir, d["path"])
         try:
             demos.append(load_demonstration(p, state=task.state, features=task.features, allow_incomplete=True))
         except (OSError, ValueError) as exc:
@@ -293,7 +291,7 @@ def write_figures(run_dir, progress=None) -> tuple[list[Path], list[str]]:
     (written if isinstance(bic, Path) else skipped).append(bic)
     repro = report.get("reproductions") or []
     if repro:
-        p = Path(repro[0]["path"]) if Path(repro[0]["path"]).is_absolute() else run_dir / repro[0]["path"]
+        p = in_run(run_dir, repro[0]["path"])
         fig = reproduction_figure(p, 0, model, task.state, task.features, out)
         (written if isinstance(fig, Path) else skipped).append(fig)
     return written, skipped

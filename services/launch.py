@@ -19,7 +19,7 @@ import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from services.runtime import topics
@@ -158,11 +158,11 @@ class ServiceProcesses:
         self.attach = attach
         self.hosts = hosts
         address = "127.0.0.1"
-        lease = ()
+        hosts_cfg = ()
         if hosts is not None:
             from services.hosts import ROUTER_ADDRESS, ZENOH_CFG
 
-            address, lease = ROUTER_ADDRESS, ZENOH_CFG
+            address, hosts_cfg = ROUTER_ADDRESS, ZENOH_CFG
         if zenoh is not None:
             self.zenoh, self.endpoint = zenoh, ""
         elif tls is not None:
@@ -170,10 +170,10 @@ class ServiceProcesses:
 
             self.endpoint = f"tls/{address}:{free_port()}"
             options = router_options(tls, run_id, self.endpoint)
-            self.zenoh = ZenohOptions(options.mode, options.connect, options.listen, options.cfg + lease)
+            self.zenoh = replace(options, cfg=options.cfg + hosts_cfg)
         elif hosts is not None:
             self.endpoint = f"tcp/{address}:{free_port()}"
-            self.zenoh = ZenohOptions(mode="router", connect=(), listen=(self.endpoint,), cfg=lease)
+            self.zenoh = ZenohOptions(mode="router", connect=(), listen=(self.endpoint,), cfg=hosts_cfg)
         else:
             self.endpoint = f"tcp/127.0.0.1:{free_port()}"
             self.zenoh = ZenohOptions(listen=(self.endpoint,))

@@ -687,7 +687,8 @@ if __name__ == "__main__":
     _writer_main(sys.stdin.buffer, replies)
 
 
-_STATE_SEQ = re.compile(rb'^\{"seq":(-?\d+)')
+# every message's JSON begins with its seq (the header's first field, compact separators)
+SEQ_PREFIX = re.compile(rb'^\{"seq":(-?\d+)')
 
 
 def recording_gaps(paths) -> list:
@@ -703,7 +704,7 @@ def recording_gaps(paths) -> list:
             ranges.append((str(path), None, None, str(exc)))
             continue
         seqs = [int(m.group(1)) for msg in ep.messages if msg.topic == "/robot/state"
-                for m in [_STATE_SEQ.match(msg.payload)] if m]
+                for m in [SEQ_PREFIX.match(msg.payload)] if m]
         ranges.append((str(path), min(seqs, default=None), max(seqs, default=None), ep.problem or ""))
     gaps = []
     for (path, _, last, problem), (nxt, first, _, _) in zip(ranges, ranges[1:]):

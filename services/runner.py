@@ -32,7 +32,7 @@ import signal
 import threading
 import time
 import uuid
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -229,7 +229,7 @@ class Runner:
             zo = (client_options(self.options.tls, role, connect) if self.options.tls is not None
                   else ZenohOptions(mode="client", connect=(connect,), listen=()))
             if self.hosts is not None:
-                zo = ZenohOptions(zo.mode, zo.connect, zo.listen, zo.cfg + HOSTS_ZENOH_CFG)
+                zo = replace(zo, cfg=zo.cfg + HOSTS_ZENOH_CFG)
             common += zo.to_args()
         else:
             common += ["--connect", connect]

@@ -12,18 +12,16 @@ file: nothing already recorded is lost.
 
 from __future__ import annotations
 
-import re
 import threading
 from dataclasses import dataclass
 from pathlib import Path
 
-from services.recording import EpisodeWriter, WriterProcess
+from services.recording import SEQ_PREFIX, EpisodeWriter, WriterProcess
 from services.runtime import topics
 from services.runtime.bus import Node, Subscription
 from services.runtime.config import option
 from services.runtime.messages import MAX_PAYLOAD_BYTES
 
-_SEQ = re.compile(rb'^\{"seq":(-?\d+)')
 
 
 @dataclass(frozen=True)
@@ -81,7 +79,7 @@ class RecorderNode(Node):
             if message is not None:
                 seq = message["seq"]
             else:
-                m = _SEQ.match(raw)
+                m = SEQ_PREFIX.match(raw)
                 seq = int(m.group(1)) if m else None
             if seq is not None:
                 if seq > self.last_seq.get(topic, -1):
