@@ -121,7 +121,8 @@ def summarise(evaluations: Sequence[Evaluation]) -> dict:
 
         def stat(values):
             a = np.asarray(values, dtype=np.float64)
-            return {"mean": float(np.nanmean(a)), "min": float(np.nanmin(a)), "max": float(np.nanmax(a))}
+            return {"mean": float(np.nanmean(a)), "min": float(np.nanmin(a)), "max": float(np.nanmax(a)),
+                    "n": int(np.isfinite(a).sum())}
 
         out["ETAR" if transitions == "effect" else "STAR"] = {
             "seeds": [e.seed for e in es],
@@ -134,3 +135,105 @@ def summarise(evaluations: Sequence[Evaluation]) -> dict:
             "error_elsewhere": stat([e.error_elsewhere for e in es]),
         }
     return out
+
+
+# --- Table C1: the parameters of two similar demonstrations learned separately ----------
+
+PARAMETERS = ("A", "B", "Sigma", "W")
+
+
+def _relative(x: np.ndarray, y: np.ndarray) -> float:
+    """||x - y|| / mean(||x||, ||y||) (Frobenius): 0 the same, 2 opposite."""
+    scale = 0.5 * (np.linalg.norm(x) + np.linalg.norm(y))
+    return float(np.linalg.norm(x - y) / scale) if scale > 0 else 0.0
+
+
+def gauge_free_weights(W: np.ndarray) -> np.ndarray:
+    """The softmax weights with each row's mean over the destination phases removed: adding
+    one vector to every destination's weights changes no probability, so only this part
+    can be compared between two fits."""
+    W = np.asarray(W, dtype=np.float64)
+    return W - W.mean(axis=1, keepdims=True)
+
+
+def permuted(model: ETAR, perm) -> dict:
+    """``model``'s parameters with its phase ``perm[i]`` as phase i (W on both of its axes)."""
+    p = np.asarray(perm, dtype=np.int64)
+    W = np.asarray(model.W, dtype=np.float64)
+    W = np.concatenate([W[:1], W[1:][p]], axis=0)[:, p]
+    return {"A": np.asarray(model.A)[p], "B": np.asarray(model.B)[p], "Sigma": np.asarray(model.Sigma)[p],
+            "W": gauge_free_weights(W)}
+
+
+def match_by_parameters(a: ETAR, b: ETAR) -> np.ndarray:
+    """(K,) ``b``'s phase matched to each of ``a``'s (Hungarian) by the summed relative
+    distances of their A, B and Sigma: the phases of two separate fits come in any order
+    (thesis Table C1 shows them permuted).  Each parameter is weighed relative to its own
+    size: A is near the identity in every phase, so in one block [A | B] the phases' B
+    (what tells them apart) would hardly count."""
+    from scipy.optimize import linear_sum_assignment
+
+    K = a.n_phases
+    if b.n_phases != K:
+        raise ValueError(f"the two models have {K} and {b.n_phases} phases: they cannot be matched one to one")
+    pa, pb = permuted(a, np.arange(K)), permuted(b, np.arange(K))
+    cost = np.array([[sum(_relative(pa[k][i], pb[k][j]) for k in ("A", "B", "Sigma")) for j in range(K)]
+                     for i in range(K)])
+    rows, cols = linear_sum_assignment(cost)
+    return cols[np.argsort(rows)]
+
+
+def parameter_distances(a: ETAR, b: ETAR, perm=None) -> dict:
+    """Relative distance of each parameter (``PARAMETERS``) after matching ``b``'s phases to
+    ``a``'s (``perm``; default by `match_by_parameters`), and the permutation used."""
+    perm = match_by_parameters(a, b) if perm is None else np.asarray(perm, dtype=np.int64)
+    pa, pb = permuted(a, np.arange(a.n_phases)), permuted(b, perm)
+    return {"permutation": [int(x) for x in perm], **{k: _relative(pa[k], pb[k]) for k in PARAMETERS}}
+
+
+def truth_permutation(a: ETAR, b: ETAR, demo_a, truth_a, demo_b, truth_b) -> list[int] | None:
+    """The matching the true phases give (each fit's Viterbi phases mapped to the truth),
+    or None where a fit leaves a true phase without a phase of its own."""
+    from etar.metrics import match_phases
+
+    ma = match_phases(np.asarray(truth_a), a.viterbi(*demo_a), None, a.n_phases)
+    mb = match_phases(np.asarray(truth_b), b.viterbi(*demo_b), None, b.n_phases)
+    to_b = {true: phase for phase, true in mb.items()}
+    if len(set(ma.values())) < a.n_phases or len(to_b) < b.n_phases:
+        return None
+    return [int(to_b[ma[i]]) for i in range(a.n_phases)]
+
+
+def separate_fits(demo_a, demo_b, n_phases: int, seeds=(0, 1, 2), truths=None, transitions: str = "effect",
+                  max_iter: int = 200, n_restarts: int = 4, progress=None) -> dict:
+    """Table C1's check: each demonstration fitted on its own with every seed; the
+    parameter distance between the two demonstrations' fits (same seed), beside the
+    distance between two seeds' fits of one demonstration (how far EM alone lands apart).
+
+    ``truths``: the two demonstrations' true phases, to say whether matching by the
+    parameters agrees with matching by the truth."""
+    fits = {}
+    for which, demo in (("a", demo_a), ("b", demo_b)):
+        for seed in seeds:
+            fits[which, seed] = ETAR(n_phases, transitions, n_restarts=n_restarts).fit([demo], max_iter=max_iter,
+                                                                                     seed=int(seed))
+            if progress is not None:
+                progress(f"Table C1: demonstration {which}, seed {seed} fitted")
+    between = [dict(seed=int(s), **parameter_distances(fits["a", s], fits["b", s])) for s in seeds]
+    if truths is not None:
+        for row, s in zip(between, seeds):
+            row["truth_permutation"] = truth_permutation(fits["a", s], fits["b", s], demo_a, truths[0], demo_b,
+                                                         truths[1])
+            row["matching_agrees_with_truth"] = row["truth_permutation"] == row["permutation"]
+    within = [dict(demonstration=w, seeds=[int(seeds[0]), int(s)], **parameter_distances(fits[w, seeds[0]], fits[w, s]))
+              for w in ("a", "b") for s in seeds[1:]]
+
+    def stat(rows, key):
+        v = np.array([r[key] for r in rows], dtype=np.float64)
+        return {"mean": float(v.mean()), "min": float(v.min()), "max": float(v.max())} if len(v) else None
+
+    return {"phases": n_phases, "seeds": [int(s) for s in seeds],
+            "between_demonstrations": between, "between_seeds": within,
+            "summary": {k: {"between_demonstrations": stat(between, k), "between_seeds": stat(within, k)}
+                        for k in PARAMETERS},
+            "models": {f"{w}_seed{s}": fits[w, s] for (w, s) in fits}}

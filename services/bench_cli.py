@@ -70,7 +70,7 @@ def cmd_run(args) -> int:
         report = run(RunOptions(scenario=args.scenario, out=out, clock=args.clock, run_id=args.run_id, zenoh=zopts,
                                 transport=args.transport, attach=args.attach, ready_timeout=args.ready_timeout,
                                 sched_fifo=args.sched_fifo, realtime_profile=args.realtime_profile, tls=args.tls,
-                                hosts=args.hosts),
+                                hosts=args.hosts, figures=not args.no_figures),
                      progress=_say)
     except (ScenarioError, TaskError, CredentialsError, HostsError, ValueError) as exc:
         # ValueError: the run's options refused before anything started (e.g. --hosts)
@@ -191,7 +191,14 @@ def cmd_compare(args) -> int:
         _say(f"etar-bench compare: error: --seeds must be >= 1, got {args.seeds}")
         return 2
     try:
-        compare_run(args.run_dir, seeds=tuple(range(args.seeds)), progress=_say)
+        pair = tuple(int(x) for x in args.pair.split(","))
+        if len(pair) != 2:
+            raise ValueError
+    except ValueError:
+        _say(f"etar-bench compare: error: --pair expects two demonstration numbers I,J (e.g. 0,1), got {args.pair!r}")
+        return 2
+    try:
+        compare_run(args.run_dir, seeds=tuple(range(args.seeds)), progress=_say, pair=pair)
     except FiguresError as exc:
         _say(f"etar-bench compare: error: {exc}")
         return 2
@@ -261,6 +268,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the services on hosts of this machine, each a network namespace with its own address "
                         "(root and iproute2 needed), roles by host, e.g. robot,ft_sensor:phase_estimator,"
                         "impedance_commander:recorder,teacher; the runner is the run's Zenoh router")
+    p.add_argument("--no-figures", action="store_true",
+                   help="skip the thesis' figures and report.html after the report (etar-bench figures RUN_DIR "
+                        "draws them later)")
     add_zenoh_arguments(p)
     p.set_defaults(func=cmd_run)
     p = sub.add_parser("sweep", help="run every combination of scenario parameters x seeds in parallel, "
@@ -299,9 +309,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_figures)
 
     p = sub.add_parser("compare", help="ETAR against STAR (thesis 6.3) on a finished run's demonstrations: both "
-                                       "transition models fitted over several seeds, scored against the true phases")
+                                       "transition models fitted over several seeds, scored against the true "
+                                       "phases; and Table C1's check: two demonstrations learned separately, "
+                                       "their parameters compared")
     p.add_argument("run_dir", help="a finished run's folder with demonstrations and a learned model")
     p.add_argument("--seeds", type=int, default=3, help="seeds per transition model (default 3)")
+    p.add_argument("--pair", default="0,1", metavar="I,J",
+                   help="the two demonstrations of Table C1's check, learned separately and compared (default 0,1)")
     p.set_defaults(func=cmd_compare)
 
     p = sub.add_parser("certs", help="make a run's credentials for mutual TLS (openssl): a CA of the run's own, "

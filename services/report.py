@@ -265,13 +265,33 @@ def _parts_of(episode: dict, run_dir: Path) -> dict:
     return {"recording_parts": [_in_run(p, run_dir) for p in rec["parts"]], "recording_gaps": gaps}
 
 
+def reproduction_figures(repro: list) -> dict:
+    """Success, online phase accuracy, transition-time error and peak force of some reproductions."""
+    updates = sum(r["phases"].get("updates", 0) for r in repro)
+    correct = sum(r["phases"].get("correct", 0) for r in repro)
+    errors = [e for r in repro for e in r["phases"].get("transition_errors_s", [])]
+    return {"reproductions": len(repro), "successes": sum(r["success"] for r in repro),
+            "success_rate": sum(r["success"] for r in repro) / len(repro) if repro else None,
+            "online_phase_accuracy": correct / updates if updates else None,
+            "mean_transition_error_s": float(np.mean(errors)) if errors else None,
+            "peak_contact_force_n": max((r["peak_contact_force"] for r in repro), default=None),
+            "mean_peak_contact_force_n": float(np.mean([r["peak_contact_force"] for r in repro])) if repro else None}
+
+
+def by_model(repro: list) -> dict:
+    """``reproduction_figures`` per model, when reproductions name the model that drove them."""
+    names = list(dict.fromkeys(r["model"] for r in repro if r.get("model")))
+    return {name: reproduction_figures([r for r in repro if r.get("model") == name]) for name in names}
+
+
 def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: float) -> dict:
     st = runner.state
     sc = runner.scenario
     out = Path(runner.out)
     links, phases_of, quality, undecodable = {}, {}, {}, {}
-    reproduction_paths = {r["path"] for r in st.reproductions}
-    jobs = [(d["path"], st.phase_to_truth if d["path"] in reproduction_paths else None,
+    # each reproduction is judged by the phase mapping of the model that drove it
+    truth_maps = {r["path"]: r.get("phase_to_truth") or st.phase_to_truth for r in st.reproductions}
+    jobs = [(d["path"], truth_maps.get(d["path"]),
              tuple((d.get("recording") or {}).get("parts", ())))
             for d in st.demonstrations + st.reproductions]
     # the recordings are independent: read on every CPU the run may use (a sweep's run: in
@@ -297,7 +317,8 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
         reached = (s["reason"] == "goal_reached" or s.get("goal_reached_at_s", -1.0) >= 0) \
             and not s["reason"].startswith(("lost:", "unanswered:"))  # an episode a lost service ended failed
         bounded = s["peak_contact_force"] <= r["max_contact_force"]
-        repro.append(dict(index=len(repro), path=_in_run(r["path"], out), side=r["side"], start=r["start"], reason=s["reason"],
+        repro.append(dict(index=len(repro), path=_in_run(r["path"], out), side=r["side"], start=r["start"],
+                          model=r.get("model"), reason=s["reason"],
                           reached_goal=reached, peak_contact_force=s["peak_contact_force"],
                           bounded_force=bounded, success=reached and bounded, sim_seconds=s["sim_seconds"],
                           wall_seconds=s["wall_seconds"], final_position=s["final_position"], phases=phases,
@@ -305,9 +326,7 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
                           fri_quality=timelines.get(r["path"], {}),
                           undecodable_messages=undecodable.get(r["path"], 0),
                           **_parts_of(r, out)))
-    updates = sum(r["phases"].get("updates", 0) for r in repro)
-    correct = sum(r["phases"].get("correct", 0) for r in repro)
-    errors = [e for r in repro for e in r["phases"].get("transition_errors_s", [])]
+    overall = reproduction_figures(repro)
     episodes = [d["summary"] for d in st.demonstrations] + [r["summary"] for r in st.reproductions]
     loops = [e["loop"] for e in episodes if e.get("loop")]
     link_summary = {t: {"p50_us": float(np.median([v["p50_us"] for v in vs])),
@@ -345,18 +364,24 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
         "learning": {"model": _in_run(st.model_path, out), "seconds": getattr(st, "learn_seconds", None),
                      "selection": st.selection,
                      "phase_to_truth": st.phase_to_truth, "goal": st.goal,
+                     "models": {m["name"]: dict(m, path=_in_run(m["path"], out))
+                                for m in getattr(st, "models", {}).values()},
+                     # every model against the demonstrations' true phases (with more than one)
+                     "offline": list(getattr(st, "offline", [])),
                      "demonstrations_read": [dict(path=_in_run(d["path"], out), samples=d["samples"])
                                              for d in getattr(st, "learned_from", [])]},
         "reproductions": repro,
         "summary": {
             "phases_chosen": (st.selection or {}).get("best"),
             "reproductions": len(repro),
-            "successes": sum(r["success"] for r in repro),
-            "online_phase_accuracy": correct / updates if updates else None,
-            "mean_transition_error_s": float(np.mean(errors)) if errors else None,
+            "successes": overall["successes"],
+            "online_phase_accuracy": overall["online_phase_accuracy"],
+            "mean_transition_error_s": overall["mean_transition_error_s"],
             "simulated_seconds": sim_total,
             "episode_wall_seconds": wall_total,
             "real_time_factor": sim_total / wall_total if wall_total else None,
+            # the same starts reproduced with each model (reproduce.transitions)
+            "by_model": by_model(repro),
         },
         "timing": {
             "robot_loop": {"cycles": sum(lp["cycles"] for lp in loops),
@@ -495,12 +520,15 @@ def render_text(r: dict) -> str:
     if r["reproductions"]:
         lines.append("")
         lines.append(f"reproductions: {s['successes']} of {s['reproductions']} reached the goal with bounded force")
-        lines.append("   #  side  result                 peak F [N]  phase acc  trans. err [s]  sim [s]  wall [s]")
+        models = any(rp.get("model") for rp in r["reproductions"])
+        lines.append("   #  side  " + ("model " if models else "") +
+                     "result                 peak F [N]  phase acc  trans. err [s]  sim [s]  wall [s]")
         for rp in r["reproductions"]:
             ph = rp["phases"]
             acc = ph.get("accuracy")
             te = ph.get("mean_transition_error_s")
-            lines.append(f"  {rp['index']:2d} {rp['side']:>5}  {rp['reason']:<22} {rp['peak_contact_force']:10.1f}  "
+            lines.append(f"  {rp['index']:2d} {rp['side']:>5}  " + (f"{rp.get('model') or '-':<5} " if models else "")
+                         + f"{rp['reason']:<22} {rp['peak_contact_force']:10.1f}  "
                          f"{'-' if acc is None else f'{acc:9.3f}'}  "
                          f"{'-' if te is None or te != te else f'{te:14.3f}'}  {rp['sim_seconds']:7.1f}  "
                          f"{rp['wall_seconds']:8.1f}")
@@ -508,6 +536,11 @@ def render_text(r: dict) -> str:
         te = s["mean_transition_error_s"]
         lines.append(f"online phase accuracy overall: {'-' if acc is None else f'{acc:.4f}'}; mean transition "
                      f"error: {'-' if te is None else f'{te:.3f} s'}")
+    if r["learning"].get("offline") or s.get("by_model"):
+        from services.compare import comparison_text
+
+        lines.append("")
+        lines += comparison_text(r)
     t = r["timing"]
     lines.append("")
     lines.append(f"robot loop: {t['robot_loop']['cycles']} cycles, {t['robot_loop']['deadline_misses']} deadline "

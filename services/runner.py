@@ -67,6 +67,7 @@ PARTICIPANT_ROLES = {"command": "impedance_commander", "teacher": "teacher", "ft
 DEMO_TOPICS = ["robot/state", "robot/contact", "ft/wrench", "teacher/wrench"]
 REPRO_TOPICS = ["robot/state", "robot/contact", "ft/wrench", "robot/command"]
 TRANSPORTS = ("zenoh", "inproc")
+MODEL_NAMES = {"effect": "ETAR", "state": "STAR"}  # the thesis' names of the two transition models
 
 
 @dataclass(frozen=True)
@@ -126,6 +127,12 @@ class RunState:
     goal: list | None = None
     learned_from: list = field(default_factory=list)  # dicts: path, samples (what the learn stage read)
     learn_seconds: float | None = None
+    # every model the learn stage fitted, by transition model ("effect", "state"): the
+    # run's model first; dicts: name (ETAR/STAR), path, goal, phase_to_truth
+    models: dict = field(default_factory=dict)
+    # each model scored against the true phases of the demonstrations (etar.comparison),
+    # when the learn stage fitted more than one
+    offline: list = field(default_factory=list)
 
 
 class Runner:
@@ -499,29 +506,58 @@ class Runner:
         self.say(f"learned {n_phases} phases in {self.state.learn_seconds:.1f} s; model {self.state.model_path}")
 
     def _learn(self, stage, demos, work_map) -> int:
-        """Fit the model, save and adopt the learned task; the number of phases."""
+        """Fit the model(s), save them and adopt the first learned task; the number of phases."""
         sc = self.scenario
         pairs = [(d["states"], d["forces"]) for d in demos]
         options = dict(n_restarts=stage.restarts)
+        first, *others = stage.transitions
         with learning_threads(self.options.learn_threads):
             if stage.phases == "auto":
                 self.say(f"learning: {stage.criterion.upper()} over {list(stage.candidates)} phases from "
                          f"{len(pairs)} demonstrations ({sum(len(s) for s, _ in pairs)} samples)")
                 model, self.state.selection = fit_order(pairs, stage.candidates, stage.criterion, stage.selection,
-                                                        transitions=stage.transitions, seed=stage.seed,
+                                                        transitions=first, seed=stage.seed,
                                                         max_iter=stage.max_iter, progress=self.say,
                                                         fit_map=work_map, **options)
             else:
-                model = ETAR(int(stage.phases), stage.transitions, **options).fit(
+                model = ETAR(int(stage.phases), first, **options).fit(
                     pairs, max_iter=stage.max_iter, seed=stage.seed)
                 self.state.selection = dict(criterion="fixed", best=int(stage.phases), scores={}, log_likelihoods={
                     str(stage.phases): model.fit_report_.log_likelihood}, n_parameters={})
-            # which learned phase is which true phase is judged on the demonstrations only
-            task = learn_task(model, demos, float(demos[0]["dt"]), state=sc.state, features=sc.features,
-                              selection=self.state.selection, sources=[d["path"] for d in demos])
-        path = task.save(self.out / "model.json")  # a later scenario can reproduce with this file alone
-        self._adopt(task, path)
+            models = [model]
+            for transitions in others:
+                # the comparison is between transition models, so the number of phases is the first's
+                self.say(f"learning: {MODEL_NAMES[transitions]} with {model.n_phases} phases on the same "
+                         f"demonstrations")
+                models.append(ETAR(model.n_phases, transitions, **options).fit(
+                    pairs, max_iter=stage.max_iter, seed=stage.seed))
+            for i, m in enumerate(models):
+                # which learned phase is which true phase is judged on the demonstrations only
+                task = learn_task(m, demos, float(demos[0]["dt"]), state=sc.state, features=sc.features,
+                                  selection=self.state.selection, sources=[d["path"] for d in demos])
+                name = MODEL_NAMES[m.transitions]
+                # a later scenario can reproduce with this file alone
+                path = task.save(self.out / ("model.json" if i == 0 else f"model-{name}.json"))
+                self.state.models[m.transitions] = dict(name=name, path=str(path), goal=task.goal.tolist(),
+                                                        phase_to_truth=task.phase_to_truth)
+                if i == 0:
+                    self._adopt(task, path)
+            if others:
+                self._score_offline(models, demos)
         return model.n_phases
+
+    def _score_offline(self, models, demos) -> None:
+        """Each model's Viterbi and online filter against the demonstrations' true phases."""
+        from etar.comparison import evaluate
+
+        pairs = [(d["states"], d["forces"]) for d in demos]
+        truths = [d["phases"] for d in demos]
+        for m in models:
+            e = evaluate(m, pairs, truths, float(demos[0]["dt"]), seed=self.scenario.learn_stage.seed)
+            self.state.offline.append(dict(model=MODEL_NAMES[m.transitions], **e.to_dict()))
+            self.say(f"offline, {MODEL_NAMES[m.transitions]}: filter accuracy {e.filtered.accuracy:.4f}, Viterbi "
+                     f"{e.viterbi.accuracy:.4f}, {e.filtered.spurious_switches} spurious switches, "
+                     f"one-step error near transitions {e.error_near_transitions:.3g}")
 
     def _adopt(self, task: LearnedTask, path: Path) -> None:
         self.state.model_path = str(path)
@@ -539,27 +575,38 @@ class Runner:
         self._adopt(task, Path(path))
         self.say(f"model {path}: {task.n_phases} phases, goal {np.round(task.goal, 3).tolist()}")
 
+    def _reproduction_models(self, stage) -> list[dict]:
+        """The model(s) each start of ``stage`` is reproduced with."""
+        if stage.transitions is None:
+            return [dict(name=None, path=self.state.model_path, goal=self.state.goal,
+                         phase_to_truth=self.state.phase_to_truth)]
+        return [self.state.models[t] for t in stage.transitions]
+
     def stage_reproduce(self, stage):
         sc = self.scenario
         if self.state.model_path is None:
             raise RuntimeError("reproduce needs a learned model")
         demo_starts = [(d["side"], tuple(d["start"])) for d in self.state.demonstrations]
         starts = reproduction_starts(stage, sc.world, stage.seed, demo_starts)
-        model_path = str(Path(self.state.model_path).resolve())
-        for i, (side, start) in enumerate(starts):
+        models = self._reproduction_models(stage)
+        episodes = [(side, start, m) for side, start in starts for m in models]
+        for side, start, m in episodes:
             index = len(self.state.reproductions)
             path = self._prepare("reproduction", index, start)
+            model_path = str(Path(m["path"]).resolve())
             self._estimator_reset = dict(model=model_path, episode=index)
             self._req("phase_estimator", "reset", **self._estimator_reset)
-            goal = list(self.state.goal)
+            goal = list(m["goal"])
             self._req("impedance_commander", "reset", model=model_path, episode=index, goal=goal,
                       goal_tolerance=stage.goal_tolerance)
+            label = f"reproduction {index + 1}/{len(episodes)}" + (f" ({m['name']})" if m["name"] else "")
             summary = self._run_episode(["command"], "goal_reached" if stage.stop_at_goal else None,
-                                        stage.max_seconds, label=f"reproduction {index + 1}/{len(starts)}")
+                                        stage.max_seconds, label=label)
             rec = self._finish("reproduction", index, summary, REPRO_TOPICS)
             self.state.reproductions.append(dict(path=str(path), side=side, start=list(start), summary=summary,
-                                                 recording=rec, max_contact_force=stage.max_contact_force))
-            self.say(f"reproduction {index + 1}/{len(starts)} ({side}): {summary['reason']}, peak contact "
+                                                 recording=rec, max_contact_force=stage.max_contact_force,
+                                                 model=m["name"], phase_to_truth=m["phase_to_truth"]))
+            self.say(f"{label} ({side}): {summary['reason']}, peak contact "
                      f"{summary['peak_contact_force']:.1f} N, {summary['sim_seconds']:.1f} s simulated / "
                      f"{summary['wall_seconds']:.1f} s wall")
             self._stop_if_lost()

@@ -274,6 +274,18 @@ def _sides(value: Any, name: str) -> tuple[str, ...]:
     return tuple(_choice(v, f"{name}[{i}]", SIDES) for i, v in enumerate(items))
 
 
+def _transitions(value: Any, name: str) -> tuple[str, ...]:
+    """One transition model or a list of distinct ones (``[effect, state]``: ETAR and STAR)."""
+    items = [value] if isinstance(value, str) else _list(value, name, "transition models")
+    if not items:
+        raise ScenarioError(f"expected one of {', '.join(TRANSITIONS)} or a list of them", path=name, value=value)
+    for i, item in enumerate(items):
+        _choice(item, f"{name}[{i}]" if not isinstance(value, str) else name, TRANSITIONS)
+    if len(set(items)) != len(items):
+        raise ScenarioError("a transition model is listed twice", path=name, value=list(items))
+    return tuple(items)
+
+
 def _phases(value: Any, name: str) -> int | str:
     if isinstance(value, str) and value == "auto":
         return value
@@ -383,13 +395,19 @@ class LearnStage:
 
     With ``phases == 'auto'`` each of ``candidates`` is fitted and ``criterion`` picks
     one; with a fixed ``phases`` the candidates are not used (see `phase_counts`).
+
+    ``transitions``: ``effect`` (ETAR), ``state`` (STAR) or a list of both.  With a list
+    the first is the run's model (``model.json``; it alone chooses the number of
+    phases); each further one is fitted with that number of phases on the same
+    demonstrations (``model-STAR.json``), and every one is scored against the true
+    phases (thesis 6.3), so a reproduce stage can run the same starts with each.
     """
 
     phases: int | str = "auto"
     candidates: tuple[int, ...] = (1, 2, 3, 4, 5, 6)
     criterion: str = "bic"
     selection: str = "per_demonstration"
-    transitions: str = "effect"
+    transitions: str | tuple[str, ...] = ("effect",)
     restarts: int = 4
     max_iter: int = 200
     seed: int | None = None
@@ -408,7 +426,7 @@ class LearnStage:
         _set(self, "candidates", _candidates(self.candidates, "candidates"))
         _set(self, "criterion", _choice(self.criterion, "criterion", CRITERIA))
         _set(self, "selection", _choice(self.selection, "selection", SELECTIONS))
-        _set(self, "transitions", _choice(self.transitions, "transitions", TRANSITIONS))
+        _set(self, "transitions", _transitions(self.transitions, "transitions"))
         _set(self, "restarts", _int(self.restarts, "restarts", 1))
         _set(self, "max_iter", _int(self.max_iter, "max_iter", 1))
         if self.seed is not None:
@@ -427,6 +445,9 @@ class ReproduceStage(_MotionStage):
     while closer than ``min_distance_from_demonstrations`` to a demonstration start of
     that side.  It succeeds when it ends within ``goal_tolerance`` of the goal, inside
     ``max_seconds`` and without a contact force above ``max_contact_force``.
+    ``transitions`` (default: the run's model): with a list, every start is reproduced
+    once with the model of each listed transition model, which the learn stage must
+    have learned (``[effect, state]``: the same starts driven by ETAR and by STAR).
     """
 
     count: int
@@ -439,6 +460,7 @@ class ReproduceStage(_MotionStage):
     max_contact_force: float = 60.0
     max_seconds: float = 40.0
     stop_at_goal: bool = True
+    transitions: str | tuple[str, ...] | None = None
     seed: int | None = None
 
     @property
@@ -459,6 +481,8 @@ class ReproduceStage(_MotionStage):
         _set(self, "max_contact_force", _number(self.max_contact_force, "max_contact_force", 0.0, strict=True))
         _set(self, "max_seconds", _seconds(self.max_seconds, "max_seconds"))
         _set(self, "stop_at_goal", _bool(self.stop_at_goal, "stop_at_goal"))
+        if self.transitions is not None:
+            _set(self, "transitions", _transitions(self.transitions, "transitions"))
         if self.seed is not None:
             _set(self, "seed", _seed(self.seed, "seed"))
 
@@ -584,6 +608,15 @@ class Scenario:
                 raise ScenarioError("expected a DemonstrateStage, LearnStage or ReproduceStage",
                                     path=f"stages[{i}]", value=stage)
         _check_stage_order([stage.kind for stage in stages], self.model is not None)
+        learned = next((s.transitions for s in stages if s.kind == "learn"), ())
+        for i, stage in enumerate(stages):
+            if stage.kind == "reproduce" and stage.transitions is not None:
+                missing = [t for t in stage.transitions if t not in learned]
+                if missing:
+                    raise ScenarioError(
+                        f"the learn stage learns {list(learned) or 'nothing (the model file is used)'}, not "
+                        f"{missing}: reproduce with the models learned here, or add them to learn.transitions",
+                        path=f"stages[{i}].reproduce.transitions", value=list(stage.transitions))
         resolved = []
         ordinal = {kind: 0 for kind in STAGE_TYPES}
         for i, stage in enumerate(stages):

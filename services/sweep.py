@@ -201,6 +201,12 @@ def run_one(spec: RunSpec) -> dict:
             peak_contact_force_n=max((r["peak_contact_force"] for r in repro), default=None),
             simulated_s=s["simulated_seconds"], episode_wall_s=s["episode_wall_seconds"],
             real_time_factor=s["real_time_factor"], learn_s=report["learning"].get("seconds"))
+        if s.get("by_model"):
+            # a run that reproduced with several models (ETAR and STAR): its figures per model
+            from services.compare import run_summary
+
+            row["by_model"] = {name: {k: v["mean"] for k, v in figures.items()}
+                               for name, figures in run_summary([report]).items()}
     row["wall_s"] = time.monotonic() - t0
     out = Path(spec.out)
     if spec.record == "none":
@@ -262,6 +268,42 @@ def execute(specs: list[RunSpec], workers: int, cluster: str | None, say=print) 
                 done(futures[fut], fut.result())
     bar.close()
     return [rows[i] for i in sorted(rows)]
+
+
+def by_model_rows(rows: list[dict]) -> list[dict]:
+    """A run that reproduced with several models becomes one row per model (``param
+    model``), its overall figures replaced by that model's; other rows stay as they are."""
+    out = []
+    for row in rows:
+        models = row.get("by_model")
+        if not models:
+            out.append(row)
+            continue
+        base = {k: v for k, v in row.items() if k != "by_model"}
+        for name, figures in models.items():
+            r = dict(base, **{"param model": name}, **figures)
+            if r.get("reproductions") and figures.get("success_rate") is not None:
+                r["reproductions"] = None  # the run's count is of every model's reproductions
+                r["successes"] = None
+            r["peak_contact_force_n"] = figures.get("mean_peak_contact_force_n", r.get("peak_contact_force_n"))
+            out.append(r)
+    return out
+
+
+def comparison_over_seeds(rows: list[dict]) -> list[str] | None:
+    """ETAR against STAR over the sweep's runs (one per data seed): the verdict of
+    ``services.compare.verdict`` on each figure's mean and spread over the runs."""
+    from services.compare import OFFLINE, ONLINE, _stat, verdict
+
+    rows = [r for r in rows if r.get("param model") in ("ETAR", "STAR") and not r.get("error")]
+    if not rows:
+        return None
+    summary = {name: {k: st for k, _, _ in OFFLINE + ONLINE
+                      if (st := _stat(r.get(k) for r in rows if r["param model"] == name)) is not None}
+               for name in ("ETAR", "STAR")}
+    seeds = sorted({r["seed"] for r in rows})
+    return [f"ETAR against STAR over {len(seeds)} data seed(s) ({', '.join(map(str, seeds))}): each figure's "
+            f"mean over the runs (min..max)", *verdict(summary)]
 
 
 def _progress(total: int):
@@ -353,11 +395,20 @@ def sweep(scenario: str, parameters: list, *, repeats: int, out: str, record: st
     t0 = time.monotonic()
     rows = execute(specs, min(workers, len(specs)), cluster, say)
     wall = time.monotonic() - t0
+    n_runs, n_failed = len(rows), sum(1 for r in rows if r.get("error"))
+    rows = by_model_rows(rows)
+    comparison = comparison_over_seeds(rows)
+    if comparison:
+        (out_dir / "comparison.txt").write_text("\n".join(comparison) + "\n")
+        say("\n".join(comparison))
+        parameters = [*parameters, Parameter("model", tuple(dict.fromkeys(r["param model"] for r in rows
+                                                                             if r.get("param model"))))]
     csv_path, json_path = write_table(rows, out_dir)
     pngs = plot(rows, parameters, out_dir)
     summary = dict(scenario=scenario, parameters={p.path: list(p.values) for p in parameters}, repeats=repeats,
-                   runs=len(rows), failed=sum(1 for r in rows if r.get("error")), wall_seconds=wall,
+                   runs=n_runs, failed=n_failed, wall_seconds=wall,
                    workers=workers, cluster=cluster, learn_threads=threads,
-                   table=str(csv_path), plots=[str(p) for p in pngs])
+                   table=str(csv_path), plots=[str(p) for p in pngs],
+                   comparison=str(out_dir / "comparison.txt") if comparison else None)
     (out_dir / "sweep.json").write_text(json.dumps(summary, indent=1) + "\n")
     return summary

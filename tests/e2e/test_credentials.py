@@ -22,7 +22,7 @@ def test_only_the_runs_credentials_get_a_message_into_or_out_of_it(tmp_path):
                                                       "impedance_commander", "recorder", "intruder"))
     evil = make_credentials(tmp_path / "evil", roles=("robot",))
     run_id = f"tls-{int(time.time() * 1000)}"
-    runner = Runner(RunOptions(scenario=hold_scenario(tmp_path, 4), out=str(tmp_path / "out"), clock="lockstep",
+    runner = Runner(RunOptions(figures=False, scenario=hold_scenario(tmp_path, 4), out=str(tmp_path / "out"), clock="lockstep",
                                run_id=run_id, tls=str(creds)), progress=print)
     result = {}
     thread = threading.Thread(target=lambda: result.setdefault("report", runner.run()), daemon=True)
@@ -78,6 +78,6 @@ def test_only_the_runs_credentials_get_a_message_into_or_out_of_it(tmp_path):
 def test_missing_credentials_are_named_before_anything_starts(tmp_path):
     creds = make_credentials(tmp_path / "c", roles=("robot",))  # the other roles have none
     with pytest.raises(CredentialsError, match=r"ft_sensor\.pem: missing"):
-        Runner(RunOptions(scenario=hold_scenario(tmp_path, 1), out=str(tmp_path / "out"), tls=str(creds)))
+        Runner(RunOptions(figures=False, scenario=hold_scenario(tmp_path, 1), out=str(tmp_path / "out"), tls=str(creds)))
     with pytest.raises(CredentialsError, match="expected an IP address"):
         make_credentials(tmp_path / "d", hosts=("not-an-ip",))

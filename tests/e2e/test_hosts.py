@@ -57,7 +57,7 @@ def _processes_in(namespace: str) -> list[str]:
 
 def test_the_smoke_scenario_passes_with_its_services_on_three_hosts_over_tls(tmp_path):
     creds = make_credentials(tmp_path / "creds", hosts=(ROUTER_ADDRESS,))
-    runner = Runner(RunOptions(scenario=SMOKE, out=str(tmp_path / "out"), run_id=f"hosts-{int(time.time() * 1000)}",
+    runner = Runner(RunOptions(figures=False, scenario=SMOKE, out=str(tmp_path / "out"), run_id=f"hosts-{int(time.time() * 1000)}",
                                hosts=LAYOUT, tls=str(creds)), progress=print)
     result = {}
     thread = threading.Thread(target=lambda: result.setdefault("report", runner.run()), daemon=True)
@@ -87,7 +87,7 @@ def test_the_smoke_scenario_passes_with_its_services_on_three_hosts_over_tls(tmp
 
 def test_a_host_cut_off_mid_reproduction_makes_the_arm_hold_and_the_report_name_it(tmp_path):
     run_id = f"cut-{int(time.time() * 1000)}"
-    runner = Runner(RunOptions(scenario=hold_scenario(tmp_path, 10), out=str(tmp_path / "out"), clock="lockstep",
+    runner = Runner(RunOptions(figures=False, scenario=hold_scenario(tmp_path, 10), out=str(tmp_path / "out"), clock="lockstep",
                                run_id=run_id, hosts="robot,ft_sensor:phase_estimator,impedance_commander:recorder"),
                     progress=print)
     result = {}

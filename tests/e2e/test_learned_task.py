@@ -16,7 +16,7 @@ def test_a_model_learned_by_etar_learn_is_reproduced_by_a_scenario(tmp_path):
     # the smoke scenario's demonstrations alone
     only_demos = smoke[:smoke.index("  - learn:")]
     (tmp_path / "demos.yaml").write_text(only_demos)
-    report = run(RunOptions(scenario=str(tmp_path / "demos.yaml"), out=str(demo), transport="inproc"))
+    report = run(RunOptions(figures=False, scenario=str(tmp_path / "demos.yaml"), out=str(demo), transport="inproc"))
     assert report["error"] is None and len(report["demonstrations"]) == 2
 
     recordings = sorted(str(p) for p in (demo / "recordings").glob("demonstration_*.mcap"))
@@ -29,7 +29,7 @@ def test_a_model_learned_by_etar_learn_is_reproduced_by_a_scenario(tmp_path):
     reproduce = smoke[smoke.index("  - reproduce:"):]
     (tmp_path / "reproduce.yaml").write_text(
         "name: reproduce_learned\nworld: valley\nseed: 0\nmodel: learned/model.json\nstages:\n" + reproduce)
-    report = run(RunOptions(scenario=str(tmp_path / "reproduce.yaml"), out=str(tmp_path / "repro"),
+    report = run(RunOptions(figures=False, scenario=str(tmp_path / "reproduce.yaml"), out=str(tmp_path / "repro"),
                             transport="inproc"))
     assert report["error"] is None, report["error"]
     (rp,) = report["reproductions"]

@@ -46,7 +46,7 @@ def test_smoke_lockstep_twice_at_once_is_deterministic_isolated_and_the_same_in_
 
     def go(name, scenario):
         t = time.monotonic()
-        results[name] = (run(RunOptions(scenario=scenario, out=str(tmp_path / name), run_id=f"e2e-{name}-{int(t)}"),
+        results[name] = (run(RunOptions(figures=False, scenario=scenario, out=str(tmp_path / name), run_id=f"e2e-{name}-{int(t)}"),
                              progress=lambda m: print(f"[{name}] {m}")), time.monotonic() - t)
 
     threads = [threading.Thread(target=go, args=(n, sc)) for n, sc in (("a", SMOKE), ("b", str(demos_only)))]
@@ -81,7 +81,7 @@ def test_smoke_lockstep_twice_at_once_is_deterministic_isolated_and_the_same_in_
     # every message handed over in memory is checked against what its bytes decode to
     monkeypatch.setenv("ETAR_INPROC_CHECK", "1")
     t = time.monotonic()
-    report_c = run(RunOptions(scenario=SMOKE, out=str(tmp_path / "c"), transport="inproc", run_id="e2e-c"),
+    report_c = run(RunOptions(figures=False, scenario=SMOKE, out=str(tmp_path / "c"), transport="inproc", run_id="e2e-c"),
                    progress=lambda m: print(f"[inproc] {m}"))
     print(f"run c (inproc): {time.monotonic() - t:.1f} s wall")
     assert report_c["error"] is None, report_c["error"]
@@ -105,7 +105,7 @@ def test_smoke_realtime_completes_with_its_deadline_report(tmp_path):
     head, sep, tail = text.rpartition("max_seconds: 15")
     (tmp_path / "smoke_rt.yaml").write_text(head + "max_seconds: 6" + tail)
     t = time.monotonic()
-    report = run(RunOptions(scenario=str(tmp_path / "smoke_rt.yaml"), out=str(tmp_path / "run"), clock="realtime"),
+    report = run(RunOptions(figures=False, scenario=str(tmp_path / "smoke_rt.yaml"), out=str(tmp_path / "run"), clock="realtime"),
                  progress=print)
     print(f"realtime smoke: {time.monotonic() - t:.1f} s wall; {report['error']}")
     assert report["environment"]["clock"] == "realtime"
@@ -172,7 +172,7 @@ def test_injected_commander_stall_shows_up_as_fri_misses_and_quality_drops(tmp_p
     stall instants."""
     every, stall_ms = 0.5, 3.0
     t = time.monotonic()
-    report = run(RunOptions(scenario=hold_scenario(tmp_path, 6), out=str(tmp_path / "run"), sched_fifo=True,
+    report = run(RunOptions(figures=False, scenario=hold_scenario(tmp_path, 6), out=str(tmp_path / "run"), sched_fifo=True,
                             isolate_robot=True,
                             commander_args=("--stall-every", str(every), "--stall-ms", str(stall_ms))),
                  progress=print)

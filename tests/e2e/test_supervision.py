@@ -52,7 +52,7 @@ def test_a_service_killed_mid_reproduction_fails_the_run_at_once_and_keeps_the_e
     peer = open_session(ZenohOptions(listen=(endpoint,)))
 
     def go():
-        result["report"] = run(RunOptions(scenario=hold_scenario(tmp_path, 10), out=str(tmp_path / "run"),
+        result["report"] = run(RunOptions(figures=False, scenario=hold_scenario(tmp_path, 10), out=str(tmp_path / "run"),
                                           clock=clock, run_id=run_id, zenoh=ZenohOptions(connect=(endpoint,)),
                                           robot_args=("--answer-timeout", "1") if sig == signal.SIGSTOP else ()),
                                progress=print)
@@ -170,7 +170,7 @@ def test_a_saturating_sensor_over_zenoh_holds_the_arm_and_fails_the_run(tmp_path
     """The ATI sensor process saturates 2 s into a realtime reproduction (its --fault flag):
     the estimator flags its estimate, the commander holds the arm stiffly at once, the
     robot ends the episode after a second of hold, and the run fails naming the hold."""
-    report = run(RunOptions(scenario=hold_scenario(tmp_path, 10), out=str(tmp_path / "run"), clock="realtime",
+    report = run(RunOptions(figures=False, scenario=hold_scenario(tmp_path, 10), out=str(tmp_path / "run"), clock="realtime",
                             run_id=f"saturate-{int(time.time() * 1000)}",
                             sensor_args=("--fault", "saturate", "--fault-after", "2")), progress=print)
     (rp,) = report["reproductions"]
@@ -213,7 +213,7 @@ def test_services_with_a_restart_policy_come_back_and_the_run_goes_on(tmp_path):
 
     sub = peer.declare_subscriber(topics.key(run_id, "robot/state"), on_state)
     try:
-        report = run(RunOptions(scenario=str(scenario), out=str(tmp_path / "run"), clock="lockstep", run_id=run_id,
+        report = run(RunOptions(figures=False, scenario=str(scenario), out=str(tmp_path / "run"), clock="lockstep", run_id=run_id,
                                 zenoh=ZenohOptions(connect=(endpoint,))), progress=print)
     finally:
         sub.undeclare()

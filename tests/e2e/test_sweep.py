@@ -128,3 +128,36 @@ def test_a_sweep_on_a_dask_cluster(tmp_path, dask_cluster):
     check(result, out, 2, "none")
     worker_log = (tmp_path / "worker.log").read_text()
     assert re.search(r"Registered to", worker_log), worker_log[-2000:]
+
+
+def test_a_sweep_of_etar_against_star_over_data_seeds(tmp_path):
+    """The smoke scenario learning both transition models and reproducing its start with
+    each, over two data seeds: a row per run and model, each run's own figures, and the
+    verdict over the seeds."""
+    text = (ROOT / "scenarios" / "smoke.yaml").read_text()
+    text = text.replace("      max_iter: 60\n", "      max_iter: 60\n      transitions: [effect, state]\n")
+    text += "      transitions: [effect, state]\n"  # the reproduce stage is the last
+    assert text.count("transitions: [effect, state]") == 2
+    scenario = tmp_path / "smoke_star.yaml"
+    scenario.write_text(text)
+    out = tmp_path / "sweep"
+    result = sweep(str(scenario), [], repeats=2, out=str(out), record="summary", workers=2, say=print)
+    assert result["runs"] == 2 and result["failed"] == 0, result
+    rows = list(csv.DictReader((out / "table.csv").open()))
+    assert [(r["seed"], r["param model"]) for r in rows] == [("0", "ETAR"), ("0", "STAR"), ("1", "ETAR"), ("1", "STAR")]
+    for row in rows:
+        assert float(row["success_rate"]) == 1.0 and 0.5 < float(row["online_phase_accuracy"]) <= 1.0
+        assert 0.5 < float(row["filter_accuracy"]) <= 1.0 and float(row["filter_spurious_switches"]) >= 0
+    comparison = (out / "comparison.txt").read_text()
+    assert comparison.startswith("ETAR against STAR over 2 data seed(s) (0, 1)") and "the thesis' claim" in comparison
+    assert (out / "model.png").stat().st_size > 10_000
+    for run in sorted((out / "runs").iterdir()):
+        report = json.loads((run / "report.json").read_text())
+        assert sorted(report["learning"]["models"]) == ["ETAR", "STAR"]
+        assert (run / report["learning"]["models"]["STAR"]["path"]).exists()
+        assert [o["model"] for o in report["learning"]["offline"]] == ["ETAR", "STAR"]
+        assert [r["model"] for r in report["reproductions"]] == ["ETAR", "STAR"]
+        # the same start, each judged by its own model's phase mapping
+        assert report["reproductions"][0]["start"] == report["reproductions"][1]["start"]
+        assert all(r["phases"]["accuracy"] > 0.5 for r in report["reproductions"])
+        assert "ETAR against STAR (thesis 6.3)" in (run / "report.txt").read_text()

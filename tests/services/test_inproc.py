@@ -38,7 +38,7 @@ def test_scenario_cell_parameters_reach_the_nodes(tmp_path):
     scenario = tmp_path / "s.yaml"
     scenario.write_text((ROOT / "scenarios" / "smoke.yaml").read_text() +
                         "cell: {sensor_noise: 2.5, plate_friction: 0.4, fri_packet_loss: 0.1}\n")
-    configs = Runner(RunOptions(scenario=str(scenario), out=str(tmp_path / "out"), transport="inproc")).node_configs()
+    configs = Runner(RunOptions(figures=False, scenario=str(scenario), out=str(tmp_path / "out"), transport="inproc")).node_configs()
     assert configs["ft_sensor"].noise_scale == 2.5
     assert configs["robot"].plate_friction == 0.4 and configs["robot"].fri_packet_loss == 0.1
     assert 'friction="0.4 ' in configs["robot"].world_spec().xml
@@ -65,7 +65,7 @@ def test_fri_link_delay_jitter_and_corruption_degrade_the_link_as_fri_does(tmp_p
     scenario = tmp_path / "s.yaml"
     scenario.write_text((ROOT / "scenarios" / "smoke.yaml").read_text() +
                         "cell: {fri_delay_ms: 0.5, fri_jitter_ms: 1.2, fri_corruption: 0.1}\n")
-    robot = Runner(RunOptions(scenario=str(scenario), out=str(tmp_path / "out"), transport="inproc")).node_configs()[
+    robot = Runner(RunOptions(figures=False, scenario=str(scenario), out=str(tmp_path / "out"), transport="inproc")).node_configs()[
         "robot"]
     faults = robot.link_faults()
     assert (faults.delay_ns, faults.jitter_ns, faults.corrupt_probability) == (500_000, 1_200_000, 0.1)
@@ -82,7 +82,7 @@ def test_fri_link_delay_jitter_and_corruption_degrade_the_link_as_fri_does(tmp_p
                        ("fri_corruption: 1.5", "fri_corruption")):
         scenario.write_text((ROOT / "scenarios" / "smoke.yaml").read_text() + f"cell: {{{bad}}}\n")
         with pytest.raises(Exception, match=f"cell.{field}"):
-            Runner(RunOptions(scenario=str(scenario), out=str(tmp_path / "out"), transport="inproc"))
+            Runner(RunOptions(figures=False, scenario=str(scenario), out=str(tmp_path / "out"), transport="inproc"))
 
 
 def test_control_errors_name_the_role_and_the_command():
@@ -240,7 +240,7 @@ def test_a_transient_fri_dropout_leaves_command_mode_and_it_comes_back(tmp_path)
     and once the link is PERFECT again command mode is entered again; the report says so."""
     from services.runner import run
 
-    report = run(RunOptions(scenario=str(ROOT / "scenarios" / "fri_dropout.yaml"), out=str(tmp_path / "out"),
+    report = run(RunOptions(figures=False, scenario=str(ROOT / "scenarios" / "fri_dropout.yaml"), out=str(tmp_path / "out"),
                             transport="inproc", run_id="dropout"))
     for rp in report["reproductions"]:
         fri, states = rp["fri"], rp["fri_quality"]["state_changes"]
@@ -269,7 +269,7 @@ def test_fri_fault_window_and_order_faults_are_checked_in_the_scenario(tmp_path)
     scenario = tmp_path / "s.yaml"
     base = (ROOT / "scenarios" / "smoke.yaml").read_text()
     scenario.write_text(base + "cell: {fri_reordering: 0.01, fri_faults_from_s: 0.5, fri_faults_until_s: 0.8}\n")
-    robot = Runner(RunOptions(scenario=str(scenario), out=str(tmp_path / "out"), transport="inproc")).node_configs()[
+    robot = Runner(RunOptions(figures=False, scenario=str(scenario), out=str(tmp_path / "out"), transport="inproc")).node_configs()[
         "robot"]
     assert robot.link_faults().reorder_probability == 0.01
     assert [robot.faults_active(t) for t in (0.4, 0.5, 0.79, 0.8)] == [False, True, True, False]
@@ -279,7 +279,7 @@ def test_fri_fault_window_and_order_faults_are_checked_in_the_scenario(tmp_path)
         body = bad if bad.startswith("{") else "{" + bad + "}"
         scenario.write_text(base + f"cell: {body}\n")
         with pytest.raises(Exception, match=f"cell.{field}"):
-            Runner(RunOptions(scenario=str(scenario), out=str(tmp_path / "out"), transport="inproc"))
+            Runner(RunOptions(figures=False, scenario=str(scenario), out=str(tmp_path / "out"), transport="inproc"))
 
 
 @pytest.mark.parametrize("fault, reason, within", [("stop", "stale_estimate", 51), ("saturate", "wrench_saturated", 10),

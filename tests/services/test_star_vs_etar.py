@@ -1,0 +1,107 @@
+"""ETAR against STAR: the verdict on the thesis' claim, the sweep's rows per model, and the
+scenario keys that ask for both models, on hand-made figures whose answer is known."""
+
+import pytest
+
+from services.compare import verdict
+from services.scenario import ScenarioError, load_scenario
+from services.sweep import by_model_rows, comparison_over_seeds
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def figures(**values):
+    """{key: stat} from key=(mean, min, max, n)."""
+    return {k: {"mean": v[0], "min": v[1], "max": v[2], "n": v[3]} for k, v in values.items()}
+
+
+def claim(etar: dict, star: dict) -> str:
+    return verdict({"ETAR": etar, "STAR": star})[-1]
+
+
+CLEAR_ETAR = figures(filter_accuracy=(0.99, 0.985, 0.995, 3), filter_spurious_switches=(2, 1, 3, 3),
+                     error_near_transitions=(1e-8, 0.9e-8, 1.1e-8, 3))
+CLEAR_STAR = figures(filter_accuracy=(0.95, 0.94, 0.96, 3), filter_spurious_switches=(9, 8, 10, 3),
+                     error_near_transitions=(5e-8, 4e-8, 6e-8, 3))
+
+
+def test_the_claim_holds_when_etar_is_better_on_every_figure_by_more_than_the_spread():
+    text = claim(CLEAR_ETAR, CLEAR_STAR)
+    assert "HOLDS" in text and "predictions worse at transitions: STAR" in text
+
+
+def test_the_claim_fails_when_star_is_clearly_better_on_one_figure():
+    text = claim(CLEAR_STAR, CLEAR_ETAR)
+    assert "does NOT hold" in text
+    lines = verdict({"ETAR": CLEAR_STAR, "STAR": CLEAR_ETAR})
+    assert any(line.strip().startswith("online filter accuracy") and line.endswith("better: STAR") for line in lines)
+
+
+def test_differences_inside_the_seed_spread_only_hold_in_direction_and_one_seed_cannot_judge():
+    wide = figures(filter_accuracy=(0.97, 0.90, 0.99, 3), filter_spurious_switches=(5, 1, 20, 3),
+                   error_near_transitions=(2e-8, 1e-8, 9e-8, 3))
+    worse = figures(filter_accuracy=(0.96, 0.90, 0.99, 3), filter_spurious_switches=(6, 1, 20, 3),
+                    error_near_transitions=(3e-8, 1e-8, 9e-8, 3))
+    assert "holds in direction only" in claim(wide, worse)
+    assert "is not decided here" in claim(worse, wide)
+    one = {k: dict(v, n=1, min=v["mean"], max=v["mean"]) for k, v in CLEAR_ETAR.items()}
+    other = {k: dict(v, n=1, min=v["mean"], max=v["mean"]) for k, v in CLEAR_STAR.items()}
+    assert "cannot be judged from one seed (in direction it holds)" in claim(one, other)
+    assert "cannot be judged from one seed (in direction it does not hold)" in claim(other, one)
+
+
+def test_online_figures_count_for_accuracy_and_a_missing_figure_drops_the_claim():
+    online_worse = dict(CLEAR_ETAR, **figures(online_phase_accuracy=(0.90, 0.89, 0.91, 3)))
+    online_better = dict(CLEAR_STAR, **figures(online_phase_accuracy=(0.99, 0.98, 1.0, 3)))
+    assert "does NOT hold" in claim(online_worse, online_better)
+    no_switches = {k: v for k, v in CLEAR_ETAR.items() if k != "filter_spurious_switches"}
+    assert not any("the thesis' claim" in line for line in verdict({"ETAR": no_switches, "STAR": CLEAR_STAR}))
+
+
+def test_a_sweep_row_of_a_run_with_two_models_becomes_a_row_per_model_and_the_seeds_are_compared():
+    rows = []
+    for seed, (a, b) in enumerate([(0.99, 0.95), (0.98, 0.96)]):
+        rows.append({"run": f"run{seed:03d}", "seed": seed, "error": None, "successes": 4, "reproductions": 4,
+                     "online_phase_accuracy": (a + b) / 2, "by_model": {
+                         "ETAR": {"filter_accuracy": a, "filter_spurious_switches": 2.0, "error_near_transitions": 1e-8,
+                                  "success_rate": 1.0, "online_phase_accuracy": a, "mean_peak_contact_force_n": 20.0},
+                         "STAR": {"filter_accuracy": b, "filter_spurious_switches": 7.0, "error_near_transitions": 3e-8,
+                                  "success_rate": 0.5, "online_phase_accuracy": b, "mean_peak_contact_force_n": 25.0}}})
+    rows.append({"run": "run002", "seed": 2, "error": "RuntimeError: boom"})
+    out = by_model_rows(rows)
+    assert [(r["run"], r.get("param model")) for r in out] == [("run000", "ETAR"), ("run000", "STAR"),
+                                                                ("run001", "ETAR"), ("run001", "STAR"), ("run002", None)]
+    assert out[1]["online_phase_accuracy"] == 0.95 and out[1]["peak_contact_force_n"] == 25.0
+    assert out[1]["successes"] is None and "by_model" not in out[1]
+    text = comparison_over_seeds(out)
+    assert text[0].startswith("ETAR against STAR over 2 data seed(s) (0, 1)")
+    assert "HOLDS" in text[-1]
+    success = next(line for line in text if "reproductions reaching the goal" in line)
+    assert "ETAR          1 (1..1)" in success and "STAR        0.5 (0.5..0.5)" in success
+    assert comparison_over_seeds([{"run": "r", "seed": 0, "error": None}]) is None
+
+
+def test_the_star_vs_etar_scenario_learns_both_models_and_reproduces_each_start_with_both():
+    sc = load_scenario(ROOT / "scenarios" / "star_vs_etar.yaml")
+    assert sc.learn_stage.transitions == ("effect", "state")
+    assert sc.reproduce_stages[0].transitions == ("effect", "state")
+    assert load_scenario(ROOT / "scenarios" / "valley.yaml").learn_stage.transitions == ("effect",)
+
+
+@pytest.mark.parametrize("learn, reproduce, path, message", [
+    ("[effect, effect]", None, "stages[1].learn.transitions", "listed twice"),
+    ("[effect, star]", None, "stages[1].learn.transitions[1]", "expected one of 'effect', 'state'"),
+    ("[]", None, "stages[1].learn.transitions", "expected one of effect, state or a list"),
+    ("effect", "[effect, state]", "stages[2].reproduce.transitions", "the learn stage learns ['effect'], not ['state']"),
+])
+def test_bad_transition_lists_are_refused_naming_the_field(tmp_path, learn, reproduce, path, message):
+    text = (ROOT / "scenarios" / "star_vs_etar.yaml").read_text()
+    text = text.replace("      transitions: [effect, state]   # the first", f"      transitions: {learn}   # the first")
+    if reproduce is not None:
+        text = text.replace("      transitions: [effect, state]   # every", f"      transitions: {reproduce}   # every")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(text)
+    with pytest.raises(ScenarioError) as err:
+        load_scenario(bad)
+    assert path in str(err.value) and message in str(err.value) and "bad.yaml" in str(err.value)
