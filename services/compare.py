@@ -105,10 +105,29 @@ def verdict(summary: dict) -> list[str]:
         held = "holds in direction only: the differences are not larger than the spread between seeds"
     else:
         held = "is not decided here: the differences either way are not larger than the spread between seeds"
-    worse = "STAR" if near.startswith("ETAR") else ("ETAR" if near.startswith("STAR") else near)
+    worse = ("STAR" + near[4:]) if near.startswith("ETAR") else (("ETAR" + near[4:]) if near.startswith("STAR")
+                                                                else near)
     lines.append(f"the thesis' claim (ETAR's transitions smoother and more accurate, STAR's predictions worse at "
-                 f"transitions) {held} here: more accurate: {'; '.join(accurate)}; smoother (fewer spurious "
-                 f"switches): {smooth}; predictions worse at transitions: {worse}")
+                 f"transitions) {held}. More accurate: {'; '.join(accurate)}. Smoother (fewer spurious "
+                 f"switches): {smooth}. Predictions worse at transitions: {worse}")
+    return lines
+
+
+def paired(rows_by_seed: dict) -> list[str]:
+    """Per figure, in how many data seeds each model was the better: a paired count, which a
+    spread over seeds that moves both models together hides.  ``rows_by_seed``: {seed:
+    {"ETAR": {key: value}, "STAR": {key: value}}}."""
+    lines = []
+    for key, what, higher_better in OFFLINE + ONLINE:
+        pairs = [(m["ETAR"].get(key), m["STAR"].get(key)) for m in rows_by_seed.values()
+                 if "ETAR" in m and "STAR" in m]
+        pairs = [(a, b) for a, b in pairs if a is not None and b is not None and np.isfinite(a) and np.isfinite(b)]
+        if not pairs:
+            continue
+        etar = sum((a > b) == higher_better and a != b for a, b in pairs)
+        star = sum((a < b) == higher_better and a != b for a, b in pairs)
+        lines.append(f"  {what:<40} ETAR better in {etar} of {len(pairs)} seeds, STAR in {star}, equal in "
+                     f"{len(pairs) - etar - star}")
     return lines
 
 

@@ -293,7 +293,7 @@ def by_model_rows(rows: list[dict]) -> list[dict]:
 def comparison_over_seeds(rows: list[dict]) -> list[str] | None:
     """ETAR against STAR over the sweep's runs (one per data seed): the verdict of
     ``services.compare.verdict`` on each figure's mean and spread over the runs."""
-    from services.compare import OFFLINE, ONLINE, _stat, verdict
+    from services.compare import OFFLINE, ONLINE, _stat, paired, verdict
 
     rows = [r for r in rows if r.get("param model") in ("ETAR", "STAR") and not r.get("error")]
     if not rows:
@@ -302,8 +302,12 @@ def comparison_over_seeds(rows: list[dict]) -> list[str] | None:
                       if (st := _stat(r.get(k) for r in rows if r["param model"] == name)) is not None}
                for name in ("ETAR", "STAR")}
     seeds = sorted({r["seed"] for r in rows})
+    by_seed = {}
+    for r in rows:
+        by_seed.setdefault(r["seed"], {})[r["param model"]] = r
     return [f"ETAR against STAR over {len(seeds)} data seed(s) ({', '.join(map(str, seeds))}): each figure's "
-            f"mean over the runs (min..max)", *verdict(summary)]
+            f"mean over the runs (min..max)", *verdict(summary),
+            "paired by data seed (the same demonstrations and starts for both models):", *paired(by_seed)]
 
 
 def _progress(total: int):
