@@ -9,7 +9,7 @@ STAMP := $(VENV)/.installed-stamp
 SCENARIO ?= scenarios/valley.yaml
 OUT ?= out/$(basename $(notdir $(SCENARIO)))
 
-.PHONY: run test bench venv clean browser
+.PHONY: run test bench venv clean browser foxglove-schemas
 
 $(STAMP): pyproject.toml setup.py robot_sim/native/pinocchio_inplace.cpp
 	$(PYTHON) -m venv $(VENV)
@@ -25,7 +25,7 @@ venv: $(STAMP)
 run: $(STAMP)
 	$(BIN)/etar-bench run $(SCENARIO) --out $(OUT)
 
-test: $(STAMP) browser
+test: $(STAMP) browser foxglove-schemas
 	$(BIN)/python -m pytest -q
 
 # the browser test renders report.html in Debian's chromium: installed when missing and
@@ -35,6 +35,19 @@ browser:
 	  { apt-get install -y -qq --no-install-recommends chromium >/dev/null 2>&1 || \
 	    { apt-get update -qq >/dev/null 2>&1 && apt-get install -y -qq --no-install-recommends chromium >/dev/null 2>&1; }; }; } || \
 	  echo "note: chromium is not installed; the test that renders report.html in a browser is skipped"
+
+# Foxglove's own JSON Schemas (@foxglove/schemas from npm) for the test that validates every
+# visual message against them: npm (apt's nodejs and npm when missing and this runs as
+# root) installs them under .cache/; elsewhere that test is skipped (it says why)
+FOXGLOVE_SCHEMAS := .cache/foxglove-schemas
+foxglove-schemas:
+	@test -f $(FOXGLOVE_SCHEMAS)/jsonschema/VERSION || { \
+	  { command -v npm >/dev/null 2>&1 || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1 && \
+	    { apt-get install -y -qq --no-install-recommends nodejs npm >/dev/null 2>&1 || \
+	      { apt-get update -qq >/dev/null 2>&1 && apt-get install -y -qq --no-install-recommends nodejs npm >/dev/null 2>&1; }; }; }; } && \
+	  npm install --silent --no-audit --no-fund --prefix $(FOXGLOVE_SCHEMAS) @foxglove/schemas@2.1.0 >/dev/null 2>&1 && \
+	  node tests/foxglove/dump_schemas.js $(FOXGLOVE_SCHEMAS)/jsonschema; } || \
+	  echo "note: @foxglove/schemas could not be installed from npm; the test that validates the visual messages against it is skipped"
 
 bench: $(STAMP)
 	$(BIN)/python bench/etar_fit.py

@@ -87,6 +87,8 @@ def main():
     parser.add_argument("--profile", default="none",
                         help="the runner's realtime profile (auto, none or parts: fifo,isolate,poll; default none: "
                              "only the flags above apply)")
+    parser.add_argument("--foxglove", action="store_true",
+                        help="with the live view (etar-bench run --foxglove) and a viewer subscribed to it")
     parser.add_argument("--out", help="run directory (default: a temporary one)")
     args = parser.parse_args()
 
@@ -114,15 +116,28 @@ def main():
     watch = CpuWatch(run_id).start()
     watch.add(bare.pid, "bare loop")
     t = time.monotonic()
+    viewers = []
     try:
         priorities = (("robot", 60), ("impedance_commander", 55))
         if args.fifo_chain:
             priorities += (("ft_sensor", 50), ("phase_estimator", 45))
+        def progress(line):
+            print(line, file=sys.stderr)
+            if args.foxglove and "connect Foxglove to ws://" in line and not viewers:
+                from foxglove_client import Viewer
+
+                viewers.append(Viewer(int(line.rsplit(":", 1)[1].split()[0])))
+                viewers[0].start()
+
         report = run(RunOptions(scenario=str(scenario), out=str(out), run_id=run_id, sched_fifo=args.sched_fifo,
                                 isolate_robot=args.isolate_robot, fifo_priorities=priorities,
-                                realtime_profile=args.profile),
-                     progress=lambda m: print(m, file=sys.stderr))
+                                realtime_profile=args.profile, foxglove=0 if args.foxglove else None,
+                                figures=False),
+                     progress=progress)
     finally:
+        for v in viewers:
+            v.stop.set()
+            v.join(5)
         watch.stop()
         stop.set()
         fifo_bare, wakes, late = queue.get(timeout=60)
@@ -154,6 +169,10 @@ def main():
                 f"runner's realtime profile {args.profile}: granted "
                 f"{', '.join((report['environment'].get('realtime_profile') or {}).get('granted', [])) or 'nothing'}; "
                 f"{wall:.0f} s wall; run directory {out}"),
+        ("live view", "none" if not args.foxglove else
+         f"foxglove_bridge sent {report['timing']['services'].get('foxglove_bridge', {}).get('sent', 0)} visual "
+         f"messages; the viewer received {viewers[0].messages if viewers else 0} "
+         f"({(viewers[0].bytes if viewers else 0) / 1e6:.1f} MB){'; viewer: ' + viewers[0].error if viewers and viewers[0].error else ''}"),
         ("reproduction", f"{rp['reason']}, goal reached after {rp['goal_reached_at_s']:.2f} s, "
                          f"peak contact {rp['peak_contact_force']:.1f} N"),
         ("FRI answered in time", f"{fri['answered']} of {fri['answered'] + fri['missed']} cycles = "

@@ -1,11 +1,15 @@
-"""MCAP recorder throughput: messages per second through ``EpisodeWriter``.
+"""MCAP recorder throughput: messages per second through ``EpisodeWriter``, without and
+with Foxglove's visual topics.
 
-    python bench/recorder_throughput.py [--seconds 30]
+    python bench/recorder_throughput.py [--seconds 30] [--visual-rate 50]
 
 Writes the message mix of a reproduction (robot_state, robot_contact,
 ft_wrench, robot_command every cycle, estimator_phase every tenth) for the
 given simulated time and reports messages/s, MB/s in and on disk, and the
-headroom over the 4.1 kHz the services produce.
+headroom over the 4.1 kHz the services produce.  Then again as the recorder
+does with its visual topics on: every payload through ``services.visual.VisualTap``
+and its visual messages written beside; what they cost in time per simulated
+second (the recorder's CPU) and in file size.
 """
 
 from __future__ import annotations
@@ -46,29 +50,51 @@ def payloads(cycles):
     return out
 
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--seconds", type=float, default=30.0, help="simulated seconds of traffic")
-    args = parser.parse_args()
-    msgs = payloads(int(args.seconds * 1000))
-    raw = sum(len(p) for _, p in msgs)
+def write(msgs, tap=None) -> tuple[float, int, int, int]:
+    """(seconds, bytes on disk, visual messages, messages read back) of one episode file."""
+    from services.visual import encode
+
+    visual = 0
     with tempfile.TemporaryDirectory() as d:
         path = Path(d) / "bench.mcap"
         t = time.perf_counter()
         with EpisodeWriter(path, run_id="bench", episode_kind="reproduction", episode_index=0) as w:
             for i, (topic, payload) in enumerate(msgs):
                 w.add(f"etar/bench/{topic}", payload, i)
+                if tap is not None:
+                    for visual_topic, message in tap.take(topic, payload):
+                        w.add(visual_topic, encode(message), i, i)
+                        visual += 1
         dt = time.perf_counter() - t
         size = path.stat().st_size
-        t = time.perf_counter()
         n_read = len(read_episode(path).messages)
-        dt_read = time.perf_counter() - t
+    return dt, size, visual, n_read
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seconds", type=float, default=30.0, help="simulated seconds of traffic")
+    parser.add_argument("--visual-rate", type=float, default=50.0, help="the visual topics' rate, Hz (default 50)")
+    args = parser.parse_args()
+    from services.visual import VisualScene, VisualTap
+
+    msgs = payloads(int(args.seconds * 1000))
+    raw = sum(len(p) for _, p in msgs)
+    dt, size, _, n_read = write(msgs)
     rate = len(msgs) / dt
     produced = len(msgs) / args.seconds
     print(f"{len(msgs)} messages ({raw / 1e6:.1f} MB JSON) = {args.seconds:.0f} s of a reproduction's traffic")
     print(f"write: {dt:.2f} s, {rate:,.0f} messages/s, {raw / dt / 1e6:.1f} MB/s in, {size / 1e6:.2f} MB on disk "
           f"(zstd {raw / size:.1f}x); {rate / produced:.1f}x the {produced:,.0f} messages/s the services produce")
-    print(f"read back: {n_read} messages in {dt_read:.2f} s")
+    print(f"read back: {n_read} messages")
+    tap = VisualTap(VisualScene("valley", args.visual_rate))
+    dt_v, size_v, visual, n_read_v = write(msgs, tap)
+    print(f"with the visual topics at {args.visual_rate:g} Hz: {visual} visual messages, write {dt_v:.2f} s "
+          f"({(dt_v - dt) / args.seconds * 1e3:.1f} ms more per simulated second = "
+          f"{(dt_v - dt) / args.seconds * 100:.1f} % of one CPU), {size_v / 1e6:.2f} MB on disk "
+          f"(+{(size_v - size) / size * 100:.0f} %, {(size_v - size) / args.seconds / 1e3:.0f} kB per simulated "
+          f"second); {len(msgs) / dt_v:,.0f} messages/s = {len(msgs) / dt_v / produced:.1f}x what the services "
+          f"produce; read back {n_read_v}")
 
 
 if __name__ == "__main__":

@@ -1,11 +1,12 @@
 """``etar-bench``: run scenarios and read their reports.
 
-    etar-bench run SCENARIO [--out DIR] [--clock realtime|lockstep] [--transport zenoh|inproc]
+    etar-bench run SCENARIO [--out DIR] [--clock realtime|lockstep] [--transport zenoh|inproc] [--foxglove [PORT]]
     etar-bench sweep SCENARIO --param PATH=V1,V2,... [--repeats N] --out DIR [--cluster ADDRESS]
     etar-bench report RUN_DIR
     etar-bench recover FILE... [--out FILE]
     etar-bench figures RUN_DIR
-    etar-bench compare RUN_DIR [--seeds N]
+    etar-bench compare RUN_DIR [--seeds N] [--pair I,J]
+    etar-bench export RUN_DIR --foxglove [--rate HZ]
     etar-bench certs DIR [--host IP]
     etar-bench router [--listen tcp/0.0.0.0:7447]
 """
@@ -70,7 +71,7 @@ def cmd_run(args) -> int:
         report = run(RunOptions(scenario=args.scenario, out=out, clock=args.clock, run_id=args.run_id, zenoh=zopts,
                                 transport=args.transport, attach=args.attach, ready_timeout=args.ready_timeout,
                                 sched_fifo=args.sched_fifo, realtime_profile=args.realtime_profile, tls=args.tls,
-                                hosts=args.hosts, figures=not args.no_figures),
+                                hosts=args.hosts, figures=not args.no_figures, foxglove=args.foxglove),
                      progress=_say)
     except (ScenarioError, TaskError, CredentialsError, HostsError, ValueError) as exc:
         # ValueError: the run's options refused before anything started (e.g. --hosts)
@@ -183,6 +184,26 @@ def cmd_figures(args) -> int:
     return 0
 
 
+def cmd_export(args) -> int:
+    from services.export import export_foxglove
+    from services.recording import RecordingError
+
+    if not args.foxglove:
+        _say("etar-bench export: error: say what to add: --foxglove (the only export so far)")
+        return 2
+    if not (0 < args.rate <= 1000):
+        _say(f"etar-bench export: error: --rate must be in (0, 1000] Hz, got {args.rate}")
+        return 2
+    try:
+        results = export_foxglove(args.run_dir, args.rate, progress=print)
+    except RecordingError as exc:
+        _say(f"etar-bench export: error: {exc}")
+        return 1
+    added = sum(1 for r in results if r.added)
+    _say(f"etar-bench export: visual topics added to {added} of {len(results)} recording(s)")
+    return 0
+
+
 def cmd_compare(args) -> int:
     from services.compare import compare_run
     from services.figures import FiguresError
@@ -268,6 +289,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the services on hosts of this machine, each a network namespace with its own address "
                         "(root and iproute2 needed), roles by host, e.g. robot,ft_sensor:phase_estimator,"
                         "impedance_commander:recorder,teacher; the runner is the run's Zenoh router")
+    p.add_argument("--foxglove", nargs="?", const=8765, type=int, metavar="PORT",
+                   help="watch the run live in Foxglove: the arm, the world, the wrench, the stiffness and the phase "
+                        "over Foxglove's WebSocket protocol on PORT (default 8765; 0: any free port, printed); "
+                        "connect Foxglove to ws://localhost:PORT")
     p.add_argument("--no-figures", action="store_true",
                    help="skip the thesis' figures and report.html after the report (etar-bench figures RUN_DIR "
                         "draws them later)")
@@ -307,6 +332,15 @@ def build_parser() -> argparse.ArgumentParser:
                                        "RUN_DIR/figures/ (every run also does)")
     p.add_argument("run_dir", help="a finished run's folder (report.json, model.json, recordings/)")
     p.set_defaults(func=cmd_figures)
+
+    p = sub.add_parser("export", help="add Foxglove's visual topics (the arm, the world, wrench, stiffness, "
+                                      "phase) to a run's recordings made without them",
+                       description=__import__("services.export", fromlist=["x"]).__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("run_dir", help="a finished run's folder (recordings/*.mcap)")
+    p.add_argument("--foxglove", action="store_true", help="the visual topics for Foxglove (required)")
+    p.add_argument("--rate", type=float, default=50.0, metavar="HZ", help="visual rate, Hz (default 50)")
+    p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("compare", help="ETAR against STAR (thesis 6.3) on a finished run's demonstrations: both "
                                        "transition models fitted over several seeds, scored against the true "

@@ -32,6 +32,7 @@ MODULES = {
     "phase_estimator": "services.phase_estimator",
     "impedance_commander": "services.impedance_commander",
     "recorder": "services.recorder",
+    "foxglove_bridge": "services.foxglove_bridge",
 }
 
 

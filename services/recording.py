@@ -45,7 +45,6 @@ import math
 import numbers
 import os
 import pickle
-import re
 import struct
 import threading
 import time
@@ -61,7 +60,9 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, IndexType, Writer
 
 from services.features import force_vector, state_vector
-from services.runtime.messages import BY_TOPIC, FT_WRENCH, ROBOT_CONTACT, ROBOT_STATE, MessageError, MessageType
+from services.runtime.messages import (BY_TOPIC, FT_WRENCH, ROBOT_CONTACT, ROBOT_STATE, SEQ_PREFIX, MessageError,
+                                      MessageType)
+from services.visual import SCHEMA_NAMES as VISUAL_SCHEMA_NAMES, schema_bytes as visual_schema
 
 # bytes of uncompressed records per chunk: what a killed recorder can lose.  A
 # reproduction records 1.94 MB per simulated second, a demonstration 1.60 MB
@@ -182,6 +183,8 @@ class EpisodeWriter:
         return None
 
     def _register(self, key_expr: str) -> tuple[int, MessageType | None]:
+        if key_expr in VISUAL_SCHEMA_NAMES:
+            return self._register_visual(key_expr)
         if not key_expr.startswith(self.prefix) or len(key_expr) == len(self.prefix):
             raise RecordingError(f"{self.path}: key expression {key_expr!r} is not under {self.prefix!r}")
         suffix = key_expr[len(self.prefix):]
@@ -197,6 +200,19 @@ class EpisodeWriter:
                                                    schema_id=schema_id, metadata={"key_expr": key_expr})
         self._channels[key_expr] = (channel_id, mtype)
         return channel_id, mtype
+
+    def _register_visual(self, topic: str) -> tuple[int, None]:
+        """A visual topic (services.visual): derived by the recorder, not received, so under
+        its own name (/viz/...) with Foxglove's schema, beside the run's topics."""
+        name = VISUAL_SCHEMA_NAMES[topic]
+        schema_id = self._schemas.get(name)
+        if schema_id is None:
+            schema_id = self._writer.register_schema(name=name, encoding="jsonschema", data=visual_schema(topic))
+            self._schemas[name] = schema_id
+        channel_id = self._writer.register_channel(topic=topic, message_encoding="json", schema_id=schema_id,
+                                                   metadata={"derived_by": "services.visual"})
+        self._channels[topic] = (channel_id, None)
+        return channel_id, None
 
     # -------------------------------------------------------------- lifetime
 
@@ -430,12 +446,14 @@ WALL_CLOCK_TOPICS = frozenset({"/robot/episode", "/runner/event"})
 def recorded_content(run_dir) -> dict:
     """Per recording file of a run directory, what the seed determines: every message
     but the wall-clock ones, as (topic, seq, payload without ``sent_ns``), sorted.  Two
-    runs of one seed compare equal, over Zenoh or in one process."""
+    runs of one seed compare equal, over Zenoh or in one process.  The visual topics
+    are left out: the recorder derives them from the newest messages it has when a
+    state arrives, which over a network depends on the order of arrival."""
     out = {}
     for path in sorted((Path(run_dir) / "recordings").glob("*.mcap")):
         msgs = []
         for m in read_episode(path).messages:
-            if m.topic in WALL_CLOCK_TOPICS:
+            if m.topic in WALL_CLOCK_TOPICS or m.topic in VISUAL_SCHEMA_NAMES:
                 continue
             d = json.loads(m.payload)
             d.pop("sent_ns", None)
@@ -685,10 +703,6 @@ if __name__ == "__main__":
     replies = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
     _writer_main(sys.stdin.buffer, replies)
-
-
-# every message's JSON begins with its seq (the header's first field, compact separators)
-SEQ_PREFIX = re.compile(rb'^\{"seq":(-?\d+)')
 
 
 def recording_gaps(paths) -> list:

@@ -58,37 +58,9 @@ def recover(source, out=None, *, overwrite: bool = False) -> Recovered:
     if path.exists() and not overwrite:
         raise RecordingError(f"{path}: exists (pass --force to replace it)")
 
-    tmp = path.with_name(path.name + ".part")
-    with open(tmp, "wb") as f:
-        # as services.recording writes them: no index for a group that is empty
-        index_types = IndexType.CHUNK | IndexType.MESSAGE | IndexType.METADATA
-        if episode.attachments:
-            index_types |= IndexType.ATTACHMENT
-        writer = Writer(f, chunk_size=CHUNK_SIZE, compression=CompressionType.ZSTD, index_types=index_types)
-        writer.start(profile="", library=f"{episode.library}; recovered by etar-bench recover")
-        writer.add_metadata(METADATA_NAME, dict(episode.metadata, recovered=episode.problem or "",
-                                                recovered_from=source.name))
-        for name, data in episode.attachments.items():
-            writer.add_attachment(create_time=0, log_time=0, name=name, media_type=_media_type(name), data=data)
-        schema_ids: dict[tuple, int] = {}
-        channel_ids: dict[str, int] = {}
-        for topic, ch in sorted(episode.channels.items()):
-            key = (ch.schema_name, ch.schema_encoding, ch.schema_data)
-            if ch.schema_name and key not in schema_ids:
-                schema_ids[key] = writer.register_schema(name=ch.schema_name, encoding=ch.schema_encoding,
-                                                         data=ch.schema_data)
-            channel_ids[topic] = writer.register_channel(topic=topic, message_encoding=ch.message_encoding,
-                                                         schema_id=schema_ids.get(key, 0), metadata=ch.metadata)
-        for m in episode.messages:
-            writer.add_message(channel_id=channel_ids[m.topic], log_time=m.log_time_ns, data=m.payload,
-                               publish_time=m.publish_time_ns)
-        writer.finish()
-
-    back = read_episode(tmp)
-    if not back.complete or [tuple(m) for m in back.messages] != [tuple(m) for m in episode.messages]:
-        tmp.unlink()
-        raise RecordingError(f"{path}: the recovered file did not read back as written; nothing was written")
-    tmp.replace(path)
+    write_copy(episode, path, library=f"{episode.library}; recovered by etar-bench recover",
+               metadata=dict(episode.metadata, recovered=episode.problem or "", recovered_from=source.name),
+               what="recovered")
     last_seq = None
     for m in episode.messages:
         if m.topic == "/robot/state":
@@ -100,6 +72,54 @@ def recover(source, out=None, *, overwrite: bool = False) -> Recovered:
             if isinstance(seq, int) and (last_seq is None or seq > last_seq):
                 last_seq = seq
     return Recovered(source, path, len(episode.messages), episode.chunks, last_seq, episode.problem or "")
+
+
+def write_copy(episode, path: Path, *, library: str, metadata: dict, extra=(), what: str = "new") -> None:
+    """Write ``episode`` (``read_episode``) as a finished MCAP file at ``path``: its
+    channels, schemas, scenario and messages byte for byte, ``metadata`` as its
+    metadata record, and ``extra`` messages on channels of their own (``(topic,
+    schema_name, schema_data, log_time_ns, payload)``, JSON with a JSON Schema) in log
+    time order with the rest.  Written beside as ``.part``, read back and compared
+    (the episode's messages must all be there, unchanged), then moved into place:
+    a failure leaves ``path`` as it was."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".part")
+    with open(tmp, "wb") as f:
+        # as services.recording writes them: no index for a group that is empty
+        index_types = IndexType.CHUNK | IndexType.MESSAGE | IndexType.METADATA
+        if episode.attachments:
+            index_types |= IndexType.ATTACHMENT
+        writer = Writer(f, chunk_size=CHUNK_SIZE, compression=CompressionType.ZSTD, index_types=index_types)
+        writer.start(profile="", library=library)
+        writer.add_metadata(METADATA_NAME, metadata)
+        for name, data in episode.attachments.items():
+            writer.add_attachment(create_time=0, log_time=0, name=name, media_type=_media_type(name), data=data)
+        schema_ids: dict[tuple, int] = {}
+        channel_ids: dict[str, int] = {}
+        channels = [(topic, ch.schema_name, ch.schema_encoding, ch.schema_data, ch.message_encoding, ch.metadata)
+                    for topic, ch in sorted(episode.channels.items())]
+        for topic, name, data in dict.fromkeys((t, n, d) for t, n, d, _, _ in extra):
+            channels.append((topic, name, "jsonschema", data, "json", {"derived_by": "services.visual"}))
+        for topic, name, encoding, data, message_encoding, meta in channels:
+            key = (name, encoding, data)
+            if name and key not in schema_ids:
+                schema_ids[key] = writer.register_schema(name=name, encoding=encoding, data=data)
+            channel_ids[topic] = writer.register_channel(topic=topic, message_encoding=message_encoding,
+                                                         schema_id=schema_ids.get(key, 0), metadata=meta)
+        rows = [(m.log_time_ns, 0, i, m.topic, m.payload, m.publish_time_ns) for i, m in enumerate(episode.messages)]
+        rows += [(t, 1, i, topic, payload, t) for i, (topic, _, _, t, payload) in enumerate(extra)]
+        for log_time, _, _, topic, payload, publish_time in sorted(rows, key=lambda r: r[:3]):
+            writer.add_message(channel_id=channel_ids[topic], log_time=log_time, data=payload,
+                               publish_time=publish_time)
+        writer.finish()
+
+    back = read_episode(tmp)
+    kept = [tuple(m) for m in back.messages if m.topic in episode.channels]
+    if not back.complete or kept != [tuple(m) for m in episode.messages] or \
+            len(back.messages) != len(episode.messages) + len(extra):
+        tmp.unlink()
+        raise RecordingError(f"{path}: the {what} file did not read back as written; nothing was written")
+    tmp.replace(path)
 
 
 def _media_type(name: str) -> str:

@@ -42,7 +42,8 @@ from etar.selection import fit_order
 from etar.task import LearnedTask, TaskError, learn_task, load_task
 from services import launch
 from services.hosts import ZENOH_CFG as HOSTS_ZENOH_CFG, Hosts, parse_layout
-from services.nodes import (CommanderConfig, EstimatorConfig, FtSensorConfig, RecorderConfig, RobotConfig,
+from services.nodes import (CommanderConfig, EstimatorConfig, FoxgloveBridgeConfig, FtSensorConfig, RecorderConfig,
+                            RobotConfig,
                             TeacherConfig)
 from services.progress import EpisodeProgress
 from services.realtime_profile import FIFO_CHAIN, Grant, parse_profile, probe
@@ -92,6 +93,9 @@ class RunOptions:
     # the thesis' figures (RUN_DIR/figures/) and report.html after the report; a sweep's
     # runs leave them out (their table and plots are the sweep's)
     figures: bool = True
+    # the visual topics live over Foxglove's WebSocket protocol on this port (services.nodes.
+    # foxglove_bridge, one more service); None: no live view (recordings have them regardless)
+    foxglove: int | None = None
     attach: bool = False  # the services are already running (docker-compose): do not spawn them
     # SCHED_FIFO (where permitted) for the two ends of the FRI link, the robot above the
     # commander; the others stay ordinary processes.  All six at one priority starve
@@ -115,6 +119,12 @@ class RunOptions:
         if self.transport not in TRANSPORTS:
             raise ValueError(f"transport must be one of {TRANSPORTS}, got {self.transport!r}")
         parse_profile(self.realtime_profile)
+        if self.foxglove is not None:
+            if not (0 <= self.foxglove <= 65535):
+                raise ValueError(f"--foxglove PORT must be in 0..65535 (0: any free port), got {self.foxglove}")
+            if self.tls is not None or self.hosts is not None or self.attach:
+                raise ValueError("--foxglove cannot be combined with --tls, --hosts or --attach yet: the bridge "
+                                 "would need credentials and a host of its own")
 
 
 @dataclass
@@ -190,6 +200,8 @@ class Runner:
             roles.append("teacher")
         if "reproduce" in kinds:
             roles += ["phase_estimator", "impedance_commander"]
+        if self.options.foxglove is not None:
+            roles.append("foxglove_bridge")
         return roles
 
     def node_configs(self) -> dict:
@@ -209,6 +221,7 @@ class Runner:
                                        writer_process=self.options.transport == "inproc"),
             "phase_estimator": EstimatorConfig(),
             "impedance_commander": CommanderConfig(),
+            "foxglove_bridge": FoxgloveBridgeConfig(world=sc.world, port=self.options.foxglove or 0),
         }
         configs["robot"] = with_flags(configs["robot"], self.options.robot_args)
         configs["impedance_commander"] = with_flags(configs["impedance_commander"], self.options.commander_args)
@@ -267,10 +280,16 @@ class Runner:
                 self.cell = launch.ServiceProcesses(self.run_id, self.out / "logs", attach=self.options.attach,
                                                     zenoh=self.options.zenoh, tls=self.options.tls, hosts=self.hosts)
                 self.cell.restartable = {role for role, policy in self.scenario.restart if policy == "on_failure"}
+                if self.options.foxglove is not None:
+                    # a view of the run: losing it must not cost the run; it comes back (same port)
+                    self.cell.restartable.add("foxglove_bridge")
                 self.cell.on_restart = self._on_restart
                 self.cell.start(configs, lambda role, connect: self.process_args(role, configs[role], connect),
                                 timeout=self.options.ready_timeout)
             self.say(f"services ready ({', '.join(self.roles())}) after {time.monotonic() - t0:.1f} s")
+            if self.options.foxglove is not None:
+                port = self.cell.request("foxglove_bridge", "status").get("port")
+                self.say(f"live view: connect Foxglove to ws://127.0.0.1:{port} (docs/foxglove/README.md)")
             for stage in self.scenario.stages:
                 getattr(self, f"stage_{stage.kind}")(stage)
             self._event("run_end", "", -1, {})
@@ -372,6 +391,9 @@ class Runner:
         r = self.cell.restarts[-1]
         self.say(f"service {role} lost {r['lost_at_s']:.1f} s into the run (exit code {r['exit_code']}): "
                  f"restarted (restart: on_failure), back after {r['back_after_s']:.1f} s")
+        if role == "foxglove_bridge":
+            port = self.cell.request("foxglove_bridge", "status").get("port")
+            self.say(f"live view: connect Foxglove to ws://127.0.0.1:{port} again")
         if self._episode is None:
             return
         kind, index, start = self._episode

@@ -3,6 +3,7 @@ messages and the time, answers control requests and publishes through a bus.
 ``services.<role>`` carries one in its own process over Zenoh;
 ``services.runtime.inproc`` carries them all in one process."""
 
+from services.nodes.foxglove_bridge import FoxgloveBridgeConfig, FoxgloveBridgeNode
 from services.nodes.ft_sensor import FtSensorConfig, FtSensorNode
 from services.nodes.impedance_commander import CommanderConfig, ImpedanceCommanderNode
 from services.nodes.phase_estimator import EstimatorConfig, PhaseEstimatorNode
@@ -18,4 +19,5 @@ NODES = {
     "phase_estimator": (PhaseEstimatorNode, EstimatorConfig),
     "impedance_commander": (ImpedanceCommanderNode, CommanderConfig),
     "recorder": (RecorderNode, RecorderConfig),
+    "foxglove_bridge": (FoxgloveBridgeNode, FoxgloveBridgeConfig),
 }

@@ -16,11 +16,12 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
-from services.recording import SEQ_PREFIX, EpisodeWriter, WriterProcess
+from services.recording import EpisodeWriter, WriterProcess
 from services.runtime import topics
 from services.runtime.bus import Node, Subscription
 from services.runtime.config import option
-from services.runtime.messages import MAX_PAYLOAD_BYTES
+from services.runtime.messages import MAX_PAYLOAD_BYTES, SEQ_PREFIX
+from services.visual import VISUAL_RATE_HZ, VisualScene, VisualTap, encode
 
 
 
@@ -30,6 +31,13 @@ class RecorderConfig:
                                         "(resolved when the recorder starts)", metavar="DIR")
     writer_process: bool = option(False, "write the MCAP files from a helper process (what an in-process run "
                                          "does: its nodes share one CPU)")
+    visual_rate_hz: float = option(VISUAL_RATE_HZ, "Foxglove's visual topics (/viz/..., services.visual: the arm, "
+                                                   "the world, wrench, stiffness, phase) at this rate beside the "
+                                                   "run's own; 0: none", metavar="HZ")
+
+    def __post_init__(self):
+        if not (self.visual_rate_hz == 0 or 0 < self.visual_rate_hz <= 1000):
+            raise ValueError(f"visual_rate_hz must be 0 (none) or in (0, 1000] Hz, got {self.visual_rate_hz}")
 
 
 def episode_path(out_dir, name) -> Path:
@@ -61,6 +69,10 @@ class RecorderNode(Node):
         self.oversized = 0  # payloads over MAX_PAYLOAD_BYTES, not recorded
         self.subscriptions = [Subscription("**", self.on_sample, decode=False)]
         self._writer_process = WriterProcess() if config.writer_process else None
+        self.visual_rate_hz = config.visual_rate_hz
+        self._taps: dict[str, VisualTap] = {}  # by world: the scene's geometry is built once
+        self.tap: VisualTap | None = None
+        self.visual_errors = 0
 
     def on_sample(self, topic: str, recv_ns: int, raw: bytes, message: dict | None = None) -> None:
         if len(raw) > MAX_PAYLOAD_BYTES:
@@ -76,6 +88,8 @@ class RecorderNode(Node):
                 self.writer.add(key, raw, recv_ns,
                                 None if message is None else message["sent_ns"])
                 self.total += 1
+                if self.tap is not None:
+                    self._visual(topic, raw, recv_ns, message)
             if message is not None:
                 seq = message["seq"]
             else:
@@ -85,6 +99,37 @@ class RecorderNode(Node):
                 if seq > self.last_seq.get(topic, -1):
                     self.last_seq[topic] = seq
                 self.lock.notify_all()
+
+    def _visual(self, topic: str, raw: bytes, recv_ns: int, message: dict | None) -> None:
+        """The visual messages this sample brings, recorded at its reception time.  They are
+        a view of the run: whatever goes wrong drawing them must cost nothing recorded."""
+        try:
+            for visual_topic, visual in self.tap.take(topic, raw, message):
+                self.writer.add(visual_topic, encode(visual), recv_ns, recv_ns)
+        except Exception:  # noqa: BLE001 - counted in status(); the run's own messages go on
+            self.visual_errors += 1
+
+    def _tap_for(self, scenario_text: str | None) -> VisualTap | None:
+        """The visual tap of the episode's world (named by the scenario it records); none
+        without a scenario or with visual topics turned off."""
+        if not self.visual_rate_hz or not scenario_text:
+            return None
+        import yaml
+
+        try:
+            world = yaml.safe_load(scenario_text).get("world")
+        except (yaml.YAMLError, AttributeError):
+            return None
+        if not isinstance(world, str):
+            return None
+        if world not in self._taps:
+            try:
+                self._taps[world] = VisualTap(VisualScene(world, self.visual_rate_hz))
+            except ValueError:
+                return None
+        tap = self._taps[world]
+        tap.reset()
+        return tap
 
     def lagging(self, wanted, last: int) -> list:
         """The topics among ``wanted`` whose newest message is older than cycle ``last``."""
@@ -106,6 +151,7 @@ class RecorderNode(Node):
                 self.writer = self._writer_process.open(path, **options)
             else:
                 self.writer = EpisodeWriter(path, **options)
+            self.tap = self._tap_for(p.get("scenario"))
         return str(path)
 
     def end(self, p: dict) -> dict:
@@ -119,7 +165,8 @@ class RecorderNode(Node):
 
     def status(self) -> dict:
         return {"total": self.total, "recording": self.writer is not None, "last_seq": self.last_seq,
-                "oversized": self.oversized}
+                "oversized": self.oversized, "visual_errors": self.visual_errors,
+                "visual_undecodable": sum(t.undecodable for t in self._taps.values())}
 
     def close(self) -> None:
         with self.lock:

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from dataclasses import dataclass
 
 import orjson
@@ -43,6 +44,10 @@ HEADER = (
     ("sent_ns", "int", "CLOCK_MONOTONIC when published, ns"),
 )
 
+
+# every message's JSON begins with its seq (the header's first field, compact separators):
+# a reader that needs only the cycle of a message need not parse it
+SEQ_PREFIX = re.compile(rb'^\{"seq":(-?\d+)')
 
 # the fallback encoder (see the module's doc): json.dumps with options builds a new one per call
 _ENCODER = json.JSONEncoder(allow_nan=False, separators=(",", ":"))

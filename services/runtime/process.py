@@ -38,7 +38,7 @@ RECORDER_WAIT_S = 10.0  # end_episode: how long the recorder waits for messages 
 STOP_CHECK_NS = 100_000_000  # during an episode the robot looks for a 'stop' at least this often
 PROGRAMS = {"robot": "etar-robot", "ft_sensor": "etar-ft-sensor", "teacher": "etar-teacher",
             "phase_estimator": "etar-phase-estimator", "impedance_commander": "etar-impedance-commander",
-            "recorder": "etar-recorder"}
+            "recorder": "etar-recorder", "foxglove_bridge": "etar-foxglove-bridge"}
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,80 @@
+"""The Foxglove bridge node: the run's visual topics live over Foxglove's WebSocket protocol.
+
+Takes every message of the run undecoded, as the recorder does, turns them into
+the visual topics with the recorder's own ``services.visual.VisualTap`` (so the
+live view shows what the recording holds), and logs them to channels of a
+Foxglove SDK server (``foxglove-sdk``): connect Foxglove to ``ws://HOST:PORT``.
+It publishes nothing on the run's bus and answers no cycle, so it cannot change
+what is recorded or what the cell does; a slow viewer only loses visual messages
+(the SDK drops the oldest of a client's queue).
+
+The channels carry JSON with Foxglove's JSON Schemas (the recording's encoding);
+the SDK's server speaks ``foxglove.sdk.v1``, the wire format of
+``foxglove.websocket.v1`` under a new name, and a client offering either works.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from dataclasses import dataclass
+
+from services.runtime import topics
+from services.runtime.bus import Node, Subscription
+from services.runtime.config import option
+from services.visual import SCHEMA_NAMES, VISUAL_RATE_HZ, VisualScene, VisualTap, encode, schema_bytes
+
+DEFAULT_PORT = 8765  # Foxglove's own default
+
+
+@dataclass(frozen=True)
+class FoxgloveBridgeConfig:
+    world: str = option("valley", "the task world whose geometry is drawn", choices=("valley", "hose_coupler"))
+    host: str = option("127.0.0.1", "address the WebSocket server listens on", metavar="ADDR")
+    port: int = option(DEFAULT_PORT, "port of the WebSocket server (0: any free one, said in status)",
+                       metavar="PORT")
+    visual_rate_hz: float = option(VISUAL_RATE_HZ, "visual topics' rate, Hz", metavar="HZ")
+
+    def __post_init__(self):
+        if not (0 <= self.port <= 65535):
+            raise ValueError(f"port must be in 0..65535, got {self.port}")
+        if not (0 < self.visual_rate_hz <= 1000):
+            raise ValueError(f"visual_rate_hz must be in (0, 1000] Hz, got {self.visual_rate_hz}")
+
+
+class FoxgloveBridgeNode(Node):
+    name = "foxglove_bridge"
+
+    def __init__(self, config: FoxgloveBridgeConfig, bus, clock, *, run_id: str, mode: str = "lockstep", **_):
+        import foxglove
+
+        super().__init__(bus, clock)
+        self.run_id = topics.check_run_id(run_id)
+        self.tap = VisualTap(VisualScene(config.world, config.visual_rate_hz))
+        self.lock = threading.Lock()  # Zenoh may call back from more than one thread
+        self.sent = 0
+        self.errors = 0
+        self.server = foxglove.start_server(name=f"etar {run_id}", host=config.host, port=config.port)
+        self.port = self.server.port
+        self.channels = {topic: foxglove.Channel(topic, schema=json.loads(schema_bytes(topic)),
+                                                 message_encoding="json")
+                         for topic in SCHEMA_NAMES}
+        self.subscriptions = [Subscription("**", self.on_sample, decode=False)]
+
+    def on_sample(self, topic: str, recv_ns: int, raw: bytes, message: dict | None = None) -> None:
+        try:
+            with self.lock:
+                if topic == "runner/event" and b'"episode_begin"' in raw:
+                    self.tap.reset()
+                visuals = self.tap.take(topic, raw, message)
+            for visual_topic, visual in visuals:
+                self.channels[visual_topic].log(encode(visual), log_time=recv_ns)
+                self.sent += 1
+        except Exception:  # noqa: BLE001 - a view of the run: counted, never the run's problem
+            self.errors += 1
+
+    def status(self) -> dict:
+        return {"port": self.port, "sent": self.sent, "errors": self.errors, "undecodable": self.tap.undecodable}
+
+    def close(self) -> None:
+        self.server.stop()

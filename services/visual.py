@@ -1,0 +1,379 @@
+"""What Foxglove draws of a run: the arm, the task world, the wrench, the commanded
+stiffness and the phase, as Foxglove's well-known schemas (JSON encoded).
+
+``VisualScene`` turns the run's own messages into visual messages at a visual
+rate (50 Hz by default: one in every 20 FRI cycles):
+
+- ``/viz/tf`` (``foxglove.FrameTransforms``): every link frame and the tcp in
+  ``base``, from the measured joint positions through the KRC's kinematic model
+  (Pinocchio, ``robot_sim.kinematics``: the one URDF both simulator and KRC use);
+- ``/viz/scene`` (``foxglove.SceneUpdate``): the arm's links and the task world
+  (plates and groove, or coupler) as the MuJoCo model the physics runs has them,
+  each arm geom attached to its link's frame, sent at the first cycle and once a
+  second (so a player that seeks finds them); and the overlays at the visual rate:
+  the measured force as an arrow at the sensor, the commanded translational
+  stiffness as an ellipsoid at the tcp (axes in proportion), the estimated and the
+  true phase as the ellipsoid's colour and a text;
+- ``/viz/status`` (``etar.VisualStatus``, a JSON Schema of our own): the same
+  figures as plain numbers for Foxglove's plots and state-transition panels;
+- ``/viz/log`` (``foxglove.Log``): the runner's stage and episode events, the
+  episode summaries and the commander's holds, as log lines.
+
+Inner timestamps are simulation time (``stamp_ns``), so transforms and entities
+agree with each other whatever the transport; the caller chooses the log time.
+Pure: no messaging and no files; the recorder, ``etar-bench export --foxglove``
+and the live view (``services.foxglove_live``) all drive this one object.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+SCHEMA_DIR = Path(__file__).with_name("foxglove_schemas")  # from @foxglove/schemas 2.1.0 (MIT), unchanged
+VISUAL_RATE_HZ = 50.0
+FRI_RATE_HZ = 1000
+TOPIC_TF = "/viz/tf"
+TOPIC_SCENE = "/viz/scene"
+TOPIC_STATUS = "/viz/status"
+TOPIC_LOG = "/viz/log"
+# topic -> schema name; a foxglove.* name is what makes Foxglove recognise the schema
+SCHEMA_NAMES = {TOPIC_TF: "foxglove.FrameTransforms", TOPIC_SCENE: "foxglove.SceneUpdate",
+                TOPIC_STATUS: "etar.VisualStatus", TOPIC_LOG: "foxglove.Log"}
+FRAMES = ("link1", "link2", "link3", "link4", "link5", "link6", "link7", "flange", "ati_sensor", "tool", "tcp")
+ARROW_M_PER_N = 0.005  # the force arrow: 5 mm per newton, at most MAX_ARROW_M
+MAX_ARROW_M = 0.4
+ELLIPSOID_M_PER_N_M = 0.06 / 2000.0  # the stiffness ellipsoid: 6 cm across at the hold stiffness 2000 N/m
+MIN_ELLIPSOID_M = 0.004
+PHASE_COLOURS = ((0.2, 0.6, 1.0), (1.0, 0.55, 0.1), (0.2, 0.8, 0.3), (0.85, 0.25, 0.8), (0.9, 0.85, 0.1),
+                 (0.3, 0.9, 0.9))
+NO_PHASE = (0.6, 0.6, 0.6)
+LOG_INFO, LOG_WARNING = 2, 3
+
+STATUS_SCHEMA = {
+    "title": "etar.VisualStatus",
+    "description": "The run's state at the visual rate, for plots and state transitions (services.visual)",
+    "type": "object",
+    "properties": {
+        "timestamp": {"type": "object", "title": "time", "description": "simulation time",
+                      "properties": {"sec": {"type": "integer", "minimum": 0},
+                                     "nsec": {"type": "integer", "minimum": 0, "maximum": 999999999}}},
+        "seq": {"type": "integer", "description": "FRI cycle"},
+        "episode": {"type": "integer"},
+        "force": {"type": "array", "items": {"type": "number"}, "description": "measured force, sensor frame, N"},
+        "torque": {"type": "array", "items": {"type": "number"}, "description": "measured torque, sensor frame, N m"},
+        "force_norm": {"type": "number", "description": "|measured force|, N"},
+        "phase": {"type": "integer", "description": "estimated phase (-1: none yet)"},
+        "true_phase": {"type": "integer", "description": "the physics' phase label"},
+        "posterior": {"type": "array", "items": {"type": "number"}, "description": "p(phase | inputs so far)"},
+        "stiffness": {"type": "array", "items": {"type": "number"},
+                      "description": "commanded Cartesian stiffness [N/m x3, N m/rad x3], tcp axes"},
+        "hold": {"type": "string", "description": "why the commander holds ('' : it does not)"},
+        "fri_quality": {"type": "integer", "description": "0 UNACCEPTABLE, 1 BAD, 2 OK, 3 PERFECT"},
+        "fri_state": {"type": "integer", "description": "0 OFF, 1 MON, 2 CMD"},
+        "tcp": {"type": "array", "items": {"type": "number"}, "description": "measured tcp position, base frame, m"},
+    },
+}
+
+
+@lru_cache(maxsize=None)
+def schema_bytes(topic: str) -> bytes:
+    """The JSON Schema a visual topic's channel carries in MCAP and over the WebSocket."""
+    name = SCHEMA_NAMES[topic]
+    if name.startswith("foxglove."):
+        return (SCHEMA_DIR / f"{name.split('.', 1)[1]}.json").read_bytes()
+    return json.dumps(STATUS_SCHEMA).encode()
+
+
+def time_of(ns: int) -> dict:
+    ns = max(int(ns), 0)
+    return {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}
+
+
+def _quaternion(w, x, y, z) -> dict:
+    return {"x": float(x), "y": float(y), "z": float(z), "w": float(w)}
+
+
+def _quat_of_matrix(R: np.ndarray) -> dict:
+    """Unit quaternion of a rotation matrix (Shepperd's method, the largest pivot)."""
+    t = np.trace(R)
+    if t > 0:
+        s = math.sqrt(t + 1.0) * 2
+        return _quaternion(0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s)
+    i = int(np.argmax(np.diag(R)))
+    j, k = (i + 1) % 3, (i + 2) % 3
+    s = math.sqrt(1.0 + R[i, i] - R[j, j] - R[k, k]) * 2
+    q = [0.0, 0.0, 0.0]
+    q[i] = 0.25 * s
+    q[j] = (R[j, i] + R[i, j]) / s
+    q[k] = (R[k, i] + R[i, k]) / s
+    return _quaternion((R[k, j] - R[j, k]) / s, *q)
+
+
+def _x_onto(v: np.ndarray) -> dict:
+    """The rotation taking +x onto the direction of ``v`` (Foxglove's arrows point along +x)."""
+    n = float(np.linalg.norm(v))
+    if n < 1e-12:
+        return _quaternion(1, 0, 0, 0)
+    d = v / n
+    c = float(d[0])  # cos of the angle between x and d
+    axis = np.array([0.0, -d[2], d[1]])  # x cross d
+    s = float(np.linalg.norm(axis))
+    if s < 1e-12:
+        return _quaternion(1, 0, 0, 0) if c > 0 else _quaternion(0, 0, 0, 1)
+    half = 0.5 * math.atan2(s, c)
+    a = axis / s * math.sin(half)
+    return _quaternion(math.cos(half), *a)
+
+
+def _colour(rgb, a: float = 1.0) -> dict:
+    return {"r": float(rgb[0]), "g": float(rgb[1]), "b": float(rgb[2]), "a": float(a)}
+
+
+def phase_colour(phase: int | None):
+    return NO_PHASE if phase is None or phase < 0 else PHASE_COLOURS[phase % len(PHASE_COLOURS)]
+
+
+def _pose(position, orientation: dict) -> dict:
+    return {"position": {"x": float(position[0]), "y": float(position[1]), "z": float(position[2])},
+            "orientation": orientation}
+
+
+def _entity(stamp_ns: int, frame_id: str, entity_id: str, **primitives) -> dict:
+    """A SceneEntity: every primitive list present (the schema requires them all)."""
+    e = {"timestamp": time_of(stamp_ns), "frame_id": frame_id, "id": entity_id, "lifetime": {"sec": 0, "nsec": 0},
+         "frame_locked": True, "metadata": [], "arrows": [], "cubes": [], "spheres": [], "cylinders": [],
+         "lines": [], "triangles": [], "texts": [], "models": []}
+    e.update(primitives)
+    return e
+
+
+@lru_cache(maxsize=None)
+def world_geometry(world: str) -> tuple:
+    """(frame_id, kind, pose, size, rgba) of every geom the physics has, from the MuJoCo
+    model of the world (``robot_sim.worlds``): the task's on ``base``, the arm's on the
+    frame of their link (MuJoCo's bodies carry the URDF's link names).  Planes (the
+    floor) are left to Foxglove's grid."""
+    import mujoco
+
+    from robot_sim.worlds import WORLDS
+
+    if world not in WORLDS:
+        raise ValueError(f"unknown world {world!r}: expected one of {', '.join(WORLDS)}")
+    m = mujoco.MjModel.from_xml_string(WORLDS[world]().xml)
+    out = []
+    for g in range(m.ngeom):
+        kind = int(m.geom_type[g])
+        body = m.body(int(m.geom_bodyid[g])).name
+        frame = "base" if int(m.geom_bodyid[g]) == 0 else body
+        size = m.geom_size[g]
+        if kind == mujoco.mjtGeom.mjGEOM_BOX:
+            prim, dims = "cubes", [2 * size[0], 2 * size[1], 2 * size[2]]
+        elif kind == mujoco.mjtGeom.mjGEOM_SPHERE:
+            prim, dims = "spheres", [2 * size[0]] * 3
+        elif kind == mujoco.mjtGeom.mjGEOM_CYLINDER:
+            prim, dims = "cylinders", [2 * size[0], 2 * size[0], 2 * size[1]]
+        elif kind == mujoco.mjtGeom.mjGEOM_CAPSULE:
+            # a cylinder as long as the capsule with its caps: near enough to see the link
+            prim, dims = "cylinders", [2 * size[0], 2 * size[0], 2 * size[1] + 2 * size[0]]
+        else:
+            continue
+        pose = _pose(m.geom_pos[g], _quaternion(*m.geom_quat[g]))
+        out.append((frame, prim, pose, tuple(float(d) for d in dims), tuple(float(c) for c in m.geom_rgba[g])))
+    return tuple(out)
+
+
+class VisualScene:
+    """The visual messages of one episode; ``take`` every message of the run (decoded),
+    ``events`` for the log lines.  ``reset`` between episodes."""
+
+    def __init__(self, world: str, rate_hz: float = VISUAL_RATE_HZ):
+        from robot_sim.kinematics import ArmKinematics
+
+        if not (0 < rate_hz <= FRI_RATE_HZ):
+            raise ValueError(f"visual rate must be in (0, {FRI_RATE_HZ}] Hz, got {rate_hz}")
+        self.world = world
+        self.every = max(1, round(FRI_RATE_HZ / rate_hz))
+        self.kinematics = ArmKinematics()
+        self._frame_ids = [self.kinematics.model.getFrameId(name) for name in FRAMES]
+        self.geometry = world_geometry(world)
+        self.reset()
+
+    def reset(self) -> None:
+        self._wrench = None
+        self._estimate = None
+        self._true_phase = -1
+        self._command = None
+        self._hold = ""
+        self._static_at = None  # FRI cycle the static scene was last sent
+
+    # ------------------------------------------------------------------ messages
+
+    def take(self, topic: str, msg: dict) -> list[tuple[str, dict]]:
+        """The visual messages ``msg`` (of run topic ``topic``, e.g. ``robot/state``) brings:
+        none, or at the visual rate's cycles the transforms, the scene and the status."""
+        if topic == "ft/wrench":
+            self._wrench = msg["wrench"]
+        elif topic == "estimator/phase":
+            self._estimate = msg
+        elif topic == "robot/contact":
+            self._true_phase = int(msg["true_phase"])
+        elif topic == "robot/command":
+            self._command = msg
+            if msg["hold"] != self._hold:
+                was, self._hold = self._hold, msg["hold"]
+                text = f"commander holds the arm: {msg['hold']}" if msg["hold"] else f"commander resumes after {was}"
+                return [(TOPIC_LOG, self.log_line(msg["stamp_ns"], text, "impedance_commander",
+                                                  LOG_WARNING if msg["hold"] else LOG_INFO))]
+        elif topic == "robot/episode":
+            return [(TOPIC_LOG, self.log_line(msg["stamp_ns"], f"{msg['kind']} {msg['episode']} ended: "
+                                              f"{msg['reason']}, peak contact {msg['peak_contact_force']:.1f} N",
+                                              "robot", LOG_INFO))]
+        elif topic == "runner/event":
+            what = " ".join(str(x) for x in (msg["event"], msg["stage"], msg["episode"] if msg["episode"] >= 0
+                                             else "") if x != "")
+            return [(TOPIC_LOG, self.log_line(msg["stamp_ns"], what, "runner", LOG_INFO))]
+        elif topic == "robot/state" and msg["seq"] % self.every == 0:
+            return self._frame(msg)
+        return []
+
+    def log_line(self, stamp_ns: int, message: str, name: str, level: int = LOG_INFO) -> dict:
+        return {"timestamp": time_of(stamp_ns), "level": level, "message": message, "name": name,
+                "file": "", "line": 0}
+
+    def _frame(self, state: dict) -> list[tuple[str, dict]]:
+        stamp = state["stamp_ns"]
+        q = np.asarray(state["msr_jnt_pos"], dtype=np.float64)
+        kin = self.kinematics
+        kin.update(q)
+        transforms = []
+        for name, fid in zip(FRAMES, self._frame_ids):
+            placement = kin.data.oMf[fid]
+            t = placement.translation
+            transforms.append({"timestamp": time_of(stamp), "parent_frame_id": "base", "child_frame_id": name,
+                               "translation": {"x": float(t[0]), "y": float(t[1]), "z": float(t[2])},
+                               "rotation": _quat_of_matrix(placement.rotation)})
+        out = [(TOPIC_TF, {"transforms": transforms})]
+        entities = self._overlay(stamp)
+        seq = state["seq"]
+        if self._static_at is None or seq - self._static_at >= FRI_RATE_HZ or seq < self._static_at:
+            self._static_at = seq
+            entities = self._static(stamp) + entities
+        out.append((TOPIC_SCENE, {"deletions": [], "entities": entities}))
+        out.append((TOPIC_STATUS, self._status(state, kin.data.oMf[self._frame_ids[-1]].translation)))
+        return out
+
+    def _static(self, stamp: int) -> list[dict]:
+        by_frame: dict[str, dict] = {}
+        for frame, prim, pose, dims, rgba in self.geometry:
+            e = by_frame.setdefault(frame, _entity(stamp, frame, f"geometry/{frame}"))
+            e[prim].append({"pose": pose, "size": {"x": dims[0], "y": dims[1], "z": dims[2]},
+                            "color": _colour(rgba[:3], rgba[3]),
+                            **({"bottom_scale": 1.0, "top_scale": 1.0} if prim == "cylinders" else {})})
+        return list(by_frame.values())
+
+    def _overlay(self, stamp: int) -> list[dict]:
+        """The wrench arrow, the stiffness ellipsoid and the phase text, on the tcp side."""
+        phase = None if self._estimate is None else int(self._estimate["phase"])
+        colour = phase_colour(phase)
+        prims = {"arrows": [], "spheres": [], "texts": []}
+        if self._wrench is not None:
+            f = np.asarray(self._wrench[:3], dtype=np.float64)
+            length = min(float(np.linalg.norm(f)) * ARROW_M_PER_N, MAX_ARROW_M)
+            if length > 1e-4:
+                prims["arrows"].append({"pose": _pose((0, 0, 0), _x_onto(f)), "shaft_length": length * 0.8,
+                                        "shaft_diameter": 0.006, "head_length": length * 0.2,
+                                        "head_diameter": 0.016, "color": _colour((0.9, 0.1, 0.1))})
+        if self._command is not None:
+            k = np.maximum(np.asarray(self._command["cart_stiffness"][:3], dtype=np.float64) * ELLIPSOID_M_PER_N_M,
+                           MIN_ELLIPSOID_M)
+            prims["spheres"].append({"pose": _pose((0, 0, 0), _quaternion(1, 0, 0, 0)),
+                                     "size": {"x": float(k[0]), "y": float(k[1]), "z": float(k[2])},
+                                     "color": _colour(colour, 0.35)})
+        label = "phase -" if phase is None else f"phase {phase}"
+        label += f" (true {self._true_phase})" + (f" HOLD {self._hold}" if self._hold else "")
+        prims["texts"].append({"pose": _pose((0, 0, 0.05), _quaternion(1, 0, 0, 0)), "billboard": True,
+                               "font_size": 14.0, "scale_invariant": True, "color": _colour(colour), "text": label})
+        # the arrow sits at the sensor, the rest at the tcp: two entities
+        entity = _entity(stamp, "tcp", "overlay/tcp", spheres=prims["spheres"], texts=prims["texts"])
+        return [_entity(stamp, "ati_sensor", "overlay/wrench", arrows=prims["arrows"]), entity]
+
+    def _status(self, state: dict, tcp) -> dict:
+        w = [0.0] * 6 if self._wrench is None else [float(x) for x in self._wrench]
+        est = self._estimate
+        return {"timestamp": time_of(state["stamp_ns"]), "seq": int(state["seq"]), "episode": int(state["episode"]),
+                "force": w[:3], "torque": w[3:], "force_norm": float(np.linalg.norm(w[:3])),
+                "phase": -1 if est is None else int(est["phase"]), "true_phase": self._true_phase,
+                "posterior": [] if est is None else [float(p) for p in est["posterior"]],
+                "stiffness": [] if self._command is None else [float(k) for k in self._command["cart_stiffness"]],
+                "hold": self._hold, "fri_quality": int(state["fri_quality"]), "fri_state": int(state["fri_state"]),
+                "tcp": [float(x) for x in tcp]}
+
+
+def encode(message: dict) -> bytes:
+    return json.dumps(message, separators=(",", ":")).encode()
+
+
+LATEST_TOPICS = ("ft/wrench", "estimator/phase", "robot/contact", "robot/command")  # only the newest counts
+EVENT_TOPICS = ("runner/event", "robot/episode")
+
+
+class VisualTap:
+    """A ``VisualScene`` fed with payloads as they cross the wire, decoding only what a
+    visual frame needs: the 1 kHz topics are kept undecoded and only the newest of each
+    is decoded, at a visual frame (a robot state whose FRI cycle is a multiple of the
+    scene's ``every``).  A payload that does not decode is counted and skipped."""
+
+    def __init__(self, scene: VisualScene):
+        self.scene = scene
+        self._latest: dict = {}
+        self.undecodable = 0
+
+    def reset(self) -> None:
+        self._latest.clear()
+        self.scene.reset()
+
+    def _decode(self, topic: str, value):
+        from services.runtime.messages import BY_TOPIC, MessageError
+
+        if isinstance(value, dict):
+            return value
+        try:
+            return BY_TOPIC[topic].decode(value)
+        except MessageError:
+            self.undecodable += 1
+            return None
+
+    def take(self, topic: str, raw: bytes, message: dict | None = None) -> list[tuple[str, dict]]:
+        """The visual messages this payload (of run topic ``topic``) brings; ``message``: the
+        payload already decoded, where the transport has it."""
+        if topic in LATEST_TOPICS:
+            self._latest[topic] = raw if message is None else message
+            return []
+        if topic in EVENT_TOPICS:
+            msg = self._decode(topic, raw if message is None else message)
+            return [] if msg is None else self.scene.take(topic, msg)
+        if topic != "robot/state":
+            return []
+        if message is None:
+            from services.runtime.messages import SEQ_PREFIX
+
+            m = SEQ_PREFIX.match(raw)
+            if m is None or int(m.group(1)) % self.scene.every:
+                return []
+        elif message["seq"] % self.scene.every:
+            return []
+        state = self._decode(topic, raw if message is None else message)
+        if state is None:
+            return []
+        out = []
+        for t, value in self._latest.items():
+            msg = self._decode(t, value)
+            if msg is not None:
+                out += self.scene.take(t, msg)
+        self._latest.clear()
+        return out + self.scene.take("robot/state", state)

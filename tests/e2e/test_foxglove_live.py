@@ -1,0 +1,110 @@
+"""The live view: a WebSocket client speaking Foxglove's protocol connects to a smoke run
+over Zenoh (`etar-bench run --foxglove`) and receives the advertised visual channels and
+their messages; and the live view changes nothing the run records or does."""
+
+import asyncio
+import json
+import re
+import struct
+import threading
+import time
+from pathlib import Path
+
+import websockets
+
+from services.recording import recorded_content
+from services.runner import RunOptions, Runner
+from services.visual import FRAMES, SCHEMA_NAMES
+
+ROOT = Path(__file__).resolve().parents[2]
+# foxglove-sdk's server names the protocol foxglove.sdk.v1, the wire format of
+# foxglove.websocket.v1; it refuses a client that offers only the old name (HTTP 400)
+SUBPROTOCOLS = ["foxglove.websocket.v1", "foxglove.sdk.v1"]
+
+
+def reproduction_scenario(tmp_path) -> str:
+    text = (ROOT / "scenarios" / "hold.yaml").read_text()
+    text = text.replace("model: models/smoke.json", f"model: {ROOT / 'scenarios' / 'models' / 'smoke.json'}")
+    text = text.replace("clock: realtime", "clock: lockstep").replace("stop_at_goal: false", "stop_at_goal: true")
+    text = text.replace("max_seconds: 60", "max_seconds: 15")
+    path = tmp_path / "repro.yaml"
+    path.write_text(text)
+    return str(path)
+
+
+async def watch(port: int, until: threading.Event) -> dict:
+    """Connect, subscribe to every advertised channel, count what arrives until ``until``."""
+    ws = await websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS, max_size=None,
+                                  open_timeout=20)
+    seen = {"subprotocol": ws.subprotocol, "ops": [], "channels": {}, "messages": {}, "first": {}}
+    async with ws:
+        while not until.is_set():
+            try:
+                raw = await asyncio.wait_for(ws.recv(), 0.5)
+            except asyncio.TimeoutError:
+                continue
+            except websockets.ConnectionClosed:
+                break
+            if isinstance(raw, str):
+                msg = json.loads(raw)
+                seen["ops"].append(msg["op"])
+                if msg["op"] == "advertise":
+                    for ch in msg["channels"]:
+                        seen["channels"][ch["id"]] = ch
+                    await ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                        {"id": ch["id"], "channelId": ch["id"]} for ch in msg["channels"]]}))
+                continue
+            assert raw[0] == 0x01, raw[:1]  # messageData
+            sub, log_time = struct.unpack_from("<IQ", raw, 1)
+            topic = seen["channels"][sub]["topic"]
+            seen["messages"][topic] = seen["messages"].get(topic, 0) + 1
+            seen["first"].setdefault(topic, json.loads(raw[13:]))
+    return seen
+
+
+def test_a_foxglove_client_watches_a_live_run_which_records_what_it_would_have_without(tmp_path):
+    scenario = reproduction_scenario(tmp_path)
+    lines, done, result = [], threading.Event(), {}
+
+    def say(line):
+        lines.append(line)
+
+    def go():
+        try:
+            result["report"] = Runner(RunOptions(figures=False, scenario=scenario, out=str(tmp_path / "live"),
+                                                 foxglove=0, run_id=f"fg-{int(time.time() * 1000)}"),
+                                      progress=say).run()
+        finally:
+            done.set()
+
+    thread = threading.Thread(target=go)
+    thread.start()
+    try:
+        port = None
+        deadline = time.monotonic() + 90
+        while port is None and time.monotonic() < deadline and not done.is_set():
+            m = next((re.search(r"connect Foxglove to ws://127\.0\.0\.1:(\d+)", ln) for ln in list(lines)
+                      if "connect Foxglove" in ln), None)
+            port = int(m.group(1)) if m else None
+            time.sleep(0.05)
+        assert port, lines
+        seen = asyncio.run(watch(port, done))
+    finally:
+        thread.join(120)
+    report = result["report"]
+    assert report["error"] is None, report["error"]
+    assert seen["subprotocol"] in SUBPROTOCOLS and seen["ops"][0] == "serverInfo"
+    advertised = {ch["topic"]: (ch["schemaName"], ch["encoding"], ch["schemaEncoding"])
+                  for ch in seen["channels"].values()}
+    assert advertised == {t: (name, "json", "jsonschema") for t, name in SCHEMA_NAMES.items()}
+    assert all(seen["messages"].get(t, 0) >= 20 for t in ("/viz/tf", "/viz/scene", "/viz/status")), seen["messages"]
+    assert [t["child_frame_id"] for t in seen["first"]["/viz/tf"]["transforms"]] == list(FRAMES)
+    assert report["timing"]["services"]["foxglove_bridge"]["sent"] > 0
+    assert report["timing"]["services"]["foxglove_bridge"]["errors"] == 0
+
+    # the same run without the live view, in one process: the same recording, the same result
+    plain = Runner(RunOptions(figures=False, scenario=scenario, out=str(tmp_path / "plain"), transport="inproc",
+                              run_id="fg-plain")).run()
+    assert recorded_content(tmp_path / "live") == recorded_content(tmp_path / "plain")
+    for key in ("final_position", "peak_contact_force", "reason", "sim_seconds"):
+        assert report["reproductions"][0][key] == plain["reproductions"][0][key], key

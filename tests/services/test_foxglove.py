@@ -1,0 +1,215 @@
+"""Foxglove's visual topics in the recordings: valid against Foxglove's own published JSON
+Schemas (@foxglove/schemas from npm, installed by `make test`), showing the arm where the
+robot measured it, and added to older recordings by `etar-bench export --foxglove`."""
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from services import bench_cli
+from services.export import add_visual_topics, export_foxglove
+from services.recording import RecordingError, read_episode
+from services.recovery import write_copy
+from services.runner import RunOptions, run
+from services.visual import (ARROW_M_PER_N, ELLIPSOID_M_PER_N_M, FRAMES, SCHEMA_DIR, SCHEMA_NAMES, VisualScene,
+                             VisualTap, schema_bytes, world_geometry)
+
+ROOT = Path(__file__).resolve().parents[2]
+NPM_SCHEMAS = ROOT / ".cache" / "foxglove-schemas" / "jsonschema"  # `make foxglove-schemas`
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    """A demonstration and a reproduction of the smoke task, in one process."""
+    out = tmp_path_factory.mktemp("foxglove")
+    text = (ROOT / "scenarios" / "smoke.yaml").read_text().replace("count: 2", "count: 1", 1)
+    text = text.replace("      phases: 3\n", "      phases: 2\n")
+    scenario = out / "smoke_one.yaml"
+    scenario.write_text(text)
+    report = run(RunOptions(figures=False, scenario=str(scenario), out=str(out / "run"), transport="inproc",
+                            run_id="foxglove"))
+    assert report["error"] is None, report["error"]
+    return out / "run"
+
+
+def visual_messages(path):
+    """{topic: [(log_time_ns, message)]} of the visual topics of one recording."""
+    out = {}
+    for m in read_episode(path).messages:
+        if m.topic in SCHEMA_NAMES:
+            out.setdefault(m.topic, []).append((m.log_time_ns, json.loads(m.payload)))
+    return out
+
+
+def test_every_visual_message_is_valid_against_foxglove_own_json_schemas(run_dir):
+    if not (NPM_SCHEMAS / "VERSION").exists():
+        pytest.skip(f"{NPM_SCHEMAS} is missing: `make foxglove-schemas` (part of `make test`) installs "
+                    "@foxglove/schemas from npm")
+    import jsonschema
+
+    validators = {}
+    for topic, name in SCHEMA_NAMES.items():
+        if name.startswith("foxglove."):
+            npm = json.loads((NPM_SCHEMAS / f"{name.split('.', 1)[1]}.json").read_text())
+            # what the recordings carry is Foxglove's schema, unchanged
+            assert json.loads(schema_bytes(topic)) == npm, name
+        else:
+            npm = json.loads(schema_bytes(topic))
+        cls = jsonschema.validators.validator_for(npm)
+        cls.check_schema(npm)
+        validators[topic] = cls(npm)
+    counts = {}
+    for path in sorted((run_dir / "recordings").glob("*.mcap")):
+        episode = read_episode(path)
+        for topic, ch in episode.channels.items():
+            if topic in SCHEMA_NAMES:
+                assert (ch.schema_name, ch.schema_encoding, ch.message_encoding) == \
+                    (SCHEMA_NAMES[topic], "jsonschema", "json")
+                assert ch.schema_data == schema_bytes(topic)
+        for topic, messages in visual_messages(path).items():
+            for _, msg in messages:
+                errors = [f"{e.json_path}: {e.message}" for e in validators[topic].iter_errors(msg)]
+                assert not errors, (path.name, topic, errors[:3])
+            counts[topic] = counts.get(topic, 0) + len(messages)
+    assert set(counts) == set(SCHEMA_NAMES) and all(n > 50 for t, n in counts.items() if t != "/viz/log"), counts
+    # and the validator does reject what Foxglove would not read
+    bad = visual_messages(run_dir / "recordings" / "reproduction_00.mcap")["/viz/scene"][0][1]
+    bad["entities"][0]["frame_id"] = 7
+    assert any(e.json_path.endswith("frame_id") for e in validators["/viz/scene"].iter_errors(bad))
+
+
+def test_the_visual_topics_show_the_arm_where_the_robot_measured_it(run_dir):
+    path = run_dir / "recordings" / "reproduction_00.mcap"
+    states, wrenches, phases, commands = {}, [], [], []
+    for m in read_episode(path).messages:
+        if m.topic == "/robot/state":
+            d = json.loads(m.payload)
+            states[d["stamp_ns"]] = d
+        elif m.topic == "/ft/wrench":
+            wrenches.append((m.log_time_ns, json.loads(m.payload)["wrench"]))
+    visual = visual_messages(path)
+    # 50 Hz: one frame in every 20 FRI cycles
+    seqs = [msg["seq"] for _, msg in visual["/viz/status"]]
+    assert seqs and all(s % 20 == 0 for s in seqs) and np.all(np.diff(seqs) == 20)
+    for _, tf in visual["/viz/tf"]:
+        by_child = {t["child_frame_id"]: t for t in tf["transforms"]}
+        assert tuple(by_child) == FRAMES and all(t["parent_frame_id"] == "base" for t in tf["transforms"])
+        tcp = by_child["tcp"]
+        stamp = tcp["timestamp"]["sec"] * 1_000_000_000 + tcp["timestamp"]["nsec"]
+        pose = np.asarray(states[stamp]["msr_cart_pos"]).reshape(3, 4)
+        # Pinocchio's tcp from the measured joints is the pose the robot reported
+        t = tcp["translation"]
+        np.testing.assert_allclose([t["x"], t["y"], t["z"]], pose[:, 3], atol=1e-9)
+        q = tcp["rotation"]
+        w, x, y, z = q["w"], q["x"], q["y"], q["z"]
+        R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                      [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+        np.testing.assert_allclose(R, pose[:, :3], atol=1e-9)
+    scenes = [msg for _, msg in visual["/viz/scene"]]
+    static = [s for s in scenes if any(e["id"] == "geometry/base" for e in s["entities"])]
+    assert 1 <= len(static) <= len(scenes) // 40 + 2  # the first frame, then once a second
+    world = next(e for e in static[0]["entities"] if e["id"] == "geometry/base")
+    assert world["frame_id"] == "base" and len(world["cubes"]) == 3  # two plates and the stand
+    arm = {e["frame_id"] for e in static[0]["entities"] if e["id"].startswith("geometry/")} - {"base"}
+    # every body of the MuJoCo arm with a geom (links 2, 4 and 6 have zero length in the DH model)
+    assert arm == {frame for frame, *_ in world_geometry("valley")} - {"base"}
+    assert {"link1", "link3", "link5", "link7", "ati_sensor", "tool"} <= arm
+    # the overlays: the arrow is the newest measured force, the ellipsoid the commanded stiffness
+    statuses = [msg for _, msg in visual["/viz/status"]]
+    moved = 0
+    for scene, status in zip(scenes, statuses):
+        wrench = next(e for e in scene["entities"] if e["id"] == "overlay/wrench")
+        tcp = next(e for e in scene["entities"] if e["id"] == "overlay/tcp")
+        force = np.linalg.norm(status["force"])
+        assert status["force_norm"] == pytest.approx(force)
+        if wrench["arrows"]:
+            a = wrench["arrows"][0]
+            assert a["shaft_length"] + a["head_length"] == pytest.approx(min(force * ARROW_M_PER_N, 0.4))
+            moved += 1
+        if status["stiffness"]:
+            size = tcp["spheres"][0]["size"]
+            assert size["x"] == pytest.approx(max(status["stiffness"][0] * ELLIPSOID_M_PER_N_M, 0.004))
+        assert tcp["texts"][0]["text"].startswith(f"phase {status['phase']}" if status["phase"] >= 0 else "phase -")
+    assert moved > len(statuses) // 2  # in contact most of the reproduction
+    assert {s["phase"] for s in statuses} >= {0, 1} and {s["true_phase"] for s in statuses} >= {0, 1}
+    logs = [msg["message"] for _, msg in visual["/viz/log"]]
+    assert any(line.startswith("episode_begin reproduction") for line in logs)
+    assert any(line.startswith("reproduction 0 ended: goal_reached") for line in logs)
+
+
+def test_a_visual_tap_skips_garbage_and_counts_it():
+    tap = VisualTap(VisualScene("valley"))
+    assert tap.take("ft/wrench", b'{"seq":1,"wrench":"not a wrench"}') == []
+    assert tap.take("robot/state", b'{"seq":20, garbage') == []  # a frame's state that does not decode
+    assert tap.undecodable == 1
+    assert tap.take("robot/state", b'{"seq":21, garbage') == []  # not a frame: not even decoded
+    assert tap.take("runner/event", b"\xff\xfe") == [] and tap.undecodable == 2
+    with pytest.raises(ValueError, match="unknown world 'moon'"):
+        VisualScene("moon")
+    with pytest.raises(ValueError, match="visual rate"):
+        VisualScene("valley", rate_hz=0)
+    assert sorted(p.name for p in SCHEMA_DIR.glob("*.json")) == ["FrameTransforms.json", "Log.json",
+                                                                 "SceneUpdate.json"]
+
+
+def strip_visual(src: Path, dst: Path) -> dict:
+    """Copies of ``src``'s recordings without the visual topics (a recording made before
+    they existed); the visual messages each had."""
+    (dst / "recordings").mkdir(parents=True)
+    had = {}
+    for path in sorted((src / "recordings").glob("*.mcap")):
+        episode = read_episode(path)
+        had[path.name] = [m for m in episode.messages if m.topic in SCHEMA_NAMES]
+        episode.messages[:] = [m for m in episode.messages if m.topic not in SCHEMA_NAMES]
+        for topic in SCHEMA_NAMES:
+            episode.channels.pop(topic, None)
+        write_copy(episode, dst / "recordings" / path.name, library="test", metadata=episode.metadata)
+    return had
+
+
+def test_export_adds_the_visual_topics_the_recorder_would_have_written(run_dir, tmp_path, capsys):
+    old = tmp_path / "old"
+    had = strip_visual(run_dir, old)
+    before = {p.name: read_episode(p).messages for p in (old / "recordings").glob("*.mcap")}
+    assert bench_cli.main(["export", str(old), "--foxglove"]) == 0
+    assert "visual topics added to 2 of 2 recording(s)" in capsys.readouterr().err
+    for path in sorted((old / "recordings").glob("*.mcap")):
+        episode = read_episode(path)
+        assert episode.complete
+        # the run's own messages byte for byte, the visual ones as the recorder wrote them
+        assert [m for m in episode.messages if m.topic not in SCHEMA_NAMES] == before[path.name]
+        assert [m for m in episode.messages if m.topic in SCHEMA_NAMES] == had[path.name]
+        assert episode.metadata["visual_topics_added_by"] == "etar-bench export --foxglove"
+    again = export_foxglove(old)
+    assert all(r.added == 0 and "already" in r.why for r in again)
+
+
+def test_export_refuses_what_it_cannot_read_and_leaves_it_as_it_was(run_dir, tmp_path, capsys):
+    assert bench_cli.main(["export", str(tmp_path), "--foxglove"]) == 1
+    assert "no recordings/ folder" in capsys.readouterr().err
+    assert bench_cli.main(["export", str(run_dir)]) == 2
+    assert "--foxglove" in capsys.readouterr().err
+    assert bench_cli.main(["export", str(run_dir), "--foxglove", "--rate", "0"]) == 2
+    old = tmp_path / "old"
+    strip_visual(run_dir, old)
+    path = sorted((old / "recordings").glob("*.mcap"))[0]
+    # truncated: left alone, said why
+    data = path.read_bytes()
+    cut = old / "recordings" / "cut.mcap"
+    cut.write_bytes(data[: len(data) * 2 // 3])
+    result = add_visual_topics(cut)
+    assert result.added == 0 and "etar-bench recover" in result.why and cut.read_bytes() == data[: len(data) * 2 // 3]
+    # no scenario to say which world: an error naming the file and the attachment, nothing changed
+    episode = read_episode(path)
+    episode.attachments.clear()
+    bare = old / "recordings" / "bare.mcap"
+    write_copy(episode, bare, library="test", metadata=episode.metadata)
+    before = bare.read_bytes()
+    with pytest.raises(RecordingError, match=r"bare.mcap: no 'scenario.yaml' attachment"):
+        add_visual_topics(bare)
+    assert bare.read_bytes() == before
+    shutil.rmtree(old)
