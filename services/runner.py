@@ -163,6 +163,8 @@ class Runner:
                 raise ValueError("--hosts starts the services on hosts of this machine over Zenoh: it cannot be "
                                  "combined with --transport inproc, --connect or --attach")
             self.hosts = Hosts(parse_layout(options.hosts, self.roles()))
+        if options.foxglove:
+            _check_port_free(options.foxglove)
         if options.tls is not None:
             if options.transport == "inproc" or options.zenoh is not None or options.attach:
                 raise ValueError("--tls makes the runner the run's router over Zenoh: it cannot be combined with "
@@ -632,6 +634,19 @@ class Runner:
                      f"{summary['peak_contact_force']:.1f} N, {summary['sim_seconds']:.1f} s simulated / "
                      f"{summary['wall_seconds']:.1f} s wall")
             self._stop_if_lost()
+
+
+def _check_port_free(port: int, host: str = "127.0.0.1") -> None:
+    """Refuse a live-view port that is taken before anything starts (the bridge would
+    only find out once the services are up)."""
+    import socket
+
+    with socket.socket() as s:
+        try:
+            s.bind((host, port))
+        except OSError as exc:
+            raise ValueError(f"--foxglove {port}: {host}:{port} is taken ({exc.strerror}); choose another port, "
+                             "or 0 for any free one") from None
 
 
 def run(options: RunOptions, progress=print) -> dict:

@@ -54,7 +54,11 @@ class FoxgloveBridgeNode(Node):
         self.lock = threading.Lock()  # Zenoh may call back from more than one thread
         self.sent = 0
         self.errors = 0
-        self.server = foxglove.start_server(name=f"etar {run_id}", host=config.host, port=config.port)
+        try:
+            self.server = foxglove.start_server(name=f"etar {run_id}", host=config.host, port=config.port)
+        except RuntimeError as exc:  # the SDK's FoxgloveError, e.g. the port is taken
+            raise OSError(f"the live view cannot listen on {config.host}:{config.port}: {exc} (--foxglove PORT: "
+                          "another port, or 0 for any free one)") from None
         self.port = self.server.port
         self.channels = {topic: foxglove.Channel(topic, schema=json.loads(schema_bytes(topic)),
                                                  message_encoding="json")

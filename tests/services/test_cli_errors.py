@@ -40,6 +40,9 @@ def test_a_service_refuses_a_bad_flag_in_one_line(capsys, argv, says):
     (["--tls", "/nonexistent"], "/nonexistent/ca.pem: missing (make the run's credentials with: etar-bench certs"),
     (["--hosts", "robot"], "--hosts 'robot': no host for ft_sensor"),
     (["--hosts", "robot,ft_sensor,recorder,teacher", "--transport", "inproc"], "--hosts starts the services on hosts"),
+    (["--foxglove", "70000"], "--foxglove PORT must be in 0..65535"),
+    (["--foxglove", "abc"], "argument --foxglove: invalid int value: 'abc'"),
+    (["--foxglove", "--tls", "/nonexistent"], "--foxglove cannot be combined with --tls, --hosts or --attach"),
 ])
 def test_the_runner_refuses_a_bad_flag_before_it_starts_anything(capsys, tmp_path, argv, says):
     out = tmp_path / "run"
@@ -48,6 +51,21 @@ def test_the_runner_refuses_a_bad_flag_before_it_starts_anything(capsys, tmp_pat
     assert says in err[-1] and err[-1].startswith("etar-bench run: error: "), err
     assert not any("Traceback" in line for line in err)
     assert not out.exists()  # nothing was started, nothing written
+
+
+def test_the_runner_refuses_a_live_view_port_that_is_taken(capsys, tmp_path):
+    import socket
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        out = tmp_path / "run"
+        assert bench_cli.main(["run", "scenarios/smoke.yaml", "--out", str(out), "--foxglove", str(port)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"etar-bench run: error: --foxglove {port}: 127.0.0.1:{port} is taken (Address already in use); "
+                   "choose another port, or 0 for any free one"]
+    assert not out.exists()
 
 
 @pytest.mark.parametrize("content", [b'{"a":', b"\xff\xfe garbage", b""])
