@@ -241,7 +241,7 @@ def phase_impedances(model, demos, dt: float, *, position_columns=slice(0, 3), f
     vector; None: the state has no orientation), mean positions the mean of
     the position columns.  A phase with fewer than 2
     steps gets ``None``.  Each phase's ``successor`` is the phase its Viterbi
-    paths most often went on to (None if none did).
+    paths most often went on to after their last stretch of it (None if none did).
     """
     vel, frc, lab, omg, pos = [], [], [], [], []
     for states, forces in demos:
@@ -253,10 +253,17 @@ def phase_impedances(model, demos, dt: float, *, position_columns=slice(0, 3), f
         frc.append(forces[:-1, force_columns])
         if rotation_columns is not None:
             omg.append(np.diff(states[:, rotation_columns], axis=0) / dt)
+    # the phase each demonstration went on to after its LAST stretch of a phase: a phase
+    # flickering with another on its way in (the two-sided valley's plate phase: 8 short
+    # returns to free motion against 6 entries into the groove) is not what follows it
     entered = np.zeros((model.n_phases, model.n_phases), dtype=np.int64)
     for path in lab:
         change = np.flatnonzero(np.diff(path))
-        np.add.at(entered, (path[change], path[change + 1]), 1)
+        last = {}
+        for c in change:
+            last[int(path[c])] = int(path[c + 1])
+        for j, k in last.items():
+            entered[j, k] += 1
     lab, vel, frc, pos = np.concatenate(lab), np.vstack(vel), np.vstack(frc), np.vstack(pos)
     omg = np.vstack(omg) if omg else None
     out = []

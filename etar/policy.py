@@ -48,6 +48,22 @@ PLACE_SPEED = 0.02  # m/s: how fast a phase done in place moves its reference to
 # the tool down the plate faster than any demonstration, and the estimator, which
 # judges phases by their dynamics, flickered between free motion and plate.
 LEAD = 0.005
+# N: a measured contact force above this is a surface the tool touches (as in
+# etar.impedance.derive_impedance's ``contact_force``)
+CONTACT_FORCE = 2.0
+# a phase demonstrated in free space slides along a surface it meets only when at
+# least this much of its direction lies along the surface (sin 17 deg); a direction
+# (nearly) straight into it is the phase's end: it keeps pressing, so that the
+# estimator sees the contact it was taught to switch on
+MIN_SLIDE = 0.3
+# s: a moving phase whose tool touches something and makes less than STALL_SPEED of
+# its speed along its direction for this long is blocked: the law goes on with the
+# phase the demonstrations entered next (``PhaseImpedance.successor``) until the
+# estimator names another phase.  The estimator judges phases by their dynamics, so it
+# cannot see the next phase begin while the tool stands still in a corner the current
+# law drives it into (two-sided valley: a plate's law at the groove's bottom)
+STALL_TIME = 0.5
+STALL_SPEED = 0.2
 
 
 def exp3(w: np.ndarray) -> np.ndarray:
@@ -88,6 +104,8 @@ class PhaseLaw:
     place: np.ndarray | None  # (3,) the demonstrations' mean position in this phase
     aim: np.ndarray | None  # (3,) free motion into a phase done in place: head for its place
     turns: bool  # the angular velocity is not zero
+    free: bool  # demonstrated in free space: no compliant axis, not done in place
+    successor: int | None  # the phase the demonstrations most often entered from this one
 
 
 def _impedance(imp) -> PhaseImpedance | None:
@@ -141,7 +159,8 @@ class ReproductionPolicy:
                 aim = np.asarray(follow.mean_position, dtype=np.float64)
         place = None if imp.mean_position is None else np.asarray(imp.mean_position, dtype=np.float64)
         return PhaseLaw(np.asarray(imp.direction, dtype=np.float64), K, self._damping(K), F_ff,
-                        max(float(imp.mean_speed), 0.01), omega, in_place, place, aim, bool(omega.any()))
+                        max(float(imp.mean_speed), 0.01), omega, in_place, place, aim, bool(omega.any()),
+                        imp.n_compliant == 0 and not in_place, imp.successor)
 
     def reset(self) -> None:
         self.phase = None
@@ -154,6 +173,12 @@ class ReproductionPolicy:
         self.v = np.zeros(3)
         self._scratch = np.zeros(3)
         self.goal_reached = False
+        self.applied = None  # the phase whose law made the last step's force (None: the hold law)
+        self.handed = None  # the successor phase whose law runs while the estimate's is blocked
+        self.visited = set()  # phases handed over to since the estimate last changed
+        self.stalled_for = 0.0  # s since stall_from: the window over which progress is judged
+        self.stall_from = None  # where the tool was when the window began (None: not touching)
+        self.last_d = None  # the running law's direction last cycle (after aim and contact)
 
     def _setpoint_rotation(self) -> np.ndarray:
         if not self.turned_setpoint:
@@ -180,9 +205,11 @@ class ReproductionPolicy:
             return True
         return bool(np.linalg.norm(log3(self._goal_turn_T @ exp3(turned))) < self.rot_tol)
 
-    def step(self, x: np.ndarray, R: np.ndarray, phase: int | None, dt: float = DT) -> tuple[np.ndarray, np.ndarray]:
+    def step(self, x: np.ndarray, R: np.ndarray, phase: int | None, dt: float = DT,
+             force: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(force in base axes (3,), setpoint rotation) for this cycle; ``dt``: time since
-        the previous step (more than one cycle when realtime left measurements unanswered)."""
+        the previous step (more than one cycle when realtime left measurements unanswered);
+        ``force``: the measured external force on the tool, base axes (None: not known)."""
         if self.R_hold is None:
             self.R_hold = R.copy()
         if self.prev_x is not None:
@@ -202,9 +229,19 @@ class ReproductionPolicy:
             # a new phase starts its reference at the tool, already half a lead
             # ahead along its direction: a flickering estimate must not stall the motion
             self.phase = phase
+            self.handed = None
+            self.visited = set() if phase is None else {phase}
+            self.stalled_for = 0.0
+            self.stall_from = None
+            self.last_d = None
             self.at_place = False
             moving = law is not None and not law.in_place
             self.ref = x + law.direction * 0.5 * self.lead if moving else x.copy()
+        if self.handed is not None:
+            phase, law = self.handed, self.phases[self.handed]
+        if law is not None and force is not None and not self.goal_reached:
+            law, phase = self._unless_blocked(x, law, phase, force, dt)
+        self.applied = None if self.goal_reached or law is None else phase
         if self.goal_reached or law is None:
             if self.ref is None:
                 self.ref = x.copy()
@@ -215,6 +252,11 @@ class ReproductionPolicy:
             # reference keeps only its lead along the new d
             d = (law.aim - x) / np.linalg.norm(law.aim - x)
             self.ref = x + max((self.ref - x) @ d, 0.0) * d
+        if law.free and law.aim is None and force is not None:
+            # (a phase aiming for its successor's place is meant to arrive and press there:
+            # sliding the coupler's approach off the socket delayed the switch, 6-8 s -> 8-10.5 s)
+            d = self._along_contact(x, d, force)
+        self.last_d = d
         if not law.in_place:
             self.ref = self.ref + d * law.speed * dt
             ahead = (self.ref - x) @ d
@@ -247,14 +289,70 @@ class ReproductionPolicy:
             turned = log3(self.R_hold.T @ R)
             if law.turns:
                 self._turn(law, turned, dt)
-        if self.goal is not None and phase == len(self.phases) - 1:
+        # at the goal counts in any phase: a model with more phases than the task's
+        # (pooled BIC on the two-sided valley: 6, two of them the groove) may name another
+        # than the last there, and the tool ran on past the goal into a joint limit
+        near = self.goal is not None and np.linalg.norm(x - self.goal) < self.tol
+        if self.goal is not None and (near or phase == len(self.phases) - 1):
             past = not law.in_place and (x - self.goal) @ d >= 0.0
             lateral = np.linalg.norm((x - self.goal) - ((x - self.goal) @ d) * d)
-            there = np.linalg.norm(x - self.goal) < self.tol or (past and lateral < 3 * self.tol)
+            there = near or (past and lateral < 3 * self.tol)
             if there and (turned is None or self._turned_enough(turned)):
                 self.goal_reached = True
                 self.ref = x.copy()
         return F, self._setpoint_rotation()
+
+    def _unless_blocked(self, x: np.ndarray, law: PhaseLaw, phase: int, force: np.ndarray, dt: float):
+        """(law, phase) to run: the successor's once ``law``'s tool, touching something,
+        has gone less than STALL_SPEED of the phase's speed along its direction over
+        STALL_TIME (measured over the window, not from the velocity: a tool pressed into
+        a corner chatters)."""
+        touching = not law.in_place and float(force @ force) > CONTACT_FORCE ** 2
+        if not touching or self.stall_from is None:
+            self.stall_from, self.stalled_for = (x.copy() if touching else None), 0.0
+            return law, phase
+        self.stalled_for += dt
+        if self.stalled_for < STALL_TIME:
+            return law, phase
+        d = law.direction if self.last_d is None else self.last_d
+        blocked = float((x - self.stall_from) @ d) < STALL_SPEED * law.speed * self.stalled_for
+        self.stall_from, self.stalled_for = x.copy(), 0.0
+        nxt = law.successor
+        if (not blocked or nxt is None or not 0 <= nxt < len(self.phases) or self.phases[nxt] is None
+                or nxt in self.visited):
+            return law, phase
+        self.handed = nxt
+        self.visited.add(nxt)
+        self.last_d = None
+        law = self.phases[nxt]
+        self.at_place = False
+        self.ref = x + law.direction * 0.5 * self.lead if not law.in_place else x.copy()
+        return law, nxt
+
+    def _along_contact(self, x: np.ndarray, d: np.ndarray, force: np.ndarray) -> np.ndarray:
+        """A free-space phase's direction where the tool touches a surface: the
+        component into the surface (against the measured contact force) removed, so
+        the tool slides along it instead of stalling against it.  The learned
+        direction is one world direction; a phase whose demonstrations met surfaces
+        on different sides (the valley's plates: their contact forces mirror each
+        other) holds on none of them, and its law pushed the tool into a plate it
+        could not move along (two-sided valley, 3 phases: 19 of 20 stalled).  The
+        reference's own lead into the surface goes too (the spring would press on)."""
+        fn = math.sqrt(float(force @ force))
+        if fn <= CONTACT_FORCE:
+            return d
+        n = force / fn
+        into = float(d @ n)
+        if into >= 0.0:
+            return d
+        t = d - into * n
+        tn = math.sqrt(float(t @ t))
+        if tn < MIN_SLIDE:
+            return d
+        back = float((self.ref - x) @ n)
+        if back < 0.0:
+            self.ref = self.ref - back * n
+        return t / tn
 
     def _damping(self, K):
         w, V = np.linalg.eigh(0.5 * (K + K.T))

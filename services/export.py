@@ -56,7 +56,10 @@ def add_visual_topics(path, rate_hz: float = VISUAL_RATE_HZ, scenes: dict | None
     scenes = {} if scenes is None else scenes
     if (world, rate_hz) not in scenes:
         scenes[world, rate_hz] = VisualScene(world, rate_hz)
-    tap = VisualTap(scenes[world, rate_hz])
+    # a recording from before the episode's start named its model: the run's own model
+    model = episode.metadata.get("model") or (str(path.parent.parent / "model.json")
+                                              if (path.parent.parent / "model.json").exists() else None)
+    tap = VisualTap(scenes[world, rate_hz], default_model=model)
     tap.reset()
     extra = []
     for m in episode.messages:

@@ -402,23 +402,25 @@ class Runner:
         if role == "recorder":
             name = f"{kind}_{index:02d}.part{len(self._parts) + 2}.mcap"
             self._req("recorder", "begin_episode", path=name, kind=kind, index=index, scenario=self.scenario_text,
-                      metadata={"start": json.dumps(list(start)), "scenario": self.scenario.name,
-                                "part": str(len(self._parts) + 2)})
+                      metadata=dict(self._episode_metadata, part=str(len(self._parts) + 2)))
             self._parts.append(self.recordings / name)
         elif role == "phase_estimator" and self._estimator_reset is not None:
             self._req("phase_estimator", "reset", resync=True, **self._estimator_reset)
 
-    def _prepare(self, kind, index, start) -> Path:
+    def _prepare(self, kind, index, start, model: str | None = None) -> Path:
         """Open the episode's recording and put the arm at its start; returns the
-        recording's path as this runner sees it."""
+        recording's path as this runner sees it.  ``model``: the model file a reproduction
+        runs (in the recording's metadata: what its visual topics draw the stiffness of)."""
         name = f"{kind}_{index:02d}.mcap"
         self._episode, self._parts = (kind, index, tuple(start)), []
+        self._episode_metadata = {"start": json.dumps(list(start)), "scenario": self.scenario.name}
+        if model is not None:
+            self._episode_metadata["model"] = model
         # the recorder is told the name relative to its --out-dir, the one folder both
         # agree on: OUT/recordings (spawned), or a shared volume (--attach)
         written = self._req("recorder", "begin_episode", path=name, kind=kind, index=index,
-                            scenario=self.scenario_text,
-                            metadata={"start": json.dumps(list(start)), "scenario": self.scenario.name})["path"]
-        self._event("episode_begin", kind, index, {"start": list(start)})
+                            scenario=self.scenario_text, metadata=self._episode_metadata)["path"]
+        self._event("episode_begin", kind, index, {"start": list(start), **({"model": model} if model else {})})
         self._req("robot", "reset", start=list(start), episode=index, kind=kind)
         self._req("ft_sensor", "tare", samples=100)
         # realtime: the robot subscribes to what it applies only, so it does not wait for the sensor
@@ -616,8 +618,8 @@ class Runner:
         episodes = [(side, start, m) for side, start in starts for m in models]
         for side, start, m in episodes:
             index = len(self.state.reproductions)
-            path = self._prepare("reproduction", index, start)
             model_path = str(Path(m["path"]).resolve())
+            path = self._prepare("reproduction", index, start, model=model_path)
             self._estimator_reset = dict(model=model_path, episode=index)
             self._req("phase_estimator", "reset", **self._estimator_reset)
             goal = list(m["goal"])

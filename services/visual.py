@@ -11,9 +11,11 @@ rate (50 Hz by default: one in every 20 FRI cycles):
   (plates and groove, or coupler) as the MuJoCo model the physics runs has them,
   each arm geom attached to its link's frame, sent at the first cycle and once a
   second (so a player that seeks finds them); and the overlays at the visual rate:
-  the measured force as an arrow at the sensor, the commanded translational
-  stiffness as an ellipsoid at the tcp (axes in proportion), the estimated and the
-  true phase as the ellipsoid's colour and a text;
+  the measured force as an arrow at the sensor, the translational stiffness the
+  commander applies as an ellipsoid at the tcp (its axes the stiffness' principal
+  axes, in proportion: the learned K = R V R^T of the phase whose law the command
+  names, from the episode's model, or the hold stiffness while it holds), the
+  estimated and the true phase as the ellipsoid's colour and a text;
 - ``/viz/status`` (``etar.VisualStatus``, a JSON Schema of our own): the same
   figures as plain numbers for Foxglove's plots and state-transition panels;
 - ``/viz/log`` (``foxglove.Log``): the runner's stage and episode events, the
@@ -71,7 +73,9 @@ STATUS_SCHEMA = {
         "true_phase": {"type": "integer", "description": "the physics' phase label"},
         "posterior": {"type": "array", "items": {"type": "number"}, "description": "p(phase | inputs so far)"},
         "stiffness": {"type": "array", "items": {"type": "number"},
-                      "description": "commanded Cartesian stiffness [N/m x3, N m/rad x3], tcp axes"},
+                      "description": "principal translational stiffnesses the commander applies, N/m, largest "
+                                     "first (empty: no command yet, or the phase's impedance is unknown)"},
+        "applied_phase": {"type": "integer", "description": "phase whose law the command applies (-1: holding)"},
         "hold": {"type": "string", "description": "why the commander holds ('' : it does not)"},
         "fri_quality": {"type": "integer", "description": "0 UNACCEPTABLE, 1 BAD, 2 OK, 3 PERFECT"},
         "fri_state": {"type": "integer", "description": "0 OFF, 1 MON, 2 CMD"},
@@ -203,7 +207,12 @@ class VisualScene:
         self.geometry = world_geometry(world)
         self.reset()
 
-    def reset(self) -> None:
+    def reset(self, impedances=None) -> None:
+        """A new episode; ``impedances``: its model's per-phase impedances (``etar.task.
+        LearnedTask.impedances``), for the stiffness the commands apply."""
+        self._stiffness = [None if imp is None else np.asarray(imp.stiffness, dtype=np.float64)
+                           for imp in (impedances or [])]
+        self._known = impedances is not None
         self._wrench = None
         self._estimate = None
         self._true_phase = -1
@@ -258,13 +267,14 @@ class VisualScene:
                                "translation": {"x": float(t[0]), "y": float(t[1]), "z": float(t[2])},
                                "rotation": _quat_of_matrix(placement.rotation)})
         out = [(TOPIC_TF, {"transforms": transforms})]
-        entities = self._overlay(stamp)
+        tcp = kin.data.oMf[self._frame_ids[-1]].translation
+        entities = self._overlay(stamp, tcp)
         seq = state["seq"]
         if self._static_at is None or seq - self._static_at >= FRI_RATE_HZ or seq < self._static_at:
             self._static_at = seq
             entities = self._static(stamp) + entities
         out.append((TOPIC_SCENE, {"deletions": [], "entities": entities}))
-        out.append((TOPIC_STATUS, self._status(state, kin.data.oMf[self._frame_ids[-1]].translation)))
+        out.append((TOPIC_STATUS, self._status(state, tcp)))
         return out
 
     def _static(self, stamp: int) -> list[dict]:
@@ -276,11 +286,24 @@ class VisualScene:
                             **({"bottom_scale": 1.0, "top_scale": 1.0} if prim == "cylinders" else {})})
         return list(by_frame.values())
 
-    def _overlay(self, stamp: int) -> list[dict]:
+    def applied_stiffness(self) -> np.ndarray | None:
+        """(3, 3) translational stiffness of the last command's law, N/m; None if unknown."""
+        if self._command is None:
+            return None
+        applied = int(self._command["phase"])
+        if applied < 0:
+            from etar.policy import HOLD_STIFFNESS
+
+            return HOLD_STIFFNESS * np.eye(3)
+        if not self._known or applied >= len(self._stiffness):
+            return None
+        return self._stiffness[applied]
+
+    def _overlay(self, stamp: int, tcp) -> list[dict]:
         """The wrench arrow, the stiffness ellipsoid and the phase text, on the tcp side."""
         phase = None if self._estimate is None else int(self._estimate["phase"])
         colour = phase_colour(phase)
-        prims = {"arrows": [], "spheres": [], "texts": []}
+        prims = {"arrows": [], "texts": []}
         if self._wrench is not None:
             f = np.asarray(self._wrench[:3], dtype=np.float64)
             length = min(float(np.linalg.norm(f)) * ARROW_M_PER_N, MAX_ARROW_M)
@@ -288,28 +311,37 @@ class VisualScene:
                 prims["arrows"].append({"pose": _pose((0, 0, 0), _x_onto(f)), "shaft_length": length * 0.8,
                                         "shaft_diameter": 0.006, "head_length": length * 0.2,
                                         "head_diameter": 0.016, "color": _colour((0.9, 0.1, 0.1))})
-        if self._command is not None:
-            k = np.maximum(np.asarray(self._command["cart_stiffness"][:3], dtype=np.float64) * ELLIPSOID_M_PER_N_M,
-                           MIN_ELLIPSOID_M)
-            prims["spheres"].append({"pose": _pose((0, 0, 0), _quaternion(1, 0, 0, 0)),
-                                     "size": {"x": float(k[0]), "y": float(k[1]), "z": float(k[2])},
-                                     "color": _colour(colour, 0.35)})
+        K = self.applied_stiffness()
+        ellipsoid = []
+        if K is not None:
+            # principal axes as the ellipsoid's axes (a right-handed frame), in base axes at the tcp
+            w, V = np.linalg.eigh(0.5 * (K + K.T))
+            if np.linalg.det(V) < 0:
+                V[:, 2] = -V[:, 2]
+            k = np.maximum(w * ELLIPSOID_M_PER_N_M, MIN_ELLIPSOID_M)
+            ellipsoid.append({"pose": _pose(tcp, _quat_of_matrix(V)),
+                              "size": {"x": float(k[0]), "y": float(k[1]), "z": float(k[2])},
+                              "color": _colour(colour, 0.35)})
         label = "phase -" if phase is None else f"phase {phase}"
         label += f" (true {self._true_phase})" + (f" HOLD {self._hold}" if self._hold else "")
         prims["texts"].append({"pose": _pose((0, 0, 0.05), _quaternion(1, 0, 0, 0)), "billboard": True,
                                "font_size": 14.0, "scale_invariant": True, "color": _colour(colour), "text": label})
         # the arrow sits at the sensor, the rest at the tcp: two entities
-        entity = _entity(stamp, "tcp", "overlay/tcp", spheres=prims["spheres"], texts=prims["texts"])
-        return [_entity(stamp, "ati_sensor", "overlay/wrench", arrows=prims["arrows"]), entity]
+        return [_entity(stamp, "ati_sensor", "overlay/wrench", arrows=prims["arrows"]),
+                _entity(stamp, "tcp", "overlay/tcp", texts=prims["texts"]),
+                _entity(stamp, "base", "overlay/stiffness", spheres=ellipsoid)]
 
     def _status(self, state: dict, tcp) -> dict:
+        K = self.applied_stiffness()
         w = [0.0] * 6 if self._wrench is None else [float(x) for x in self._wrench]
         est = self._estimate
         return {"timestamp": time_of(state["stamp_ns"]), "seq": int(state["seq"]), "episode": int(state["episode"]),
                 "force": w[:3], "torque": w[3:], "force_norm": float(np.linalg.norm(w[:3])),
                 "phase": -1 if est is None else int(est["phase"]), "true_phase": self._true_phase,
                 "posterior": [] if est is None else [float(p) for p in est["posterior"]],
-                "stiffness": [] if self._command is None else [float(k) for k in self._command["cart_stiffness"]],
+                "stiffness": [] if K is None else sorted((float(k) for k in np.linalg.eigvalsh(0.5 * (K + K.T))),
+                                                         reverse=True),
+                "applied_phase": -1 if self._command is None else int(self._command["phase"]),
                 "hold": self._hold, "fri_quality": int(state["fri_quality"]), "fri_state": int(state["fri_state"]),
                 "tcp": [float(x) for x in tcp]}
 
@@ -328,14 +360,31 @@ class VisualTap:
     is decoded, at a visual frame (a robot state whose FRI cycle is a multiple of the
     scene's ``every``).  A payload that does not decode is counted and skipped."""
 
-    def __init__(self, scene: VisualScene):
+    def __init__(self, scene: VisualScene, default_model: str | None = None):
         self.scene = scene
         self._latest: dict = {}
         self.undecodable = 0
+        # the model whose stiffness is drawn when an episode's start does not name one
+        # (recordings from before the runner named it)
+        self.default_model = default_model
+        self._impedances: dict[str, list | None] = {}
 
-    def reset(self) -> None:
+    def reset(self, impedances=None) -> None:
         self._latest.clear()
-        self.scene.reset()
+        self.scene.reset(impedances)
+
+    def _model(self, path) -> list | None:
+        """The per-phase impedances of a model file (read once); None if it cannot be read."""
+        if not isinstance(path, str):
+            return None
+        if path not in self._impedances:
+            from etar.task import TaskError, load_task
+
+            try:
+                self._impedances[path] = list(load_task(path).impedances)
+            except (TaskError, OSError, ValueError):
+                self._impedances[path] = None
+        return self._impedances[path]
 
     def _decode(self, topic: str, value):
         from services.runtime.messages import BY_TOPIC, MessageError
@@ -356,7 +405,12 @@ class VisualTap:
             return []
         if topic in EVENT_TOPICS:
             msg = self._decode(topic, raw if message is None else message)
-            return [] if msg is None else self.scene.take(topic, msg)
+            if msg is None:
+                return []
+            if topic == "runner/event" and msg["event"] == "episode_begin":
+                # a reproduction's start names its model: the stiffness its commands apply
+                self.reset(self._model(msg["info"].get("model") or self.default_model))
+            return self.scene.take(topic, msg)
         if topic != "robot/state":
             return []
         if message is None:

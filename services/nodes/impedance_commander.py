@@ -194,7 +194,10 @@ class ImpedanceCommanderNode(Node):
             elif not fault:
                 self.hold = None
         # the policy holds stiffly where the tool is when it knows no phase
-        F, R_set = self.policy.step(x, R, None if self.hold else self._latest_phase, cycles * DT)
+        # the KRC's estimate of the external force (tcp axes, FRI order Fx Fy Fz first) in base
+        # axes: the policy slides a free-space phase along a surface it meets (etar.policy)
+        force = R @ np.asarray(state["est_ext_tcp_ft"][:3], dtype=np.float64)
+        F, R_set = self.policy.step(x, R, None if self.hold else self._latest_phase, cycles * DT, force)
         # the force in tcp axes; FRI orders the torques Tz, Ty, Tx (all zero here)
         add = (R.T @ F).tolist() + [0.0, 0.0, 0.0]
         cart = self._cart_pos
@@ -206,7 +209,9 @@ class ImpedanceCommanderNode(Node):
             cart_pos=cart.reshape(12),
             cart_stiffness=CART_STIFFNESS, cart_damping=CART_DAMPING,
             add_tcp_ft=add, requested_mode=2,
-            phase=-1 if self._latest_phase is None or self.hold else int(self._latest_phase),
+            # the law that made this force: the estimate's, its successor's while that one is
+            # blocked (etar.policy), or none (-1) while holding, at the goal included
+            phase=-1 if self.policy.applied is None else int(self.policy.applied),
             estimate_seq=self._latest_phase_seq,
             goal_reached=bool(self.policy.goal_reached), hold=self.hold["reason"] if self.hold else "",
             episode=state["episode"])

@@ -384,7 +384,8 @@ ROBOT_COMMAND = MessageType(
         ("cart_damping", "float[6]", "normalised damping 0..1"),
         ("add_tcp_ft", "float[6]", "superposed wrench [Fx Fy Fz Tz Ty Tx], tcp frame"),
         ("requested_mode", "int", "control mode this command is for (2 CART_IMP)"),
-        ("phase", "int", "phase whose impedance this command applies (-1: none)"),
+        ("phase", "int", "phase whose impedance law made this command's force: the estimate's, or the phase the "
+                         "demonstrations went on to while the estimate's is blocked (-1: none, the arm held)"),
         ("estimate_seq", "int", "robot cycle of the phase estimate this command used (-1: none)"),
         ("goal_reached", "bool", "the commander judges the task complete"),
         ("hold", "str", "why the commander holds the arm stiffly where it was instead of following "

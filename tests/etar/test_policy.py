@@ -116,3 +116,36 @@ def test_a_model_without_orientation_holds_the_start_orientation_exactly():
     assert R_set is law.R_hold
     # a pose model whose demonstrations did not turn has no goal turn either
     assert ImpedanceLaw([free_motion()], goal=None, goal_rotation=[0.0, 0.02, -0.05]).goal_rotation is None
+
+
+def test_free_phase_slides_along_a_surface_it_meets():
+    # a 45-degree slope whose contact force points up and to +y; the free phase goes straight down
+    law = ImpedanceLaw([free_motion()], goal=None, lead=0.005)
+    x = np.array([0.6, 0.0, 0.3])
+    n = np.array([0.0, 1.0, 1.0]) / np.sqrt(2.0)
+    for _ in range(50):
+        F, _ = law.step(x, DOWN, 0, force=8.0 * n)
+    assert abs(F @ n) < 1.0  # nothing pushes into the surface
+    assert F[1] > 3.0 and F[2] < -3.0  # down the slope
+    F, _ = law.step(x, DOWN, 0)  # force unknown: the learned direction, as before
+    assert F[2] < -5.0
+
+
+def test_blocked_phase_hands_over_to_its_successor():
+    rng = np.random.default_rng(2)
+    down = free_motion()
+    along = free_motion(direction=(-1.0, 0.0, 0.0))
+    from dataclasses import replace
+    from etar.impedance import PhaseImpedance
+    down = replace(PhaseImpedance.from_dict(down), successor=1)
+    law = ImpedanceLaw([down, along], goal=None, lead=0.005)
+    x = np.array([0.6, 0.0, 0.3])
+    floor = np.array([0.0, 0.0, 10.0])  # straight into the floor: no sliding, blocked
+    for k in range(400):
+        F, _ = law.step(x + 1e-5 * rng.normal(size=3), DOWN, 0, force=floor)
+    assert F[2] < -5.0 and abs(F[0]) < 1.0  # still pressing down before STALL_TIME
+    for k in range(200):
+        F, _ = law.step(x + 1e-5 * rng.normal(size=3), DOWN, 0, force=floor)
+    assert law.handed == 1 and F[0] < -5.0  # the successor's law: along -x
+    law.step(x, DOWN, 1, force=floor)
+    assert law.handed is None  # the estimator's phase rules again

@@ -120,7 +120,7 @@ def test_the_visual_topics_show_the_arm_where_the_robot_measured_it(run_dir):
     assert {"link1", "link3", "link5", "link7", "ati_sensor", "tool"} <= arm
     # the overlays: the arrow is the newest measured force, the ellipsoid the commanded stiffness
     statuses = [msg for _, msg in visual["/viz/status"]]
-    moved = 0
+    moved, stiffnesses = 0, []
     for scene, status in zip(scenes, statuses):
         wrench = next(e for e in scene["entities"] if e["id"] == "overlay/wrench")
         tcp = next(e for e in scene["entities"] if e["id"] == "overlay/tcp")
@@ -130,11 +130,20 @@ def test_the_visual_topics_show_the_arm_where_the_robot_measured_it(run_dir):
             a = wrench["arrows"][0]
             assert a["shaft_length"] + a["head_length"] == pytest.approx(min(force * ARROW_M_PER_N, 0.4))
             moved += 1
+        stiffness = next(e for e in scene["entities"] if e["id"] == "overlay/stiffness")
         if status["stiffness"]:
-            size = tcp["spheres"][0]["size"]
-            assert size["x"] == pytest.approx(max(status["stiffness"][0] * ELLIPSOID_M_PER_N_M, 0.004))
+            (ellipsoid,) = stiffness["spheres"]
+            size = sorted(ellipsoid["size"].values(), reverse=True)
+            assert size == pytest.approx([max(k * ELLIPSOID_M_PER_N_M, 0.004) for k in status["stiffness"]])
+            p = ellipsoid["pose"]["position"]
+            assert [p["x"], p["y"], p["z"]] == pytest.approx(status["tcp"])
+            stiffnesses.append(status["stiffness"])
         assert tcp["texts"][0]["text"].startswith(f"phase {status['phase']}" if status["phase"] >= 0 else "phase -")
     assert moved > len(statuses) // 2  # in contact most of the reproduction
+    # the learned phases' stiffness: stiff (2000 N/m) along the motion, soft (100 N/m) on a compliant axis
+    assert len(stiffnesses) > len(statuses) // 2
+    assert {round(k) for ks in stiffnesses for k in ks} <= {100, 2000}
+    assert any(min(ks) < 200 for ks in stiffnesses) and any(max(ks) > 1500 for ks in stiffnesses)
     assert {s["phase"] for s in statuses} >= {0, 1} and {s["true_phase"] for s in statuses} >= {0, 1}
     logs = [msg["message"] for _, msg in visual["/viz/log"]]
     assert any(line.startswith("episode_begin reproduction") for line in logs)
