@@ -87,6 +87,8 @@ def main():
     parser.add_argument("--profile", default="none",
                         help="the runner's realtime profile (auto, none or parts: fifo,isolate,poll; default none: "
                              "only the flags above apply)")
+    parser.add_argument("--visual-rate", type=float, default=50.0,
+                        help="the recorder's visual topics, Hz (0: none; default 50, as a run has them)")
     parser.add_argument("--foxglove", action="store_true",
                         help="with the live view (etar-bench run --foxglove) and a viewer subscribed to it")
     parser.add_argument("--out", help="run directory (default: a temporary one)")
@@ -132,6 +134,7 @@ def main():
         report = run(RunOptions(scenario=str(scenario), out=str(out), run_id=run_id, sched_fifo=args.sched_fifo,
                                 isolate_robot=args.isolate_robot, fifo_priorities=priorities,
                                 realtime_profile=args.profile, foxglove=0 if args.foxglove else None,
+                                recorder_args=("--visual-rate-hz", str(args.visual_rate)),
                                 figures=False),
                      progress=progress)
     finally:
@@ -169,6 +172,7 @@ def main():
                 f"runner's realtime profile {args.profile}: granted "
                 f"{', '.join((report['environment'].get('realtime_profile') or {}).get('granted', [])) or 'nothing'}; "
                 f"{wall:.0f} s wall; run directory {out}"),
+        ("recorder's visual topics", f"{args.visual_rate:g} Hz" if args.visual_rate else "none"),
         ("live view", "none" if not args.foxglove else
          f"foxglove_bridge sent {report['timing']['services'].get('foxglove_bridge', {}).get('sent', 0)} visual "
          f"messages; the viewer received {viewers[0].messages if viewers else 0} "

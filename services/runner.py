@@ -84,6 +84,7 @@ class RunOptions:
     robot_args: tuple = ()  # extra flags for the robot (e.g. fault injection)
     commander_args: tuple = ()
     sensor_args: tuple = ()  # extra flags for the ft_sensor (e.g. --fault saturate)
+    recorder_args: tuple = ()  # extra flags for the recorder (e.g. --visual-rate-hz 0)
     # the run's credentials (etar-bench certs DIR): the runner is the run's router, mutual
     # TLS only, and only the run's roles may use its keys (services.runtime.secure)
     tls: str | None = None
@@ -228,6 +229,7 @@ class Runner:
         configs["robot"] = with_flags(configs["robot"], self.options.robot_args)
         configs["impedance_commander"] = with_flags(configs["impedance_commander"], self.options.commander_args)
         configs["ft_sensor"] = with_flags(configs["ft_sensor"], self.options.sensor_args)
+        configs["recorder"] = with_flags(configs["recorder"], self.options.recorder_args)
         return {role: configs[role] for role in self.roles()}
 
     def process_args(self, role: str, config, connect: str) -> list[str]:

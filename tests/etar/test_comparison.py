@@ -102,7 +102,7 @@ def test_table_c1_matching_undoes_a_permutation_and_the_softmax_gauge(task_data)
 
 def test_table_c1_separate_fits_of_two_demonstrations_of_one_task(task_data):
     task, demos, truths = task_data
-    c1 = separate_fits(demos[0], demos[1], 3, seeds=(0, 1), truths=truths[:2], max_iter=30, n_restarts=1)
+    c1 = separate_fits(demos[0], demos[1], 3, seeds=(0, 1), truths=truths[:2], max_iter=15, n_restarts=1)
     assert [r["seed"] for r in c1["between_demonstrations"]] == [0, 1]
     assert [(r["demonstration"], r["seeds"]) for r in c1["between_seeds"]] == [("a", [0, 1]), ("b", [0, 1])]
     for row in c1["between_demonstrations"]:
