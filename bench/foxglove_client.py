@@ -46,6 +46,8 @@ class Viewer(threading.Thread):
                     raw = await asyncio.wait_for(ws.recv(), 0.5)
                 except asyncio.TimeoutError:
                     continue
+                except websockets.ConnectionClosedOK:
+                    break  # the run ended and its bridge with it
                 if isinstance(raw, str):
                     msg = json.loads(raw)
                     if msg["op"] == "advertise":
