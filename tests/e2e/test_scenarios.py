@@ -9,6 +9,7 @@ from pathlib import Path
 
 from services.recording import WALL_CLOCK_TOPICS, read_episode, recorded_content
 from services.runner import RunOptions, run
+from services.visual import SCHEMA_NAMES as VISUAL_TOPICS
 
 ROOT = Path(__file__).resolve().parents[2]
 SMOKE = str(ROOT / "scenarios" / "smoke.yaml")
@@ -21,8 +22,11 @@ def check_recordings(run_dir: Path, report: dict) -> None:
         assert ep.complete
         # every (topic, seq) once: nothing from another run, nothing twice
         counts = Counter((m.topic, json.loads(m.payload)["seq"]) for m in ep.messages
-                         if m.topic not in WALL_CLOCK_TOPICS)
+                         if m.topic not in WALL_CLOCK_TOPICS and m.topic not in VISUAL_TOPICS)
         assert max(counts.values()) == 1
+        # the visual topics the recorder derived (services.visual): one status per 20 FRI cycles, once each
+        status = Counter(json.loads(m.payload)["seq"] for m in ep.messages if m.topic == "/viz/status")
+        assert status and max(status.values()) == 1 and all(seq % 20 == 0 for seq in status)
         topics = set(ep.topics())
         assert {"/robot/state", "/robot/contact", "/ft/wrench"} <= topics
         # a JSON Schema on every channel: Foxglove plots the wrench and phase topics from it
