@@ -439,8 +439,9 @@ _READ_ERRORS = (McapError, struct.error, ValueError, EOFError, zstandard.ZstdErr
                 OverflowError)
 
 
-# topics whose payloads carry wall-clock durations and loop timing: not what a seed determines
-WALL_CLOCK_TOPICS = frozenset({"/robot/episode", "/runner/event"})
+# topics whose payloads carry wall-clock durations and loop timing, and the services' log lines
+# (when a service logs is the machine's doing): not what a seed determines
+WALL_CLOCK_TOPICS = frozenset({"/robot/episode", "/runner/event", "/service/log"})
 
 
 def recorded_content(run_dir) -> dict:

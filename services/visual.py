@@ -18,8 +18,9 @@ rate (50 Hz by default: one in every 20 FRI cycles):
   estimated and the true phase as the ellipsoid's colour and a text;
 - ``/viz/status`` (``etar.VisualStatus``, a JSON Schema of our own): the same
   figures as plain numbers for Foxglove's plots and state-transition panels;
-- ``/viz/log`` (``foxglove.Log``): the runner's stage and episode events, the
-  episode summaries and the commander's holds, as log lines.
+- ``/viz/log`` (``foxglove.Log``): the services' log lines (``service/log``), the
+  runner's stage and episode events, the episode summaries and the commander's
+  holds, as log lines.
 
 Inner timestamps are simulation time (``stamp_ns``), so transforms and entities
 agree with each other whatever the transport; the caller chooses the log time.
@@ -219,6 +220,7 @@ class VisualScene:
         self._command = None
         self._hold = ""
         self._static_at = None  # FRI cycle the static scene was last sent
+        self._stamp = 0  # simulation time of the newest visual frame
 
     # ------------------------------------------------------------------ messages
 
@@ -242,6 +244,10 @@ class VisualScene:
             return [(TOPIC_LOG, self.log_line(msg["stamp_ns"], f"{msg['kind']} {msg['episode']} ended: "
                                               f"{msg['reason']}, peak contact {msg['peak_contact_force']:.1f} N",
                                               "robot", LOG_INFO))]
+        elif topic == "service/log":
+            # a service's line has no simulation time: it sits where the run is now
+            level = msg["level"] if msg["level"] in (1, 2, 3, 4, 5) else LOG_INFO
+            return [(TOPIC_LOG, self.log_line(self._stamp, msg["text"], msg["role"], level))]
         elif topic == "runner/event":
             what = " ".join(str(x) for x in (msg["event"], msg["stage"], msg["episode"] if msg["episode"] >= 0
                                              else "") if x != "")
@@ -255,7 +261,7 @@ class VisualScene:
                 "file": "", "line": 0}
 
     def _frame(self, state: dict) -> list[tuple[str, dict]]:
-        stamp = state["stamp_ns"]
+        stamp = self._stamp = state["stamp_ns"]
         q = np.asarray(state["msr_jnt_pos"], dtype=np.float64)
         kin = self.kinematics
         kin.update(q)
@@ -351,7 +357,7 @@ def encode(message: dict) -> bytes:
 
 
 LATEST_TOPICS = ("ft/wrench", "estimator/phase", "robot/contact", "robot/command")  # only the newest counts
-EVENT_TOPICS = ("runner/event", "robot/episode")
+EVENT_TOPICS = ("runner/event", "robot/episode", "service/log")
 
 
 class VisualTap:

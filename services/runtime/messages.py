@@ -436,8 +436,20 @@ EPISODE_SUMMARY = MessageType(
     ),
 )
 
+SERVICE_LOG = MessageType(
+    "service_log", "service/log",
+    "A line a service logged (its stderr has it too): recorded with the episode it falls in, "
+    "and a foxglove.Log line in the visual topics.  `stamp_ns` is 0: a service's log has no "
+    "simulation time; `seq` counts the service's lines.",
+    (
+        ("role", "str", "the service that logged it"),
+        ("level", "int", "2 INFO, 3 WARNING, 4 ERROR (foxglove.LogLevel)"),
+        ("text", "str", "the line"),
+    ),
+)
+
 MESSAGES = {m.name: m for m in (ROBOT_STATE, ROBOT_CONTACT, FT_WRENCH, TEACHER_WRENCH, ESTIMATOR_PHASE,
-                                ROBOT_COMMAND, RUNNER_EVENT, EPISODE_SUMMARY)}
+                                ROBOT_COMMAND, RUNNER_EVENT, EPISODE_SUMMARY, SERVICE_LOG)}
 BY_TOPIC = {m.topic: m for m in MESSAGES.values()}
 
 

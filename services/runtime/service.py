@@ -120,8 +120,21 @@ class Service:
         self.session = None
         self.profile = ProcessProfile(name)
 
-    def log(self, msg: str) -> None:
+    def log(self, msg: str, level: int = 2) -> None:
+        """Log a line to stderr and, once the session is open, on ``service/log`` (recorded
+        with the episode it falls in; the visual topics show it as a foxglove.Log line)."""
         self._log(msg)
+        if self.session is None:
+            return
+        from services.runtime.messages import SERVICE_LOG
+
+        try:
+            pub = self._publishers.get("service/log") or self.publisher("service/log", realtime=False)
+            self._log_seq = getattr(self, "_log_seq", -1) + 1
+            pub.put(SERVICE_LOG.encode(seq=self._log_seq, stamp_ns=0, sent_ns=time.monotonic_ns(), role=self.name,
+                                       level=int(level), text=str(msg)))
+        except Exception:  # noqa: BLE001 - the line is on stderr; the bus is a copy
+            pass
 
     def __enter__(self) -> "Service":
         if self.sched_fifo_requested:
@@ -217,7 +230,7 @@ class Service:
                 if not req.replied:
                     req.fail(f"{type(exc).__name__}: {exc}")
                 else:
-                    self.log(f"'{req.cmd}' failed after its reply: {type(exc).__name__}: {exc}")
+                    self.log(f"'{req.cmd}' failed after its reply: {type(exc).__name__}: {exc}", level=4)
 
     # ------------------------------------------------------------ publishing
 

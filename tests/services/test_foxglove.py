@@ -4,6 +4,7 @@ robot measured it, and added to older recordings by `etar-bench export --foxglov
 
 import json
 import shutil
+import time
 from pathlib import Path
 
 import numpy as np
@@ -222,3 +223,27 @@ def test_export_refuses_what_it_cannot_read_and_leaves_it_as_it_was(run_dir, tmp
         add_visual_topics(bare)
     assert bare.read_bytes() == before
     shutil.rmtree(old)
+
+
+def test_a_services_log_line_crosses_the_wire_and_becomes_a_foxglove_log_line(capsys):
+    import threading
+
+    from services.runtime import topics
+    from services.runtime.messages import SERVICE_LOG
+    from tests.services.conftest import service_with_peer
+
+    got, arrived = [], threading.Event()
+    with service_with_peer("phase_estimator", "svclog") as (svc, run_id, peer):
+        sub = peer.declare_subscriber(topics.key(run_id, "service/log"),
+                                      lambda s: (got.append(bytes(s.payload.to_bytes())), arrived.set()))
+        time.sleep(0.3)  # the subscription reaches the service's session
+        svc.log("model reloaded", level=3)
+        assert arrived.wait(5)
+        sub.undeclare()
+    assert "[phase_estimator] model reloaded" in capsys.readouterr().err  # stderr keeps it
+    msg = SERVICE_LOG.decode(got[0])
+    assert (msg["role"], msg["level"], msg["text"], msg["seq"]) == ("phase_estimator", 3, "model reloaded", 0)
+    tap = VisualTap(VisualScene("valley"))
+    (line,) = tap.take("service/log", got[0])
+    assert line[0] == "/viz/log" and line[1]["name"] == "phase_estimator" and line[1]["level"] == 3
+    assert line[1]["message"] == "model reloaded"
