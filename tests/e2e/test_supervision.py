@@ -186,7 +186,7 @@ def test_a_saturating_sensor_over_zenoh_holds_the_arm_and_fails_the_run(tmp_path
     assert sensor["fault"] == "saturate" and sensor["faulted"] > 500, sensor
 
 
-def test_services_with_a_restart_policy_come_back_and_the_run_goes_on(tmp_path):
+def test_services_with_a_restart_policy_and_the_live_views_bridge_come_back_and_the_run_goes_on(tmp_path):
     """restart: {recorder: on_failure, phase_estimator: on_failure}.  The recorder is killed
     300 cycles into a lockstep reproduction and the estimator 1500 cycles in: each is started
     again, the recorder writes on in a second file and the report names the cycles that no
@@ -204,7 +204,7 @@ def test_services_with_a_restart_policy_come_back_and_the_run_goes_on(tmp_path):
         if b'"episode":0' not in sample.payload.to_bytes():
             return
         seen[0] += 1
-        for role, at in (("recorder", 300), ("phase_estimator", 1500)):
+        for role, at in (("recorder", 300), ("foxglove_bridge", 900), ("phase_estimator", 1500)):
             if seen[0] >= at and role not in killed:
                 pid = service_pid(role, run_id)
                 if pid is not None:
@@ -213,14 +213,15 @@ def test_services_with_a_restart_policy_come_back_and_the_run_goes_on(tmp_path):
 
     sub = peer.declare_subscriber(topics.key(run_id, "robot/state"), on_state)
     try:
+        # the live view's bridge is restarted without a policy: a view must not cost the run
         report = run(RunOptions(figures=False, scenario=str(scenario), out=str(tmp_path / "run"), clock="lockstep", run_id=run_id,
-                                zenoh=ZenohOptions(connect=(endpoint,))), progress=print)
+                                zenoh=ZenohOptions(connect=(endpoint,)), foxglove=0), progress=print)
     finally:
         sub.undeclare()
         peer.close()
-    assert set(killed) == {"recorder", "phase_estimator"}, killed
+    assert set(killed) == {"recorder", "phase_estimator", "foxglove_bridge"}, killed
     assert report["error"] is None, report["error"]
-    assert sorted(r["role"] for r in report["restarts"]) == ["phase_estimator", "recorder"]
+    assert sorted(r["role"] for r in report["restarts"]) == ["foxglove_bridge", "phase_estimator", "recorder"]
     assert all(r["exit_code"] == -9 and r["back_after_s"] < 30 for r in report["restarts"]), report["restarts"]
     (rp,) = report["reproductions"]
     assert rp["reason"] == "elapsed" and rp["hold"] is None, (rp["reason"], rp["hold"])
