@@ -247,3 +247,27 @@ def test_a_services_log_line_crosses_the_wire_and_becomes_a_foxglove_log_line(ca
     (line,) = tap.take("service/log", got[0])
     assert line[0] == "/viz/log" and line[1]["name"] == "phase_estimator" and line[1]["level"] == 3
     assert line[1]["message"] == "model reloaded"
+
+
+def test_the_layout_refers_only_to_panels_it_configures_and_fields_the_visual_topics_have():
+    layout = json.loads((ROOT / "docs" / "foxglove" / "etar.layout.json").read_text())
+    assert set(layout) >= {"configById", "layout", "globalVariables", "userNodes"}
+
+    def leaves(node):
+        if isinstance(node, str):
+            return [node]
+        assert set(node) >= {"first", "second", "direction"} and node["direction"] in ("row", "column")
+        return leaves(node["first"]) + leaves(node["second"])
+
+    panels = leaves(layout["layout"])
+    assert sorted(panels) == sorted(layout["configById"])  # every panel shown is configured, and no other
+    assert {p.split("!")[0] for p in panels} == {"3D", "Plot", "StateTransitions", "RosOut"}
+    status = json.loads(schema_bytes("/viz/status"))["properties"]
+    paths = [p["value"] for cfg in layout["configById"].values() for p in cfg.get("paths", [])]
+    assert paths
+    for path in paths:
+        topic, _, field = path.partition(".")
+        assert topic == "/viz/status", path
+        assert field.split("[")[0] in status, path
+    assert set(layout["configById"]["3D!arm"]["topics"]) == {"/viz/scene", "/viz/tf"}
+    assert layout["configById"]["RosOut!log"]["topicToRender"] == "/viz/log"
