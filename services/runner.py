@@ -508,13 +508,13 @@ class Runner:
                 reset["goal_x"] = stage.goal_x
             self._req("teacher", "reset", **reset)
             summary = self._run_episode(["teacher"], "teacher_done", stage.max_seconds,
-                                        label=f"demonstration {index + 1}/{len(starts)}")
+                                        label=f"demonstration {i + 1}/{len(starts)}")
             if self._lost is None:
                 self._req("teacher", "idle")
             rec = self._finish("demonstration", index, summary, DEMO_TOPICS)
             self.state.demonstrations.append(dict(path=str(path), side=side, start=list(start), summary=summary,
                                                   recording=rec))
-            self.say(f"demonstration {index + 1}/{len(starts)} ({side}): {summary['reason']} after "
+            self.say(f"demonstration {i + 1}/{len(starts)} ({side}): {summary['reason']} after "
                      f"{summary['sim_seconds']:.1f} s simulated / {summary['wall_seconds']:.1f} s wall, "
                      f"{'recording unfinished' if rec is None else str(rec['messages']) + ' messages recorded'}")
             self._stop_if_lost()
@@ -618,7 +618,7 @@ class Runner:
         starts = reproduction_starts(stage, sc.world, stage.seed, demo_starts)
         models = self._reproduction_models(stage)
         episodes = [(side, start, m) for side, start in starts for m in models]
-        for side, start, m in episodes:
+        for i, (side, start, m) in enumerate(episodes):
             index = len(self.state.reproductions)
             model_path = str(Path(m["path"]).resolve())
             path = self._prepare("reproduction", index, start, model=model_path)
@@ -627,7 +627,8 @@ class Runner:
             goal = list(m["goal"])
             self._req("impedance_commander", "reset", model=model_path, episode=index, goal=goal,
                       goal_tolerance=stage.goal_tolerance)
-            label = f"reproduction {index + 1}/{len(episodes)}" + (f" ({m['name']})" if m["name"] else "")
+            # counted within the stage (a scenario may have several); the recording is named by index
+            label = f"reproduction {i + 1}/{len(episodes)}" + (f" ({m['name']})" if m["name"] else "")
             summary = self._run_episode(["command"], "goal_reached" if stage.stop_at_goal else None,
                                         stage.max_seconds, label=label)
             rec = self._finish("reproduction", index, summary, REPRO_TOPICS)

@@ -374,8 +374,11 @@ def plot(rows: list[dict], parameters: list, out: Path) -> list[Path]:
         axes[0, 0].legend(fontsize=8)
         axes.ravel()[-1].axis("off")
         seeds = sorted({r.get("seed") for r in rows})
-        axes.ravel()[-1].text(0.0, 0.9, f"{len(rows)} runs: {len(values)} values x {len(seeds)} seed(s)\n"
-                              f"runs that failed to run: {sum(1 for r in rows if r.get('error'))}", fontsize=10, va="top")
+        # a run that reproduced with several models is a row per model: count runs, not rows
+        runs = {r.get("run") for r in rows}
+        failed = {r.get("run") for r in rows if r.get("error")}
+        axes.ravel()[-1].text(0.0, 0.9, f"{len(runs)} runs, {len(values)} values x {len(seeds)} seed(s)\n"
+                              f"runs that failed to run: {len(failed)}", fontsize=10, va="top")
         fig.suptitle(f"sweep over {p.path}")
         fig.tight_layout()
         path = out / f"{p.path.replace('.', '_').replace('[', '_').replace(']', '')}.png"

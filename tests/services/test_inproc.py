@@ -307,3 +307,18 @@ def test_sensor_fault_flags_are_checked():
         FtSensorConfig(fault="melt")
     with pytest.raises(ValueError, match="fault_after"):
         FtSensorConfig(fault="stop", fault_after=-1.0)
+
+
+def test_progress_counts_each_stages_episodes_and_the_recordings_go_on_numbering(tmp_path):
+    scenario = tmp_path / "two_stages.yaml"
+    stage = ("  - reproduce:\n      count: 1\n      start: [0.62, -0.06, 0.30]\n      start_perturbation: 0.01\n"
+             "      goal_x: 0.57\n      max_seconds: 15\n")
+    scenario.write_text(f"name: two_stages\nworld: valley\nseed: 0\nmodel: {MODEL}\nstages:\n" + stage + stage)
+    lines = []
+    report = Runner(RunOptions(figures=False, scenario=str(scenario), out=str(tmp_path / "out"), transport="inproc"),
+                    progress=lines.append).run()
+    assert report["error"] is None, report["error"]
+    done = [line.split(" (")[0] for line in lines if line.startswith("reproduction ") and "goal_reached" in line]
+    assert done == ["reproduction 1/1", "reproduction 1/1"], lines
+    assert [r["path"] for r in report["reproductions"]] == ["recordings/reproduction_00.mcap",
+                                                            "recordings/reproduction_01.mcap"]
