@@ -24,6 +24,17 @@ from etar.metrics import SegmentationScore, score_demonstrations
 from etar.model import ETAR
 
 NEAR_TRANSITION_STEPS = 5  # a step within this many of a true transition is "at" it
+MODEL_NAMES = {"effect": "ETAR", "state": "STAR"}  # the thesis' names of the two transition models
+
+
+def spread(values) -> dict | None:
+    """Mean, min, max and count of the finite ones among ``values`` (None counts as
+    missing); None if there is none."""
+    a = np.asarray([v for v in values if v is not None], dtype=np.float64)
+    a = a[np.isfinite(a)]
+    if not len(a):
+        return None
+    return {"mean": float(a.mean()), "min": float(a.min()), "max": float(a.max()), "n": int(len(a))}
 
 
 @dataclass(frozen=True)
@@ -118,21 +129,15 @@ def summarise(evaluations: Sequence[Evaluation]) -> dict:
         es = [e for e in evaluations if e.transitions == transitions]
         if not es:
             continue
-
-        def stat(values):
-            a = np.asarray(values, dtype=np.float64)
-            return {"mean": float(np.nanmean(a)), "min": float(np.nanmin(a)), "max": float(np.nanmax(a)),
-                    "n": int(np.isfinite(a).sum())}
-
-        out["ETAR" if transitions == "effect" else "STAR"] = {
+        out[MODEL_NAMES[transitions]] = {
             "seeds": [e.seed for e in es],
-            "viterbi_accuracy": stat([e.viterbi.accuracy for e in es]),
-            "filter_accuracy": stat([e.filtered.accuracy for e in es]),
-            "filter_mean_transition_error_s": stat([e.filtered.mean_transition_error for e in es]),
-            "filter_spurious_switches": stat([e.filtered.spurious_switches for e in es]),
-            "filter_missed_transitions": stat([e.filtered.missed_transitions for e in es]),
-            "error_near_transitions": stat([e.error_near_transitions for e in es]),
-            "error_elsewhere": stat([e.error_elsewhere for e in es]),
+            "viterbi_accuracy": spread([e.viterbi.accuracy for e in es]),
+            "filter_accuracy": spread([e.filtered.accuracy for e in es]),
+            "filter_mean_transition_error_s": spread([e.filtered.mean_transition_error for e in es]),
+            "filter_spurious_switches": spread([e.filtered.spurious_switches for e in es]),
+            "filter_missed_transitions": spread([e.filtered.missed_transitions for e in es]),
+            "error_near_transitions": spread([e.error_near_transitions for e in es]),
+            "error_elsewhere": spread([e.error_elsewhere for e in es]),
         }
     return out
 
@@ -228,12 +233,8 @@ def separate_fits(demo_a, demo_b, n_phases: int, seeds=(0, 1, 2), truths=None, t
     within = [dict(demonstration=w, seeds=[int(seeds[0]), int(s)], **parameter_distances(fits[w, seeds[0]], fits[w, s]))
               for w in ("a", "b") for s in seeds[1:]]
 
-    def stat(rows, key):
-        v = np.array([r[key] for r in rows], dtype=np.float64)
-        return {"mean": float(v.mean()), "min": float(v.min()), "max": float(v.max())} if len(v) else None
-
     return {"phases": n_phases, "seeds": [int(s) for s in seeds],
             "between_demonstrations": between, "between_seeds": within,
-            "summary": {k: {"between_demonstrations": stat(between, k), "between_seeds": stat(within, k)}
-                        for k in PARAMETERS},
+            "summary": {k: {"between_demonstrations": spread(r[k] for r in between),
+                            "between_seeds": spread(r[k] for r in within)} for k in PARAMETERS},
             "models": {f"{w}_seed{s}": fits[w, s] for (w, s) in fits}}

@@ -88,6 +88,10 @@ class ArmKinematics:
         pin.computeJointJacobians(self.model, self.data, q)
         pin.updateFramePlacements(self.model, self.data)
 
+    def update_frames(self, q: np.ndarray) -> None:
+        """Only the frame placements at q (no Jacobians): what drawing the arm needs."""
+        pin.framesForwardKinematics(self.model, self.data, q)
+
     def update_dynamics(self, q: np.ndarray, qd: np.ndarray) -> None:
         """``update(q, qd)`` plus the joint-space inertia and the nonlinear
         effects, into ``views`` and ``frame_views``.  No Python object or numpy

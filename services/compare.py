@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from etar.comparison import PARAMETERS, compare_transitions, separate_fits, summarise
+from etar.comparison import PARAMETERS, compare_transitions, separate_fits, spread, summarise
 from etar.task import load_task
 from services.figures import FIGURES_DIR, FiguresError, _plt, _save, in_run, read_run_report
 from services.recording import load_demonstration
@@ -51,14 +51,6 @@ ONLINE = (("success_rate", "reproductions reaching the goal", True),
           ("online_phase_accuracy", "phase accuracy in reproductions", True),
           ("mean_transition_error_s", "transition-time error in repro. [s]", False),
           ("mean_peak_contact_force_n", "peak contact force in repro. [N]", False))
-
-
-def _stat(values) -> dict | None:
-    a = np.asarray([v for v in values if v is not None], dtype=np.float64)
-    a = a[np.isfinite(a)]
-    if not len(a):
-        return None
-    return {"mean": float(a.mean()), "min": float(a.min()), "max": float(a.max()), "n": int(len(a))}
 
 
 def verdict(summary: dict) -> list[str]:
@@ -141,13 +133,13 @@ def run_summary(reports: list[dict]) -> dict:
         if not offline and not online:
             continue
         figures = {
-            "filter_accuracy": _stat(o["filtered"]["accuracy"] for o in offline),
-            "viterbi_accuracy": _stat(o["viterbi"]["accuracy"] for o in offline),
-            "filter_mean_transition_error_s": _stat(o["filtered"]["mean_transition_error_s"] for o in offline),
-            "filter_spurious_switches": _stat(o["filtered"]["spurious_switches"] for o in offline),
-            "error_near_transitions": _stat(o["error_near_transitions"] for o in offline),
+            "filter_accuracy": spread(o["filtered"]["accuracy"] for o in offline),
+            "viterbi_accuracy": spread(o["viterbi"]["accuracy"] for o in offline),
+            "filter_mean_transition_error_s": spread(o["filtered"]["mean_transition_error_s"] for o in offline),
+            "filter_spurious_switches": spread(o["filtered"]["spurious_switches"] for o in offline),
+            "error_near_transitions": spread(o["error_near_transitions"] for o in offline),
         }
-        figures.update({key: _stat(o[key] for o in online) for key, _, _ in ONLINE})
+        figures.update({key: spread(o[key] for o in online) for key, _, _ in ONLINE})
         out[name] = {k: v for k, v in figures.items() if v is not None}
     return out
 

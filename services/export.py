@@ -15,11 +15,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-import yaml
-
 from services.recording import SCENARIO_ATTACHMENT, RecordingError, read_episode
 from services.recovery import write_copy
-from services.visual import SCHEMA_NAMES, VISUAL_RATE_HZ, VisualScene, VisualTap, encode, schema_bytes
+from services.visual import (SCHEMA_NAMES, VISUAL_RATE_HZ, VisualScene, VisualTap, encode, schema_bytes,
+                             world_of_scenario)
 
 
 @dataclass(frozen=True)
@@ -37,12 +36,9 @@ def _world(episode, path: Path) -> str:
     if text is None:
         raise RecordingError(f"{path}: no {SCENARIO_ATTACHMENT!r} attachment: the world to draw is unknown")
     try:
-        world = yaml.safe_load(text.decode("utf-8")).get("world")
-    except (yaml.YAMLError, UnicodeDecodeError, AttributeError) as exc:
-        raise RecordingError(f"{path}: attachment {SCENARIO_ATTACHMENT!r} is not a scenario ({exc})") from None
-    if not isinstance(world, str):
-        raise RecordingError(f"{path}: attachment {SCENARIO_ATTACHMENT!r}: field 'world' is {world!r}, not a name")
-    return world
+        return world_of_scenario(text)
+    except ValueError as exc:
+        raise RecordingError(f"{path}: attachment {SCENARIO_ATTACHMENT!r}: {exc}") from None
 
 
 def add_visual_topics(path, rate_hz: float = VISUAL_RATE_HZ, scenes: dict | None = None) -> Exported:

@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from etar import ETAR
+from etar.comparison import MODEL_NAMES
 from etar.selection import fit_order
 from etar.task import LearnedTask, TaskError, learn_task, load_task
 from services import launch
@@ -68,7 +69,6 @@ PARTICIPANT_ROLES = {"command": "impedance_commander", "teacher": "teacher", "ft
 DEMO_TOPICS = ["robot/state", "robot/contact", "ft/wrench", "teacher/wrench"]
 REPRO_TOPICS = ["robot/state", "robot/contact", "ft/wrench", "robot/command"]
 TRANSPORTS = ("zenoh", "inproc")
-MODEL_NAMES = {"effect": "ETAR", "state": "STAR"}  # the thesis' names of the two transition models
 
 
 @dataclass(frozen=True)

@@ -293,13 +293,14 @@ def by_model_rows(rows: list[dict]) -> list[dict]:
 def comparison_over_seeds(rows: list[dict]) -> list[str] | None:
     """ETAR against STAR over the sweep's runs (one per data seed): the verdict of
     ``services.compare.verdict`` on each figure's mean and spread over the runs."""
-    from services.compare import OFFLINE, ONLINE, _stat, paired, verdict
+    from etar.comparison import spread
+    from services.compare import OFFLINE, ONLINE, paired, verdict
 
     rows = [r for r in rows if r.get("param model") in ("ETAR", "STAR") and not r.get("error")]
     if not rows:
         return None
     summary = {name: {k: st for k, _, _ in OFFLINE + ONLINE
-                      if (st := _stat(r.get(k) for r in rows if r["param model"] == name)) is not None}
+                      if (st := spread(r.get(k) for r in rows if r["param model"] == name)) is not None}
                for name in ("ETAR", "STAR")}
     seeds = sorted({r["seed"] for r in rows})
     by_seed = {}

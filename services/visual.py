@@ -94,6 +94,21 @@ def schema_bytes(topic: str) -> bytes:
     return json.dumps(STATUS_SCHEMA).encode()
 
 
+def world_of_scenario(text) -> str:
+    """The ``world`` a scenario's text (a recording's attachment, a runner's begin_episode)
+    names; ValueError saying what is wrong otherwise."""
+    import yaml
+
+    try:
+        data = yaml.safe_load(text.decode("utf-8") if isinstance(text, bytes) else text)
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        raise ValueError(f"not a scenario ({exc})") from None
+    world = data.get("world") if isinstance(data, dict) else None
+    if not isinstance(world, str):
+        raise ValueError(f"field 'world' is {world!r}, not a name")
+    return world
+
+
 def time_of(ns: int) -> dict:
     ns = max(int(ns), 0)
     return {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}
@@ -103,36 +118,25 @@ def _quaternion(w, x, y, z) -> dict:
     return {"x": float(x), "y": float(y), "z": float(z), "w": float(w)}
 
 
+def _orientation(q) -> dict:
+    """A Foxglove quaternion of a Pinocchio (Eigen) one."""
+    return _quaternion(q.w, q.x, q.y, q.z)
+
+
 def _quat_of_matrix(R: np.ndarray) -> dict:
-    """Unit quaternion of a rotation matrix (Shepperd's method, the largest pivot)."""
-    t = np.trace(R)
-    if t > 0:
-        s = math.sqrt(t + 1.0) * 2
-        return _quaternion(0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s)
-    i = int(np.argmax(np.diag(R)))
-    j, k = (i + 1) % 3, (i + 2) % 3
-    s = math.sqrt(1.0 + R[i, i] - R[j, j] - R[k, k]) * 2
-    q = [0.0, 0.0, 0.0]
-    q[i] = 0.25 * s
-    q[j] = (R[j, i] + R[i, j]) / s
-    q[k] = (R[k, i] + R[i, k]) / s
-    return _quaternion((R[k, j] - R[j, k]) / s, *q)
+    import pinocchio as pin
+
+    return _orientation(pin.Quaternion(np.asarray(R, dtype=np.float64)))
+
+
+_X = np.array([1.0, 0.0, 0.0])
 
 
 def _x_onto(v: np.ndarray) -> dict:
     """The rotation taking +x onto the direction of ``v`` (Foxglove's arrows point along +x)."""
-    n = float(np.linalg.norm(v))
-    if n < 1e-12:
-        return _quaternion(1, 0, 0, 0)
-    d = v / n
-    c = float(d[0])  # cos of the angle between x and d
-    axis = np.array([0.0, -d[2], d[1]])  # x cross d
-    s = float(np.linalg.norm(axis))
-    if s < 1e-12:
-        return _quaternion(1, 0, 0, 0) if c > 0 else _quaternion(0, 0, 0, 1)
-    half = 0.5 * math.atan2(s, c)
-    a = axis / s * math.sin(half)
-    return _quaternion(math.cos(half), *a)
+    import pinocchio as pin
+
+    return _orientation(pin.Quaternion.FromTwoVectors(_X, np.asarray(v, dtype=np.float64)))
 
 
 def _colour(rgb, a: float = 1.0) -> dict:
@@ -264,7 +268,7 @@ class VisualScene:
         stamp = self._stamp = state["stamp_ns"]
         q = np.asarray(state["msr_jnt_pos"], dtype=np.float64)
         kin = self.kinematics
-        kin.update(q)
+        kin.update_frames(q)
         transforms = []
         for name, fid in zip(FRAMES, self._frame_ids):
             placement = kin.data.oMf[fid]
@@ -274,13 +278,14 @@ class VisualScene:
                                "rotation": _quat_of_matrix(placement.rotation)})
         out = [(TOPIC_TF, {"transforms": transforms})]
         tcp = kin.data.oMf[self._frame_ids[-1]].translation
-        entities = self._overlay(stamp, tcp)
+        principal = self._principal_stiffness()
+        entities = self._overlay(stamp, tcp, principal)
         seq = state["seq"]
         if self._static_at is None or seq - self._static_at >= FRI_RATE_HZ or seq < self._static_at:
             self._static_at = seq
             entities = self._static(stamp) + entities
         out.append((TOPIC_SCENE, {"deletions": [], "entities": entities}))
-        out.append((TOPIC_STATUS, self._status(state, tcp)))
+        out.append((TOPIC_STATUS, self._status(state, tcp, principal)))
         return out
 
     def _static(self, stamp: int) -> list[dict]:
@@ -305,7 +310,18 @@ class VisualScene:
             return None
         return self._stiffness[applied]
 
-    def _overlay(self, stamp: int, tcp) -> list[dict]:
+    def _principal_stiffness(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(principal stiffnesses ascending (3,), their axes as a right-handed rotation) of
+        ``applied_stiffness``; None if unknown."""
+        K = self.applied_stiffness()
+        if K is None:
+            return None
+        w, V = np.linalg.eigh(0.5 * (K + K.T))
+        if np.linalg.det(V) < 0:
+            V[:, 2] = -V[:, 2]
+        return w, V
+
+    def _overlay(self, stamp: int, tcp, principal) -> list[dict]:
         """The wrench arrow, the stiffness ellipsoid and the phase text, on the tcp side."""
         phase = None if self._estimate is None else int(self._estimate["phase"])
         colour = phase_colour(phase)
@@ -317,13 +333,10 @@ class VisualScene:
                 prims["arrows"].append({"pose": _pose((0, 0, 0), _x_onto(f)), "shaft_length": length * 0.8,
                                         "shaft_diameter": 0.006, "head_length": length * 0.2,
                                         "head_diameter": 0.016, "color": _colour((0.9, 0.1, 0.1))})
-        K = self.applied_stiffness()
         ellipsoid = []
-        if K is not None:
-            # principal axes as the ellipsoid's axes (a right-handed frame), in base axes at the tcp
-            w, V = np.linalg.eigh(0.5 * (K + K.T))
-            if np.linalg.det(V) < 0:
-                V[:, 2] = -V[:, 2]
+        if principal is not None:
+            # the principal axes as the ellipsoid's axes, in base axes at the tcp
+            w, V = principal
             k = np.maximum(w * ELLIPSOID_M_PER_N_M, MIN_ELLIPSOID_M)
             ellipsoid.append({"pose": _pose(tcp, _quat_of_matrix(V)),
                               "size": {"x": float(k[0]), "y": float(k[1]), "z": float(k[2])},
@@ -337,16 +350,14 @@ class VisualScene:
                 _entity(stamp, "tcp", "overlay/tcp", texts=prims["texts"]),
                 _entity(stamp, "base", "overlay/stiffness", spheres=ellipsoid)]
 
-    def _status(self, state: dict, tcp) -> dict:
-        K = self.applied_stiffness()
+    def _status(self, state: dict, tcp, principal) -> dict:
         w = [0.0] * 6 if self._wrench is None else [float(x) for x in self._wrench]
         est = self._estimate
         return {"timestamp": time_of(state["stamp_ns"]), "seq": int(state["seq"]), "episode": int(state["episode"]),
                 "force": w[:3], "torque": w[3:], "force_norm": float(np.linalg.norm(w[:3])),
                 "phase": -1 if est is None else int(est["phase"]), "true_phase": self._true_phase,
                 "posterior": [] if est is None else [float(p) for p in est["posterior"]],
-                "stiffness": [] if K is None else sorted((float(k) for k in np.linalg.eigvalsh(0.5 * (K + K.T))),
-                                                         reverse=True),
+                "stiffness": [] if principal is None else [float(k) for k in principal[0][::-1]],
                 "applied_phase": -1 if self._command is None else int(self._command["phase"]),
                 "hold": self._hold, "fri_quality": int(state["fri_quality"]), "fri_state": int(state["fri_state"]),
                 "tcp": [float(x) for x in tcp]}

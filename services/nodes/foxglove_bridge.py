@@ -68,9 +68,7 @@ class FoxgloveBridgeNode(Node):
     def on_sample(self, topic: str, recv_ns: int, raw: bytes, message: dict | None = None) -> None:
         try:
             with self.lock:
-                if topic == "runner/event" and b'"episode_begin"' in raw:
-                    self.tap.reset()
-                visuals = self.tap.take(topic, raw, message)
+                visuals = self.tap.take(topic, raw, message)  # an episode's start resets the tap
             for visual_topic, visual in visuals:
                 self.channels[visual_topic].log(encode(visual), log_time=recv_ns)
                 self.sent += 1

@@ -21,7 +21,7 @@ from services.runtime import topics
 from services.runtime.bus import Node, Subscription
 from services.runtime.config import option
 from services.runtime.messages import MAX_PAYLOAD_BYTES, SEQ_PREFIX
-from services.visual import VISUAL_RATE_HZ, VisualScene, VisualTap, encode
+from services.visual import VISUAL_RATE_HZ, VisualScene, VisualTap, encode, world_of_scenario
 
 
 
@@ -114,13 +114,9 @@ class RecorderNode(Node):
         without a scenario or with visual topics turned off."""
         if not self.visual_rate_hz or not scenario_text:
             return None
-        import yaml
-
         try:
-            world = yaml.safe_load(scenario_text).get("world")
-        except (yaml.YAMLError, AttributeError):
-            return None
-        if not isinstance(world, str):
+            world = world_of_scenario(scenario_text)
+        except ValueError:
             return None
         if world not in self._taps:
             try:

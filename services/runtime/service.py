@@ -119,6 +119,7 @@ class Service:
         self._log = log or (lambda msg: print(f"[{name}] {msg}", file=sys.stderr, flush=True))
         self.session = None
         self.profile = ProcessProfile(name)
+        self._log_seq = -1  # lines published on service/log
 
     def log(self, msg: str, level: int = 2) -> None:
         """Log a line to stderr and, once the session is open, on ``service/log`` (recorded
@@ -130,7 +131,7 @@ class Service:
 
         try:
             pub = self._publishers.get("service/log") or self.publisher("service/log", realtime=False)
-            self._log_seq = getattr(self, "_log_seq", -1) + 1
+            self._log_seq += 1
             pub.put(SERVICE_LOG.encode(seq=self._log_seq, stamp_ns=0, sent_ns=time.monotonic_ns(), role=self.name,
                                        level=int(level), text=str(msg)))
         except Exception:  # noqa: BLE001 - the line is on stderr; the bus is a copy
