@@ -14,6 +14,8 @@ import os
 import threading
 import time
 
+from services.transport.launch import PROGRAM_MODULE
+
 TICK = os.sysconf("SC_CLK_TCK")
 
 
@@ -38,7 +40,8 @@ def _processes(marker: str) -> dict:
                 fields = f.read().rsplit(")", 1)[1].split()
         except OSError:
             continue
-        name = cmd.split("-m services.", 1)[1].split()[0] if "-m services." in cmd else f"pid {p}"
+        # a service is "python -m services.cli.roles ROLE ..." (services.transport.launch)
+        name = cmd.split(f"-m {PROGRAM_MODULE} ", 1)[1].split()[0] if f"-m {PROGRAM_MODULE} " in cmd else f"pid {p}"
         out[int(p)] = (name, int(fields[11]) + int(fields[12]))
     return out
 

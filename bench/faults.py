@@ -36,7 +36,7 @@ START = [0.62, -0.06, 0.30]
 
 def cell(sensor=None, **robot):
     from services.nodes import CommanderConfig, EstimatorConfig, FtSensorConfig, RecorderConfig, RobotConfig
-    from services.runtime.inproc import InProcessCell
+    from services.transport.inproc import InProcessCell
 
     return InProcessCell("faults", {
         "robot": RobotConfig(**robot), "ft_sensor": FtSensorConfig(**(sensor or {})),

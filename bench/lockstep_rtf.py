@@ -31,7 +31,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 def one(transport: str, scenario: str, out: Path) -> dict:
     from cpuwatch import CpuWatch
-    from services.runner import RunOptions, run
+    from services.run.runner import RunOptions, run
 
     run_id = f"rtf-{transport}-{uuid.uuid4().hex[:6]}"
     watch = CpuWatch(run_id).start() if transport == "zenoh" else None
@@ -107,7 +107,7 @@ def main():
               f"{row['successes']}/{row['reproductions']:<6}  {acc}")
     if {"zenoh", "inproc"} <= set(rows):
         z, i = rows["zenoh"], rows["inproc"]
-        from services.recording import recorded_content
+        from services.recordings.reader import recorded_content
 
         same = recorded_content(runs["zenoh"]["out"]) == recorded_content(runs["inproc"]["out"])
         print(f"in-process vs Zenoh: {i['rtf'] / z['rtf']:.1f}x the real-time factor over the episodes, "

@@ -42,7 +42,7 @@ def bare_loop(seconds, fifo, queue):
 def our_loop(seconds, fifo, queue):
     from services.runtime.loop import AbsoluteDeadlineTimer, LoopTiming, set_timer_slack, try_sched_fifo
     from services.runtime.messages import ROBOT_STATE
-    from services.runtime.session import ZenohOptions, open_session
+    from services.transport.session import ZenohOptions, open_session
 
     used = try_sched_fifo() if fifo else False
     set_timer_slack(1)

@@ -96,7 +96,7 @@ def main():
 
     from cpuwatch import CpuWatch
     from hold import hold_scenario
-    from services.runner import RunOptions, run
+    from services.run.runner import RunOptions, run
 
     out = Path(args.out or tempfile.mkdtemp(prefix="realtime_load-"))
     out.mkdir(parents=True, exist_ok=True)

@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def one_run(out: Path, profile: str) -> dict:
     t = time.monotonic()
-    proc = subprocess.run([sys.executable, "-m", "services.bench_cli", "run", "scenarios/smoke.yaml", "--clock",
+    proc = subprocess.run([sys.executable, "-m", "services.cli.bench", "run", "scenarios/smoke.yaml", "--clock",
                            "realtime", "--realtime-profile", profile, "--out", str(out)],
                           cwd=ROOT, capture_output=True, text=True)
     wall = time.monotonic() - t

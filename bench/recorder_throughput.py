@@ -21,7 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from services.recording import EpisodeWriter, read_episode
+from services.recordings.writer import EpisodeWriter
+from services.recordings.reader import read_episode
 from services.runtime.messages import ESTIMATOR_PHASE, FT_WRENCH, ROBOT_COMMAND, ROBOT_CONTACT, ROBOT_STATE
 
 
@@ -52,7 +53,7 @@ def payloads(cycles):
 
 def write(msgs, tap=None) -> tuple[float, int, int, int]:
     """(seconds, bytes on disk, visual messages, messages read back) of one episode file."""
-    from services.visual import encode
+    from services.foxglove.tap import encode
 
     visual = 0
     with tempfile.TemporaryDirectory() as d:
@@ -76,7 +77,8 @@ def main():
     parser.add_argument("--seconds", type=float, default=30.0, help="simulated seconds of traffic")
     parser.add_argument("--visual-rate", type=float, default=50.0, help="the visual topics' rate, Hz (default 50)")
     args = parser.parse_args()
-    from services.visual import VisualScene, VisualTap
+    from services.foxglove.scene import VisualScene
+    from services.foxglove.tap import VisualTap
 
     msgs = payloads(int(args.seconds * 1000))
     raw = sum(len(p) for _, p in msgs)

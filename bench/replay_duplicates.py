@@ -25,10 +25,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from services.launch import free_port  # noqa: E402
-from services.runner import RunOptions, run  # noqa: E402
+from services.transport.launch import free_port  # noqa: E402
+from services.run.runner import RunOptions, run  # noqa: E402
 from services.runtime import topics  # noqa: E402
-from services.runtime.session import ZenohOptions, open_session  # noqa: E402
+from services.transport.session import ZenohOptions, open_session  # noqa: E402
 
 TOPICS = ("robot/state", "robot/contact", "ft/wrench", "estimator/phase", "robot/command")
 

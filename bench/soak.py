@@ -59,7 +59,7 @@ def sample_rss(runner, stop: threading.Event, samples: list, every: float = 10.0
 
 
 def per_minute(path: Path, t_start_ns: int) -> list:
-    from services.recording import read_episode
+    from services.recordings.reader import read_episode
 
     sent_state, sent_cmd = {}, {}
     for m in read_episode(path).messages:
@@ -90,7 +90,7 @@ def main() -> int:
         parser.error(f"--minutes must be > 0, got {args.minutes}")
 
     from hold import hold_scenario
-    from services.runner import RunOptions, Runner
+    from services.run.runner import RunOptions, Runner
 
     out = Path(args.out or tempfile.mkdtemp(prefix="soak-"))
     out.mkdir(parents=True, exist_ok=True)

@@ -21,7 +21,7 @@ import numpy as np
 
 
 def _session(listen=None, connect=None):
-    from services.runtime.session import ZenohOptions, open_session
+    from services.transport.session import ZenohOptions, open_session
 
     return open_session(ZenohOptions(listen=tuple(listen or ["tcp/127.0.0.1:0"]), connect=tuple(connect or [])))
 
@@ -54,7 +54,7 @@ def ponger(endpoint, mode, ready, stop):
 def measure(mode, n):
     import zenoh
 
-    from services.launch import free_port
+    from services.transport.launch import free_port
     from services.runtime.messages import ROBOT_COMMAND, ROBOT_STATE
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"

@@ -1,7 +1,7 @@
 """The roles of the cell as nodes (``services.runtime.bus``): each takes decoded
 messages and the time, answers control requests and publishes through a bus.
-``services.<role>`` carries one in its own process over Zenoh;
-``services.runtime.inproc`` carries them all in one process."""
+``services.transport.process`` carries one in its own process over Zenoh,
+``services.transport.inproc`` all of them in one process."""
 
 from services.nodes.foxglove_bridge import FoxgloveBridgeConfig, FoxgloveBridgeNode
 from services.nodes.ft_sensor import FtSensorConfig, FtSensorNode
@@ -10,6 +10,7 @@ from services.nodes.phase_estimator import EstimatorConfig, PhaseEstimatorNode
 from services.nodes.recorder import RecorderConfig, RecorderNode
 from services.nodes.robot import RobotConfig, RobotNode
 from services.nodes.teacher import TeacherConfig, TeacherNode
+from services.runtime.roles import ROLES
 
 # role -> (node class, its config class)
 NODES = {
@@ -21,3 +22,4 @@ NODES = {
     "recorder": (RecorderNode, RecorderConfig),
     "foxglove_bridge": (FoxgloveBridgeNode, FoxgloveBridgeConfig),
 }
+assert NODES.keys() == ROLES.keys(), "every role of services.runtime.roles has its node, and no other"

@@ -22,7 +22,9 @@ from dataclasses import dataclass
 from services.runtime import topics
 from services.runtime.bus import Node, Subscription
 from services.runtime.config import option
-from services.visual import SCHEMA_NAMES, VISUAL_RATE_HZ, VisualScene, VisualTap, encode, schema_bytes
+from services.runtime.visual_topics import SCHEMA_NAMES, VISUAL_RATE_HZ, schema_bytes
+from services.foxglove.scene import VisualScene
+from services.foxglove.tap import VisualTap, encode
 
 DEFAULT_PORT = 8765  # Foxglove's own default
 

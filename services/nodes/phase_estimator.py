@@ -2,7 +2,7 @@
 
 Every tenth robot cycle (10 ms of simulated time) it takes the robot state and
 the F/T wrench of that cycle, builds ETAR's state and force vectors
-(``services.features``, the same as the learner's) and publishes the
+(``etar.features``, the same as the learner's) and publishes the
 normalised forward message on ``estimator/phase``.  It waits for both inputs of
 the same cycle (the wrench comes through the sensor, a hop later than the
 state); a cycle whose wrench has not come by the next tenth cycle is skipped and
@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from etar.task import load_task
-from services.features import force_vector, pose_of, state_vector
+from etar.features import force_vector, pose_of, state_vector
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import option
 from robot_sim.ati import AtiStatus

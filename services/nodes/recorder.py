@@ -16,12 +16,15 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
-from services.recording import EpisodeWriter, WriterProcess
+from services.recordings.writer import EpisodeWriter
+from services.recordings.offload import WriterProcess
 from services.runtime import topics
 from services.runtime.bus import Node, Subscription
 from services.runtime.config import option
 from services.runtime.messages import MAX_PAYLOAD_BYTES, SEQ_PREFIX
-from services.visual import VISUAL_RATE_HZ, VisualScene, VisualTap, encode, world_of_scenario
+from services.runtime.visual_topics import VISUAL_RATE_HZ
+from services.foxglove.scene import VisualScene, world_of_scenario
+from services.foxglove.tap import VisualTap, encode
 
 
 

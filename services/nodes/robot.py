@@ -30,7 +30,8 @@ from robot_sim.teacher import DOWN
 from robot_sim.worlds import WORLDS, Valley, valley
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import option
-from services.runtime.cycle import PARTICIPANTS, EpisodePlan
+from services.runtime.cycle import EpisodePlan
+from services.runtime.roles import PARTICIPANTS, ROLES
 from services.runtime.loop import Sections
 from services.runtime.messages import EPISODE_SUMMARY, ROBOT_CONTACT, ROBOT_STATE
 from services.runtime.timing import Histogram
@@ -44,9 +45,7 @@ HOLD_WATCH_CYCLES = int(HOLD_WATCH_S * 1000)
 # answers, handing the answers to the FRI link, the physics step (KRC law + MuJoCo +
 # sensing), measuring (FRI packet, labels), encoding, publishing
 SECTIONS = ("wait", "answers", "step", "measure", "encode", "publish")
-ANSWER_TOPICS = {"command": "robot/command", "teacher": "teacher/wrench", "ft": "ft/wrench",
-                 "phase": "estimator/phase"}
-assert set(ANSWER_TOPICS) == set(PARTICIPANTS)
+ANSWER_TOPICS = {participant: ROLES[role].answer_topic for participant, role in PARTICIPANTS.items()}
 FAULT_PROBABILITIES = ("fri_packet_loss", "fri_corruption", "fri_duplication", "fri_reordering")
 
 

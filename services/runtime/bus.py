@@ -7,8 +7,8 @@ their receive time, answers control requests (``handlers``) and publishes
 encoded messages through a ``Bus``.  It never opens a session and never reads a
 clock: the time comes from the ``Clock`` it is given.
 
-A **transport** carries nodes: ``services.runtime.process`` puts one node in its
-own process on a Zenoh session (realtime or lockstep), ``services.runtime.inproc``
+A **transport** carries nodes: ``services.transport.process`` puts one node in its
+own process on a Zenoh session (realtime or lockstep), ``services.transport.inproc``
 puts every node of a run in one process on an in-memory bus (lockstep).  The
 same node, the same messages, the same recordings (tested).
 

@@ -37,9 +37,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from services.runtime.loop import LoopTiming
+from services.runtime.roles import PARTICIPANTS as ROLE_OF_PARTICIPANT
 
 PHASE_PERIOD_NS = 10_000_000  # the estimator answers every tenth cycle (100 Hz of simulated time)
-PARTICIPANTS = ("command", "teacher", "ft", "phase")
+CLOCKS = ("lockstep", "realtime")
+PARTICIPANTS = tuple(ROLE_OF_PARTICIPANT)
 LOCKSTEP_GIVE_UP = 2  # consecutive timed-out cycles before a lockstep episode ends as unanswered
 
 

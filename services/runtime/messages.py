@@ -141,7 +141,7 @@ class MessageType:
         the same types, for values that are Python scalars, strings, numpy arrays and
         scalars, or lists and tuples of Python scalars (arrays become lists of floats,
         tuples lists).  One process can hand the message to its subscribers without
-        parsing the bytes again (``services.runtime.inproc`` checks it on request)."""
+        parsing the bytes again (``services.transport.inproc`` checks it on request)."""
         out = {}
         for f in self.fields:
             if f.name not in values:

@@ -15,7 +15,13 @@ from pathlib import Path
 import pytest
 import yaml
 
-from services import bench_cli, ft_sensor, impedance_commander, phase_estimator, recorder, robot, teacher
+from services.cli import bench as bench_cli
+from services import ft_sensor
+from services import impedance_commander
+from services import phase_estimator
+from services import recorder
+from services import robot
+from services import teacher
 
 ROOT = Path(__file__).resolve().parents[2]
 PARSERS = {
@@ -113,7 +119,7 @@ def _smoke_on_compose(tmp_path):
     out = runs / run_id
     report = json.loads((out / "report.json").read_text())
     assert report["error"] is None
-    from services.recording import read_episode
+    from services.recordings.reader import read_episode
 
     files = sorted((out / "recordings").glob("*.mcap"))
     assert [f.name for f in files] == ["demonstration_00.mcap", "demonstration_01.mcap", "reproduction_00.mcap"]
@@ -124,6 +130,6 @@ def _smoke_on_compose(tmp_path):
 
 
 def _free_port() -> int:
-    from services.launch import free_port
+    from services.transport.launch import free_port
 
     return free_port()

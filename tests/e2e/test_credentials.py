@@ -9,11 +9,11 @@ import time
 import pytest
 import zenoh
 
-from services.recording import read_episode
-from services.runner import RunOptions, Runner
+from services.recordings.reader import read_episode
+from services.run.runner import RunOptions, Runner
 from services.runtime import topics
-from services.runtime.secure import CredentialsError, client_options, make_credentials
-from services.runtime.session import ZenohOptions, open_session
+from services.transport.credentials import CredentialsError, client_options, make_credentials
+from services.transport.session import ZenohOptions, open_session
 from tests.e2e.test_scenarios import hold_scenario
 
 

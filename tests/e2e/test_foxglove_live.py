@@ -12,9 +12,10 @@ from pathlib import Path
 
 import websockets
 
-from services.recording import recorded_content
-from services.runner import RunOptions, Runner
-from services.visual import FRAMES, SCHEMA_NAMES
+from services.recordings.reader import recorded_content
+from services.run.runner import RunOptions, Runner
+from services.foxglove.scene import FRAMES
+from services.runtime.visual_topics import SCHEMA_NAMES
 
 ROOT = Path(__file__).resolve().parents[2]
 # foxglove-sdk's server names the protocol foxglove.sdk.v1, the wire format of

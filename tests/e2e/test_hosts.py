@@ -1,5 +1,5 @@
 """A run split across hosts: each a network namespace of this machine with its own address,
-joined by veth pairs to the runner's Zenoh router (services.hosts).  The smoke scenario
+joined by veth pairs to the runner's Zenoh router (services.transport.hosts).  The smoke scenario
 passes with its services on three hosts over mutual TLS, a foreign process on one of the
 hosts is refused, and cutting a host's link makes the arm hold and the report name the host."""
 
@@ -12,11 +12,12 @@ import time
 import numpy as np
 import pytest
 
-from services.hosts import ROUTER_ADDRESS, Hosts, parse_layout
-from services.runner import RunOptions, Runner
+from services.transport.hosts import ROUTER_ADDRESS, Hosts, parse_layout
+from services.transport.launch import PROGRAM_MODULE
+from services.run.runner import RunOptions, Runner
 from services.runtime import topics
-from services.runtime.secure import make_credentials
-from services.runtime.session import ZenohOptions, open_session
+from services.transport.credentials import make_credentials
+from services.transport.session import ZenohOptions, open_session
 from tests.e2e.test_scenarios import ROOT, hold_scenario
 
 SMOKE = str(ROOT / "scenarios" / "smoke.yaml")
@@ -24,7 +25,7 @@ LAYOUT = "robot,ft_sensor:phase_estimator,impedance_commander:recorder,teacher"
 
 FOREIGN = """
 import sys, zenoh
-from services.runtime.session import ZenohOptions, open_session
+from services.transport.session import ZenohOptions, open_session
 endpoint = sys.argv[1]
 for what, options in (("plain tcp", ZenohOptions(mode="client", connect=(endpoint.replace("tls/", "tcp/"),), listen=())),
                       ("tls without a certificate", ZenohOptions(mode="client", connect=(endpoint,), listen=(),
@@ -69,7 +70,7 @@ def test_the_smoke_scenario_passes_with_its_services_on_three_hosts_over_tls(tmp
     where = {h.namespace: _processes_in(h.namespace) for h in runner.hosts.hosts}
     for h in runner.hosts.hosts:
         for role in h.roles:
-            assert any(f"services.{role} " in cmd for cmd in where[h.namespace]), (role, h.namespace, where)
+            assert any(f"{PROGRAM_MODULE} {role} " in cmd for cmd in where[h.namespace]), (role, h.namespace, where)
     # a process on host h3 without the run's credentials is refused
     foreign = subprocess.run(["ip", "netns", "exec", runner.hosts.hosts[2].namespace, sys.executable, "-c", FOREIGN,
                               endpoint, str(creds / "ca.pem")], capture_output=True, text=True, timeout=60, cwd=ROOT)

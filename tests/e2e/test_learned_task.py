@@ -4,8 +4,8 @@ can reproduce (``model:``), the same as the runner's own learn stage makes."""
 import json
 from pathlib import Path
 
-from services.etar_cli import main as etar
-from services.runner import RunOptions, run
+from services.cli.etar import main as etar
+from services.run.runner import RunOptions, run
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -31,7 +31,7 @@ def processes_of(run_id: str) -> list[int]:
 def start_smoke_run(out: Path, run_id: str) -> subprocess.Popen:
     """`etar-bench run scenarios/smoke.yaml` as its own process, its stderr readable as text."""
     return subprocess.Popen(
-        [sys.executable, "-m", "services.bench_cli", "run", str(ROOT / "scenarios" / "smoke.yaml"), "--out", str(out),
+        [sys.executable, "-m", "services.cli.bench", "run", str(ROOT / "scenarios" / "smoke.yaml"), "--out", str(out),
          "--run-id", run_id], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
 
 

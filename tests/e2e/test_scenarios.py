@@ -7,9 +7,10 @@ from collections import Counter
 from pathlib import Path
 
 
-from services.recording import WALL_CLOCK_TOPICS, read_episode, recorded_content
-from services.runner import RunOptions, run
-from services.visual import SCHEMA_NAMES as VISUAL_TOPICS
+from services.recordings.format import WALL_CLOCK_TOPICS
+from services.recordings.reader import read_episode, recorded_content
+from services.run.runner import RunOptions, run
+from services.runtime.visual_topics import SCHEMA_NAMES as VISUAL_TOPICS
 
 ROOT = Path(__file__).resolve().parents[2]
 SMOKE = str(ROOT / "scenarios" / "smoke.yaml")

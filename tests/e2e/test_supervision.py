@@ -10,17 +10,19 @@ from pathlib import Path
 
 import pytest
 
-from services.launch import free_port
-from services.recording import read_episode
-from services.runner import RunOptions, run
+from services.transport.launch import free_port
+from services.recordings.reader import read_episode
+from services.run.runner import RunOptions, run
 from services.runtime import topics
-from services.runtime.session import ZenohOptions, open_session
+from services.transport.launch import PROGRAM_MODULE
+from services.transport.session import ZenohOptions, open_session
 from tests.e2e.test_scenarios import hold_scenario
 
 
 
 def service_pid(role: str, run_id: str) -> int | None:
-    module = f"services.{role}"
+    """The pid of ``role``'s process in run ``run_id`` (``python -m services.cli.roles ROLE --run-id ...``)."""
+    program = [PROGRAM_MODULE.encode(), role.encode()]
     for pid in os.listdir("/proc"):
         if not pid.isdigit():
             continue
@@ -28,7 +30,8 @@ def service_pid(role: str, run_id: str) -> int | None:
             argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
         except OSError:
             continue
-        if module.encode() in argv and run_id.encode() in argv:
+        at = argv.index(program[0]) if program[0] in argv else -1
+        if at >= 0 and argv[at:at + 2] == program and run_id.encode() in argv:
             return int(pid)
     return None
 
@@ -114,7 +117,7 @@ def test_a_service_killed_mid_reproduction_fails_the_run_at_once_and_keeps_the_e
     if role == "recorder":
         # what the killed recorder left is made a finished file; what it lost is the chunk
         # in progress (CHUNK_SIZE, ~100 cycles) and what was on its way to the writer
-        from services.recovery import recover
+        from services.recordings.recovery import recover
 
         recovered = recover(tmp_path / "run" / "recordings" / "reproduction_00.mcap")
         lost = kill_at["seq"] - recovered.last_robot_seq
@@ -123,7 +126,7 @@ def test_a_service_killed_mid_reproduction_fails_the_run_at_once_and_keeps_the_e
 
 
 def test_a_stale_episode_summary_from_a_foreign_peer_does_not_end_the_episode_in_progress(tmp_path):
-    from services.launch import ServiceProcesses
+    from services.transport.launch import ServiceProcesses
 
     run_id = f"stale-{int(time.time() * 1000)}"
     cell = ServiceProcesses(run_id, tmp_path / "logs")

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from services import launch
-from services.sweep import Parameter, SweepError, apply, plan, sweep
+from services.transport import launch
+from services.run.sweep import Parameter, SweepError, apply, plan, sweep
 
 ROOT = Path(__file__).resolve().parents[2]
 MODEL = ROOT / "scenarios" / "models" / "smoke.json"

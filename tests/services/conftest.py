@@ -2,9 +2,9 @@ import signal
 import time
 from contextlib import contextmanager
 
-from services.launch import free_port
-from services.runtime.service import Service
-from services.runtime.session import ZenohOptions, open_session
+from services.transport.launch import free_port
+from services.transport.service import Service
+from services.transport.session import ZenohOptions, open_session
 
 
 @contextmanager

@@ -3,8 +3,8 @@ value, exit code 2, no traceback, nothing started."""
 
 import pytest
 
-from services import bench_cli
-from services.runtime.process import node_process
+from services.cli import bench as bench_cli
+from services.cli import roles
 
 SERVICE_CASES = [
     (["--run-id", "a/b*"], "run id 'a/b*': use 1-64 letters"),
@@ -25,8 +25,7 @@ def exit_code(call):
 
 @pytest.mark.parametrize("argv,says", SERVICE_CASES, ids=[" ".join(a) for a, _ in SERVICE_CASES])
 def test_a_service_refuses_a_bad_flag_in_one_line(capsys, argv, says):
-    _, _, cli = node_process("ft_sensor")
-    assert exit_code(lambda: cli(argv)) == 2
+    assert exit_code(lambda: roles.main("ft_sensor", argv)) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err and says in err[-1], err
     assert err[-1].startswith("etar-ft-sensor: error: ")

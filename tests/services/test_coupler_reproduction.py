@@ -16,7 +16,7 @@ from robot_sim.demonstration import record_demonstration, settle_and_tare
 from robot_sim.fri import CommandPacket
 from robot_sim.teacher import DOWN, HoseCouplerTeacher
 from robot_sim.worlds import hose_coupler
-from services.features import force_vector, pose_of, state_vector
+from etar.features import force_vector, pose_of, state_vector
 from etar.policy import ReproductionPolicy as ImpedanceLaw
 from services.nodes.impedance_commander import CART_DAMPING as _CART_DAMPING, CART_STIFFNESS as _CART_STIFFNESS
 

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from services import bench_cli
-from services.figures import write_figures
-from services.runner import RunOptions, run
+from services.cli import bench as bench_cli
+from services.results.figures import write_figures
+from services.run.runner import RunOptions, run
 
 ROOT = Path(__file__).resolve().parents[2]
 FIGURES = ["demonstrations_position_and_force.png", "bic_by_phase_count.png", "forward_variable_demonstrations.png",

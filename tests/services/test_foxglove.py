@@ -10,13 +10,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services import bench_cli
-from services.export import add_visual_topics, export_foxglove
-from services.recording import RecordingError, read_episode
-from services.recovery import write_copy
-from services.runner import RunOptions, run
-from services.visual import (ARROW_M_PER_N, ELLIPSOID_M_PER_N_M, FRAMES, SCHEMA_DIR, SCHEMA_NAMES, VisualScene,
-                             VisualTap, schema_bytes, world_geometry)
+from services.cli import bench as bench_cli
+from services.foxglove.export import add_visual_topics, export_foxglove
+from services.recordings.format import RecordingError
+from services.recordings.reader import read_episode
+from services.recordings.recovery import write_copy
+from services.run.runner import RunOptions, run
+from services.foxglove.scene import ARROW_M_PER_N, ELLIPSOID_M_PER_N_M, FRAMES, VisualScene, world_geometry
+from services.runtime.visual_topics import SCHEMA_DIR, SCHEMA_NAMES, schema_bytes
+from services.foxglove.tap import VisualTap
 
 ROOT = Path(__file__).resolve().parents[2]
 NPM_SCHEMAS = ROOT / ".cache" / "foxglove-schemas" / "jsonschema"  # `make foxglove-schemas`

@@ -19,8 +19,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from services import report
-from services.recording import EpisodeWriter, RecordedMessage, RecordingError, read_episode
+from services.results import report
+from services.recordings.writer import EpisodeWriter
+from services.recordings.reader import RecordedMessage, read_episode
+from services.recordings.format import RecordingError
 from services.runtime.messages import MAX_PAYLOAD_BYTES, MESSAGES, MessageError
 
 CASES = int(__import__("os").environ.get("FUZZ_CASES", 10_000))

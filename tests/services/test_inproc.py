@@ -8,9 +8,9 @@ from pathlib import Path
 import pytest
 
 from services.nodes import CommanderConfig, EstimatorConfig, FtSensorConfig, RecorderConfig, RobotConfig
-from services.runner import RunOptions, Runner
+from services.run.runner import RunOptions, Runner
 from services.runtime.bus import Node, Subscription
-from services.runtime.inproc import InProcessBus, InProcessCell
+from services.transport.inproc import InProcessBus, InProcessCell
 from services.runtime.messages import ROBOT_CONTACT
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -130,7 +130,7 @@ def test_an_episode_tells_its_progress(monkeypatch):
     import io
     import sys as _sys
 
-    from services.progress import EpisodeProgress
+    from services.run.progress import EpisodeProgress
 
     seen = []
     c = cell()
@@ -176,7 +176,7 @@ def test_a_stale_phase_estimate_makes_the_commander_hold_the_arm_stiffly():
     assert status["hold"]["seq"] == hold["seq"]
     assert c.request("phase_estimator", "status")["muted"] > 0
     # and the run fails with one line that says so
-    from services.report import commander_held
+    from services.results.report import commander_held
 
     line = commander_held([dict(index=0, hold=hold)])
     assert line.startswith("reproduction 0: the impedance commander held the arm 1.0") and "51 cycles old" in line
@@ -238,7 +238,7 @@ def test_a_transient_fri_dropout_leaves_command_mode_and_it_comes_back(tmp_path)
     """scenarios/fri_dropout.yaml: 60 ms without a command packet, a second into each
     reproduction.  The quality falls below OK, the KRC leaves command mode (the arm holds),
     and once the link is PERFECT again command mode is entered again; the report says so."""
-    from services.runner import run
+    from services.run.runner import run
 
     report = run(RunOptions(figures=False, scenario=str(ROOT / "scenarios" / "fri_dropout.yaml"), out=str(tmp_path / "out"),
                             transport="inproc", run_id="dropout"))

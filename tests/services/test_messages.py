@@ -4,7 +4,7 @@
 import numpy as np
 import pytest
 
-from services.runtime.inproc import _same
+from services.transport.inproc import _same
 from services.runtime.messages import EPISODE_SUMMARY, MESSAGES, ROBOT_COMMAND, ROBOT_STATE, MessageError
 
 

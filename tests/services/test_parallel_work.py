@@ -10,7 +10,7 @@ import pytest
 
 from etar.selection import vote_order
 from etar.synthetic import make_task, sample_demonstrations
-from services.report import recording_figures
+from services.results.report import recording_figures
 from services.runtime.threads import process_map
 from tests.services.test_recording import mixed_messages, write_episode
 

@@ -6,11 +6,11 @@ import time
 import numpy as np
 import pytest
 
-from services import launch
+from services.transport import launch
 from services.runtime import topics
 from services.runtime.messages import FT_WRENCH, MAX_PAYLOAD_BYTES, ROBOT_CONTACT
-from services.runtime.service import request
-from services.runtime.session import ZenohOptions, open_session
+from services.transport.service import request
+from services.transport.session import ZenohOptions, open_session
 
 
 def wait_until_matched(publisher, timeout: float = 10.0) -> bool:
@@ -100,7 +100,7 @@ def test_garbage_is_dropped_and_counted_valid_messages_are_answered(ft_sensor):
     assert links["bad"] == 4 and "byte limit" in links["last_error"], links
     # a well-formed message forged far ahead is taken (it is the newest), then the real
     # stream, older than it, is dropped until RESYNC_AFTER of it in a row resynchronise the link
-    from services.runtime.service import RESYNC_AFTER
+    from services.transport.service import RESYNC_AFTER
 
     n = len(got)
     for seq in (10**12, *range(12, 81)):

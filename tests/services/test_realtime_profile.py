@@ -6,11 +6,11 @@ import threading
 import pytest
 
 from services.nodes.teacher import TeacherConfig, TeacherNode
-from services.realtime_profile import PARTS, parse_profile, probe
-from services.report import REALTIME_MISS_LIMIT, clock_not_held
+from services.run.realtime_profile import PARTS, parse_profile, probe
+from services.results.report import REALTIME_MISS_LIMIT, clock_not_held
 from services.runtime import topics
 from services.runtime.bus import MonotonicClock
-from services.runtime.process import NodeInputs, ZenohBus
+from services.transport.process import NodeInputs, ZenohBus
 from tests.services.conftest import service_with_peer
 
 

@@ -18,7 +18,10 @@ from robot_sim.cell import RobotCell
 from robot_sim.demonstration import settle_and_tare
 from robot_sim.teacher import DOWN, ValleyTeacher
 from robot_sim.worlds import valley
-from services.recording import EpisodeWriter, RecordingError, load_demonstration, read_episode
+from services.recordings.writer import EpisodeWriter
+from services.recordings.format import RecordingError
+from services.recordings.demonstrations import load_demonstration
+from services.recordings.reader import read_episode
 from services.runtime.messages import (BY_TOPIC, ESTIMATOR_PHASE, FT_WRENCH, ROBOT_COMMAND, ROBOT_CONTACT,
                                        ROBOT_STATE, RUNNER_EVENT, TEACHER_WRENCH)
 
@@ -253,8 +256,8 @@ def test_truncated_file_gives_complete_chunks_or_a_clear_error(tmp_path, long_ep
 
 
 def test_recover_makes_a_truncated_file_a_finished_one_with_every_complete_chunk(tmp_path, long_episode, capsys):
-    from services.bench_cli import main as bench
-    from services.recovery import recover
+    from services.cli.bench import main as bench
+    from services.recordings.recovery import recover
 
     path, want = long_episode
     data = path.read_bytes()
@@ -296,7 +299,7 @@ def test_killed_writer_leaves_its_complete_chunks(tmp_path):
     path = tmp_path / "killed.mcap"
     script = f"""
 import os, signal
-from services.recording import EpisodeWriter
+from services.recordings.writer import EpisodeWriter
 w = EpisodeWriter({str(path)!r}, run_id={RUN!r}, episode_kind="demonstration", episode_index=0,
                   scenario_text="x: 1\\n")
 for s in range(1, 2501):
@@ -420,7 +423,7 @@ def test_load_demonstration_pose_and_torque(simulated_demo):
     assert d["states"].shape[1] == 6 and d["forces"].shape[1] == 6
     np.testing.assert_array_equal(d["states"][:, :3], ref["position"])
     rel = Rotation.from_rotvec(d["states"][:, 3:]).as_matrix()
-    # R = R_0 exp(rotvec): the rotation relative to the first sample (services.features)
+    # R = R_0 exp(rotvec): the rotation relative to the first sample (etar.features)
     np.testing.assert_allclose(ref["R"][0] @ rel, ref["R"], atol=1e-9)
     np.testing.assert_allclose(d["states"][0, 3:], 0.0, atol=1e-12)
     np.testing.assert_allclose(d["forces"][:, :3], ref["force"], atol=1e-12)
@@ -459,7 +462,7 @@ def test_load_demonstration_skips_bad_messages_and_names_what_is_missing(tmp_pat
 
 
 def test_etar_cli_learns_three_phases_from_the_recording(tmp_path, simulated_demo, capsys):
-    from services.etar_cli import main
+    from services.cli.etar import main
 
     path, _ = simulated_demo
     model = tmp_path / "model.json"
@@ -483,7 +486,7 @@ def test_etar_cli_learns_three_phases_from_the_recording(tmp_path, simulated_dem
 
 
 def test_etar_learn_takes_a_truncated_recording_and_says_what_it_lost(tmp_path, simulated_demo, capsys):
-    from services.etar_cli import main
+    from services.cli.etar import main
 
     path, _ = simulated_demo
     data = path.read_bytes()
@@ -514,7 +517,7 @@ def test_the_report_reads_past_garbage_in_a_recording_and_counts_it(tmp_path, rn
     """What a foreign peer could publish into a run (random bytes, a seq of Infinity, a
     wrong schema) is recorded as received, and the report's reader skips it: it once
     crashed the report of a run that had reached its goal."""
-    from services.report import decoded_messages, episode_links, fri_quality_series, reproduction_phases
+    from services.results.report import decoded_messages, episode_links, fri_quality_series, reproduction_phases
 
     messages = mixed_messages(60, rng)
     garbage = [os.urandom(11), b'{"seq": Infinity, "stamp_ns": 0, "sent_ns": 0}', b'{"seq": 3}', b"[1, 2]",

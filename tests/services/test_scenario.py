@@ -6,18 +6,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.scenario import (
-    DEFAULT_STARTS,
-    MAX_START_DRAWS,
-    DemonstrateStage,
-    LearnStage,
-    ReproduceStage,
-    Scenario,
-    ScenarioError,
-    demonstration_starts,
-    load_scenario,
-    reproduction_starts,
-)
+from services.scenario.model import DEFAULT_STARTS, DemonstrateStage, LearnStage, ReproduceStage, Scenario
+from services.scenario.checks import MAX_START_DRAWS, ScenarioError
+from services.scenario.starts import demonstration_starts, reproduction_starts
+from services.scenario.loading import load_scenario
 
 SCENARIOS = Path(__file__).resolve().parents[2] / "scenarios"
 SCENARIO_FILES = sorted(SCENARIOS.glob("*.yaml"))
@@ -512,8 +504,8 @@ def test_restart_policies_are_parsed_and_limited_to_where_a_restart_is_meaningfu
     assert s.restart == (("phase_estimator", "never"), ("recorder", "on_failure"))
     assert Scenario.from_dict(s.to_dict()) == s
     assert Scenario.from_dict(minimal()).restart == () and "restart" not in Scenario.from_dict(minimal()).to_dict()
-    for bad, says in (({"robot": "on_failure"}, "restart.robot: a restart is meaningful for recorder and "
-                                                "phase_estimator only"),
+    for bad, says in (({"robot": "on_failure"}, "restart.robot: a restart is meaningful for phase_estimator and "
+                                                "recorder only"),
                       ({"recorder": "always"}, "restart.recorder: expected one of 'never', 'on_failure'"),
                       (["recorder"], "restart: expected a mapping of role: policy")):
         with pytest.raises(ScenarioError, match=says):

@@ -3,9 +3,10 @@ scenario keys that ask for both models, on hand-made figures whose answer is kno
 
 import pytest
 
-from services.compare import paired, verdict
-from services.scenario import ScenarioError, load_scenario
-from services.sweep import by_model_rows, comparison_over_seeds
+from services.results.compare import paired, verdict
+from services.scenario.checks import ScenarioError
+from services.scenario.loading import load_scenario
+from services.run.sweep import by_model_rows, comparison_over_seeds
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -1,0 +1,377 @@
+"""``etar-bench``: run scenarios and read their reports.
+
+    etar-bench run SCENARIO [--out DIR] [--clock realtime|lockstep] [--transport zenoh|inproc] [--foxglove [PORT]]
+    etar-bench sweep SCENARIO --param PATH=V1,V2,... [--repeats N] --out DIR [--cluster ADDRESS]
+    etar-bench report RUN_DIR
+    etar-bench recover FILE... [--out FILE]
+    etar-bench figures RUN_DIR
+    etar-bench compare RUN_DIR [--seeds N] [--pair I,J]
+    etar-bench export RUN_DIR --foxglove [--rate HZ]
+    etar-bench certs DIR [--host IP]
+    etar-bench router [--listen tcp/0.0.0.0:7447]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import time
+from pathlib import Path
+
+from services.cli.zenoh_flags import add_zenoh_arguments, zenoh_options
+
+
+def _profile(text: str) -> str:
+    from services.run.realtime_profile import parse_profile
+
+    try:
+        parse_profile(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
+def _say(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def cmd_run(args) -> int:
+    from etar.task import TaskError
+    from services.run.runner import RunOptions, run
+    from services.runtime import topics
+    from services.transport.hosts import HostsError
+    from services.transport.credentials import CredentialsError
+    from services.scenario.checks import ScenarioError
+
+    out = args.out or f"runs/{Path(args.scenario).stem}-{time.strftime('%Y%m%d-%H%M%S')}"
+    try:
+        zopts = zenoh_options(args) if args.connect else None
+        if args.run_id is not None:
+            topics.check_run_id(args.run_id)
+    except ValueError as exc:
+        _say(f"etar-bench run: error: {exc}")
+        return 2
+    if args.attach and args.transport == "inproc":
+        _say("etar-bench run: --attach drives services already running over Zenoh; it cannot be combined with "
+             "--transport inproc")
+        return 2
+    if args.tls is not None and (args.attach or zopts is not None or args.transport == "inproc"):
+        _say("etar-bench run: --tls makes this runner the run's router; it cannot be combined with --connect, "
+             "--attach or --transport inproc")
+        return 2
+    if args.attach and (zopts is None or not args.run_id):
+        _say("etar-bench run: --attach needs --connect (the router or a peer) and --run-id (the services')")
+        return 2
+    # SIGTERM (kill, docker stop) takes the same way out as Ctrl-C: the runner stops the
+    # services it started and writes what it has; otherwise they outlive it as orphans
+    signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        report = run(RunOptions(scenario=args.scenario, out=out, clock=args.clock, run_id=args.run_id, zenoh=zopts,
+                                transport=args.transport, attach=args.attach, ready_timeout=args.ready_timeout,
+                                sched_fifo=args.sched_fifo, realtime_profile=args.realtime_profile, tls=args.tls,
+                                hosts=args.hosts, figures=not args.no_figures, foxglove=args.foxglove),
+                     progress=_say)
+    except (ScenarioError, TaskError, CredentialsError, HostsError, ValueError) as exc:
+        # ValueError: the run's options refused before anything started (e.g. --hosts)
+        _say(f"etar-bench run: error: {exc}")
+        return 2
+    except KeyboardInterrupt as exc:
+        written = (Path(out) / "report.json").exists()
+        _say(f"etar-bench run: interrupted ({exc or 'SIGINT'}); services stopped; "
+             + (f"partial report in {out}" if written else "no report was written"))
+        return 130
+    print((Path(out) / "report.txt").read_text())
+    _say(f"report: {out}/report.json, {out}/report.txt; recordings in {out}/recordings")
+    # the last line, for a newcomer: what came out and where to read more
+    print(summary_line(report, out), flush=True)
+    return 0 if report["error"] is None else 1
+
+
+def summary_line(report: dict, out) -> str:
+    """One line: phases chosen, reproductions that reached the goal, online accuracy,
+    where the report is; or that the run failed, and why."""
+    s = report["summary"]
+    parts = []
+    if s.get("phases_chosen") is not None:
+        parts.append(f"{s['phases_chosen']} phases")
+    if s.get("reproductions"):
+        parts.append(f"{s['successes']} of {s['reproductions']} reproductions reached the goal")
+        acc = s.get("online_phase_accuracy")
+        parts.append(f"online phase accuracy {acc:.4f}" if acc is not None else "no online phase estimate")
+    where = f"report {Path(out) / 'report.txt'}"
+    if report["error"] is not None:
+        return f"{report['scenario']}: RUN FAILED ({report['error']}); " + "; ".join(parts + [f"partial {where}"])
+    return f"{report['scenario']}: " + "; ".join(parts + [where])
+
+
+def cmd_sweep(args) -> int:
+    from etar.task import TaskError
+    from services.scenario.checks import ScenarioError
+    from services.run.sweep import Parameter, SweepError, sweep
+
+    try:
+        params = [Parameter.parse(p) for p in args.param]
+        result = sweep(args.scenario, params, repeats=args.repeats, out=args.out, record=args.record,
+                       workers=args.workers, cluster=args.cluster, learn_threads=args.learn_threads, say=_say)
+    except (SweepError, ScenarioError, TaskError) as exc:
+        _say(f"etar-bench sweep: error: {exc}")
+        return 2
+    except KeyboardInterrupt:
+        _say(f"etar-bench sweep: interrupted; the runs finished so far are not tabulated (their folders are in "
+             f"{args.out}/runs)")
+        return 130
+    where = result["cluster"] or f"{result['workers']} local processes"
+    print(f"sweep: {result['runs']} runs ({result['failed']} failed) in {result['wall_seconds']:.0f} s on {where}; "
+          f"table {result['table']}; plots {', '.join(result['plots']) or 'none'}", flush=True)
+    return 0 if result["failed"] == 0 else 1
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt(signal.Signals(signum).name)
+
+
+def cmd_report(args) -> int:
+    path = Path(args.run_dir)
+    for name in ("report.txt", "report.json"):
+        if not (path / name).exists():
+            _say(f"etar-bench report: {path / name} not found (is {path} a run directory?)")
+            return 2
+    if args.json:
+        try:
+            report = json.loads((path / "report.json").read_bytes())
+        except (ValueError, UnicodeDecodeError) as exc:
+            _say(f"etar-bench report: {path / 'report.json'}: not a JSON report ({type(exc).__name__}: {exc})")
+            return 2
+        print(json.dumps(report, indent=1))
+    else:
+        print((path / "report.txt").read_text())
+    return 0
+
+
+def cmd_recover(args) -> int:
+    from services.recordings.format import RecordingError
+    from services.recordings.recovery import recover
+
+    if args.out is not None and len(args.files) > 1:
+        _say("etar-bench recover: --out names one output file: give one FILE with it")
+        return 2
+    failed = 0
+    for f in args.files:
+        try:
+            result = recover(f, args.out, overwrite=args.force)
+        except RecordingError as exc:
+            _say(f"etar-bench recover: error: {exc}")
+            failed += 1
+            continue
+        print(result.describe(), flush=True)
+    return 1 if failed else 0
+
+
+def cmd_figures(args) -> int:
+    from services.results.figures import FiguresError, write_figures
+
+    try:
+        written, skipped = write_figures(args.run_dir, progress=_say)
+    except FiguresError as exc:
+        _say(f"etar-bench figures: error: {exc}")
+        return 2
+    for path in written:
+        print(path, flush=True)
+    for why in skipped:
+        _say(f"skipped: {why}")
+    return 0
+
+
+def cmd_export(args) -> int:
+    from services.foxglove.export import export_foxglove
+    from services.recordings.format import RecordingError
+
+    if not args.foxglove:
+        _say("etar-bench export: error: say what to add: --foxglove (the only export so far)")
+        return 2
+    if not (0 < args.rate <= 1000):
+        _say(f"etar-bench export: error: --rate must be in (0, 1000] Hz, got {args.rate}")
+        return 2
+    try:
+        results = export_foxglove(args.run_dir, args.rate, progress=print)
+    except RecordingError as exc:
+        _say(f"etar-bench export: error: {exc}")
+        return 1
+    added = sum(1 for r in results if r.added)
+    _say(f"etar-bench export: visual topics added to {added} of {len(results)} recording(s)")
+    return 0
+
+
+def cmd_compare(args) -> int:
+    from services.results.compare import compare_run
+    from services.results.figures import FiguresError
+
+    if args.seeds < 1:
+        _say(f"etar-bench compare: error: --seeds must be >= 1, got {args.seeds}")
+        return 2
+    try:
+        pair = tuple(int(x) for x in args.pair.split(","))
+        if len(pair) != 2:
+            raise ValueError
+    except ValueError:
+        _say(f"etar-bench compare: error: --pair expects two demonstration numbers I,J (e.g. 0,1), got {args.pair!r}")
+        return 2
+    try:
+        compare_run(args.run_dir, seeds=tuple(range(args.seeds)), progress=_say, pair=pair)
+    except FiguresError as exc:
+        _say(f"etar-bench compare: error: {exc}")
+        return 2
+    print((Path(args.run_dir) / "comparison.txt").read_text(), end="", flush=True)
+    return 0
+
+
+def cmd_certs(args) -> int:
+    from services.runtime.roles import CREDENTIAL_NAMES as ROLES
+    from services.transport.credentials import CredentialsError, make_credentials
+
+    try:
+        out = make_credentials(args.dir, hosts=tuple(args.host or ["127.0.0.1"]), roles=ROLES + tuple(args.role))
+    except CredentialsError as exc:
+        _say(f"etar-bench certs: error: {exc}")
+        return 2
+    print(f"{out}: ca.pem (ca.key signs: keep it off the hosts), router.pem/.key, and a certificate per role "
+          f"({', '.join(ROLES + tuple(args.role))}); use with: etar-bench run SCENARIO --tls {out}", flush=True)
+    return 0
+
+
+def cmd_router(args) -> int:
+    """A real Zenoh router (the Python library in router mode) for multi-host or container runs."""
+    import zenoh
+
+    from services.transport.session import ZenohOptions
+
+    opts = ZenohOptions(mode="router", connect=(), listen=tuple(args.listen or ["tcp/0.0.0.0:7447"]))
+    conf = opts.config()
+    with zenoh.open(conf):
+        _say(f"zenoh router listening on {', '.join(opts.listen)}; Ctrl-C to stop")
+        try:
+            while True:
+                time.sleep(1.0)
+        except KeyboardInterrupt:
+            return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="etar-bench", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("run", help="run a scenario: demonstrate, learn, reproduce, report")
+    p.add_argument("scenario", help="scenario YAML file (see docs/scenarios.md)")
+    p.add_argument("--out", help="output directory (default runs/<scenario>-<time>)")
+    p.add_argument("--clock", choices=("lockstep", "realtime"), help="override the scenario's clock")
+    p.add_argument("--run-id", help="run id (default <scenario>-<random>)")
+    p.add_argument("--transport", choices=("zenoh", "inproc"), default="zenoh",
+                   help="zenoh: every role in its own process over Zenoh (the lab's layout, realtime or lockstep; "
+                        "default); inproc: every role in this process on an in-memory bus (lockstep only, "
+                        "several times faster, the same recordings)")
+    p.add_argument("--attach", action="store_true",
+                   help="drive services that are already running (docker-compose) instead of starting them")
+    p.add_argument("--ready-timeout", type=float, default=60.0, help="seconds to wait for the services")
+    p.add_argument("--realtime-profile", default="auto", type=_profile, metavar="auto|none|PARTS",
+                   help="with --clock realtime, what the run asks of the machine, each where permitted: fifo "
+                        "(SCHED_FIFO for the FRI chain: robot 60, commander and teacher 55, sensor 50, "
+                        "estimator 45), isolate (the robot alone on the last CPU), poll (idle CPUs poll: "
+                        "/dev/cpu_dma_latency 0). auto (default): all three; none; or a comma list. The report "
+                        "says what was granted")
+    p.add_argument("--sched-fifo", action="store_true",
+                   help="SCHED_FIFO (where permitted) for the robot (priority 60) and the impedance commander (55) "
+                        "only, whatever the profile (the profile's fifo covers the whole chain)")
+    p.add_argument("--tls", metavar="DIR",
+                   help="the run's credentials (etar-bench certs DIR): the runner is the run's Zenoh router, which "
+                        "takes mutual TLS only and lets only the run's roles publish or read")
+    p.add_argument("--hosts", metavar="ROLES:ROLES:...",
+                   help="the services on hosts of this machine, each a network namespace with its own address "
+                        "(root and iproute2 needed), roles by host, e.g. robot,ft_sensor:phase_estimator,"
+                        "impedance_commander:recorder,teacher; the runner is the run's Zenoh router")
+    p.add_argument("--foxglove", nargs="?", const=8765, type=int, metavar="PORT",
+                   help="watch the run live in Foxglove: the arm, the world, the wrench, the stiffness and the phase "
+                        "over Foxglove's WebSocket protocol on PORT (default 8765; 0: any free port, printed); "
+                        "connect Foxglove to ws://localhost:PORT")
+    p.add_argument("--no-figures", action="store_true",
+                   help="skip the thesis' figures and report.html after the report (etar-bench figures RUN_DIR "
+                        "draws them later)")
+    add_zenoh_arguments(p)
+    p.set_defaults(func=cmd_run)
+    p = sub.add_parser("sweep", help="run every combination of scenario parameters x seeds in parallel, "
+                                     "in-process; a table and plots",
+                       description=__import__("services.run.sweep", fromlist=["x"]).__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("scenario", help="scenario YAML file (see docs/scenarios.md)")
+    p.add_argument("--param", action="append", default=[], metavar="PATH=V1,V2,...",
+                   help="a scenario parameter and its values, e.g. cell.sensor_noise=0.5,1,2 or "
+                        "reproduce.start_perturbation=0.01,0.03 (repeatable: every combination runs)")
+    p.add_argument("--repeats", type=int, default=1, help="seeds per combination: the scenario's seed + 0..N-1")
+    p.add_argument("--out", required=True, help="folder for the table, the plots and the runs")
+    p.add_argument("--record", choices=("full", "summary", "none"), default="summary",
+                   help="what to keep of each run: everything, its report and model (default), or nothing")
+    p.add_argument("--workers", type=int, help="local processes (default: the CPUs this process may use)")
+    p.add_argument("--cluster", metavar="ADDRESS",
+                   help="a Dask scheduler, e.g. tcp://10.0.0.5:8786, to send the runs to instead")
+    p.add_argument("--learn-threads", type=int,
+                   help="numba threads per run's learner (default: the CPUs divided among the workers)")
+    p.set_defaults(func=cmd_sweep)
+    p = sub.add_parser("report", help="print the report of a finished run")
+    p.add_argument("run_dir")
+    p.add_argument("--json", action="store_true", help="print report.json instead of the text")
+    p.set_defaults(func=cmd_report)
+    p = sub.add_parser("recover", help="make a truncated recording (a recorder killed mid-episode) a finished "
+                                       "MCAP file with every complete chunk; the original is kept",
+                       description=__import__("services.recordings.recovery", fromlist=["x"]).__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("files", nargs="+", metavar="FILE", help="truncated .mcap recording(s)")
+    p.add_argument("--out", help="output file (one FILE only; default FILE's name + .recovered.mcap beside it)")
+    p.add_argument("--force", action="store_true", help="replace the output file if it exists")
+    p.set_defaults(func=cmd_recover)
+    p = sub.add_parser("figures", help="draw the thesis' figures (section 6) from a finished run into "
+                                       "RUN_DIR/figures/ (every run also does)")
+    p.add_argument("run_dir", help="a finished run's folder (report.json, model.json, recordings/)")
+    p.set_defaults(func=cmd_figures)
+
+    p = sub.add_parser("export", help="add Foxglove's visual topics (the arm, the world, wrench, stiffness, "
+                                      "phase) to a run's recordings made without them",
+                       description=__import__("services.foxglove.export", fromlist=["x"]).__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("run_dir", help="a finished run's folder (recordings/*.mcap)")
+    p.add_argument("--foxglove", action="store_true", help="the visual topics for Foxglove (required)")
+    p.add_argument("--rate", type=float, default=50.0, metavar="HZ", help="visual rate, Hz (default 50)")
+    p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser("compare", help="ETAR against STAR (thesis 6.3) on a finished run's demonstrations: both "
+                                       "transition models fitted over several seeds, scored against the true "
+                                       "phases; and Table C1's check: two demonstrations learned separately, "
+                                       "their parameters compared")
+    p.add_argument("run_dir", help="a finished run's folder with demonstrations and a learned model")
+    p.add_argument("--seeds", type=int, default=3, help="seeds per transition model (default 3)")
+    p.add_argument("--pair", default="0,1", metavar="I,J",
+                   help="the two demonstrations of Table C1's check, learned separately and compared (default 0,1)")
+    p.set_defaults(func=cmd_compare)
+
+    p = sub.add_parser("certs", help="make a run's credentials for mutual TLS (openssl): a CA of the run's own, "
+                                     "a router certificate, one per role")
+    p.add_argument("dir", help="folder for the certificates (an existing CA there is kept and signs the new ones)")
+    p.add_argument("--host", action="append", metavar="IP",
+                   help="an address the router listens on (repeatable; default 127.0.0.1)")
+    p.add_argument("--role", action="append", default=[], metavar="NAME",
+                   help="a further certificate beside the run's roles (repeatable)")
+    p.set_defaults(func=cmd_certs)
+
+    p = sub.add_parser("router", help="run a Zenoh router (for docker-compose or several hosts)")
+    p.add_argument("--listen", action="append", help="endpoint(s), default tcp/0.0.0.0:7447")
+    p.set_defaults(func=cmd_router)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    return args.func(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,4 @@
+"""What Foxglove shows of a run: the visual scene (``scene``), fed from the wire
+(``tap``), and the export that adds the visual topics to finished recordings
+(``export``).  The topics' names and schemas live in ``services.runtime.visual_topics``.
+"""

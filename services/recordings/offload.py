@@ -1,0 +1,160 @@
+"""The MCAP writer of an in-process run, in a helper process fed over a pipe.
+
+    python -m services.recordings.offload --writer-process   (started by WriterProcess, not by hand)
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+from pathlib import Path
+
+from services.recordings.format import RecordingError
+from services.recordings.writer import EpisodeWriter
+
+
+class WriterProcess:
+    """``EpisodeWriter`` s run in a helper process, fed over a pipe in batches.
+
+    What an in-process run does instead of writing MCAP on its own thread: every
+    node of the run shares one CPU and its GIL, and turning each message into MCAP
+    records (the mcap library's Python) took a fifth of each simulated millisecond.
+    The helper writes the same files with the same writer.  ``open`` and ``finish``
+    wait for the helper (an error names the file); ``add`` only queues.  If this
+    process dies, the helper finishes the open file with what it was sent."""
+
+    BATCH = 2000  # messages per hand-over
+
+    def __init__(self):
+        import subprocess
+        import sys
+
+        # its own interpreter (not multiprocessing: that re-imports the caller's main
+        # script, and forking copies the run's threads)
+        self._proc = subprocess.Popen([sys.executable, "-m", "services.recordings.offload", "--writer-process"],
+                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=None)
+
+    def _call(self, *request):
+        try:
+            self._send(request)
+            ok, value = pickle.load(self._proc.stdout)
+        except (EOFError, OSError, pickle.UnpicklingError) as exc:
+            raise RecordingError(f"the MCAP writer process is gone ({type(exc).__name__}: {exc}; exit code "
+                                 f"{self._proc.poll()})") from None
+        if not ok:
+            raise RecordingError(value)
+        return value
+
+    def _send(self, request) -> None:
+        pickle.dump(request, self._proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+        self._proc.stdin.flush()
+
+    def open(self, path, **kwargs) -> "OffloadedEpisodeWriter":
+        self._call("open", str(path), kwargs)
+        return OffloadedEpisodeWriter(self, Path(path))
+
+    def send(self, batch: list) -> None:
+        try:
+            self._send(("add", batch))
+        except OSError as exc:
+            raise RecordingError(f"the MCAP writer process is gone ({exc}; exit code {self._proc.poll()})") from None
+
+    def close(self) -> None:
+        try:
+            self._send(("close",))
+            self._proc.stdin.close()
+        except OSError:
+            pass
+        try:
+            self._proc.wait(10)
+        except Exception:
+            self._proc.kill()
+            self._proc.wait()
+        self._proc.stdout.close()
+
+
+class OffloadedEpisodeWriter:
+    """The parent's side of one file a ``WriterProcess`` writes (``EpisodeWriter``'s interface)."""
+
+    def __init__(self, process: WriterProcess, path: Path):
+        self._process = process
+        self.path = path
+        self._batch: list = []
+        self.messages_written = 0
+        self.bad_payloads = 0
+        self._finished = False
+
+    def add(self, key_expr: str, payload: bytes, log_time_ns: int, publish_time_ns: int | None = None) -> None:
+        if self._finished:
+            raise RecordingError(f"{self.path}: add() after finish()")
+        self._batch.append((key_expr, bytes(payload), log_time_ns, publish_time_ns))
+        if len(self._batch) >= WriterProcess.BATCH:
+            self._process.send(self._batch)
+            self._batch = []
+
+    def finish(self) -> None:
+        if self._finished:
+            return
+        self._finished = True
+        if self._batch:
+            self._process.send(self._batch)
+            self._batch = []
+        self.messages_written, self.bad_payloads = self._process._call("finish")
+
+    @property
+    def finished(self) -> bool:
+        return self._finished
+
+
+def _writer_main(requests, replies) -> None:
+    """The helper process: open / add / finish / close requests, until the pipe closes."""
+    writer = None
+
+    def reply(value) -> None:
+        pickle.dump(value, replies, protocol=pickle.HIGHEST_PROTOCOL)
+        replies.flush()
+
+    try:
+        while True:
+            try:
+                request = pickle.load(requests)
+            except EOFError:
+                return  # the parent is gone: the finally below finishes the open file
+            kind = request[0]
+            if kind == "add":
+                if writer is not None:
+                    for key, raw, log, pub in request[1]:
+                        writer.add(key, raw, log, pub)
+                continue
+            if kind == "close":
+                return
+            try:
+                if kind == "open":
+                    if writer is not None:
+                        writer.finish()
+                    writer = EpisodeWriter(request[1], **request[2])
+                    reply((True, None))
+                elif kind == "finish":
+                    w, writer = writer, None
+                    if w is None:
+                        raise RecordingError("no episode is being recorded")
+                    w.finish()
+                    reply((True, (w.messages_written, w.bad_payloads)))
+            except Exception as exc:  # the parent raises it, naming the file
+                reply((False, f"{type(exc).__name__}: {exc}"))
+    finally:
+        if writer is not None:
+            writer.finish()
+
+
+if __name__ == "__main__":
+    import sys
+
+    if sys.argv[1:] != ["--writer-process"]:
+        sys.exit("python -m services.recordings.offload --writer-process: the MCAP writer of an in-process run "
+                 "(started by services.recordings.offload.WriterProcess, not by hand)")
+    # the replies get their own copy of stdout, and stdout itself goes to stderr: a stray
+    # print in this process must not corrupt the pickled replies
+    replies = os.fdopen(os.dup(1), "wb")
+    os.dup2(2, 1)
+    _writer_main(sys.stdin.buffer, replies)

@@ -1,0 +1,118 @@
+"""A run's report as one self-contained HTML page: ``RUN_DIR/report.html``.
+
+The scenario, the error if the run failed, the phase-count selection, the
+reproductions, the timing, and every figure (``services.results.figures`` and the
+timing plot) embedded as data: URIs, so the one file can be mailed, committed
+or opened from anywhere.  Written from report.json and the PNGs beside it.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+from pathlib import Path
+
+from services.results.figures import FIGURES_DIR
+
+STYLE = """
+body { font-family: system-ui, sans-serif; margin: 2em auto; max-width: 1100px; color: #222; }
+h1 { font-size: 1.5em; } h2 { font-size: 1.2em; margin-top: 1.6em; border-bottom: 1px solid #ccc; }
+table { border-collapse: collapse; font-size: 0.9em; } td, th { padding: 2px 8px; text-align: right; }
+th { background: #eee; } td.l, th.l { text-align: left; }
+.error { background: #fdd; padding: 0.6em; border: 1px solid #c00; }
+figure { margin: 1.2em 0; } figure img { max-width: 100%; border: 1px solid #ddd; }
+figcaption { font-size: 0.85em; color: #555; }
+pre { background: #f6f6f6; padding: 0.6em; overflow-x: auto; font-size: 0.8em; }
+"""
+
+
+def _e(x) -> str:
+    return html.escape(str(x))
+
+
+def _img(path: Path) -> str:
+    data = base64.b64encode(path.read_bytes()).decode()
+    return (f'<figure><img alt="{_e(path.stem)}" src="data:image/png;base64,{data}">'
+            f"<figcaption>{_e(path.name)}</figcaption></figure>")
+
+
+def _table(head: list, rows: list, left: int = 1) -> str:
+    th = "".join(f'<th class="{"l" if i < left else ""}">{_e(h)}</th>' for i, h in enumerate(head))
+    body = "".join("<tr>" + "".join(f'<td class="{"l" if i < left else ""}">{_e(c)}</td>' for i, c in enumerate(r))
+                   + "</tr>" for r in rows)
+    return f"<table><tr>{th}</tr>{body}</table>"
+
+
+def _fmt(x, spec=".3f"):
+    return "-" if x is None else format(x, spec)
+
+
+def render_html(run_dir) -> str:
+    run_dir = Path(run_dir)
+    r = json.loads((run_dir / "report.json").read_text())
+    s = r["summary"]
+    parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>ETAR run {_e(r['run_id'])}</title>"
+             f"<style>{STYLE}</style></head><body>",
+             f"<h1>ETAR testbench run {_e(r['run_id'])}</h1>",
+             f"<p>scenario <b>{_e(r['scenario'])}</b> ({_e(r['source'])}); clock {_e(r['environment']['clock'])}; "
+             f"{r['environment']['cpus']} CPUs, kernel {_e(r['environment']['kernel'])}; "
+             f"{r['wall_seconds']:.1f} s wall</p>"]
+    if r.get("error"):
+        parts.append(f"<p class='error'>RUN FAILED: {_e(r['error'])}</p>")
+    parts.append("<h2>Result</h2>")
+    parts.append(_table(["", ""], [
+        ["phases chosen", s.get("phases_chosen")],
+        ["reproductions reaching the goal with bounded force", f"{s.get('successes')} of {s.get('reproductions')}"],
+        ["online phase accuracy", _fmt(s.get("online_phase_accuracy"), ".4f")],
+        ["mean transition error [s]", _fmt(s.get("mean_transition_error_s"))],
+        ["real-time factor over the episodes", _fmt(s.get("real_time_factor"), ".2f")]]))
+    sel = (r.get("learning") or {}).get("selection") or {}
+    if sel:
+        parts.append("<h2>Number of phases</h2>")
+        rows = []
+        for i, d in enumerate(sel.get("per_demonstration", [])):
+            rows.append([f"demonstration {i}"] + [f"{d['scores'][k]:.0f}" for k in sorted(d["scores"], key=int)]
+                        + [d["best"]])
+        if sel.get("scores"):
+            rows.append(["pooled"] + [f"{sel['scores'][k]:.0f}" for k in sorted(sel["scores"], key=int)]
+                        + [sel["best"]])
+        ks = sorted((sel.get("scores") or (sel.get("per_demonstration") or [{}])[0].get("scores") or {}), key=int)
+        if rows:
+            parts.append(_table(["", *[f"K={k}" for k in ks], "best"], rows))
+        parts.append(f"<p>chosen: {_e(sel.get('best'))} ({_e(sel.get('criterion'))}"
+                     f"{', ' + _e(sel['method']) if sel.get('method') else ''})</p>")
+    repro = r.get("reproductions") or []
+    if repro:
+        parts.append("<h2>Reproductions</h2>")
+        parts.append(_table(
+            ["#", "side", "result", "peak F [N]", "phase accuracy", "transition error [s]", "sim [s]", "wall [s]"],
+            [[rp["index"], rp["side"], rp["reason"], f"{rp['peak_contact_force']:.1f}",
+              _fmt((rp.get("phases") or {}).get("accuracy"), ".3f"),
+              _fmt((rp.get("phases") or {}).get("mean_transition_error_s")),
+              f"{rp['sim_seconds']:.1f}", f"{rp['wall_seconds']:.1f}"] for rp in repro], left=3))
+    loop = (r.get("timing") or {}).get("robot_loop") or {}
+    if loop:
+        parts.append("<h2>Timing</h2>")
+        parts.append(f"<p>robot loop: {loop.get('cycles')} cycles, {loop.get('deadline_misses')} deadline misses, "
+                     f"longest run {loop.get('longest_miss_run')}</p>")
+    figures = sorted((run_dir / FIGURES_DIR).glob("*.png")) if (run_dir / FIGURES_DIR).is_dir() else []
+    extra = [run_dir / "timing.png"] if (run_dir / "timing.png").is_file() else []
+    if figures or extra:
+        parts.append("<h2>Figures</h2>")
+        parts += [_img(p) for p in figures + extra]
+    text = run_dir / "report.txt"
+    if text.is_file():
+        parts.append(f"<h2>Full text report</h2><pre>{_e(text.read_text())}</pre>")
+    # a browser says whether every figure decoded: body[data-images] = "loaded/all" after load
+    parts.append("<script>window.addEventListener('load', function () { var im = document.images, ok = 0; "
+                 "for (var i = 0; i < im.length; i++) { if (im[i].complete && im[i].naturalWidth > 0) ok++; } "
+                 "document.body.setAttribute('data-images', ok + '/' + im.length); });</script>")
+    parts.append("</body></html>")
+    return "\n".join(parts)
+
+
+def write_html(run_dir) -> Path:
+    path = Path(run_dir) / "report.html"
+    path.write_text(render_html(run_dir))
+    return path

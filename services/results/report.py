@@ -1,0 +1,593 @@
+"""The run report: ``report.json`` for machines, ``report.txt`` for people.
+
+Everything is measured from the run's recordings and the services' own
+statistics:
+
+- learning: the number of phases chosen and the BIC/AIC table;
+- per reproduction: reached the goal, peak contact force, and the online
+  estimator's phase accuracy and transition-time error against the
+  simulator's ground truth (learned phases are mapped to true phases once, on
+  the demonstrations, never per reproduction);
+- timing: the robot loop's deadline misses and per-link latency percentiles
+  (publish -> recorder receive, one host, CLOCK_MONOTONIC), the FRI answer
+  latency, and the environment (kernel, CPUs, clock mode, SCHED_FIFO).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+from pathlib import Path
+
+import numpy as np
+
+from etar.metrics import score_segmentation
+from services.recordings.reader import read_episode
+from services.nodes.robot import HOLD_WATCH_S
+from services.runtime.messages import BY_TOPIC, loads
+from services.transport.service import STRIDES
+from services.runtime.threads import process_map
+from services.runtime.timing import Histogram, SequenceTracker, percentiles
+
+
+# what the report reads of each topic: every one an integer (counts, sequence numbers, clocks, labels)
+REPORT_FIELDS = {"robot/state": ("seq", "sent_ns", "stamp_ns", "fri_quality", "fri_state"),
+                 "robot/contact": ("seq", "sent_ns", "true_phase"),
+                 "estimator/phase": ("seq", "sent_ns", "phase")}
+_HEADER = ("seq", "sent_ns")
+
+
+def decoded_messages(ep) -> tuple[dict, int]:
+    """What the report reads of one recorded episode, each message parsed once: per
+    topic, (log time ns, {field: int}).  A message that is not JSON, not an object, or
+    lacks one of those fields as an integer (garbage from a foreign peer, ``"seq":
+    Infinity``, a wrong schema) is counted, never read: one bad message must not cost a
+    run its report."""
+    per: dict[str, list] = {}
+    bad = 0
+    for msg in ep.messages:
+        topic = msg.topic.lstrip("/")
+        if topic not in BY_TOPIC:
+            continue
+        names = REPORT_FIELDS.get(topic, _HEADER)
+        try:
+            d = loads(msg.payload)
+            values = {k: d[k] for k in names}
+        except (ValueError, TypeError, KeyError, UnicodeDecodeError):
+            bad += 1
+            continue
+        if not all(type(v) is int for v in values.values()):
+            bad += 1
+            continue
+        per.setdefault(topic, []).append((msg.log_time_ns, values))
+    return per, bad
+
+
+def episode_links(decoded: dict) -> dict:
+    """Per topic of one recorded episode: publish -> recorder latency percentiles,
+    and lost / out-of-order messages judged from the sequence numbers."""
+    out = {}
+    for topic, items in decoded.items():
+        tracker = SequenceTracker(stride=STRIDES.get(topic, 1))
+        lat = []
+        for log_time, d in items:
+            lat.append(log_time - d["sent_ns"])
+            tracker.add(d["seq"])
+        out[topic] = dict(percentiles(lat), lost=tracker.lost, out_of_order=tracker.out_of_order)
+    return out
+
+
+def reproduction_phases(decoded: dict, phase_to_truth: dict, dt: float = 0.01) -> dict:
+    """Accuracy and transition-time error of the online estimate in one recorded reproduction."""
+    truth_by_seq = {d["seq"]: d["true_phase"] for _, d in decoded.get("robot/contact", ())}
+    est_by_seq = {d["seq"]: d["phase"] for _, d in decoded.get("estimator/phase", ())}
+    seqs = sorted(s for s in est_by_seq if s in truth_by_seq)
+    if not seqs:
+        return {"updates": 0, "accuracy": None}
+    truth = np.array([truth_by_seq[s] for s in seqs])
+    est = np.array([est_by_seq[s] for s in seqs])
+    score = score_segmentation(truth, est, dt=dt, mapping={int(k): int(v) for k, v in phase_to_truth.items()})
+    return dict(updates=len(seqs), correct=int(round(score.accuracy * len(seqs))), **score.to_dict())
+
+
+QUALITY_NAMES = ("UNACCEPTABLE", "BAD", "OK", "PERFECT")
+STATE_NAMES = ("OFF", "MON", "CMD")
+MAX_TRANSITIONS = 200  # per episode in report.json; a flapping link gets its count, not a list of thousands
+
+
+def fri_quality_series(decoded: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(simulated time s, FRI quality, FRI state) of every robot_state in one recorded episode."""
+    t, q, st = [], [], []
+    for _, d in decoded.get("robot/state", ()):
+        t.append(d["stamp_ns"] / 1e9)
+        q.append(d["fri_quality"])
+        st.append(d["fri_state"])
+    order = np.argsort(t, kind="stable")
+    return np.asarray(t)[order], np.asarray(q, dtype=np.int64)[order], np.asarray(st, dtype=np.int64)[order]
+
+
+def _changes(t, v) -> list:
+    if len(v) == 0:
+        return []
+    at = np.concatenate([[0], np.flatnonzero(np.diff(v)) + 1])
+    return [[round(float(t[i]), 3), int(v[i])] for i in at]
+
+
+def fri_quality_timeline(t, q, state) -> dict:
+    """FRI quality and state over one episode, as the robot published them every cycle:
+    the changes ([simulated time s, value]; times are the robot's clock, not the
+    episode's), the time spent at each quality, and how often PERFECT was lost."""
+    if len(t) == 0:
+        return {"cycles": 0}
+    dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.001
+    quality, states = _changes(t, q), _changes(t, state)
+    drops = int(np.sum((q[:-1] == 3) & (q[1:] < 3)))
+    perfect = np.flatnonzero(q == 3)
+    cmd = np.flatnonzero(state == 2)
+    return {
+        "cycles": int(len(t)), "start_s": round(float(t[0]), 3), "end_s": round(float(t[-1]), 3),
+        "seconds_at": {name: round(float(np.sum(q == i)) * dt, 3) for i, name in enumerate(QUALITY_NAMES)},
+        "seconds_in_state": {name: round(float(np.sum(state == i)) * dt, 3) for i, name in enumerate(STATE_NAMES)},
+        "first_perfect_s": round(float(t[perfect[0]]), 3) if perfect.size else None,
+        "first_cmd_s": round(float(t[cmd[0]]), 3) if cmd.size else None,
+        "drops_from_perfect": drops,
+        "quality_changes": quality[:MAX_TRANSITIONS], "quality_changes_total": len(quality),
+        "state_changes": states[:MAX_TRANSITIONS], "state_changes_total": len(states),
+    }
+
+
+def environment(clock: str, fifo: bool, profile: dict | None = None, services: dict | None = None) -> dict:
+    """``profile``: the realtime profile's request and grant (services.run.realtime_profile);
+    ``services``: what each service said at the end (its SCHED_FIFO priority, its CPUs)."""
+    per_service = {role: {"sched_fifo": st.get("sched_fifo", False), "cpus": st.get("cpus")}
+                   for role, st in (services or {}).items() if isinstance(st, dict) and "sched_fifo" in st}
+    return {"kernel": platform.release(), "machine": platform.machine(), "cpus": os.cpu_count(),
+            "python": platform.python_version(), "clock": clock, "sched_fifo": fifo,
+            "realtime_profile": profile, "services": per_service}
+
+
+# a realtime run that misses more than this share of its cycles did not hold its clock:
+# it is failed, not reported as a result (the lab's own runs aim at none at all)
+REALTIME_MISS_LIMIT = 0.01
+FRI_CHAIN_LINKS = ("robot/state -> impedance_commander", "robot/command -> robot", "robot/contact -> ft_sensor",
+                   "ft/wrench -> phase_estimator", "estimator/phase -> impedance_commander",
+                   "robot/state -> teacher", "teacher/wrench -> robot")
+
+
+def clock_not_held(demonstrations, reproductions, loops, received) -> str | None:
+    """Why a realtime run did not hold its 1 kHz clock, in one line, or None: the robot
+    loop missing more than REALTIME_MISS_LIMIT of its deadlines in any episode, a
+    reproduction whose FRI link missed more than that share or never reached command
+    mode; with the chain's latest link (p99 at its receiver)."""
+    problems = []
+    kinds = [("demonstration", i) for i in range(len(demonstrations))] + \
+            [("reproduction", i) for i in range(len(reproductions))]
+    for (kind, i), lp in zip(kinds, loops):
+        if lp.get("cycles") and lp["misses"] / lp["cycles"] > REALTIME_MISS_LIMIT:
+            problems.append(f"{kind} {i}: the robot loop missed {lp['misses']} of {lp['cycles']} deadlines "
+                            f"({lp['misses'] / lp['cycles']:.1%})")
+    for rp in reproductions:
+        f, fq = rp.get("fri") or {}, rp.get("fri_quality") or {}
+        total = f.get("answered", 0) + f.get("missed", 0)
+        why = []
+        if fq and fq.get("first_cmd_s") is None:
+            why.append("FRI never reached command mode")
+        if total and f["missed"] / total > REALTIME_MISS_LIMIT:
+            why.append(f"{f['missed']} of {total} FRI cycles unanswered in time ({f['missed'] / total:.1%})")
+        if why:
+            problems.append(f"reproduction {rp['index']}: " + ", ".join(why))
+    if not problems:
+        return None
+    chain = [(v["latency"]["p99_us"], name) for name, v in received.items()
+             if name in FRI_CHAIN_LINKS and (v.get("latency") or {}).get("count")]
+    late = f"; latest link {max(chain)[1]} (p99 {max(chain)[0]:.0f} us)" if chain else ""
+    more = f" (and {len(problems) - 2} more)" if len(problems) > 2 else ""
+    return (f"the realtime clock was not held (limit {REALTIME_MISS_LIMIT:.0%} of cycles): "
+            + "; ".join(problems[:2]) + more + late)
+
+
+def commander_held(reproductions) -> str | None:
+    """The run failed if the commander had to hold the arm: one line on the first hold."""
+    for rp in reproductions:
+        h = rp.get("hold")
+        if h:
+            age = h["seq"] - h["estimate_seq"] if h.get("estimate_seq", -1) >= 0 else None
+            if h["reason"].startswith("wrench_"):
+                why = f"the phase estimate of cycle {h['estimate_seq']} could not use its wrench"
+            else:
+                why = f"the last phase estimate was {age} cycles old" if age is not None else "no phase estimate yet"
+            return (f"reproduction {rp['index']}: the impedance commander held the arm {h['at_s']:.3f} s in "
+                    f"(cycle {h['seq']}, {h['reason']}: " + why
+                    + f"); held {h.get('cycles', 0)} cycles in all (the robot ends the episode after "
+                      f"{HOLD_WATCH_S:g} s in one), while held the tcp moved at most "
+                      f"{1e3 * h['max_displacement_m']:.1f} mm and the contact force peaked at "
+                      f"{h['peak_contact_force']:.1f} N")
+    return None
+
+
+def _in_run(path, run_dir: Path) -> str | None:
+    """A path for report.json: relative to the run directory when it lies inside it
+    (a run directory can be moved or committed), absolute otherwise."""
+    if path is None:
+        return None
+    p = Path(path)
+    try:
+        return str(p.relative_to(run_dir))
+    except ValueError:
+        return str(p)
+
+
+# recordings read at ~15 MB/s in one process: below this, a pool's start costs more than it saves
+PARALLEL_READ_BYTES = 32 << 20
+
+
+def _size(path) -> int:
+    try:
+        return os.path.getsize(path)
+    except OSError:
+        return 0
+
+
+def recording_figures(job: tuple):
+    """What the report takes from one recording, (path, phase_to_truth or None for no
+    phase scoring): (per-topic links, the reproduction's phase scores or None, the FRI
+    quality series, undecodable messages); None if it cannot be read.  Each recording
+    is read once, for every figure taken from it, and let go (a valley run's
+    recordings do not fit in memory together)."""
+    path, phase_to_truth, *more = job
+    parts = more[0] if more else ()  # further parts (a recorder restarted mid-episode), in order
+    decoded, bad = {}, 0
+    for i, part in enumerate([path, *parts]):
+        try:
+            ep = read_episode(part)
+        except (OSError, ValueError):
+            if i == 0:
+                return None
+            continue
+        part_decoded, part_bad = decoded_messages(ep)
+        del ep
+        for topic, items in part_decoded.items():
+            decoded.setdefault(topic, []).extend(items)
+        bad += part_bad
+    phases = reproduction_phases(decoded, phase_to_truth) if phase_to_truth else None
+    return episode_links(decoded), phases, fri_quality_series(decoded), bad
+
+
+def _parts_of(episode: dict, run_dir: Path) -> dict:
+    """An episode recorded in parts (its recorder restarted): the further files and the
+    cycles no part holds."""
+    rec = episode.get("recording") or {}
+    if not rec.get("parts"):
+        return {}
+    gaps = [dict(g, part=_in_run(g["part"], run_dir), next_part=_in_run(g["next_part"], run_dir))
+            for g in rec.get("gaps", [])]
+    return {"recording_parts": [_in_run(p, run_dir) for p in rec["parts"]], "recording_gaps": gaps}
+
+
+def reproduction_figures(repro: list) -> dict:
+    """Success, online phase accuracy, transition-time error and peak force of some reproductions."""
+    updates = sum(r["phases"].get("updates", 0) for r in repro)
+    correct = sum(r["phases"].get("correct", 0) for r in repro)
+    errors = [e for r in repro for e in r["phases"].get("transition_errors_s", [])]
+    return {"reproductions": len(repro), "successes": sum(r["success"] for r in repro),
+            "success_rate": sum(r["success"] for r in repro) / len(repro) if repro else None,
+            "online_phase_accuracy": correct / updates if updates else None,
+            "mean_transition_error_s": float(np.mean(errors)) if errors else None,
+            "peak_contact_force_n": max((r["peak_contact_force"] for r in repro), default=None),
+            "mean_peak_contact_force_n": float(np.mean([r["peak_contact_force"] for r in repro])) if repro else None}
+
+
+def by_model(repro: list) -> dict:
+    """``reproduction_figures`` per model, when reproductions name the model that drove them."""
+    names = list(dict.fromkeys(r["model"] for r in repro if r.get("model")))
+    return {name: reproduction_figures([r for r in repro if r.get("model") == name]) for name in names}
+
+
+def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: float) -> dict:
+    st = runner.state
+    sc = runner.scenario
+    out = Path(runner.out)
+    links, phases_of, quality, undecodable = {}, {}, {}, {}
+    # each reproduction is judged by the phase mapping of the model that drove it
+    truth_maps = {r["path"]: r.get("phase_to_truth") or st.phase_to_truth for r in st.reproductions}
+    jobs = [(d["path"], truth_maps.get(d["path"]),
+             tuple((d.get("recording") or {}).get("parts", ())))
+            for d in st.demonstrations + st.reproductions]
+    # the recordings are independent: read on every CPU the run may use (a sweep's run: in
+    # this process), once they are worth a pool's start (~1.4 s of imports per process)
+    workers = getattr(getattr(runner, "options", None), "workers", 1)
+    if sum(_size(path) for path, _, _ in jobs) < PARALLEL_READ_BYTES:
+        workers = 1
+    with process_map(workers) as read_map:
+        for (path, _, _), read in zip(jobs, read_map(recording_figures, jobs)):
+            if read is None:
+                continue
+            episode_links_, phases, quality[path], undecodable[path] = read
+            for topic, v in episode_links_.items():
+                links.setdefault(topic, []).append(v)
+            if phases is not None:
+                phases_of[path] = phases
+    timelines = {path: fri_quality_timeline(*series) for path, series in quality.items()}
+    repro = []
+    for r in st.reproductions:
+        s = r["summary"]
+        phases = phases_of.get(r["path"], {})
+        # a hold run (stop_at_goal: false) keeps going after the goal: the commander said when
+        reached = (s["reason"] == "goal_reached" or s.get("goal_reached_at_s", -1.0) >= 0) \
+            and not s["reason"].startswith(("lost:", "unanswered:"))  # an episode a lost service ended failed
+        bounded = s["peak_contact_force"] <= r["max_contact_force"]
+        repro.append(dict(index=len(repro), path=_in_run(r["path"], out), side=r["side"], start=r["start"],
+                          model=r.get("model"), reason=s["reason"],
+                          reached_goal=reached, peak_contact_force=s["peak_contact_force"],
+                          bounded_force=bounded, success=reached and bounded, sim_seconds=s["sim_seconds"],
+                          wall_seconds=s["wall_seconds"], final_position=s["final_position"], phases=phases,
+                          goal_reached_at_s=s.get("goal_reached_at_s", -1.0), hold=s.get("hold"), fri=s.get("fri"),
+                          fri_quality=timelines.get(r["path"], {}),
+                          undecodable_messages=undecodable.get(r["path"], 0),
+                          **_parts_of(r, out)))
+    overall = reproduction_figures(repro)
+    episodes = [d["summary"] for d in st.demonstrations] + [r["summary"] for r in st.reproductions]
+    loops = [e["loop"] for e in episodes if e.get("loop")]
+    link_summary = {t: {"p50_us": float(np.median([v["p50_us"] for v in vs])),
+                        "p99_us": float(max(v["p99_us"] for v in vs)),
+                        "max_us": float(max(v["max_us"] for v in vs)),
+                        "lost": sum(v["lost"] for v in vs), "out_of_order": sum(v["out_of_order"] for v in vs)}
+                    for t, vs in links.items() if vs and "p50_us" in vs[0]}
+    received = {}
+    for role, st_ in (getattr(runner, "service_stats", None) or {}).items():
+        for topic, v in (st_.get("links") or {}).items():
+            received[f"{topic} -> {role}"] = v
+    closed = [lp.get("closed_loop_latency", {}) for lp in loops if lp.get("closed_loop_latency", {}).get("count")]
+    sim_total = sum(e["sim_seconds"] for e in episodes)
+    wall_total = sum(e["wall_seconds"] for e in episodes)
+    if sc.clock == "realtime" and error is None and loops:
+        error = clock_not_held(st.demonstrations, repro, loops, received)
+    if error is None:  # after the clock: a machine that could not hold it also starves the estimator
+        error = commander_held(repro)
+    stats = getattr(runner, "service_stats", None) or {}
+    profile = getattr(runner, "profile", None)
+    report = {
+        "scenario": sc.name,
+        "source": sc.source,
+        "run_id": runner.run_id,
+        "error": error,
+        "wall_seconds": wall_seconds,
+        "environment": environment(sc.clock, any(loop.get("sched_fifo") for loop in loops),
+                                   profile.to_dict() if profile is not None and profile.requested else None, stats),
+        "paths": "relative to the folder of this report, unless absolute",
+        "demonstrations": [dict(path=_in_run(d["path"], out), side=d["side"], start=d["start"], reason=d["summary"]["reason"],
+                                sim_seconds=d["summary"]["sim_seconds"], wall_seconds=d["summary"]["wall_seconds"],
+                                fri=d["summary"].get("fri"), fri_quality=timelines.get(d["path"], {}),
+                                undecodable_messages=undecodable.get(d["path"], 0), **_parts_of(d, out))
+                           for d in st.demonstrations],
+        "learning": {"model": _in_run(st.model_path, out), "seconds": getattr(st, "learn_seconds", None),
+                     "selection": st.selection,
+                     "phase_to_truth": st.phase_to_truth, "goal": st.goal,
+                     "models": {m["name"]: dict(m, path=_in_run(m["path"], out))
+                                for m in getattr(st, "models", {}).values()},
+                     # every model against the demonstrations' true phases (with more than one)
+                     "offline": list(getattr(st, "offline", [])),
+                     "demonstrations_read": [dict(path=_in_run(d["path"], out), samples=d["samples"])
+                                             for d in getattr(st, "learned_from", [])]},
+        "reproductions": repro,
+        "summary": {
+            "phases_chosen": (st.selection or {}).get("best"),
+            "reproductions": len(repro),
+            "successes": overall["successes"],
+            "online_phase_accuracy": overall["online_phase_accuracy"],
+            "mean_transition_error_s": overall["mean_transition_error_s"],
+            "simulated_seconds": sim_total,
+            "episode_wall_seconds": wall_total,
+            "real_time_factor": sim_total / wall_total if wall_total else None,
+            # the same starts reproduced with each model (reproduce.transitions)
+            "by_model": by_model(repro),
+        },
+        "timing": {
+            "robot_loop": {"cycles": sum(lp["cycles"] for lp in loops),
+                           "deadline_misses": sum(lp["misses"] for lp in loops),
+                           "longest_miss_run": max((lp["longest_miss_run"] for lp in loops), default=0),
+                           "per_episode": loops},
+            "links_publish_to_recorder": link_summary,
+            "links_received": received,
+            "closed_loop": {"per_episode": closed,
+                            "p99_us_max": max((c["p99_us"] for c in closed), default=None)},
+            "fri": [e["fri"] for e in episodes],
+            # what each service said about itself at the end (counters, the commander's sections)
+            "services": {role: {k: v for k, v in (st_ or {}).items() if k not in ("links", "ok")}
+                         for role, st_ in (getattr(runner, "service_stats", None) or {}).items()},
+        },
+        "exit_codes": exit_codes,
+        # services lost and started again by their restart policy (scenario 'restart:')
+        "restarts": list(getattr(getattr(runner, "cell", None), "restarts", None) or []),
+        # where each service ran (services.transport.hosts), when the run was split across hosts
+        "hosts": [{"name": h.name, "address": h.address, "namespace": h.namespace, "roles": list(h.roles)}
+                  for h in (runner.hosts.hosts if getattr(runner, "hosts", None) is not None else ())],
+    }
+    (out / "report.json").write_text(json.dumps(report, indent=1, default=float) + "\n")
+    (out / "report.txt").write_text(render_text(report))
+    (out / "timing.txt").write_text(histograms_text(loops))
+    try:
+        plot_timing(report, loops, quality, out / "timing.png")
+    except Exception as exc:  # a picture must not cost the run its report
+        (out / "timing.png.error").write_text(f"{type(exc).__name__}: {exc}\n")
+    return report
+
+
+def _pooled(loops, key) -> Histogram:
+    h = Histogram()
+    for lp in loops:
+        d = lp.get(key) or {}
+        for start_us, count in (d.get("bins") or {}).items():
+            h.counts[int(start_us) * 1000 // h.bin_ns] += count
+        h.overflow += d.get("overflow", 0)
+    return h
+
+
+def histograms_text(loops) -> str:
+    """cyclictest-style histograms of the robot loop and its answers, all episodes pooled."""
+    parts = []
+    for key, title in (("lateness", "robot 1 kHz loop: wake-up lateness (us)"),
+                       ("execution", "robot 1 kHz loop: execution time per cycle (us)"),
+                       ("answer_latency", "FRI answer latency: measurement published -> command received (us)"),
+                       ("closed_loop_latency", "closed loop: measurement -> sensor -> estimator -> commander -> "
+                                               "robot (us)")):
+        parts.append(_pooled(loops, key).text(title))
+    return "\n".join(parts)
+
+
+def plot_timing(report, loops, quality: dict, path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 2, figsize=(12, 7))
+    for ax, (key, title) in zip(axes.ravel()[:3], (("lateness", "loop wake-up lateness"),
+                                                   ("answer_latency", "FRI answer latency"),
+                                                   ("closed_loop_latency", "closed-loop latency"))):
+        h = _pooled(loops, key)
+        x = np.arange(h.counts.size) * h.bin_ns / 1e3
+        ax.bar(x, h.counts, width=h.bin_ns / 1e3, align="edge")
+        if h.counts.any():
+            ax.set_yscale("log")
+        ax.set_xlim(0, max(50.0, (np.flatnonzero(h.counts).max() + 2) * h.bin_ns / 1e3 if h.counts.any() else 50.0))
+        ax.set_title(f"{title} (overflow >= {h.limit_ns / 1e6:.0f} ms: {h.overflow})")
+        ax.set_xlabel("us (10 us bins)")
+    ax = axes.ravel()[3]
+    for path_, (t, q, _) in list(quality.items())[-4:]:
+        if len(t):
+            ax.step(t - t[0], q, where="post", label=Path(path_).stem)
+    ax.set_yticks([0, 1, 2, 3], ["UNACC.", "BAD", "OK", "PERFECT"])
+    ax.set_title("FRI quality over each episode")
+    ax.set_xlabel("simulated time in episode [s]")
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=7)
+    fig.suptitle(f"run {report['run_id']} ({report['environment']['clock']})")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def render_text(r: dict) -> str:
+    s = r["summary"]
+    lines = [f"ETAR testbench run {r['run_id']} - scenario {r['scenario']} ({r['source']})",
+             f"clock {r['environment']['clock']}, SCHED_FIFO {'yes' if r['environment']['sched_fifo'] else 'no'}, "
+             f"kernel {r['environment']['kernel']}, {r['environment']['cpus']} CPUs, "
+             f"{r['wall_seconds']:.1f} s wall"]
+    prof = r["environment"].get("realtime_profile")
+    if prof:
+        fifo = {k: v["sched_fifo"] for k, v in r["environment"].get("services", {}).items() if v["sched_fifo"]}
+        lines.append(f"realtime profile: asked {', '.join(prof['requested'])}; granted "
+                     f"{', '.join(prof['granted']) or 'nothing'}"
+                     + "".join(f"; {k} refused: {v}" for k, v in prof["refused"].items())
+                     + (f"; SCHED_FIFO {', '.join(f'{k} {v}' for k, v in fifo.items())}" if fifo else ""))
+    if r["error"]:
+        lines.append(f"RUN FAILED: {r['error']}")
+    for rs in r.get("restarts") or []:
+        lines.append(f"service {rs['role']} lost {rs['lost_at_s']:.1f} s into the run (exit code {rs['exit_code']}), "
+                     f"restarted by its policy, back after {rs['back_after_s']:.1f} s")
+    for kind in ("demonstrations", "reproductions"):
+        for i, e in enumerate(r[kind]):
+            for g in e.get("recording_gaps") or []:
+                if g["cycles_missing"] is None:
+                    what = "the robot cycles between them are unknown"
+                else:
+                    what = (f"robot cycles {g['last_cycle'] + 1}..{g['next_first_cycle'] - 1} not recorded "
+                            f"({g['cycles_missing']} cycles)")
+                lines.append(f"{kind[:-1]} {i}: the recorder restarted; the recording goes on in "
+                             f"{g['next_part']}: {what}")
+    lines.append("")
+    lines.append(f"demonstrations: {len(r['demonstrations'])}")
+    for i, d in enumerate(r["demonstrations"]):
+        lines.append(f"  {i:2d} {d['side']:>5}  {d['reason']:<13} {d['sim_seconds']:6.1f} s sim  "
+                     f"{d['wall_seconds']:6.1f} s wall")
+    sel = r["learning"]["selection"]
+    if sel:
+        lines.append("")
+        method = sel.get("method", "pooled")
+        lines.append(f"phases chosen: {sel['best']} ({sel['criterion']}"
+                     f"{', per demonstration' if method == 'per_demonstration' else ''})")
+        for i, d in enumerate(sel.get("per_demonstration", [])):
+            lines.append(f"  demo {i:2d}: " + "  ".join(
+                f"K={k} {d['scores'][k]:.0f}{'*' if int(k) == d['best'] else ''}" for k in sorted(d["scores"], key=int))
+                + f"  -> {d['best']}")
+        if "votes" in sel:
+            lines.append("  votes: " + ", ".join(f"{k} phases: {v}" for k, v in sel["votes"].items()))
+        for k in sorted(sel.get("scores", {}), key=int):
+            lines.append(f"  K={k}: score {sel['scores'][k]:.1f}, log-likelihood {sel['log_likelihoods'][k]:.1f}, "
+                         f"{sel['n_parameters'][k]} parameters{'  <-' if int(k) == sel['best'] else ''}")
+    if r["reproductions"]:
+        lines.append("")
+        lines.append(f"reproductions: {s['successes']} of {s['reproductions']} reached the goal with bounded force")
+        models = any(rp.get("model") for rp in r["reproductions"])
+        lines.append("   #  side  " + ("model " if models else "") +
+                     "result                 peak F [N]  phase acc  trans. err [s]  sim [s]  wall [s]")
+        for rp in r["reproductions"]:
+            ph = rp["phases"]
+            acc = ph.get("accuracy")
+            te = ph.get("mean_transition_error_s")
+            lines.append(f"  {rp['index']:2d} {rp['side']:>5}  " + (f"{rp.get('model') or '-':<5} " if models else "")
+                         + f"{rp['reason']:<22} {rp['peak_contact_force']:10.1f}  "
+                         f"{'-' if acc is None else f'{acc:9.3f}'}  "
+                         f"{'-' if te is None or te != te else f'{te:14.3f}'}  {rp['sim_seconds']:7.1f}  "
+                         f"{rp['wall_seconds']:8.1f}")
+        acc = s["online_phase_accuracy"]
+        te = s["mean_transition_error_s"]
+        lines.append(f"online phase accuracy overall: {'-' if acc is None else f'{acc:.4f}'}; mean transition "
+                     f"error: {'-' if te is None else f'{te:.3f} s'}")
+    if r["learning"].get("offline") or s.get("by_model"):
+        from services.results.compare import comparison_text
+
+        lines.append("")
+        lines += comparison_text(r)
+    t = r["timing"]
+    lines.append("")
+    lines.append(f"robot loop: {t['robot_loop']['cycles']} cycles, {t['robot_loop']['deadline_misses']} deadline "
+                 f"misses, longest run {t['robot_loop']['longest_miss_run']}")
+    episodes = [("demonstration", i, d) for i, d in enumerate(r["demonstrations"])] + \
+               [("reproduction", rp["index"], rp) for rp in r["reproductions"]]
+    if any(e.get("fri") for _, _, e in episodes):
+        lines.append("FRI per episode:        answered   missed     late  longest miss run  at PERFECT  drops from "
+                     "PERFECT  CMD after [s]  CMD left/entered  duplicates")
+        for kind, i, e in episodes:
+            f, fq = e.get("fri") or {}, e.get("fri_quality") or {}
+            if not f:
+                continue
+            if kind == "demonstration" and f["answered"] == 0:
+                # the teacher guides the arm in gravity compensation: no commander
+                # runs, so every cycle closes unanswered; that is not a link fault
+                lines.append(f"  {kind:<13} {i:3d}  gravity compensation, nobody answers FRI "
+                             f"({f['missed']} cycles unanswered, as expected)")
+                continue
+            span = sum((fq.get("seconds_at") or {}).values())
+            at = (fq["seconds_at"]["PERFECT"] / span) if span else None
+            cmd = fq.get("first_cmd_s")
+            # the robot's clock runs over the whole run; the column is from the episode's start
+            cmd = None if cmd is None else cmd - fq.get("start_s", 0.0)
+            lines.append(f"  {kind:<13} {i:3d} {f['answered']:10d} {f['missed']:8d} {f['late']:8d} "
+                         f"{f['longest_miss_run']:17d}  {'-' if at is None else f'{at:9.1%}'}  "
+                         f"{fq.get('drops_from_perfect', 0):18d}  {'-' if cmd is None else round(cmd, 3):>13}"
+                         f"  {f.get('command_mode_left', 0):7d}/{f.get('command_mode_entered', 0):<8d}"
+                         f"  {f.get('duplicate', 0):10d}")
+    rtf = s["real_time_factor"]
+    lines.append(f"simulated {s['simulated_seconds']:.1f} s in {s['episode_wall_seconds']:.1f} s of episodes: "
+                 f"{'-' if rtf is None else f'{rtf:.2f}'} x real time")
+    cl = t.get("closed_loop", {})
+    if cl.get("p99_us_max") is not None:
+        lines.append(f"closed loop (measurement -> sensor -> estimator -> commander -> robot): worst p99 "
+                     f"{cl['p99_us_max']:.0f} us over {len(cl['per_episode'])} reproduction(s)")
+    if t.get("links_received"):
+        lines.append("link latency at the receiver (us):                    p50      p99    p99.9      max   lost"
+                     "  out-of-order  garbage")
+        for name, v in sorted(t["links_received"].items()):
+            lat = v.get("latency", {})
+            if not lat.get("count"):
+                continue
+            lines.append(f"  {name:<45} {lat['p50_us']:8.0f} {lat['p99_us']:8.0f} {lat['p99_9_us']:8.0f} "
+                         f"{lat['max_us']:8.0f} {v['lost']:6d} {v['out_of_order']:13d} {v['bad']:8d}")
+    lines.append("link latency, publish -> recorder (us):   p50      p99      max   lost  out-of-order")
+    for topic, v in sorted(t["links_publish_to_recorder"].items()):
+        lines.append(f"  {topic:<22} {v['p50_us']:9.0f} {v['p99_us']:8.0f} {v['max_us']:8.0f} {v['lost']:6d} "
+                     f"{v['out_of_order']:6d}")
+    return "\n".join(lines) + "\n"

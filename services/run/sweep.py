@@ -1,0 +1,424 @@
+"""Parameter sweeps: every combination of some scenario parameters, times seeds, as
+independent in-process runs in parallel; a table and plots of what came out.
+
+    etar-bench sweep scenarios/valley.yaml --param cell.sensor_noise=0.5,1,2,4 --repeats 2 --out sweeps/noise
+
+A parameter is a dotted path into the scenario: a top-level key (``seed``,
+``state``), a key of ``cell`` (``cell.sensor_noise``, ``cell.plate_friction``,
+``cell.fri_packet_loss``), or a stage's key by the stage's kind
+(``reproduce.start_perturbation``, ``demonstrate.count``; every stage of that kind,
+or ``reproduce[1].count`` for the second).  Values are YAML (``1e-3``, ``true``,
+``[left, right]``), and every combination is validated as a scenario before
+anything runs.  ``--repeats N`` runs each combination with the scenario's seed
+plus 0..N-1.
+
+Runs go to a local process pool sized to the CPUs (``--workers``), or, with
+``--cluster ADDRESS``, to a Dask distributed scheduler (``dask scheduler`` and
+``dask worker ADDRESS`` on any machines that have this project installed and see
+``--out``).  Each run's learner is held to ``--learn-threads`` (default: the CPUs
+divided among the workers), since many learners on shared CPUs slow each other
+down far more than they gain.
+
+Output: ``table.csv`` and ``table.json`` (one row per run: the parameters, the
+seed, phases chosen, reproductions that reached the goal, online phase accuracy,
+transition-time error, peak contact force, times), one PNG per metric against
+each parameter, and each run's directory under ``runs/`` as ``--record`` says:
+``full`` everything, ``summary`` the report and the model, ``none`` nothing.
+"""
+
+from __future__ import annotations
+
+import copy
+import csv
+import itertools
+import json
+import math
+import re
+import shutil
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+
+from services.scenario.model import STAGE_TYPES, Scenario
+from services.scenario.checks import ScenarioError
+from services.scenario.loading import _Loader, load_scenario
+
+RECORD = ("full", "summary", "none")
+METRICS = (("phases_chosen", "phases chosen"), ("success_rate", "reproductions reaching the goal (fraction)"),
+           ("online_phase_accuracy", "online phase accuracy"),
+           ("mean_transition_error_s", "mean transition-time error [s]"),
+           ("peak_contact_force_n", "peak contact force [N]"))
+_STAGE_PATH = re.compile(r"^(?P<kind>[a-z]+)(\[(?P<index>\d+)\])?$")
+
+
+class SweepError(ValueError):
+    """A sweep that cannot be run, saying which parameter or value is at fault."""
+
+
+@dataclass(frozen=True)
+class Parameter:
+    path: str
+    values: tuple
+
+    @classmethod
+    def parse(cls, text: str) -> "Parameter":
+        path, sep, values = text.partition("=")
+        if not sep or not path.strip() or not values.strip():
+            raise SweepError(f"--param {text!r}: expected PATH=V1,V2,... (e.g. cell.sensor_noise=0.5,1,2)")
+        parsed = []
+        for v in _split(values):
+            try:
+                parsed.append(yaml.load(v, Loader=_Loader))
+            except yaml.YAMLError as exc:
+                raise SweepError(f"--param {path}: value {v!r} is not YAML ({exc})") from None
+        if len(set(map(repr, parsed))) != len(parsed):
+            raise SweepError(f"--param {path}: the values repeat: {parsed}")
+        return cls(path.strip(), tuple(parsed))
+
+
+def _split(values: str) -> list[str]:
+    """Split on commas outside brackets: ``[left],[left,right]`` is two values."""
+    out, depth, cur = [], 0, ""
+    for ch in values:
+        if ch == "," and depth == 0:
+            out.append(cur.strip())
+            cur = ""
+            continue
+        depth += ch in "[{"
+        depth -= ch in "]}"
+        cur += ch
+    out.append(cur.strip())
+    return [v for v in out if v]
+
+
+def apply(data: dict, path: str, value) -> None:
+    """Set ``path`` (see the module's doc) in the scenario mapping ``data``."""
+    head, _, rest = path.partition(".")
+    if not rest:
+        data[head] = value
+        return
+    if head == "cell":
+        if "." in rest:
+            raise SweepError(f"--param {path}: cell has no nested keys")
+        data.setdefault("cell", {})[rest] = value
+        return
+    m = _STAGE_PATH.match(head)
+    if m is None or m["kind"] not in STAGE_TYPES or "." in rest:
+        raise SweepError(f"--param {path}: expected a top-level key, cell.KEY or STAGE.KEY with STAGE one of "
+                         f"{', '.join(STAGE_TYPES)} (optionally STAGE[i])")
+    stages = [s for s in data.get("stages", []) if isinstance(s, dict) and m["kind"] in s]
+    if not stages:
+        raise SweepError(f"--param {path}: the scenario has no {m['kind']} stage")
+    if m["index"] is not None:
+        i = int(m["index"])
+        if i >= len(stages):
+            raise SweepError(f"--param {path}: the scenario has {len(stages)} {m['kind']} stage(s)")
+        stages = [stages[i]]
+    for stage in stages:
+        if stage[m["kind"]] is None:
+            stage[m["kind"]] = {}
+        stage[m["kind"]][rest] = value
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One run of a sweep: where, what, and how."""
+
+    index: int
+    name: str
+    params: dict
+    seed: int
+    scenario_file: str  # written under the sweep's folder: the run reads it like any scenario
+    out: str
+    record: str
+    learn_threads: int
+
+
+def plan(scenario_path: str, parameters: list, repeats: int, out: Path, record: str,
+         learn_threads: int) -> list[RunSpec]:
+    """Every combination x seed, each written out as a scenario file and validated."""
+    if repeats < 1:
+        raise SweepError(f"--repeats must be >= 1, got {repeats}")
+    if record not in RECORD:
+        raise SweepError(f"--record must be one of {', '.join(RECORD)}, got {record!r}")
+    paths = [p.path for p in parameters]
+    if len(set(paths)) != len(paths):
+        raise SweepError(f"a parameter is given twice: {paths}")
+    base = load_scenario(scenario_path)  # a broken scenario is refused before any run
+    source = Path(scenario_path).resolve()
+    text = yaml.load(source.read_text(), Loader=_Loader)
+    specs = []
+    (out / "scenarios").mkdir(parents=True, exist_ok=True)
+    combos = list(itertools.product(*[p.values for p in parameters])) if parameters else [()]
+    for combo in combos:
+        for r in range(repeats):
+            data = copy.deepcopy(text)
+            params = dict(zip(paths, combo))
+            for path, value in params.items():
+                apply(data, path, value)
+            seed = int(data.get("seed", base.seed)) + r
+            data["seed"] = seed
+            if data.get("model") is not None and not Path(str(data["model"])).is_absolute():
+                data["model"] = str((source.parent / str(data["model"])).resolve())
+            index = len(specs)
+            name = f"run{index:03d}"
+            file = out / "scenarios" / f"{name}.yaml"
+            file.write_text(yaml.safe_dump(data, sort_keys=False))
+            try:
+                Scenario.from_dict(data, source=f"{scenario_path} with {params or 'no change'}, seed {seed}")
+            except ScenarioError as exc:
+                raise SweepError(str(exc)) from None
+            specs.append(RunSpec(index, name, params, seed, str(file), str(out / "runs" / name), record,
+                                 learn_threads))
+    return specs
+
+
+def run_one(spec: RunSpec) -> dict:
+    """One run in this process (a pool worker or a Dask worker): its table row."""
+    from services.run.runner import RunOptions, Runner
+
+    t0 = time.monotonic()
+    lines = []
+    row = dict(run=spec.name, **{f"param {k}": v for k, v in spec.params.items()}, seed=spec.seed)
+    try:
+        runner = Runner(RunOptions(scenario=spec.scenario_file, out=spec.out, transport="inproc", figures=False,
+                                   run_id=f"sweep-{spec.name}", learn_threads=spec.learn_threads,
+                                   workers=1),
+                        progress=lines.append)
+        report = runner.run()
+    except Exception as exc:  # a run that cannot even start is a row with its error, not a dead sweep
+        report = None
+        row.update(error=f"{type(exc).__name__}: {exc}")
+    if report is not None:
+        s = report["summary"]
+        repro = report["reproductions"]
+        row.update(
+            error=report["error"], phases_chosen=s["phases_chosen"], reproductions=s["reproductions"],
+            successes=s["successes"], success_rate=s["successes"] / s["reproductions"] if s["reproductions"] else None,
+            online_phase_accuracy=s["online_phase_accuracy"], mean_transition_error_s=s["mean_transition_error_s"],
+            peak_contact_force_n=max((r["peak_contact_force"] for r in repro), default=None),
+            simulated_s=s["simulated_seconds"], episode_wall_s=s["episode_wall_seconds"],
+            real_time_factor=s["real_time_factor"], learn_s=report["learning"].get("seconds"))
+        if s.get("by_model"):
+            # a run that reproduced with several models (ETAR and STAR): its figures per model
+            from services.results.compare import run_summary
+
+            row["by_model"] = {name: {k: v["mean"] for k, v in figures.items()}
+                               for name, figures in run_summary([report]).items()}
+    row["wall_s"] = time.monotonic() - t0
+    out = Path(spec.out)
+    if spec.record == "none":
+        shutil.rmtree(out, ignore_errors=True)
+    elif spec.record == "summary":
+        shutil.rmtree(out / "recordings", ignore_errors=True)
+    return row
+
+
+def _pool(workers: int):
+    import multiprocessing
+
+    # spawn: a fresh interpreter per worker (numba's threads and Zenoh do not survive fork)
+    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+
+
+def execute(specs: list[RunSpec], workers: int, cluster: str | None, say=print) -> list[dict]:
+    """Run every spec, locally or on a Dask cluster; rows in spec order."""
+    rows: dict[int, dict] = {}
+    bar = _progress(len(specs))
+    t0 = time.monotonic()
+
+    def done(spec, row):
+        rows[spec.index] = row
+        rtf = row.get("real_time_factor")
+        bar.update(1)
+        bar.set_postfix_str(f"{spec.name} {spec.params or ''} seed {spec.seed}: "
+                            f"{'failed' if row.get('error') else 'ok'}"
+                            f"{'' if rtf is None else f', {rtf:.1f}x real time'}")
+        say(f"{spec.name} ({', '.join(f'{k}={v}' for k, v in spec.params.items()) or 'as is'}, seed {spec.seed}): "
+            + (f"FAILED {row['error']}" if row.get("error") else
+               f"{row.get('phases_chosen')} phases, {row.get('successes')}/{row.get('reproductions')} reached the "
+               f"goal, accuracy {_fmt(row.get('online_phase_accuracy'))}, {row['wall_s']:.0f} s")
+            + f"  [{len(rows)}/{len(specs)}, {time.monotonic() - t0:.0f} s]")
+
+    if cluster:
+        try:
+            from distributed import Client, as_completed as dask_completed
+        except ImportError:
+            raise SweepError("--cluster needs Dask distributed: pip install 'etar-testbench[cluster]' "
+                             "(make run and make test install it)") from None
+
+        with Client(cluster, timeout="30s") as client:
+            say(f"sweep: {len(specs)} runs on the Dask cluster at {cluster} "
+                f"({len(client.scheduler_info()['workers'])} workers)")
+            futures = {client.submit(run_one, spec, pure=False, key=f"etar-{spec.name}-{time.time_ns()}"): spec
+                       for spec in specs}
+            for fut in dask_completed(futures):
+                done(futures[fut], fut.result())
+    elif workers <= 1:
+        say(f"sweep: {len(specs)} runs in this process")
+        for spec in specs:
+            done(spec, run_one(spec))
+    else:
+        say(f"sweep: {len(specs)} runs on {workers} local processes")
+        with _pool(workers) as pool:
+            futures = {pool.submit(run_one, spec): spec for spec in specs}
+            for fut in as_completed(futures):
+                done(futures[fut], fut.result())
+    bar.close()
+    return [rows[i] for i in sorted(rows)]
+
+
+def by_model_rows(rows: list[dict]) -> list[dict]:
+    """A run that reproduced with several models becomes one row per model (``param
+    model``), its overall figures replaced by that model's; other rows stay as they are."""
+    out = []
+    for row in rows:
+        models = row.get("by_model")
+        if not models:
+            out.append(row)
+            continue
+        base = {k: v for k, v in row.items() if k != "by_model"}
+        for name, figures in models.items():
+            r = dict(base, **{"param model": name}, **figures)
+            if r.get("reproductions") and figures.get("success_rate") is not None:
+                r["reproductions"] = None  # the run's count is of every model's reproductions
+                r["successes"] = None
+            r["peak_contact_force_n"] = figures.get("mean_peak_contact_force_n", r.get("peak_contact_force_n"))
+            out.append(r)
+    return out
+
+
+def comparison_over_seeds(rows: list[dict]) -> list[str] | None:
+    """ETAR against STAR over the sweep's runs (one per data seed): the verdict of
+    ``services.results.compare.verdict`` on each figure's mean and spread over the runs."""
+    from etar.comparison import spread
+    from services.results.compare import OFFLINE, ONLINE, paired, verdict
+
+    rows = [r for r in rows if r.get("param model") in ("ETAR", "STAR") and not r.get("error")]
+    if not rows:
+        return None
+    summary = {name: {k: st for k, _, _ in OFFLINE + ONLINE
+                      if (st := spread(r.get(k) for r in rows if r["param model"] == name)) is not None}
+               for name in ("ETAR", "STAR")}
+    seeds = sorted({r["seed"] for r in rows})
+    by_seed = {}
+    for r in rows:
+        by_seed.setdefault(r["seed"], {})[r["param model"]] = r
+    return [f"ETAR against STAR over {len(seeds)} data seed(s) ({', '.join(map(str, seeds))}): each figure's "
+            f"mean over the runs (min..max)", *verdict(summary),
+            "paired by data seed (the same demonstrations and starts for both models):", *paired(by_seed)]
+
+
+def _progress(total: int):
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit="run", file=sys.stderr, disable=not sys.stderr.isatty(), dynamic_ncols=True)
+
+
+def _fmt(v, digits=3):
+    return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{digits}f}"
+
+
+def write_table(rows: list[dict], out: Path) -> tuple[Path, Path]:
+    columns = []
+    for row in rows:
+        columns += [k for k in row if k not in columns]
+    csv_path, json_path = out / "table.csv", out / "table.json"
+    with csv_path.open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=columns)
+        w.writeheader()
+        for row in rows:
+            w.writerow({k: ("" if row.get(k) is None else row.get(k)) for k in columns})
+    json_path.write_text(json.dumps(rows, indent=1, default=str) + "\n")
+    return csv_path, json_path
+
+
+def plot(rows: list[dict], parameters: list, out: Path) -> list[Path]:
+    """One PNG per parameter: each metric against it, every seed a dot, the mean a line
+    (a log axis for positive values spanning a decade or more)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
+    import numpy as np
+
+    written = []
+    for p in parameters:
+        col = f"param {p.path}"
+        numeric = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in p.values)
+        values = list(p.values)
+        logx = numeric and min(values) > 0 and max(values) / min(values) >= 10
+        fig, axes = plt.subplots(2, 3, figsize=(13, 7))
+        for ax, (key, label) in zip(axes.ravel(), METRICS):
+            means = []
+            for i, v in enumerate(values):
+                ys = [r.get(key) for r in rows if r.get(col) == v and r.get(key) is not None and not r.get("error")]
+                x = v if numeric else i
+                ax.scatter([x] * len(ys), ys, s=22, alpha=0.6, color="C0", label="one seed" if i == 0 else None)
+                means.append((x, float(np.mean(ys)) if ys else float("nan")))
+            ax.plot([m[0] for m in means], [m[1] for m in means], "-o", ms=3, color="C1", label="mean over seeds")
+            if logx:
+                ax.set_xscale("log")
+                ax.set_xticks(values, [f"{v:g}" for v in values])
+            elif not numeric:
+                ax.set_xticks(range(len(values)), [str(v) for v in values])
+            if key == "phases_chosen":
+                ax.yaxis.set_major_locator(MaxNLocator(integer=True))
+                top = max([m[1] for m in means if m[1] == m[1]], default=1.0)
+                ax.set_ylim(0.5, top + 1.5)
+            ax.set_xlabel(p.path)
+            ax.set_ylabel(label)
+            ax.grid(alpha=0.3)
+        axes[0, 0].legend(fontsize=8)
+        axes.ravel()[-1].axis("off")
+        seeds = sorted({r.get("seed") for r in rows})
+        # a run that reproduced with several models is a row per model: count runs, not rows
+        runs = {r.get("run") for r in rows}
+        failed = {r.get("run") for r in rows if r.get("error")}
+        axes.ravel()[-1].text(0.0, 0.9, f"{len(runs)} runs, {len(values)} values x {len(seeds)} seed(s)\n"
+                              f"runs that failed to run: {len(failed)}", fontsize=10, va="top")
+        fig.suptitle(f"sweep over {p.path}")
+        fig.tight_layout()
+        path = out / f"{p.path.replace('.', '_').replace('[', '_').replace(']', '')}.png"
+        fig.savefig(path, dpi=90)
+        plt.close(fig)
+        written.append(path)
+    return written
+
+
+def sweep(scenario: str, parameters: list, *, repeats: int, out: str, record: str = "summary",
+          workers: int | None = None, cluster: str | None = None, learn_threads: int | None = None,
+          say=print) -> dict:
+    from services.runtime.threads import available_cpus
+
+    out_dir = Path(out).expanduser().resolve()
+    workers = workers or available_cpus()
+    if workers < 1:
+        raise SweepError(f"--workers must be >= 1, got {workers}")
+    threads = learn_threads or max(1, available_cpus() // workers)
+    specs = plan(scenario, parameters, repeats, out_dir, record, threads)
+    t0 = time.monotonic()
+    rows = execute(specs, min(workers, len(specs)), cluster, say)
+    wall = time.monotonic() - t0
+    n_runs, n_failed = len(rows), sum(1 for r in rows if r.get("error"))
+    rows = by_model_rows(rows)
+    comparison = comparison_over_seeds(rows)
+    if comparison:
+        (out_dir / "comparison.txt").write_text("\n".join(comparison) + "\n")
+        say("\n".join(comparison))
+        parameters = [*parameters, Parameter("model", tuple(dict.fromkeys(r["param model"] for r in rows
+                                                                             if r.get("param model"))))]
+    csv_path, json_path = write_table(rows, out_dir)
+    pngs = plot(rows, parameters, out_dir)
+    summary = dict(scenario=scenario, parameters={p.path: list(p.values) for p in parameters}, repeats=repeats,
+                   runs=n_runs, failed=n_failed, wall_seconds=wall,
+                   workers=workers, cluster=cluster, learn_threads=threads,
+                   table=str(csv_path), plots=[str(p) for p in pngs],
+                   comparison=str(out_dir / "comparison.txt") if comparison else None)
+    (out_dir / "sweep.json").write_text(json.dumps(summary, indent=1) + "\n")
+    return summary

@@ -1,0 +1,226 @@
+"""One node in its own process on a Zenoh session (``services.cli.roles`` parses its flags).
+
+``run_node`` opens the session (``services.transport.service.Service``), builds the
+node with a bus that publishes on it, hands the node its subscriptions and serves
+control requests until ``shutdown`` or a signal.
+
+What only a network needs lives here too: the robot's episodes run the cycle
+engine (``services.runtime.cycle``) on the wall clock, waking for each answer
+that arrives and at each deadline or answer timeout; the recorder's
+``end_episode`` first waits (bounded) for messages still in flight.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+
+from services.nodes import NODES
+from services.runtime.bus import MonotonicClock
+from services.transport.collector import PausedCollector
+from services.runtime.cycle import CLOCKS, CycleEngine
+from services.transport.service import Service
+from services.transport.session import ZenohOptions
+
+RECORDER_WAIT_S = 10.0  # end_episode: how long the recorder waits for messages still in flight
+STOP_CHECK_NS = 100_000_000  # during an episode the robot looks for a 'stop' at least this often
+
+
+@dataclass(frozen=True)
+class ProcessConfig:
+    """What every service process takes besides its node's config."""
+
+    run_id: str
+    zenoh: ZenohOptions
+    clock: str = "lockstep"
+    sched_fifo: int = 0  # SCHED_FIFO priority for the whole process, 0: none
+    cpus: tuple = ()  # CPU affinity of the whole process, (): any
+
+
+class ZenohBus:
+    """Publishes a node's messages on its service's Zenoh publishers."""
+
+    def __init__(self, svc: Service, realtime: bool):
+        self.svc = svc
+        self.realtime = realtime
+        self._pubs = {}
+
+    def declare(self, publications) -> None:
+        for p in publications:
+            self._pubs[p.topic] = self.svc.publisher(p.topic, realtime=p.express,
+                                                     drop_when_congested=p.drop_when_congested and self.realtime)
+
+    def publish(self, topic: str, payload: bytes, message=None) -> None:
+        self._pubs[topic].put(payload)
+
+
+def run_node(role: str, node_config, process: ProcessConfig) -> int:
+    node_cls, _ = NODES[role]
+    if process.clock not in CLOCKS:
+        raise ValueError(f"clock must be lockstep or realtime, got {process.clock!r}")
+    realtime = process.clock == "realtime"
+    clock = MonotonicClock()
+    with Service(role, process.run_id, process.zenoh, sched_fifo=process.sched_fifo, cpus=process.cpus) as svc:
+        bus = ZenohBus(svc, realtime)
+        node = node_cls(node_config, bus, clock, run_id=process.run_id, mode=process.clock,
+                        sched_fifo=svc.sched_fifo)
+        bus.declare(node.publications)
+        collector = PausedCollector()
+        inputs = NodeInputs(node, svc, realtime, collector)
+        inputs.sync()
+        handlers = {cmd: inputs.after(h) for cmd, h in node.handlers().items()}
+        if role == "robot":
+            handlers.update(_robot_handlers(node, svc, node_config, process.clock, clock, collector))
+        if role == "recorder":
+            handlers["end_episode"] = _recorder_end(node)
+
+        def idle():
+            collector.relieve()
+            node.idle(clock.now_ns())
+
+        if realtime:
+            collector.start()
+        svc.log(f"ready: clock {process.clock}, SCHED_FIFO {'on' if svc.sched_fifo else 'off'}")
+        try:
+            svc.serve(handlers, status=lambda: dict(node.status(), sched_fifo=svc.sched_fifo,
+                                                    cpus=sorted(os.sched_getaffinity(0)),
+                                                    gc_relieved=collector.relieved),
+                      idle=idle)
+        finally:
+            collector.stop()
+            node.close()
+    return 0
+
+
+class NodeInputs:
+    """A node's subscriptions on its service.  In realtime they are declared only while
+    the node is ``listening``, re-read after every control request: Zenoh then stops
+    delivering what the node would ignore (a declaration takes a moment to reach the
+    publishers, which lockstep, where every message counts, cannot allow: there they
+    stay declared)."""
+
+    def __init__(self, node, svc: Service, realtime: bool, collector: PausedCollector | None = None):
+        self.node, self.svc, self.realtime = node, svc, realtime
+        self.collector = collector
+        self.declared = []
+
+    def sync(self) -> None:
+        want = self.node.listening or not self.realtime
+        if want and not self.declared:
+            self.declared = [self.svc.subscribe(s.topic, s.handler, decode=s.decode, every_tenth=s.every_tenth,
+                                                latest=s.latest and self.realtime, keep_tenth=s.keep_tenth)
+                             for s in self.node.subscriptions]
+        elif not want and self.declared:
+            for s in self.declared:
+                self.svc.unsubscribe(s)
+            self.declared = []
+
+    def after(self, handler):
+        """``handler``, followed by ``sync``."""
+        def handled(*args):
+            try:
+                return handler(*args)
+            finally:
+                self.sync()
+                if self.collector is not None:
+                    self.collector.between_episodes()  # a control request: between episodes
+        handled.replies_itself = getattr(handler, "replies_itself", False)
+        return handled
+
+
+# ------------------------------------------------------------------ the robot's episodes
+
+def _robot_handlers(node, svc: Service, config, mode: str, clock, collector: PausedCollector) -> dict:
+    def settle(p):
+        try:
+            return drive_episode(node, svc, node.plan("settle", p), mode, clock, config, settle=True,
+                                 collector=collector)
+        finally:
+            collector.between_episodes()
+
+    def run(p, reply):
+        plan = node.plan("run", p)  # a bad request fails before the episode starts
+        reply(started=True, seq=node.cell.fri.seq + 1)
+        try:
+            summary = drive_episode(node, svc, plan, mode, clock, config, collector=collector)
+            node.publish_summary(summary)
+        finally:
+            collector.between_episodes()
+
+    return {"settle": settle, "run": _answered_first(run),
+            "stop": lambda p: {"stopped": False, "note": "no episode is running"}}
+
+
+def _answered_first(fn):
+    """A handler that replies before it returns (``run``: the episode goes on after the reply)."""
+    fn.replies_itself = True
+    return fn
+
+
+def drive_episode(node, svc: Service, plan, mode: str, clock, config, settle: bool = False,
+                  collector: PausedCollector | None = None) -> dict:
+    """Run one episode of cycles on the wall clock; returns its summary."""
+    node.begin_episode(settle)
+    engine = CycleEngine(node, plan, clock, mode=mode, cycle_ns=node.cell.cycle_ns,
+                         answer_timeout_ns=int(config.answer_timeout * 1e9),
+                         stall_every_cycles=int(config.stall_every * 1000) if config.stall_ms > 0 else 0,
+                         stall_s=config.stall_ms / 1e3)
+    lockstep = mode == "lockstep"
+    checked, checked_at = 0, clock.now_ns()
+    arrived = node.arrived
+    seen = node.arrivals
+    while not engine.done:
+        if svc.stop.is_set():
+            engine.stop()
+            break
+        now = clock.now_ns()
+        wake = engine.tick(now)
+        if engine.done:
+            break
+        # during an episode only 'stop' and 'status' are served: every 100 cycles, and at
+        # least every 100 ms (a lockstep cycle waiting for a dead participant is slow)
+        if engine.k >= checked + 100 or now - checked_at > STOP_CHECK_NS:
+            checked, checked_at = engine.k, now
+            if collector is not None:
+                collector.relieve()
+            if _stop_requested(node, svc):
+                engine.stop()
+                break
+        if lockstep and not engine.awaiting():
+            continue  # the open cycle has all it needs (or needs nothing): close it now
+        with arrived:
+            if node.arrivals == seen:
+                left = (wake - clock.now_ns()) / 1e9
+                if left > 0:
+                    # lockstep: also wake every 50 ms to notice a stop
+                    arrived.wait(min(left, 0.05) if lockstep else left)
+            seen = node.arrivals
+    return node.end_episode(engine)
+
+
+def _stop_requested(node, svc: Service) -> bool:
+    req = svc.next_control()
+    if req is None:
+        return False
+    if req.cmd == "stop":
+        req.reply(stopped=True)
+        return True
+    if req.cmd == "status":
+        req.reply(**node.status(), running=True)
+    else:
+        req.fail(f"busy running episode {node.episode}: only 'stop' and 'status' are served now")
+    return False
+
+
+# ------------------------------------------------------------------ the recorder's episodes
+
+def _recorder_end(node):
+    def end(p):
+        wanted, last = list(p.get("topics", [])), int(p.get("last_seq", -1))
+        deadline = time.monotonic() + float(p.get("timeout", RECORDER_WAIT_S))
+        with node.lock:
+            while node.lagging(wanted, last) and time.monotonic() < deadline:
+                node.lock.wait(0.05)
+        return node.end(p)
+    return end

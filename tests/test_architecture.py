@@ -1,0 +1,83 @@
+"""The import rules of docs/architecture.md, read from the code: every import in services/
+points down the list of wings (lazy imports inside functions count too), and etar/ and
+robot_sim/ import neither services/ nor each other."""
+
+import ast
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# lowest first: a wing may import the wings before it, never one after it
+WINGS = ("runtime", "scenario", "recordings", "foxglove", "nodes", "transport", "results", "run", "cli")
+
+
+def imports(path: Path, text: str | None = None):
+    """(module imported, line) of every import in ``path``, relative ones resolved."""
+    package = path.relative_to(ROOT).with_suffix("").parts[:-1]
+    text = path.read_text() if text is None else text
+    for node in ast.walk(ast.parse(text, str(path))):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                yield alias.name, node.lineno
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package[:len(package) - node.level + 1]
+                module = ".".join([*base, node.module] if node.module else base)
+            else:
+                module = node.module
+            yield module, node.lineno
+            for alias in node.names:  # "from services import run" imports services.run
+                yield f"{module}.{alias.name}", node.lineno
+
+
+def wing_of(module: str) -> str | None:
+    parts = module.split(".")
+    return parts[1] if parts[0] == "services" and len(parts) > 1 and parts[1] in WINGS else None
+
+
+def sources(folder: str):
+    return sorted((ROOT / folder).rglob("*.py"))
+
+
+def test_services_has_only_wings_at_its_top():
+    top = sorted(p.name for p in (ROOT / "services").iterdir() if not p.name.startswith((".", "__")))
+    assert top == sorted(WINGS), "a module at the top of services/ belongs in a wing (docs/architecture.md)"
+    assert [p.name for p in (ROOT / "services").glob("*.py")] == ["__init__.py"]
+
+
+def test_every_wing_is_described_in_docs_architecture():
+    text = (ROOT / "docs" / "architecture.md").read_text()
+    for wing in WINGS:
+        assert re.search(rf"`services/{wing}/`", text), f"docs/architecture.md says nothing of services/{wing}/"
+
+
+@pytest.mark.parametrize("wing", WINGS)
+def test_a_wing_imports_only_the_wings_below_it(wing):
+    allowed = set(WINGS[:WINGS.index(wing) + 1])
+    wrong = []
+    for path in sources(f"services/{wing}"):
+        for module, line in imports(path):
+            target = wing_of(module)
+            if target is not None and target not in allowed:
+                wrong.append(f"{path.relative_to(ROOT)}:{line} imports {module} (services/{target}/ is above "
+                             f"services/{wing}/)")
+    assert not wrong, "\n".join(wrong)
+
+
+@pytest.mark.parametrize("library,foreign", [("etar", ("services", "robot_sim")), ("robot_sim", ("services", "etar"))])
+def test_the_libraries_import_no_services_and_not_each_other(library, foreign):
+    wrong = [f"{path.relative_to(ROOT)}:{line} imports {module}" for path in sources(library)
+             for module, line in imports(path) if module.split(".")[0] in foreign]
+    assert not wrong, "\n".join(wrong)
+
+
+def test_the_rule_itself_catches_an_import_that_points_back():
+    """The check reads what it should: a lazy import of the runner in a runtime module,
+    and a relative import of a wing above, are both found."""
+    path = ROOT / "services" / "runtime" / "probe.py"
+    text = "def f():\n    from services.run.runner import Runner\n\nfrom ..cli import bench\n"
+    assert sorted((line, wing_of(m)) for m, line in imports(path, text) if wing_of(m)) == [
+        (2, "run"), (2, "run"), (4, "cli"), (4, "cli")]
