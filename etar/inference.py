@@ -475,23 +475,6 @@ def e_step_stacked(regressors, next_states, features, starts, C, chol_inv, log_n
     return ll, gamma, xi, trans, log_trans
 
 
-@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
-def log_likelihood_stacked(regressors, next_states, features, starts, C, chol_inv, log_norm, W):
-    """Log-likelihood of every stacked demonstration (D,)."""
-    D = starts.shape[0] - 1
-    ll = np.empty(D)
-    for d in prange(D):
-        a, b = starts[d], starts[d + 1]
-        le = log_emissions(regressors[a:b], next_states[a:b], C, chol_inv, log_norm)
-        li, tr, ltr = initial_and_transitions(features[a:b], W)
-        _, log_c = forward(li, tr, ltr, le)
-        s = 0.0
-        for t in range(log_c.shape[0]):
-            s += log_c[t]
-        ll[d] = s
-    return ll
-
-
 # --------------------------------------------------------------------------
 # the online filter's update: one compiled call per sample
 # --------------------------------------------------------------------------

@@ -501,11 +501,6 @@ class PhaseFilter:
         self._flags[:] = False
         self.n_updates = 0
 
-    @property
-    def log_message(self) -> np.ndarray:
-        with np.errstate(divide="ignore"):
-            return np.log(self._alpha)
-
     def update(self, state, force) -> np.ndarray:
         s = np.asarray(state, dtype=np.float64)
         f = np.asarray(force, dtype=np.float64)

@@ -135,11 +135,6 @@ class ReproductionPolicy:
         self.rot_tol = rotation_tolerance
         self.reset()
 
-    @classmethod
-    def for_task(cls, task, **options) -> "ReproductionPolicy":
-        """The policy of a learned task (``etar.task.LearnedTask``)."""
-        return cls(task.impedances, task.goal, goal_rotation=task.goal_rotation, **options)
-
     def _prepare(self, imp: PhaseImpedance, impedances: list) -> PhaseLaw:
         K = np.asarray(imp.stiffness, dtype=np.float64)
         F_ff = np.zeros(3)

@@ -628,15 +628,6 @@ class FriLink:
     def consecutive_misses(self) -> int:
         return self._consecutive
 
-    @property
-    def cycle_open(self) -> bool:
-        return self._open
-
-    @property
-    def deadline_ns(self) -> int:
-        """Deadline of the open (or last) cycle."""
-        return self._deadline_ns
-
     def _window_figures(self) -> tuple[float, float, float, float]:
         """(answer_rate, miss_rate, latency_s, jitter_s) over the window."""
         n = self._w_n

@@ -87,11 +87,6 @@ def pose_to_cart_pos(oMtcp: pin.SE3) -> np.ndarray:
     return np.hstack([oMtcp.rotation, oMtcp.translation[:, None]]).ravel()
 
 
-def cart_pos_to_pose(cart_pos) -> pin.SE3:
-    m = np.asarray(cart_pos, dtype=np.float64).reshape(3, 4)
-    return pin.SE3(m[:, :3].copy(), m[:, 3].copy())
-
-
 # --------------------------------------------------------------------------
 # kernels: the arithmetic of one cycle (array versions, then the per-step
 # entry points that take buffer addresses)

@@ -27,9 +27,3 @@ def control(run_id: str, service: str) -> str:
 
 def alive(run_id: str, service: str) -> str:
     return key(run_id, f"alive/{service}")
-
-
-def topic_of(run_id: str, key_expr: str) -> str:
-    """The topic part of a key expression of this run ('robot/state')."""
-    p = prefix(run_id) + "/"
-    return key_expr[len(p):] if key_expr.startswith(p) else key_expr

@@ -163,9 +163,6 @@ class Hosts:
         _ip("link", "set", host.link, "down")
         return host
 
-    def heal(self, name: str) -> None:
-        _ip("link", "set", next(h for h in self.hosts if h.name == name).link, "up")
-
     def down(self) -> None:
         if self.made:
             down()
