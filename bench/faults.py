@@ -45,12 +45,11 @@ def cell(sensor=None, **robot):
 
 
 def reproduce(c, seconds):
-    c.request("robot", "reset", start=START, episode=0, kind="reproduction")
-    c.request("ft_sensor", "tare", samples=100)
-    c.request("robot", "settle", cycles=200, wait_for=["ft"])
-    c.request("phase_estimator", "reset", model=MODEL, episode=0)
-    c.request("impedance_commander", "reset", model=MODEL, episode=0)
-    return c.run_episode(["command"], None, seconds)
+    """The smoke reproduction for ``seconds``, unrecorded (the episode protocol of every run)."""
+    from services.run.episode import Episodes
+
+    summary, _, _ = Episodes(c).reproduce(0, START, model=MODEL, stop_at_goal=False, max_seconds=seconds)
+    return summary
 
 
 def main() -> int:

@@ -31,12 +31,15 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 def one(transport: str, scenario: str, out: Path) -> dict:
     from cpuwatch import CpuWatch
-    from services.run.runner import RunOptions, run
+    from services.run.options import RunOptions
+    from services.run.runner import run
+    from services.scenario import load_scenario
 
     run_id = f"rtf-{transport}-{uuid.uuid4().hex[:6]}"
     watch = CpuWatch(run_id).start() if transport == "zenoh" else None
     t = time.monotonic()
-    report = run(RunOptions(scenario=scenario, out=str(out), clock="lockstep", run_id=run_id, transport=transport),
+    report = run(load_scenario(scenario).replace("clock", "lockstep"),
+                 RunOptions(out=str(out), run_id=run_id, transport=transport),
                  progress=lambda m: print(f"[{transport}] {m}", file=sys.stderr))
     wall = time.monotonic() - t
     cpu = None

@@ -96,11 +96,12 @@ def main():
 
     from cpuwatch import CpuWatch
     from hold import hold_scenario
-    from services.run.runner import RunOptions, run
+    from services.run.options import RunOptions
+    from services.run.runner import run
 
     out = Path(args.out or tempfile.mkdtemp(prefix="realtime_load-"))
     out.mkdir(parents=True, exist_ok=True)
-    scenario = hold_scenario(out, args.seconds)
+    scenario = hold_scenario(args.seconds)
     run_id = f"rtload-{uuid.uuid4().hex[:8]}"
 
     qos = None
@@ -131,7 +132,7 @@ def main():
                 viewers.append(Viewer(int(line.rsplit(":", 1)[1].split()[0])))
                 viewers[0].start()
 
-        report = run(RunOptions(scenario=str(scenario), out=str(out), run_id=run_id, sched_fifo=args.sched_fifo,
+        report = run(scenario, RunOptions(out=str(out), run_id=run_id, sched_fifo=args.sched_fifo,
                                 isolate_robot=args.isolate_robot, fifo_priorities=priorities,
                                 realtime_profile=args.profile, foxglove=0 if args.foxglove else None,
                                 recorder_args=("--visual-rate-hz", str(args.visual_rate)),

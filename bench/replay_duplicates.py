@@ -26,7 +26,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from services.transport.launch import free_port  # noqa: E402
-from services.run.runner import RunOptions, run  # noqa: E402
+from services.run.options import RunOptions  # noqa: E402
+from services.run.runner import run  # noqa: E402
+from services.scenario import load_scenario  # noqa: E402
 from services.runtime import topics  # noqa: E402
 from services.transport.session import ZenohOptions, open_session  # noqa: E402
 
@@ -82,8 +84,8 @@ def one_run(label: str, out: Path, share: float, late_s: float, seed: int) -> tu
     peer = open_session(ZenohOptions(listen=(endpoint,)))
     replayer = Replayer(peer, run_id, share, late_s, seed) if share > 0 else None
     try:
-        report = run(RunOptions(scenario=str(ROOT / "scenarios" / "smoke.yaml"), out=str(out / label),
-                                run_id=run_id, zenoh=ZenohOptions(connect=(endpoint,))),
+        report = run(load_scenario(ROOT / "scenarios" / "smoke.yaml"),
+                     RunOptions(out=str(out / label), run_id=run_id, zenoh=ZenohOptions(connect=(endpoint,))),
                      progress=lambda m: print(f"[{label}] {m}", file=sys.stderr))
     finally:
         if replayer is not None:

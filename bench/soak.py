@@ -51,8 +51,8 @@ def rss_kib(pid: int) -> int | None:
 def sample_rss(runner, stop: threading.Event, samples: list, every: float = 10.0) -> None:
     t0 = None
     while not stop.is_set():
-        procs = getattr(runner.cell, "processes", None) or []
-        if procs and getattr(runner.cell, "watched", None):
+        procs = runner.cell.processes if runner.ready.is_set() else []
+        if procs:
             t0 = t0 or time.monotonic()
             samples.append((time.monotonic() - t0, {p.name: rss_kib(p.popen.pid) for p in procs}))
         stop.wait(every)
@@ -90,12 +90,12 @@ def main() -> int:
         parser.error(f"--minutes must be > 0, got {args.minutes}")
 
     from hold import hold_scenario
-    from services.run.runner import RunOptions, Runner
+    from services.run.options import RunOptions
+    from services.run.runner import Runner
 
     out = Path(args.out or tempfile.mkdtemp(prefix="soak-"))
     out.mkdir(parents=True, exist_ok=True)
-    scenario = hold_scenario(out, args.minutes * 60)
-    runner = Runner(RunOptions(scenario=str(scenario), out=str(out), run_id=f"soak-{uuid.uuid4().hex[:8]}"),
+    runner = Runner(hold_scenario(args.minutes * 60), RunOptions(out=str(out), run_id=f"soak-{uuid.uuid4().hex[:8]}"),
                     progress=lambda m: print(m, file=sys.stderr, flush=True))
     stop, samples = threading.Event(), []
     sampler = threading.Thread(target=sample_rss, args=(runner, stop, samples), daemon=True)

@@ -39,44 +39,31 @@ def _say(msg: str) -> None:
 
 def cmd_run(args) -> int:
     from etar.task import TaskError
-    from services.run.runner import RunOptions, run
-    from services.runtime import topics
-    from services.transport.hosts import HostsError
+    from services.run.options import RunOptions
+    from services.run.runner import Runner
+    from services.scenario import ScenarioError, load_scenario
     from services.transport.credentials import CredentialsError
-    from services.scenario.checks import ScenarioError
+    from services.transport.hosts import HostsError
 
     out = args.out or f"runs/{Path(args.scenario).stem}-{time.strftime('%Y%m%d-%H%M%S')}"
     try:
-        zopts = zenoh_options(args) if args.connect else None
-        if args.run_id is not None:
-            topics.check_run_id(args.run_id)
-    except ValueError as exc:
+        scenario = load_scenario(args.scenario)
+        if args.clock:
+            scenario = scenario.replace("clock", args.clock)
+        options = RunOptions(out=out, run_id=args.run_id, zenoh=zenoh_options(args) if args.connect else None,
+                             transport=args.transport, attach=args.attach, ready_timeout=args.ready_timeout,
+                             sched_fifo=args.sched_fifo, realtime_profile=args.realtime_profile, tls=args.tls,
+                             hosts=args.hosts, figures=not args.no_figures, foxglove=args.foxglove)
+        runner = Runner(scenario, options, progress=_say)
+    except (ScenarioError, TaskError, CredentialsError, HostsError, ValueError) as exc:
+        # every option refused before anything started (services.run.options)
         _say(f"etar-bench run: error: {exc}")
-        return 2
-    if args.attach and args.transport == "inproc":
-        _say("etar-bench run: --attach drives services already running over Zenoh; it cannot be combined with "
-             "--transport inproc")
-        return 2
-    if args.tls is not None and (args.attach or zopts is not None or args.transport == "inproc"):
-        _say("etar-bench run: --tls makes this runner the run's router; it cannot be combined with --connect, "
-             "--attach or --transport inproc")
-        return 2
-    if args.attach and (zopts is None or not args.run_id):
-        _say("etar-bench run: --attach needs --connect (the router or a peer) and --run-id (the services')")
         return 2
     # SIGTERM (kill, docker stop) takes the same way out as Ctrl-C: the runner stops the
     # services it started and writes what it has; otherwise they outlive it as orphans
     signal.signal(signal.SIGTERM, _interrupt)
     try:
-        report = run(RunOptions(scenario=args.scenario, out=out, clock=args.clock, run_id=args.run_id, zenoh=zopts,
-                                transport=args.transport, attach=args.attach, ready_timeout=args.ready_timeout,
-                                sched_fifo=args.sched_fifo, realtime_profile=args.realtime_profile, tls=args.tls,
-                                hosts=args.hosts, figures=not args.no_figures, foxglove=args.foxglove),
-                     progress=_say)
-    except (ScenarioError, TaskError, CredentialsError, HostsError, ValueError) as exc:
-        # ValueError: the run's options refused before anything started (e.g. --hosts)
-        _say(f"etar-bench run: error: {exc}")
-        return 2
+        report = runner.run()
     except KeyboardInterrupt as exc:
         written = (Path(out) / "report.json").exists()
         _say(f"etar-bench run: interrupted ({exc or 'SIGINT'}); services stopped; "
@@ -108,12 +95,12 @@ def summary_line(report: dict, out) -> str:
 
 def cmd_sweep(args) -> int:
     from etar.task import TaskError
-    from services.scenario.checks import ScenarioError
     from services.run.sweep import Parameter, SweepError, sweep
+    from services.scenario import ScenarioError, load_scenario
 
     try:
         params = [Parameter.parse(p) for p in args.param]
-        result = sweep(args.scenario, params, repeats=args.repeats, out=args.out, record=args.record,
+        result = sweep(load_scenario(args.scenario), params, repeats=args.repeats, out=args.out, record=args.record,
                        workers=args.workers, cluster=args.cluster, learn_threads=args.learn_threads, say=_say)
     except (SweepError, ScenarioError, TaskError) as exc:
         _say(f"etar-bench sweep: error: {exc}")

@@ -11,6 +11,7 @@ from __future__ import annotations
 import base64
 import html
 import json
+import time
 from pathlib import Path
 
 from services.results.figures import FIGURES_DIR
@@ -116,3 +117,25 @@ def write_html(run_dir) -> Path:
     path = Path(run_dir) / "report.html"
     path.write_text(render_html(run_dir))
     return path
+
+
+def write_figures_and_page(run_dir) -> str:
+    """The thesis' figures (``RUN_DIR/figures/``) and report.html after a run's report; one
+    line saying what was written.  A figure that cannot be drawn must not cost the run
+    its report: the reason goes in figures.error (figures.skipped: what was left out)."""
+    from services.results.figures import write_figures
+
+    run_dir = Path(run_dir)
+    t = time.monotonic()
+    try:
+        written, skipped = write_figures(run_dir)
+    except Exception as exc:
+        (run_dir / "figures.error").write_text(f"{type(exc).__name__}: {exc}\n")
+        written, skipped = [], [f"{type(exc).__name__}: {exc}"]
+    if skipped:
+        (run_dir / "figures.skipped").write_text("".join(f"{why}\n" for why in skipped))
+    try:
+        write_html(run_dir)
+    except Exception as exc:
+        (run_dir / "report.html.error").write_text(f"{type(exc).__name__}: {exc}\n")
+    return f"figures: {len(written)} in {run_dir / FIGURES_DIR}, report.html ({time.monotonic() - t:.1f} s)"

@@ -18,17 +18,20 @@ from __future__ import annotations
 import json
 import os
 import platform
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
 from etar.metrics import score_segmentation
 from services.recordings.reader import read_episode
+from services.results.record import EpisodeRecord, RunRecord
 from services.nodes.robot import HOLD_WATCH_S
 from services.runtime.messages import BY_TOPIC, loads
 from services.transport.service import STRIDES
 from services.runtime.threads import process_map
-from services.runtime.timing import Histogram, SequenceTracker, percentiles
+from services.results.text import pooled_histogram, histograms_text, render_text
+from services.runtime.timing import SequenceTracker, percentiles
 
 
 # what the report reads of each topic: every one an integer (counts, sequence numbers, clocks, labels)
@@ -254,10 +257,10 @@ def recording_figures(job: tuple):
     return episode_links(decoded), phases, fri_quality_series(decoded), bad
 
 
-def _parts_of(episode: dict, run_dir: Path) -> dict:
+def _parts_of(episode: EpisodeRecord, run_dir: Path) -> dict:
     """An episode recorded in parts (its recorder restarted): the further files and the
     cycles no part holds."""
-    rec = episode.get("recording") or {}
+    rec = episode.recording or {}
     if not rec.get("parts"):
         return {}
     gaps = [dict(g, part=_in_run(g["part"], run_dir), next_part=_in_run(g["next_part"], run_dir))
@@ -284,19 +287,18 @@ def by_model(repro: list) -> dict:
     return {name: reproduction_figures([r for r in repro if r.get("model") == name]) for name in names}
 
 
-def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: float) -> dict:
-    st = runner.state
-    sc = runner.scenario
-    out = Path(runner.out)
+def write_report(run: RunRecord, exit_codes: dict, error: str | None, wall_seconds: float) -> dict:
+    """report.json, report.txt, timing.txt and timing.png in the run's folder; the report."""
+    learning = run.learning
+    out = Path(run.out)
     links, phases_of, quality, undecodable = {}, {}, {}, {}
     # each reproduction is judged by the phase mapping of the model that drove it
-    truth_maps = {r["path"]: r.get("phase_to_truth") or st.phase_to_truth for r in st.reproductions}
-    jobs = [(d["path"], truth_maps.get(d["path"]),
-             tuple((d.get("recording") or {}).get("parts", ())))
-            for d in st.demonstrations + st.reproductions]
+    truth_maps = {r.path: r.phase_to_truth or learning.phase_to_truth for r in run.reproductions}
+    jobs = [(e.path, truth_maps.get(e.path), tuple((e.recording or {}).get("parts", ())))
+            for e in run.demonstrations + run.reproductions]
     # the recordings are independent: read on every CPU the run may use (a sweep's run: in
     # this process), once they are worth a pool's start (~1.4 s of imports per process)
-    workers = getattr(getattr(runner, "options", None), "workers", 1)
+    workers = run.workers
     if sum(_size(path) for path, _, _ in jobs) < PARALLEL_READ_BYTES:
         workers = 1
     with process_map(workers) as read_map:
@@ -310,24 +312,24 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
                 phases_of[path] = phases
     timelines = {path: fri_quality_timeline(*series) for path, series in quality.items()}
     repro = []
-    for r in st.reproductions:
-        s = r["summary"]
-        phases = phases_of.get(r["path"], {})
+    for r in run.reproductions:
+        s = r.summary
+        phases = phases_of.get(r.path, {})
         # a hold run (stop_at_goal: false) keeps going after the goal: the commander said when
         reached = (s["reason"] == "goal_reached" or s.get("goal_reached_at_s", -1.0) >= 0) \
             and not s["reason"].startswith(("lost:", "unanswered:"))  # an episode a lost service ended failed
-        bounded = s["peak_contact_force"] <= r["max_contact_force"]
-        repro.append(dict(index=len(repro), path=_in_run(r["path"], out), side=r["side"], start=r["start"],
-                          model=r.get("model"), reason=s["reason"],
+        bounded = s["peak_contact_force"] <= r.max_contact_force
+        repro.append(dict(index=len(repro), path=_in_run(r.path, out), side=r.side, start=r.start,
+                          model=r.model, reason=s["reason"],
                           reached_goal=reached, peak_contact_force=s["peak_contact_force"],
                           bounded_force=bounded, success=reached and bounded, sim_seconds=s["sim_seconds"],
                           wall_seconds=s["wall_seconds"], final_position=s["final_position"], phases=phases,
                           goal_reached_at_s=s.get("goal_reached_at_s", -1.0), hold=s.get("hold"), fri=s.get("fri"),
-                          fri_quality=timelines.get(r["path"], {}),
-                          undecodable_messages=undecodable.get(r["path"], 0),
+                          fri_quality=timelines.get(r.path, {}),
+                          undecodable_messages=undecodable.get(r.path, 0),
                           **_parts_of(r, out)))
     overall = reproduction_figures(repro)
-    episodes = [d["summary"] for d in st.demonstrations] + [r["summary"] for r in st.reproductions]
+    episodes = [d.summary for d in run.demonstrations] + [r.summary for r in run.reproductions]
     loops = [e["loop"] for e in episodes if e.get("loop")]
     link_summary = {t: {"p50_us": float(np.median([v["p50_us"] for v in vs])),
                         "p99_us": float(max(v["p99_us"] for v in vs)),
@@ -335,44 +337,42 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
                         "lost": sum(v["lost"] for v in vs), "out_of_order": sum(v["out_of_order"] for v in vs)}
                     for t, vs in links.items() if vs and "p50_us" in vs[0]}
     received = {}
-    for role, st_ in (getattr(runner, "service_stats", None) or {}).items():
+    for role, st_ in run.service_stats.items():
         for topic, v in (st_.get("links") or {}).items():
             received[f"{topic} -> {role}"] = v
     closed = [lp.get("closed_loop_latency", {}) for lp in loops if lp.get("closed_loop_latency", {}).get("count")]
     sim_total = sum(e["sim_seconds"] for e in episodes)
     wall_total = sum(e["wall_seconds"] for e in episodes)
-    if sc.clock == "realtime" and error is None and loops:
-        error = clock_not_held(st.demonstrations, repro, loops, received)
+    if run.clock == "realtime" and error is None and loops:
+        error = clock_not_held(run.demonstrations, repro, loops, received)
     if error is None:  # after the clock: a machine that could not hold it also starves the estimator
         error = commander_held(repro)
-    stats = getattr(runner, "service_stats", None) or {}
-    profile = getattr(runner, "profile", None)
     report = {
-        "scenario": sc.name,
-        "source": sc.source,
-        "run_id": runner.run_id,
+        "scenario": run.scenario_name,
+        "source": run.source,
+        "run_id": run.run_id,
         "error": error,
         "wall_seconds": wall_seconds,
-        "environment": environment(sc.clock, any(loop.get("sched_fifo") for loop in loops),
-                                   profile.to_dict() if profile is not None and profile.requested else None, stats),
+        "environment": environment(run.clock, any(loop.get("sched_fifo") for loop in loops), run.realtime_profile,
+                                   run.service_stats),
         "paths": "relative to the folder of this report, unless absolute",
-        "demonstrations": [dict(path=_in_run(d["path"], out), side=d["side"], start=d["start"], reason=d["summary"]["reason"],
-                                sim_seconds=d["summary"]["sim_seconds"], wall_seconds=d["summary"]["wall_seconds"],
-                                fri=d["summary"].get("fri"), fri_quality=timelines.get(d["path"], {}),
-                                undecodable_messages=undecodable.get(d["path"], 0), **_parts_of(d, out))
-                           for d in st.demonstrations],
-        "learning": {"model": _in_run(st.model_path, out), "seconds": getattr(st, "learn_seconds", None),
-                     "selection": st.selection,
-                     "phase_to_truth": st.phase_to_truth, "goal": st.goal,
-                     "models": {m["name"]: dict(m, path=_in_run(m["path"], out))
-                                for m in getattr(st, "models", {}).values()},
+        "demonstrations": [dict(path=_in_run(d.path, out), side=d.side, start=d.start, reason=d.summary["reason"],
+                                sim_seconds=d.summary["sim_seconds"], wall_seconds=d.summary["wall_seconds"],
+                                fri=d.summary.get("fri"), fri_quality=timelines.get(d.path, {}),
+                                undecodable_messages=undecodable.get(d.path, 0), **_parts_of(d, out))
+                           for d in run.demonstrations],
+        "learning": {"model": _in_run(learning.model_path, out), "seconds": learning.seconds,
+                     "selection": learning.selection,
+                     "phase_to_truth": learning.phase_to_truth, "goal": learning.goal,
+                     "models": {m.name: dict(asdict(m), path=_in_run(m.path, out))
+                                for m in learning.models.values()},
                      # every model against the demonstrations' true phases (with more than one)
-                     "offline": list(getattr(st, "offline", [])),
+                     "offline": list(learning.offline),
                      "demonstrations_read": [dict(path=_in_run(d["path"], out), samples=d["samples"])
-                                             for d in getattr(st, "learned_from", [])]},
+                                             for d in learning.learned_from]},
         "reproductions": repro,
         "summary": {
-            "phases_chosen": (st.selection or {}).get("best"),
+            "phases_chosen": (learning.selection or {}).get("best"),
             "reproductions": len(repro),
             "successes": overall["successes"],
             "online_phase_accuracy": overall["online_phase_accuracy"],
@@ -395,14 +395,13 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
             "fri": [e["fri"] for e in episodes],
             # what each service said about itself at the end (counters, the commander's sections)
             "services": {role: {k: v for k, v in (st_ or {}).items() if k not in ("links", "ok")}
-                         for role, st_ in (getattr(runner, "service_stats", None) or {}).items()},
+                         for role, st_ in run.service_stats.items()},
         },
         "exit_codes": exit_codes,
         # services lost and started again by their restart policy (scenario 'restart:')
-        "restarts": list(getattr(getattr(runner, "cell", None), "restarts", None) or []),
+        "restarts": list(run.restarts),
         # where each service ran (services.transport.hosts), when the run was split across hosts
-        "hosts": [{"name": h.name, "address": h.address, "namespace": h.namespace, "roles": list(h.roles)}
-                  for h in (runner.hosts.hosts if getattr(runner, "hosts", None) is not None else ())],
+        "hosts": list(run.hosts),
     }
     (out / "report.json").write_text(json.dumps(report, indent=1, default=float) + "\n")
     (out / "report.txt").write_text(render_text(report))
@@ -412,28 +411,6 @@ def write_report(runner, exit_codes: dict, error: str | None, wall_seconds: floa
     except Exception as exc:  # a picture must not cost the run its report
         (out / "timing.png.error").write_text(f"{type(exc).__name__}: {exc}\n")
     return report
-
-
-def _pooled(loops, key) -> Histogram:
-    h = Histogram()
-    for lp in loops:
-        d = lp.get(key) or {}
-        for start_us, count in (d.get("bins") or {}).items():
-            h.counts[int(start_us) * 1000 // h.bin_ns] += count
-        h.overflow += d.get("overflow", 0)
-    return h
-
-
-def histograms_text(loops) -> str:
-    """cyclictest-style histograms of the robot loop and its answers, all episodes pooled."""
-    parts = []
-    for key, title in (("lateness", "robot 1 kHz loop: wake-up lateness (us)"),
-                       ("execution", "robot 1 kHz loop: execution time per cycle (us)"),
-                       ("answer_latency", "FRI answer latency: measurement published -> command received (us)"),
-                       ("closed_loop_latency", "closed loop: measurement -> sensor -> estimator -> commander -> "
-                                               "robot (us)")):
-        parts.append(_pooled(loops, key).text(title))
-    return "\n".join(parts)
 
 
 def plot_timing(report, loops, quality: dict, path) -> None:
@@ -446,7 +423,7 @@ def plot_timing(report, loops, quality: dict, path) -> None:
     for ax, (key, title) in zip(axes.ravel()[:3], (("lateness", "loop wake-up lateness"),
                                                    ("answer_latency", "FRI answer latency"),
                                                    ("closed_loop_latency", "closed-loop latency"))):
-        h = _pooled(loops, key)
+        h = pooled_histogram(loops, key)
         x = np.arange(h.counts.size) * h.bin_ns / 1e3
         ax.bar(x, h.counts, width=h.bin_ns / 1e3, align="edge")
         if h.counts.any():
@@ -467,127 +444,3 @@ def plot_timing(report, loops, quality: dict, path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
-
-
-def render_text(r: dict) -> str:
-    s = r["summary"]
-    lines = [f"ETAR testbench run {r['run_id']} - scenario {r['scenario']} ({r['source']})",
-             f"clock {r['environment']['clock']}, SCHED_FIFO {'yes' if r['environment']['sched_fifo'] else 'no'}, "
-             f"kernel {r['environment']['kernel']}, {r['environment']['cpus']} CPUs, "
-             f"{r['wall_seconds']:.1f} s wall"]
-    prof = r["environment"].get("realtime_profile")
-    if prof:
-        fifo = {k: v["sched_fifo"] for k, v in r["environment"].get("services", {}).items() if v["sched_fifo"]}
-        lines.append(f"realtime profile: asked {', '.join(prof['requested'])}; granted "
-                     f"{', '.join(prof['granted']) or 'nothing'}"
-                     + "".join(f"; {k} refused: {v}" for k, v in prof["refused"].items())
-                     + (f"; SCHED_FIFO {', '.join(f'{k} {v}' for k, v in fifo.items())}" if fifo else ""))
-    if r["error"]:
-        lines.append(f"RUN FAILED: {r['error']}")
-    for rs in r.get("restarts") or []:
-        lines.append(f"service {rs['role']} lost {rs['lost_at_s']:.1f} s into the run (exit code {rs['exit_code']}), "
-                     f"restarted by its policy, back after {rs['back_after_s']:.1f} s")
-    for kind in ("demonstrations", "reproductions"):
-        for i, e in enumerate(r[kind]):
-            for g in e.get("recording_gaps") or []:
-                if g["cycles_missing"] is None:
-                    what = "the robot cycles between them are unknown"
-                else:
-                    what = (f"robot cycles {g['last_cycle'] + 1}..{g['next_first_cycle'] - 1} not recorded "
-                            f"({g['cycles_missing']} cycles)")
-                lines.append(f"{kind[:-1]} {i}: the recorder restarted; the recording goes on in "
-                             f"{g['next_part']}: {what}")
-    lines.append("")
-    lines.append(f"demonstrations: {len(r['demonstrations'])}")
-    for i, d in enumerate(r["demonstrations"]):
-        lines.append(f"  {i:2d} {d['side']:>5}  {d['reason']:<13} {d['sim_seconds']:6.1f} s sim  "
-                     f"{d['wall_seconds']:6.1f} s wall")
-    sel = r["learning"]["selection"]
-    if sel:
-        lines.append("")
-        method = sel.get("method", "pooled")
-        lines.append(f"phases chosen: {sel['best']} ({sel['criterion']}"
-                     f"{', per demonstration' if method == 'per_demonstration' else ''})")
-        for i, d in enumerate(sel.get("per_demonstration", [])):
-            lines.append(f"  demo {i:2d}: " + "  ".join(
-                f"K={k} {d['scores'][k]:.0f}{'*' if int(k) == d['best'] else ''}" for k in sorted(d["scores"], key=int))
-                + f"  -> {d['best']}")
-        if "votes" in sel:
-            lines.append("  votes: " + ", ".join(f"{k} phases: {v}" for k, v in sel["votes"].items()))
-        for k in sorted(sel.get("scores", {}), key=int):
-            lines.append(f"  K={k}: score {sel['scores'][k]:.1f}, log-likelihood {sel['log_likelihoods'][k]:.1f}, "
-                         f"{sel['n_parameters'][k]} parameters{'  <-' if int(k) == sel['best'] else ''}")
-    if r["reproductions"]:
-        lines.append("")
-        lines.append(f"reproductions: {s['successes']} of {s['reproductions']} reached the goal with bounded force")
-        models = any(rp.get("model") for rp in r["reproductions"])
-        lines.append("   #  side  " + ("model " if models else "") +
-                     "result                 peak F [N]  phase acc  trans. err [s]  sim [s]  wall [s]")
-        for rp in r["reproductions"]:
-            ph = rp["phases"]
-            acc = ph.get("accuracy")
-            te = ph.get("mean_transition_error_s")
-            lines.append(f"  {rp['index']:2d} {rp['side']:>5}  " + (f"{rp.get('model') or '-':<5} " if models else "")
-                         + f"{rp['reason']:<22} {rp['peak_contact_force']:10.1f}  "
-                         f"{'-' if acc is None else f'{acc:9.3f}'}  "
-                         f"{'-' if te is None or te != te else f'{te:14.3f}'}  {rp['sim_seconds']:7.1f}  "
-                         f"{rp['wall_seconds']:8.1f}")
-        acc = s["online_phase_accuracy"]
-        te = s["mean_transition_error_s"]
-        lines.append(f"online phase accuracy overall: {'-' if acc is None else f'{acc:.4f}'}; mean transition "
-                     f"error: {'-' if te is None else f'{te:.3f} s'}")
-    if r["learning"].get("offline") or s.get("by_model"):
-        from services.results.compare import comparison_text
-
-        lines.append("")
-        lines += comparison_text(r)
-    t = r["timing"]
-    lines.append("")
-    lines.append(f"robot loop: {t['robot_loop']['cycles']} cycles, {t['robot_loop']['deadline_misses']} deadline "
-                 f"misses, longest run {t['robot_loop']['longest_miss_run']}")
-    episodes = [("demonstration", i, d) for i, d in enumerate(r["demonstrations"])] + \
-               [("reproduction", rp["index"], rp) for rp in r["reproductions"]]
-    if any(e.get("fri") for _, _, e in episodes):
-        lines.append("FRI per episode:        answered   missed     late  longest miss run  at PERFECT  drops from "
-                     "PERFECT  CMD after [s]  CMD left/entered  duplicates")
-        for kind, i, e in episodes:
-            f, fq = e.get("fri") or {}, e.get("fri_quality") or {}
-            if not f:
-                continue
-            if kind == "demonstration" and f["answered"] == 0:
-                # the teacher guides the arm in gravity compensation: no commander
-                # runs, so every cycle closes unanswered; that is not a link fault
-                lines.append(f"  {kind:<13} {i:3d}  gravity compensation, nobody answers FRI "
-                             f"({f['missed']} cycles unanswered, as expected)")
-                continue
-            span = sum((fq.get("seconds_at") or {}).values())
-            at = (fq["seconds_at"]["PERFECT"] / span) if span else None
-            cmd = fq.get("first_cmd_s")
-            # the robot's clock runs over the whole run; the column is from the episode's start
-            cmd = None if cmd is None else cmd - fq.get("start_s", 0.0)
-            lines.append(f"  {kind:<13} {i:3d} {f['answered']:10d} {f['missed']:8d} {f['late']:8d} "
-                         f"{f['longest_miss_run']:17d}  {'-' if at is None else f'{at:9.1%}'}  "
-                         f"{fq.get('drops_from_perfect', 0):18d}  {'-' if cmd is None else round(cmd, 3):>13}"
-                         f"  {f.get('command_mode_left', 0):7d}/{f.get('command_mode_entered', 0):<8d}"
-                         f"  {f.get('duplicate', 0):10d}")
-    rtf = s["real_time_factor"]
-    lines.append(f"simulated {s['simulated_seconds']:.1f} s in {s['episode_wall_seconds']:.1f} s of episodes: "
-                 f"{'-' if rtf is None else f'{rtf:.2f}'} x real time")
-    cl = t.get("closed_loop", {})
-    if cl.get("p99_us_max") is not None:
-        lines.append(f"closed loop (measurement -> sensor -> estimator -> commander -> robot): worst p99 "
-                     f"{cl['p99_us_max']:.0f} us over {len(cl['per_episode'])} reproduction(s)")
-    if t.get("links_received"):
-        lines.append("link latency at the receiver (us):                    p50      p99    p99.9      max   lost"
-                     "  out-of-order  garbage")
-        for name, v in sorted(t["links_received"].items()):
-            lat = v.get("latency", {})
-            if not lat.get("count"):
-                continue
-            lines.append(f"  {name:<45} {lat['p50_us']:8.0f} {lat['p99_us']:8.0f} {lat['p99_9_us']:8.0f} "
-                         f"{lat['max_us']:8.0f} {v['lost']:6d} {v['out_of_order']:13d} {v['bad']:8d}")
-    lines.append("link latency, publish -> recorder (us):   p50      p99      max   lost  out-of-order")
-    for topic, v in sorted(t["links_publish_to_recorder"].items()):
-        lines.append(f"  {topic:<22} {v['p50_us']:9.0f} {v['p99_us']:8.0f} {v['max_us']:8.0f} {v['lost']:6d} "
-                     f"{v['out_of_order']:6d}")
-    return "\n".join(lines) + "\n"

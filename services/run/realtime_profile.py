@@ -25,6 +25,8 @@ import os
 import struct
 from dataclasses import dataclass, field
 
+from services.runtime.roles import FIFO_CHAIN
+
 PARTS = ("fifo", "isolate", "poll")
 CPU_LATENCY_DEVICE = "/dev/cpu_dma_latency"
 # what a refused part costs, measured on this project's 2-CPU machine (README, "Realtime")
@@ -111,3 +113,24 @@ def probe(parts: frozenset) -> Grant:
         except OSError as exc:
             grant.refused["poll"] = f"{CPU_LATENCY_DEVICE}: {exc.strerror or exc}"
     return grant
+
+
+# with isolate: who gets the robot's CPU.  The sensor there too made it worse (measured on
+# 2 CPUs: FRI answered in time 57 % instead of 99 %, the sensor as far behind)
+ROBOT_CPU_ROLES = ("robot",)
+
+
+def placement(role: str, grant: Grant, *, sched_fifo: bool = False, fifo_priorities=(),
+              isolate_robot: bool = False) -> tuple:
+    """(SCHED_FIFO priority or None, CPUs or ()) of ``role``'s process.  ``sched_fifo``: the
+    run's own priorities (``fifo_priorities``) whatever the profile; ``isolate_robot``: the
+    robot on the last CPU whatever the profile."""
+    if sched_fifo:
+        priority = dict(fifo_priorities).get(role)
+    else:
+        priority = dict(FIFO_CHAIN).get(role) if "fifo" in grant.granted else None
+    cpus = os.sched_getaffinity(0)
+    if (isolate_robot or "isolate" in grant.granted) and len(cpus) >= 2:
+        last = max(cpus)
+        return priority, ((last,) if role in ROBOT_CPU_ROLES else tuple(sorted(cpus - {last})))
+    return priority, ()

@@ -3,14 +3,14 @@ independent in-process runs in parallel; a table and plots of what came out.
 
     etar-bench sweep scenarios/valley.yaml --param cell.sensor_noise=0.5,1,2,4 --repeats 2 --out sweeps/noise
 
-A parameter is a dotted path into the scenario: a top-level key (``seed``,
-``state``), a key of ``cell`` (``cell.sensor_noise``, ``cell.plate_friction``,
-``cell.fri_packet_loss``), or a stage's key by the stage's kind
-(``reproduce.start_perturbation``, ``demonstrate.count``; every stage of that kind,
-or ``reproduce[1].count`` for the second).  Values are YAML (``1e-3``, ``true``,
-``[left, right]``), and every combination is validated as a scenario before
-anything runs.  ``--repeats N`` runs each combination with the scenario's seed
-plus 0..N-1.
+A parameter is a dotted path into the scenario, as ``Scenario.replace`` takes it: a
+top-level key (``seed``, ``state``), a key of ``cell`` (``cell.sensor_noise``,
+``cell.plate_friction``, ``cell.fri_packet_loss``), or a stage's key by the stage's kind
+(``reproduce.start_perturbation``, ``demonstrate.count``; every stage of that kind, or
+``reproduce[1].count`` for the second).  Values are YAML (``1e-3``, ``true``,
+``[left, right]``), and every combination is a scenario value, validated before anything
+runs (each is also written to ``scenarios/runNNN.yaml``, as a record of what ran).
+``--repeats N`` runs each combination with the scenario's seed plus 0..N-1.
 
 Runs go to a local process pool sized to the CPUs (``--workers``), or, with
 ``--cluster ADDRESS``, to a Dask distributed scheduler (``dask scheduler`` and
@@ -28,12 +28,10 @@ each parameter, and each run's directory under ``runs/`` as ``--record`` says:
 
 from __future__ import annotations
 
-import copy
 import csv
 import itertools
 import json
 import math
-import re
 import shutil
 import sys
 import time
@@ -43,16 +41,14 @@ from pathlib import Path
 
 import yaml
 
-from services.scenario.model import STAGE_TYPES, Scenario
-from services.scenario.checks import ScenarioError
-from services.scenario.loading import _Loader, load_scenario
+from services.scenario import Scenario, ScenarioError
+from services.scenario.loading import StrictLoader
 
 RECORD = ("full", "summary", "none")
 METRICS = (("phases_chosen", "phases chosen"), ("success_rate", "reproductions reaching the goal (fraction)"),
            ("online_phase_accuracy", "online phase accuracy"),
            ("mean_transition_error_s", "mean transition-time error [s]"),
            ("peak_contact_force_n", "peak contact force [N]"))
-_STAGE_PATH = re.compile(r"^(?P<kind>[a-z]+)(\[(?P<index>\d+)\])?$")
 
 
 class SweepError(ValueError):
@@ -72,7 +68,7 @@ class Parameter:
         parsed = []
         for v in _split(values):
             try:
-                parsed.append(yaml.load(v, Loader=_Loader))
+                parsed.append(yaml.load(v, Loader=StrictLoader))
             except yaml.YAMLError as exc:
                 raise SweepError(f"--param {path}: value {v!r} is not YAML ({exc})") from None
         if len(set(map(repr, parsed))) != len(parsed):
@@ -95,35 +91,6 @@ def _split(values: str) -> list[str]:
     return [v for v in out if v]
 
 
-def apply(data: dict, path: str, value) -> None:
-    """Set ``path`` (see the module's doc) in the scenario mapping ``data``."""
-    head, _, rest = path.partition(".")
-    if not rest:
-        data[head] = value
-        return
-    if head == "cell":
-        if "." in rest:
-            raise SweepError(f"--param {path}: cell has no nested keys")
-        data.setdefault("cell", {})[rest] = value
-        return
-    m = _STAGE_PATH.match(head)
-    if m is None or m["kind"] not in STAGE_TYPES or "." in rest:
-        raise SweepError(f"--param {path}: expected a top-level key, cell.KEY or STAGE.KEY with STAGE one of "
-                         f"{', '.join(STAGE_TYPES)} (optionally STAGE[i])")
-    stages = [s for s in data.get("stages", []) if isinstance(s, dict) and m["kind"] in s]
-    if not stages:
-        raise SweepError(f"--param {path}: the scenario has no {m['kind']} stage")
-    if m["index"] is not None:
-        i = int(m["index"])
-        if i >= len(stages):
-            raise SweepError(f"--param {path}: the scenario has {len(stages)} {m['kind']} stage(s)")
-        stages = [stages[i]]
-    for stage in stages:
-        if stage[m["kind"]] is None:
-            stage[m["kind"]] = {}
-        stage[m["kind"]][rest] = value
-
-
 @dataclass(frozen=True)
 class RunSpec:
     """One run of a sweep: where, what, and how."""
@@ -132,15 +99,16 @@ class RunSpec:
     name: str
     params: dict
     seed: int
-    scenario_file: str  # written under the sweep's folder: the run reads it like any scenario
+    scenario: Scenario
     out: str
     record: str
     learn_threads: int
 
 
-def plan(scenario_path: str, parameters: list, repeats: int, out: Path, record: str,
+def plan(base: Scenario, parameters: list, repeats: int, out: Path, record: str,
          learn_threads: int) -> list[RunSpec]:
-    """Every combination x seed, each written out as a scenario file and validated."""
+    """Every combination x seed, as a scenario value (validated), each also written out
+    under ``out/scenarios/`` as a record of what ran."""
     if repeats < 1:
         raise SweepError(f"--repeats must be >= 1, got {repeats}")
     if record not in RECORD:
@@ -148,46 +116,40 @@ def plan(scenario_path: str, parameters: list, repeats: int, out: Path, record: 
     paths = [p.path for p in parameters]
     if len(set(paths)) != len(paths):
         raise SweepError(f"a parameter is given twice: {paths}")
-    base = load_scenario(scenario_path)  # a broken scenario is refused before any run
-    source = Path(scenario_path).resolve()
-    text = yaml.load(source.read_text(), Loader=_Loader)
     specs = []
     (out / "scenarios").mkdir(parents=True, exist_ok=True)
     combos = list(itertools.product(*[p.values for p in parameters])) if parameters else [()]
     for combo in combos:
-        for r in range(repeats):
-            data = copy.deepcopy(text)
-            params = dict(zip(paths, combo))
+        params = dict(zip(paths, combo))
+        varied = base
+        try:
             for path, value in params.items():
-                apply(data, path, value)
-            seed = int(data.get("seed", base.seed)) + r
-            data["seed"] = seed
-            if data.get("model") is not None and not Path(str(data["model"])).is_absolute():
-                data["model"] = str((source.parent / str(data["model"])).resolve())
+                varied = varied.replace(path, value)
+        except ScenarioError as exc:
+            raise SweepError(f"--param {exc}") from None
+        for r in range(repeats):
+            seed = varied.seed + r
+            scenario = varied.replace("seed", seed)
             index = len(specs)
             name = f"run{index:03d}"
-            file = out / "scenarios" / f"{name}.yaml"
-            file.write_text(yaml.safe_dump(data, sort_keys=False))
-            try:
-                Scenario.from_dict(data, source=f"{scenario_path} with {params or 'no change'}, seed {seed}")
-            except ScenarioError as exc:
-                raise SweepError(str(exc)) from None
-            specs.append(RunSpec(index, name, params, seed, str(file), str(out / "runs" / name), record,
+            (out / "scenarios" / f"{name}.yaml").write_text(scenario.to_yaml())
+            specs.append(RunSpec(index, name, params, seed, scenario, str(out / "runs" / name), record,
                                  learn_threads))
     return specs
 
 
 def run_one(spec: RunSpec) -> dict:
     """One run in this process (a pool worker or a Dask worker): its table row."""
-    from services.run.runner import RunOptions, Runner
+    from services.run.options import RunOptions
+    from services.run.runner import Runner
 
     t0 = time.monotonic()
     lines = []
     row = dict(run=spec.name, **{f"param {k}": v for k, v in spec.params.items()}, seed=spec.seed)
     try:
-        runner = Runner(RunOptions(scenario=spec.scenario_file, out=spec.out, transport="inproc", figures=False,
-                                   run_id=f"sweep-{spec.name}", learn_threads=spec.learn_threads,
-                                   workers=1),
+        runner = Runner(spec.scenario, RunOptions(out=spec.out, transport="inproc", figures=False,
+                                                  run_id=f"sweep-{spec.name}", learn_threads=spec.learn_threads,
+                                                  workers=1),
                         progress=lines.append)
         report = runner.run()
     except Exception as exc:  # a run that cannot even start is a row with its error, not a dead sweep
@@ -391,7 +353,7 @@ def plot(rows: list[dict], parameters: list, out: Path) -> list[Path]:
     return written
 
 
-def sweep(scenario: str, parameters: list, *, repeats: int, out: str, record: str = "summary",
+def sweep(scenario: Scenario, parameters: list, *, repeats: int, out: str, record: str = "summary",
           workers: int | None = None, cluster: str | None = None, learn_threads: int | None = None,
           say=print) -> dict:
     from services.runtime.threads import available_cpus
@@ -415,7 +377,7 @@ def sweep(scenario: str, parameters: list, *, repeats: int, out: str, record: st
                                                                              if r.get("param model"))))]
     csv_path, json_path = write_table(rows, out_dir)
     pngs = plot(rows, parameters, out_dir)
-    summary = dict(scenario=scenario, parameters={p.path: list(p.values) for p in parameters}, repeats=repeats,
+    summary = dict(scenario=scenario.source, parameters={p.path: list(p.values) for p in parameters}, repeats=repeats,
                    runs=n_runs, failed=n_failed, wall_seconds=wall,
                    workers=workers, cluster=cluster, learn_threads=threads,
                    table=str(csv_path), plots=[str(p) for p in pngs],

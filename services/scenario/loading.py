@@ -12,7 +12,7 @@ import yaml
 from services.scenario.checks import ScenarioError
 from services.scenario.model import Scenario
 
-class _Loader(yaml.SafeLoader):
+class StrictLoader(yaml.SafeLoader):
     """SafeLoader that rejects duplicate keys and reads 1e-3 as a float.
 
     PyYAML keeps the last of two equal keys silently (a pasted `count:` overrides the
@@ -36,7 +36,7 @@ class _Loader(yaml.SafeLoader):
         return super().construct_mapping(node, deep=deep)
 
 
-_Loader.add_implicit_resolver(
+StrictLoader.add_implicit_resolver(
     "tag:yaml.org,2002:float",
     re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
                   |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
@@ -54,7 +54,7 @@ def load_scenario(path: str | PathLike) -> Scenario:
     except (OSError, UnicodeDecodeError) as err:
         raise ScenarioError(f"cannot read the file ({err})", source=source) from err
     try:
-        data = yaml.load(text, Loader=_Loader)
+        data = yaml.load(text, Loader=StrictLoader)
     except yaml.MarkedYAMLError as err:
         mark = err.problem_mark or err.context_mark
         problem = err.problem or err.context or "invalid YAML"

@@ -5,11 +5,14 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from os import PathLike
 from pathlib import Path
 from typing import Any, Union
+
+import yaml
 
 from services.runtime.cycle import CLOCKS
 from services.runtime.roles import RESTARTABLE
@@ -283,6 +286,9 @@ class Scenario:
     restart: Any = ()  # {role: policy} in YAML; stored as sorted (role, policy) pairs
     stages: tuple[Stage, ...]
     source: str = "<dict>"
+    # the stages as described, before the world's and the seed's defaults were filled in:
+    # what `replace` varies, so that a new seed reaches every stage that inherits it
+    _described: tuple = dataclasses.field(default=(), init=False, repr=False, compare=False)
 
     def __post_init__(self):
         _set(self, "source", str(self.source))
@@ -314,6 +320,7 @@ class Scenario:
             if not isinstance(stage, tuple(STAGE_TYPES.values())):
                 raise ScenarioError("expected a DemonstrateStage, LearnStage or ReproduceStage",
                                     path=f"stages[{i}]", value=stage)
+        _set(self, "_described", tuple(stages))
         _check_stage_order([stage.kind for stage in stages], self.model is not None)
         learned = next((s.transitions for s in stages if s.kind == "learn"), ())
         for i, stage in enumerate(stages):
@@ -337,6 +344,14 @@ class Scenario:
             except ScenarioError as err:
                 raise err.within(f"stages[{i}].{stage.kind}") from None
         _set(self, "stages", tuple(resolved))
+
+    @property
+    def roles(self) -> tuple[str, ...]:
+        """The services the stages need: the cell always, the teacher to demonstrate, the
+        estimator and the commander to reproduce (a run may add the live view's bridge)."""
+        kinds = {s.kind for s in self.stages}
+        return (("robot", "ft_sensor", "recorder") + (("teacher",) if "demonstrate" in kinds else ())
+                + (("phase_estimator", "impedance_commander") if "reproduce" in kinds else ()))
 
     @property
     def demonstrate_stages(self) -> tuple[DemonstrateStage, ...]:
@@ -364,7 +379,36 @@ class Scenario:
 
     def with_clock(self, clock: str) -> Scenario:
         """A copy run on another clock: the same scenario, lockstep for CI, realtime for the lab."""
-        return dataclasses.replace(self, clock=clock)
+        return self.replace("clock", clock)
+
+    def replace(self, path: str, value: Any) -> Scenario:
+        """This scenario with one field set, validated as any scenario (a ScenarioError names
+        ``path``).  ``path`` is a top-level key (``seed``, ``clock``), ``cell.KEY``, or
+        ``STAGE.KEY`` for every stage of that kind (``reproduce.count``), ``STAGE[i].KEY``
+        for the i-th (``reproduce[1].start_perturbation``).  Defaults stay defaults: a new
+        ``seed`` reaches every stage that inherits it, as if the file had said it."""
+        data = self.described()
+        try:
+            _assign(data, path, value)
+            return Scenario.from_dict(data, source=self.source)
+        except ScenarioError as err:
+            raise ScenarioError(err.problem, path=err.path, value=err.value,
+                                source=f"{self.source} with {path} = {value!r}") from None
+
+    def described(self) -> dict[str, Any]:
+        """Plain data of the scenario as described: the stages' defaults not filled in."""
+        out = self.to_dict()
+        out["stages"] = [{stage.kind: _stage_dict(stage)} for stage in self._described]
+        return out
+
+    def to_yaml(self) -> str:
+        """The scenario as run, as YAML that `load_scenario` reads back into an equal
+        scenario; the model is named by its absolute path, so the text stands on its own
+        (what every recording attaches)."""
+        data = self.to_dict()
+        if self.model is not None:
+            data["model"] = str(self.model_path())
+        return yaml.safe_dump(data, sort_keys=False, default_flow_style=None)
 
     @classmethod
     def from_dict(cls, data: Any, source: str | PathLike = "<dict>") -> Scenario:
@@ -382,7 +426,7 @@ class Scenario:
     def to_dict(self) -> dict[str, Any]:
         """Plain data (lists, not tuples) that `from_dict` turns back into an equal Scenario."""
         out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
-               if f.name not in ("stages", "source")}
+               if f.init and f.name not in ("stages", "source")}
         if self.model is None:
             del out["model"]
         if not self.restart:
@@ -395,6 +439,41 @@ class Scenario:
             out["cell"] = dataclasses.asdict(self.cell)
         out["stages"] = [{stage.kind: _stage_dict(stage)} for stage in self.stages]
         return out
+
+
+_STAGE_PATH = re.compile(r"^(?P<kind>[a-z]+)(\[(?P<index>\d+)\])?$")
+
+
+def _assign(data: dict, path: str, value: Any) -> None:
+    """Set ``path`` (see `Scenario.replace`) in the plain data ``data``."""
+    def refuse(problem: str):
+        raise ScenarioError(problem, path=path, value=value)
+
+    head, _, rest = path.partition(".")
+    if not head:
+        refuse("expected a field path such as seed, cell.sensor_noise or reproduce.count")
+    if not rest:
+        data[head] = value
+        return
+    if head == "cell":
+        if "." in rest:
+            refuse("cell has no nested keys")
+        data["cell"] = dict(data.get("cell") or {}, **{rest: value})
+        return
+    m = _STAGE_PATH.match(head)
+    if m is None or m["kind"] not in STAGE_TYPES or "." in rest:
+        refuse(f"expected a top-level key, cell.KEY or STAGE.KEY with STAGE one of {', '.join(STAGE_TYPES)} "
+               "(optionally STAGE[i])")
+    stages = [s for s in data["stages"] if m["kind"] in s]
+    if not stages:
+        refuse(f"the scenario has no {m['kind']} stage")
+    if m["index"] is not None:
+        i = int(m["index"])
+        if i >= len(stages):
+            refuse(f"the scenario has {len(stages)} {m['kind']} stage(s)")
+        stages = [stages[i]]
+    for stage in stages:
+        stage[m["kind"]] = dict(stage[m["kind"]] or {}, **{rest: value})
 
 
 def _stage_dict(stage: Stage) -> dict[str, Any]:

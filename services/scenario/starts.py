@@ -20,6 +20,11 @@ DEMONSTRATE_SEED_OFFSET = 1000
 REPRODUCE_SEED_OFFSET = 2000
 
 
+def teacher_seed(stage_seed: int, i: int) -> int:
+    """The seed of the teacher's hand in the i-th demonstration of a stage."""
+    return stage_seed * 1000 + i
+
+
 def _mirror(xyz: Xyz, side: str) -> Xyz:
     """The start on ``side`` of a left-side start: the task is mirror-symmetric in y."""
     x, y, z = xyz

@@ -129,7 +129,10 @@ class InProcessBus:
 
 
 class InProcessCell:
-    """The nodes of one run in this process.  ``configs``: role -> node config."""
+    """The nodes of one run in this process (a ``services.transport.cell.Cell``).
+    ``configs``: role -> node config."""
+
+    restarts: list = []  # nothing restarts in one process
 
     def __init__(self, run_id: str, configs: dict, clock=None):
         self.clock = clock or MonotonicClock()
@@ -208,6 +211,18 @@ class InProcessCell:
             self._progress = None
         reply.pop("ok", None)
         return reply
+
+    def start(self) -> None:
+        """The nodes were built with the cell: nothing to wait for."""
+
+    def where(self) -> list[dict]:
+        return []
+
+    def unresponsive(self, roles) -> list:
+        return []  # one process: a node that does not answer is an exception, not silence
+
+    def kill(self) -> int:
+        return 0  # no processes
 
     def statistics(self, roles) -> dict:
         return {role: self.request(role, "status") for role in roles if role in self.nodes}

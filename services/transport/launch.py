@@ -23,6 +23,8 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from services.runtime import topics
+from services.runtime.config import config_to_args
+from services.transport.cell import ServiceLost, Start
 from services.transport.service import alive_services
 
 # every service process runs this module with its role as the first argument
@@ -30,16 +32,6 @@ PROGRAM_MODULE = "services.cli.roles"
 
 
 MAX_RESTARTS = 3  # per role and run: a service that keeps dying is lost
-
-
-class ServiceLost(RuntimeError):
-    """A service of the run disappeared.  ``summary``: the robot's summary of the
-    episode it then stopped (None if there was no episode, or the robot is the one lost)."""
-
-    def __init__(self, role: str, message: str, summary: dict | None = None):
-        super().__init__(message)
-        self.role = role
-        self.summary = summary
 
 
 _HANDED_OUT: set[int] = set()
@@ -141,16 +133,22 @@ class ServiceProcesses:
     ``attach``, services somebody else started), control requests as Zenoh queries,
     an episode as the robot's 'run' request and its ``robot/episode`` summary."""
 
-    def __init__(self, run_id: str, log_dir: Path, *, attach: bool = False, zenoh=None, tls=None, hosts=None):
-        """``tls``: the run's credentials (services.transport.credentials); ``hosts``: the services
-        on hosts in network namespaces (services.transport.hosts).  With either, the runner's
+    def __init__(self, run_id: str, start: Start, configs: dict, *, attach: bool = False, zenoh=None, tls=None,
+                 hosts=None):
+        """``configs``: each role's node config; ``tls``: the run's credentials
+        (services.transport.credentials); ``hosts``: the services on hosts in network
+        namespaces (services.transport.hosts), already up.  With either, the runner's
         session is the run's router and every service is its client."""
         from services.transport.session import ZenohOptions, open_session
 
         self.run_id = run_id
-        self.log_dir = Path(log_dir)
+        self.log_dir = Path(start.log_dir)
         self.attach = attach
         self.hosts = hosts
+        self.tls = tls
+        self.user_zenoh = zenoh
+        self._start = start
+        self._configs = dict(configs)
         address = "127.0.0.1"
         hosts_cfg = ()
         if hosts is not None:
@@ -189,20 +187,60 @@ class ServiceProcesses:
         self._alive_sub = None
         # restart policies (scenario 'restart:'): the roles started again when lost, at most
         # MAX_RESTARTS times each; on_restart(role) re-synchronises one that is back
-        self.restartable: set = set()
-        self.on_restart = None
+        self.restartable: set = set(start.restartable)
+        self.on_restart = start.on_restart
         self.restarts: list = []
         self._args: dict = {}
 
-    def start(self, roles, args_of, timeout: float) -> None:
-        """Spawn each role's process, ``args_of(role, endpoint to connect to)`` its flags
-        (none with ``attach``), and wait until every one is alive."""
+    def start(self) -> None:
+        """Spawn each role's process (none with ``attach``) and wait until every one is alive."""
+        roles = list(self._configs)
         if not self.attach:
             for role in roles:
-                self._args[role] = args_of(role, self.endpoint)
+                self._args[role] = self.service_args(role)
                 self.processes.append(self._spawn(role))
-        wait_alive(self.session, self.run_id, list(roles), self.processes, timeout=timeout)
+        wait_alive(self.session, self.run_id, roles, self.processes, timeout=self._start.ready_timeout)
         self.watch(roles)
+
+    def service_args(self, role: str) -> list[str]:
+        """The command-line flags of ``role``'s process (``services.cli.roles``)."""
+        priority, cpus = self._start.placement(role)
+        args = ["--run-id", self.run_id, "--clock", self._start.clock]
+        args += ["--sched-fifo", str(priority)] if priority else []
+        args += ["--cpus", ",".join(map(str, cpus))] if cpus else []
+        if self.user_zenoh is not None:
+            args += self.user_zenoh.to_args()
+        elif self.tls is not None or self.hosts is not None:
+            # a client of the runner's router (peers listening on loopback cannot reach
+            # one another across hosts), with the router's short lease on a host
+            from services.transport.credentials import client_options
+            from services.transport.hosts import ZENOH_CFG
+            from services.transport.session import ZenohOptions
+
+            zo = (client_options(self.tls, role, self.endpoint) if self.tls is not None
+                  else ZenohOptions(mode="client", connect=(self.endpoint,), listen=()))
+            if self.hosts is not None:
+                zo = replace(zo, cfg=zo.cfg + ZENOH_CFG)
+            args += zo.to_args()
+        else:
+            args += ["--connect", self.endpoint]
+        return args + config_to_args(self._configs[role])
+
+    def where(self) -> list[dict]:
+        """The hosts the services ran on, when the run was split across hosts."""
+        if self.hosts is None:
+            return []
+        return [{"name": h.name, "address": h.address, "namespace": h.namespace, "roles": list(h.roles)}
+                for h in self.hosts.hosts]
+
+    def kill(self) -> int:
+        """Every service process killed now (SIGKILL to its group)."""
+        for p in self.processes:
+            try:
+                os.killpg(p.popen.pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+        return len(self.processes)
 
     def _spawn(self, role: str) -> ServiceProcess:
         prefix = self.hosts.command_prefix(role) if self.hosts is not None else ()
@@ -418,10 +456,14 @@ class ServiceProcesses:
         if self._stopped:
             return self._codes
         self._stopped = True
-        if self.attach:
-            self._shutdown(roles)
-        if self._alive_sub is not None:
-            self._alive_sub.undeclare()
-        self._sub.undeclare()
-        self.session.close()
+        try:
+            if self.attach:
+                self._shutdown(roles)
+            if self._alive_sub is not None:
+                self._alive_sub.undeclare()
+            self._sub.undeclare()
+            self.session.close()
+        finally:
+            if self.hosts is not None:
+                self.hosts.down()
         return self._codes

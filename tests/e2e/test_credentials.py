@@ -10,11 +10,10 @@ import pytest
 import zenoh
 
 from services.recordings.reader import read_episode
-from services.run.runner import RunOptions, Runner
 from services.runtime import topics
 from services.transport.credentials import CredentialsError, client_options, make_credentials
 from services.transport.session import ZenohOptions, open_session
-from tests.e2e.test_scenarios import hold_scenario
+from tests import support
 
 
 def test_only_the_runs_credentials_get_a_message_into_or_out_of_it(tmp_path):
@@ -22,14 +21,11 @@ def test_only_the_runs_credentials_get_a_message_into_or_out_of_it(tmp_path):
                                                       "impedance_commander", "recorder", "intruder"))
     evil = make_credentials(tmp_path / "evil", roles=("robot",))
     run_id = f"tls-{int(time.time() * 1000)}"
-    runner = Runner(RunOptions(figures=False, scenario=hold_scenario(tmp_path, 4), out=str(tmp_path / "out"), clock="lockstep",
-                               run_id=run_id, tls=str(creds)), progress=print)
+    runner = support.runner(support.hold(4, {"clock": "lockstep"}), tmp_path / "out", run_id=run_id, tls=str(creds))
     result = {}
     thread = threading.Thread(target=lambda: result.setdefault("report", runner.run()), daemon=True)
     thread.start()
-    deadline = time.monotonic() + 60
-    while getattr(runner.cell, "watched", None) != set(runner.roles()) and time.monotonic() < deadline:
-        time.sleep(0.05)  # until the services are up and watched
+    assert runner.ready.wait(60), "the services were not up after 60 s"
     endpoint = runner.cell.endpoint
     assert endpoint.startswith("tls/127.0.0.1:")
 
@@ -78,6 +74,6 @@ def test_only_the_runs_credentials_get_a_message_into_or_out_of_it(tmp_path):
 def test_missing_credentials_are_named_before_anything_starts(tmp_path):
     creds = make_credentials(tmp_path / "c", roles=("robot",))  # the other roles have none
     with pytest.raises(CredentialsError, match=r"ft_sensor\.pem: missing"):
-        Runner(RunOptions(figures=False, scenario=hold_scenario(tmp_path, 1), out=str(tmp_path / "out"), tls=str(creds)))
+        support.runner(support.hold(1), tmp_path / "out", tls=str(creds))
     with pytest.raises(CredentialsError, match="expected an IP address"):
         make_credentials(tmp_path / "d", hosts=("not-an-ip",))

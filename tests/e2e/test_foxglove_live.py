@@ -8,29 +8,21 @@ import re
 import struct
 import threading
 import time
-from pathlib import Path
 
 import websockets
 
-from services.recordings.reader import recorded_content
-from services.run.runner import RunOptions, Runner
 from services.foxglove.scene import FRAMES
+from services.recordings.reader import recorded_content
 from services.runtime.visual_topics import SCHEMA_NAMES
-
-ROOT = Path(__file__).resolve().parents[2]
+from tests import support
 # foxglove-sdk's server names the protocol foxglove.sdk.v1, the wire format of
 # foxglove.websocket.v1; it refuses a client that offers only the old name (HTTP 400)
 SUBPROTOCOLS = ["foxglove.websocket.v1", "foxglove.sdk.v1"]
 
 
-def reproduction_scenario(tmp_path) -> str:
-    text = (ROOT / "scenarios" / "hold.yaml").read_text()
-    text = text.replace("model: models/smoke.json", f"model: {ROOT / 'scenarios' / 'models' / 'smoke.json'}")
-    text = text.replace("clock: realtime", "clock: lockstep").replace("stop_at_goal: false", "stop_at_goal: true")
-    text = text.replace("max_seconds: 60", "max_seconds: 15")
-    path = tmp_path / "repro.yaml"
-    path.write_text(text)
-    return str(path)
+def reproduction_scenario():
+    """The smoke reproduction with the stored model, lockstep, ending at its goal."""
+    return support.hold(15, {"clock": "lockstep", "reproduce.stop_at_goal": True})
 
 
 async def watch(port: int, until: threading.Event) -> dict:
@@ -64,7 +56,7 @@ async def watch(port: int, until: threading.Event) -> dict:
 
 
 def test_a_foxglove_client_watches_a_live_run_which_records_what_it_would_have_without(tmp_path):
-    scenario = reproduction_scenario(tmp_path)
+    scenario = reproduction_scenario()
     lines, done, result = [], threading.Event(), {}
 
     def say(line):
@@ -72,9 +64,8 @@ def test_a_foxglove_client_watches_a_live_run_which_records_what_it_would_have_w
 
     def go():
         try:
-            result["report"] = Runner(RunOptions(figures=False, scenario=scenario, out=str(tmp_path / "live"),
-                                                 foxglove=0, run_id=f"fg-{int(time.time() * 1000)}"),
-                                      progress=say).run()
+            result["report"] = support.run(scenario, tmp_path / "live", progress=say, foxglove=0,
+                                           run_id=f"fg-{int(time.time() * 1000)}")
         finally:
             done.set()
 
@@ -104,8 +95,7 @@ def test_a_foxglove_client_watches_a_live_run_which_records_what_it_would_have_w
     assert report["timing"]["services"]["foxglove_bridge"]["errors"] == 0
 
     # the same run without the live view, in one process: the same recording, the same result
-    plain = Runner(RunOptions(figures=False, scenario=scenario, out=str(tmp_path / "plain"), transport="inproc",
-                              run_id="fg-plain")).run()
+    plain = support.run(scenario, tmp_path / "plain", transport="inproc", run_id="fg-plain")
     assert recorded_content(tmp_path / "live") == recorded_content(tmp_path / "plain")
     for key in ("final_position", "peak_contact_force", "reason", "sim_seconds"):
         assert report["reproductions"][0][key] == plain["reproductions"][0][key], key

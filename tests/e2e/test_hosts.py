@@ -14,13 +14,12 @@ import pytest
 
 from services.transport.hosts import ROUTER_ADDRESS, Hosts, parse_layout
 from services.transport.launch import PROGRAM_MODULE
-from services.run.runner import RunOptions, Runner
 from services.runtime import topics
 from services.transport.credentials import make_credentials
 from services.transport.session import ZenohOptions, open_session
-from tests.e2e.test_scenarios import ROOT, hold_scenario
+from tests import support
+from tests.support import ROOT
 
-SMOKE = str(ROOT / "scenarios" / "smoke.yaml")
 LAYOUT = "robot,ft_sensor:phase_estimator,impedance_commander:recorder,teacher"
 
 FOREIGN = """
@@ -40,9 +39,9 @@ for what, options in (("plain tcp", ZenohOptions(mode="client", connect=(endpoin
 
 def _wait_ready(runner, thread, seconds=90):
     deadline = time.monotonic() + seconds
-    while getattr(runner.cell, "watched", None) != set(runner.roles()) and time.monotonic() < deadline:
+    while not runner.ready.wait(0.05):
         assert thread.is_alive(), "the run ended before its services were ready"
-        time.sleep(0.05)
+        assert time.monotonic() < deadline, f"services not ready after {seconds} s"
 
 
 def _processes_in(namespace: str) -> list[str]:
@@ -58,8 +57,8 @@ def _processes_in(namespace: str) -> list[str]:
 
 def test_the_smoke_scenario_passes_with_its_services_on_three_hosts_over_tls(tmp_path):
     creds = make_credentials(tmp_path / "creds", hosts=(ROUTER_ADDRESS,))
-    runner = Runner(RunOptions(figures=False, scenario=SMOKE, out=str(tmp_path / "out"), run_id=f"hosts-{int(time.time() * 1000)}",
-                               hosts=LAYOUT, tls=str(creds)), progress=print)
+    runner = support.runner(support.scenario("smoke"), tmp_path / "out", run_id=f"hosts-{int(time.time() * 1000)}",
+                            hosts=LAYOUT, tls=str(creds))
     result = {}
     thread = threading.Thread(target=lambda: result.setdefault("report", runner.run()), daemon=True)
     thread.start()
@@ -67,12 +66,12 @@ def test_the_smoke_scenario_passes_with_its_services_on_three_hosts_over_tls(tmp
     endpoint = runner.cell.endpoint
     assert endpoint.startswith(f"tls/{ROUTER_ADDRESS}:")
     # every service runs in its host's namespace
-    where = {h.namespace: _processes_in(h.namespace) for h in runner.hosts.hosts}
-    for h in runner.hosts.hosts:
+    where = {h.namespace: _processes_in(h.namespace) for h in runner.cell.hosts.hosts}
+    for h in runner.cell.hosts.hosts:
         for role in h.roles:
             assert any(f"{PROGRAM_MODULE} {role} " in cmd for cmd in where[h.namespace]), (role, h.namespace, where)
     # a process on host h3 without the run's credentials is refused
-    foreign = subprocess.run(["ip", "netns", "exec", runner.hosts.hosts[2].namespace, sys.executable, "-c", FOREIGN,
+    foreign = subprocess.run(["ip", "netns", "exec", runner.cell.hosts.hosts[2].namespace, sys.executable, "-c", FOREIGN,
                               endpoint, str(creds / "ca.pem")], capture_output=True, text=True, timeout=60, cwd=ROOT)
     assert foreign.stdout.split("\n")[:2] == ["plain tcp refused", "tls without a certificate refused"], \
         foreign.stdout + foreign.stderr
@@ -88,9 +87,8 @@ def test_the_smoke_scenario_passes_with_its_services_on_three_hosts_over_tls(tmp
 
 def test_a_host_cut_off_mid_reproduction_makes_the_arm_hold_and_the_report_name_it(tmp_path):
     run_id = f"cut-{int(time.time() * 1000)}"
-    runner = Runner(RunOptions(figures=False, scenario=hold_scenario(tmp_path, 10), out=str(tmp_path / "out"), clock="lockstep",
-                               run_id=run_id, hosts="robot,ft_sensor:phase_estimator,impedance_commander:recorder"),
-                    progress=print)
+    runner = support.runner(support.hold(10, {"clock": "lockstep"}), tmp_path / "out", run_id=run_id,
+                            hosts="robot,ft_sensor:phase_estimator,impedance_commander:recorder")
     result = {}
     thread = threading.Thread(target=lambda: (result.setdefault("report", runner.run()),
                                               result.setdefault("done", time.monotonic())), daemon=True)
@@ -106,7 +104,7 @@ def test_a_host_cut_off_mid_reproduction_makes_the_arm_hold_and_the_report_name_
             return
         seen[0] += 1
         if seen[0] >= 300:
-            cut["host"] = runner.hosts.cut("h2")
+            cut["host"] = runner.cell.hosts.cut("h2")
             cut["t"] = time.monotonic()
             cut["seq"] = msg["seq"]
             cut["tcp"] = np.array(msg["msr_cart_pos"]).reshape(3, 4)[:, 3]

@@ -2,21 +2,18 @@
 can reproduce (``model:``), the same as the runner's own learn stage makes."""
 
 import json
-from pathlib import Path
 
 from services.cli.etar import main as etar
-from services.run.runner import RunOptions, run
-
-ROOT = Path(__file__).resolve().parents[2]
+from services.scenario import Scenario
+from tests import support
 
 
 def test_a_model_learned_by_etar_learn_is_reproduced_by_a_scenario(tmp_path):
     demo = tmp_path / "demo"
-    smoke = (ROOT / "scenarios" / "smoke.yaml").read_text()
+    smoke = support.scenario("smoke").described()
     # the smoke scenario's demonstrations alone
-    only_demos = smoke[:smoke.index("  - learn:")]
-    (tmp_path / "demos.yaml").write_text(only_demos)
-    report = run(RunOptions(figures=False, scenario=str(tmp_path / "demos.yaml"), out=str(demo), transport="inproc"))
+    only_demos = Scenario.from_dict(dict(smoke, stages=[s for s in smoke["stages"] if "demonstrate" in s]))
+    report = support.run(only_demos, demo, transport="inproc")
     assert report["error"] is None and len(report["demonstrations"]) == 2
 
     recordings = sorted(str(p) for p in (demo / "recordings").glob("demonstration_*.mcap"))
@@ -26,11 +23,10 @@ def test_a_model_learned_by_etar_learn_is_reproduced_by_a_scenario(tmp_path):
     assert len(meta["goal"]) == 3 and len(meta["impedance"]) == 3
     assert sorted(meta["phase_to_truth"].values()) == [0, 1, 2]  # matched on the recordings' true labels
 
-    reproduce = smoke[smoke.index("  - reproduce:"):]
-    (tmp_path / "reproduce.yaml").write_text(
-        "name: reproduce_learned\nworld: valley\nseed: 0\nmodel: learned/model.json\nstages:\n" + reproduce)
-    report = run(RunOptions(figures=False, scenario=str(tmp_path / "reproduce.yaml"), out=str(tmp_path / "repro"),
-                            transport="inproc"))
+    reproduce = Scenario.from_dict(dict(name="reproduce_learned", world="valley", seed=0,
+                                        model=str(tmp_path / "learned" / "model.json"),
+                                        stages=[s for s in smoke["stages"] if "reproduce" in s]))
+    report = support.run(reproduce, tmp_path / "repro", transport="inproc")
     assert report["error"] is None, report["error"]
     (rp,) = report["reproductions"]
     assert rp["success"], rp["reason"]

@@ -9,11 +9,11 @@ from pathlib import Path
 
 from services.recordings.format import WALL_CLOCK_TOPICS
 from services.recordings.reader import read_episode, recorded_content
-from services.run.runner import RunOptions, run
 from services.runtime.visual_topics import SCHEMA_NAMES as VISUAL_TOPICS
+from services.scenario import Scenario
+from tests import support
+from tests.support import hold, run
 
-ROOT = Path(__file__).resolve().parents[2]
-SMOKE = str(ROOT / "scenarios" / "smoke.yaml")
 content = recorded_content
 
 
@@ -44,17 +44,17 @@ def test_smoke_lockstep_twice_at_once_is_deterministic_isolated_and_the_same_in_
     what it is there to show, isolation and determinism of runs that share the network,
     shows in its recordings, and learning and reproducing twice more would only add a
     minute to the suite."""
-    smoke = Path(SMOKE).read_text()
-    demos_only = tmp_path / "smoke_demonstrations.yaml"
-    demos_only.write_text(smoke[:smoke.index("  - learn:")])
+    smoke = support.scenario("smoke")
+    described = smoke.described()
+    demos_only = Scenario.from_dict(dict(described, stages=[s for s in described["stages"] if "demonstrate" in s]))
     results = {}
 
     def go(name, scenario):
         t = time.monotonic()
-        results[name] = (run(RunOptions(figures=False, scenario=scenario, out=str(tmp_path / name), run_id=f"e2e-{name}-{int(t)}"),
-                             progress=lambda m: print(f"[{name}] {m}")), time.monotonic() - t)
+        results[name] = (run(scenario, tmp_path / name, progress=lambda m: print(f"[{name}] {m}"),
+                             run_id=f"e2e-{name}-{int(t)}"), time.monotonic() - t)
 
-    threads = [threading.Thread(target=go, args=(n, sc)) for n, sc in (("a", SMOKE), ("b", str(demos_only)))]
+    threads = [threading.Thread(target=go, args=(n, sc)) for n, sc in (("a", smoke), ("b", demos_only))]
     for th in threads:
         th.start()
     for th in threads:
@@ -86,8 +86,8 @@ def test_smoke_lockstep_twice_at_once_is_deterministic_isolated_and_the_same_in_
     # every message handed over in memory is checked against what its bytes decode to
     monkeypatch.setenv("ETAR_INPROC_CHECK", "1")
     t = time.monotonic()
-    report_c = run(RunOptions(figures=False, scenario=SMOKE, out=str(tmp_path / "c"), transport="inproc", run_id="e2e-c"),
-                   progress=lambda m: print(f"[inproc] {m}"))
+    report_c = run(smoke, tmp_path / "c", progress=lambda m: print(f"[inproc] {m}"), transport="inproc",
+                   run_id="e2e-c")
     print(f"run c (inproc): {time.monotonic() - t:.1f} s wall")
     assert report_c["error"] is None, report_c["error"]
     check_recordings(tmp_path / "c", report_c)
@@ -106,12 +106,8 @@ def test_smoke_lockstep_twice_at_once_is_deterministic_isolated_and_the_same_in_
 def test_smoke_realtime_completes_with_its_deadline_report(tmp_path):
     # the smoke scenario with its reproduction cut to 6 s: on the realtime clock every
     # simulated second is a wall second, and this test is about the clock, not the goal
-    text = Path(SMOKE).read_text()
-    head, sep, tail = text.rpartition("max_seconds: 15")
-    (tmp_path / "smoke_rt.yaml").write_text(head + "max_seconds: 6" + tail)
     t = time.monotonic()
-    report = run(RunOptions(figures=False, scenario=str(tmp_path / "smoke_rt.yaml"), out=str(tmp_path / "run"), clock="realtime"),
-                 progress=print)
+    report = run(support.scenario("smoke", {"reproduce.max_seconds": 6, "clock": "realtime"}), tmp_path / "run")
     print(f"realtime smoke: {time.monotonic() - t:.1f} s wall; {report['error']}")
     assert report["environment"]["clock"] == "realtime"
     # the default profile was asked for, and what it got is said (this machine grants at least the CPUs)
@@ -148,16 +144,6 @@ def test_smoke_realtime_completes_with_its_deadline_report(tmp_path):
     assert "deadline misses" in (tmp_path / "run" / "report.txt").read_text()
 
 
-def hold_scenario(tmp_path, seconds: float) -> str:
-    """scenarios/hold.yaml cut to ``seconds``, its stored model named by absolute path."""
-    text = (ROOT / "scenarios" / "hold.yaml").read_text()
-    text = text.replace("model: models/smoke.json", f"model: {ROOT / 'scenarios' / 'models' / 'smoke.json'}")
-    text = text.replace("max_seconds: 60", f"max_seconds: {seconds}")
-    path = tmp_path / "hold.yaml"
-    path.write_text(text)
-    return str(path)
-
-
 def quality_at(changes, t):
     """FRI quality at simulated time t from the report's [[time, quality], ...] changes."""
     q = changes[0][1]
@@ -177,10 +163,8 @@ def test_injected_commander_stall_shows_up_as_fri_misses_and_quality_drops(tmp_p
     stall instants."""
     every, stall_ms = 0.5, 3.0
     t = time.monotonic()
-    report = run(RunOptions(figures=False, scenario=hold_scenario(tmp_path, 6), out=str(tmp_path / "run"), sched_fifo=True,
-                            isolate_robot=True,
-                            commander_args=("--stall-every", str(every), "--stall-ms", str(stall_ms))),
-                 progress=print)
+    report = run(hold(6), tmp_path / "run", sched_fifo=True, isolate_robot=True,
+                 commander_args=("--stall-every", str(every), "--stall-ms", str(stall_ms)))
     print(f"stall run: {time.monotonic() - t:.1f} s wall")
     # the stalls cost cycles by design: a run that then did not hold its clock says so
     assert report["error"] is None or report["error"].startswith(

@@ -6,34 +6,16 @@ import os
 import signal
 import threading
 import time
-from pathlib import Path
 
 import pytest
 
 from services.transport.launch import free_port
 from services.recordings.reader import read_episode
-from services.run.runner import RunOptions, run
 from services.runtime import topics
-from services.transport.launch import PROGRAM_MODULE
 from services.transport.session import ZenohOptions, open_session
-from tests.e2e.test_scenarios import hold_scenario
+from tests import support
+from tests.support import run, service_pid
 
-
-
-def service_pid(role: str, run_id: str) -> int | None:
-    """The pid of ``role``'s process in run ``run_id`` (``python -m services.cli.roles ROLE --run-id ...``)."""
-    program = [PROGRAM_MODULE.encode(), role.encode()]
-    for pid in os.listdir("/proc"):
-        if not pid.isdigit():
-            continue
-        try:
-            argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
-        except OSError:
-            continue
-        at = argv.index(program[0]) if program[0] in argv else -1
-        if at >= 0 and argv[at:at + 2] == program and run_id.encode() in argv:
-            return int(pid)
-    return None
 
 
 # a lost liveliness token is seen the same way on either clock (the lockstep SIGKILL case,
@@ -55,10 +37,9 @@ def test_a_service_killed_mid_reproduction_fails_the_run_at_once_and_keeps_the_e
     peer = open_session(ZenohOptions(listen=(endpoint,)))
 
     def go():
-        result["report"] = run(RunOptions(figures=False, scenario=hold_scenario(tmp_path, 10), out=str(tmp_path / "run"),
-                                          clock=clock, run_id=run_id, zenoh=ZenohOptions(connect=(endpoint,)),
-                                          robot_args=("--answer-timeout", "1") if sig == signal.SIGSTOP else ()),
-                               progress=print)
+        result["report"] = run(support.hold(10, {"clock": clock}), tmp_path / "run", run_id=run_id,
+                               zenoh=ZenohOptions(connect=(endpoint,)),
+                               robot_args=("--answer-timeout", "1") if sig == signal.SIGSTOP else ())
         result["done"] = time.monotonic()
 
     runner = threading.Thread(target=go, daemon=True)
@@ -126,14 +107,15 @@ def test_a_service_killed_mid_reproduction_fails_the_run_at_once_and_keeps_the_e
 
 
 def test_a_stale_episode_summary_from_a_foreign_peer_does_not_end_the_episode_in_progress(tmp_path):
-    from services.transport.launch import ServiceProcesses
+    from services.nodes import RobotConfig
+    from services.transport.cell import OverZenoh, Start
 
     run_id = f"stale-{int(time.time() * 1000)}"
-    cell = ServiceProcesses(run_id, tmp_path / "logs")
+    cell = OverZenoh().open(run_id, {"robot": RobotConfig()},
+                            Start(clock="lockstep", log_dir=tmp_path / "logs", placement=lambda role: (None, ())))
     peer = None
     try:
-        cell.start(["robot"], lambda role, endpoint: ["--run-id", run_id, "--clock", "lockstep", "--connect", endpoint],
-                   timeout=60)
+        cell.start()
         peer = open_session(ZenohOptions(connect=(cell.endpoint,)))
         old = []
         summaries = peer.declare_subscriber(topics.key(run_id, "robot/episode"),
@@ -173,9 +155,8 @@ def test_a_saturating_sensor_over_zenoh_holds_the_arm_and_fails_the_run(tmp_path
     """The ATI sensor process saturates 2 s into a realtime reproduction (its --fault flag):
     the estimator flags its estimate, the commander holds the arm stiffly at once, the
     robot ends the episode after a second of hold, and the run fails naming the hold."""
-    report = run(RunOptions(figures=False, scenario=hold_scenario(tmp_path, 10), out=str(tmp_path / "run"), clock="realtime",
-                            run_id=f"saturate-{int(time.time() * 1000)}",
-                            sensor_args=("--fault", "saturate", "--fault-after", "2")), progress=print)
+    report = run(support.hold(10), tmp_path / "run", run_id=f"saturate-{int(time.time() * 1000)}",
+                 sensor_args=("--fault", "saturate", "--fault-after", "2"))
     (rp,) = report["reproductions"]
     hold = rp["hold"]
     print(f"saturated sensor: hold {hold}")
@@ -195,8 +176,7 @@ def test_services_with_a_restart_policy_and_the_live_views_bridge_come_back_and_
     again, the recorder writes on in a second file and the report names the cycles that no
     file holds, the estimator's filter re-synchronises (uniform start) and its estimates
     carry the reproduction to its end, and the run succeeds."""
-    scenario = Path(hold_scenario(tmp_path, 6))
-    scenario.write_text(scenario.read_text() + "restart:\n  recorder: on_failure\n  phase_estimator: on_failure\n")
+    scenario = support.hold(6, {"clock": "lockstep", "restart": {"recorder": "on_failure", "phase_estimator": "on_failure"}})
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     run_id = f"restart-{int(time.time() * 1000)}"
     peer = open_session(ZenohOptions(listen=(endpoint,)))
@@ -217,8 +197,7 @@ def test_services_with_a_restart_policy_and_the_live_views_bridge_come_back_and_
     sub = peer.declare_subscriber(topics.key(run_id, "robot/state"), on_state)
     try:
         # the live view's bridge is restarted without a policy: a view must not cost the run
-        report = run(RunOptions(figures=False, scenario=str(scenario), out=str(tmp_path / "run"), clock="lockstep", run_id=run_id,
-                                zenoh=ZenohOptions(connect=(endpoint,)), foxglove=0), progress=print)
+        report = run(scenario, tmp_path / "run", run_id=run_id, zenoh=ZenohOptions(connect=(endpoint,)), foxglove=0)
     finally:
         sub.undeclare()
         peer.close()

@@ -14,53 +14,39 @@ from pathlib import Path
 import pytest
 
 from services.transport import launch
-from services.run.sweep import Parameter, SweepError, apply, plan, sweep
+from services.run.sweep import Parameter, SweepError, plan, sweep
+from services.scenario import Scenario, load_scenario
+from tests import support
 
 ROOT = Path(__file__).resolve().parents[2]
-MODEL = ROOT / "scenarios" / "models" / "smoke.json"
 
 
-def reproduction_scenario(tmp_path) -> Path:
+def reproduction_scenario() -> Scenario:
     """The smoke scenario's reproduction with its stored model: no demonstrations, no learning."""
-    path = tmp_path / "repro.yaml"
-    path.write_text(f"""name: repro
-world: valley
-seed: 0
-model: {MODEL}
-stages:
-  - reproduce:
-      count: 1
-      start: [0.62, -0.06, 0.30]
-      start_perturbation: 0.01
-      goal_x: 0.57
-      max_seconds: 15
-""")
-    return path
+    return Scenario.from_dict(dict(name="repro", world="valley", seed=0, model=support.SMOKE_MODEL, stages=[
+        {"reproduce": dict(count=1, start=[0.62, -0.06, 0.30], start_perturbation=0.01, goal_x=0.57,
+                           max_seconds=15)}]))
 
 
-def test_parameters_are_parsed_applied_and_validated_before_anything_runs(tmp_path):
+def test_parameters_are_parsed_and_every_combination_validated_before_anything_runs(tmp_path):
     p = Parameter.parse("reproduce.start_perturbation=0.005,1e-2")
     assert p.values == (0.005, 0.01)
     assert Parameter.parse("demonstrate.sides=[left],[left,right]").values == (["left"], ["left", "right"])
-    data = {"seed": 0, "stages": [{"demonstrate": {"count": 2}}, {"reproduce": {"count": 1}},
-                                  {"reproduce": None}]}
-    apply(data, "reproduce.count", 5)
-    apply(data, "reproduce[1].goal_x", 0.5)
-    apply(data, "cell.sensor_noise", 2.0)
-    assert data["stages"][1]["reproduce"]["count"] == 5 and data["stages"][2]["reproduce"] == {"count": 5,
-                                                                                                "goal_x": 0.5}
-    assert data["cell"] == {"sensor_noise": 2.0}
     with pytest.raises(SweepError, match="expected PATH=V1,V2"):
         Parameter.parse("reproduce.count")
-    with pytest.raises(SweepError, match="STAGE one of demonstrate, learn, reproduce"):
-        apply(data, "teach.count", 1)
-    with pytest.raises(SweepError, match="the scenario has no learn stage"):
-        apply(data, "learn.phases", 3)
-    scenario = reproduction_scenario(tmp_path)
+    scenario = reproduction_scenario()
     with pytest.raises(SweepError, match=r"cell.sensor_noise: expected a finite number >= 0, got -1"):
-        plan(str(scenario), [Parameter.parse("cell.sensor_noise=1,-1")], 1, tmp_path / "out", "none", 1)
-    specs = plan(str(scenario), [Parameter.parse("cell.sensor_noise=0.5,2")], 2, tmp_path / "out", "none", 1)
+        plan(scenario, [Parameter.parse("cell.sensor_noise=1,-1")], 1, tmp_path / "out", "none", 1)
+    with pytest.raises(SweepError, match="learn.phases: the scenario has no learn stage"):
+        plan(scenario, [Parameter.parse("learn.phases=3")], 1, tmp_path / "out", "none", 1)
+    specs = plan(scenario, [Parameter.parse("cell.sensor_noise=0.5,2")], 2, tmp_path / "out", "none", 1)
     assert [(s.params["cell.sensor_noise"], s.seed) for s in specs] == [(0.5, 0), (0.5, 1), (2, 0), (2, 1)]
+    # each run is a scenario value: its seed reaches the stage that inherits it
+    assert [(s.scenario.cell.sensor_noise, s.scenario.reproduce_stages[0].seed) for s in specs] == [
+        (0.5, 2000), (0.5, 2001), (2.0, 2000), (2.0, 2001)]
+    # and is written down as what ran, which reads back as the same scenario
+    for s in specs:
+        assert load_scenario(tmp_path / "out" / "scenarios" / f"{s.name}.yaml").to_dict() == s.scenario.to_dict()
 
 
 def check(result, out: Path, n_runs: int, record: str):
@@ -84,7 +70,7 @@ def check(result, out: Path, n_runs: int, record: str):
 def test_a_sweep_on_local_processes(tmp_path):
     out = tmp_path / "sweep"
     t = time.monotonic()
-    result = sweep(str(reproduction_scenario(tmp_path)), [Parameter.parse("reproduce.start_perturbation=0.005,0.01")],
+    result = sweep(reproduction_scenario(), [Parameter.parse("reproduce.start_perturbation=0.005,0.01")],
                    repeats=1, out=str(out), record="summary", workers=2, say=print)
     print(f"local sweep: {time.monotonic() - t:.1f} s")
     check(result, out, 2, "summary")
@@ -121,7 +107,7 @@ def dask_cluster(tmp_path):
 def test_a_sweep_on_a_dask_cluster(tmp_path, dask_cluster):
     out = tmp_path / "sweep"
     t = time.monotonic()
-    result = sweep(str(reproduction_scenario(tmp_path)), [Parameter.parse("reproduce.start_perturbation=0.005,0.01")],
+    result = sweep(reproduction_scenario(), [Parameter.parse("reproduce.start_perturbation=0.005,0.01")],
                    repeats=1, out=str(out), record="none", workers=2, cluster=dask_cluster, say=print)
     print(f"dask sweep: {time.monotonic() - t:.1f} s")
     assert result["cluster"] == dask_cluster
@@ -134,14 +120,10 @@ def test_a_sweep_of_etar_against_star_over_data_seeds(tmp_path):
     """The smoke scenario learning both transition models and reproducing its start with
     each, over two data seeds: a row per run and model, each run's own figures, and the
     verdict over the seeds."""
-    text = (ROOT / "scenarios" / "smoke.yaml").read_text()
-    text = text.replace("      max_iter: 60\n", "      max_iter: 60\n      transitions: [effect, state]\n")
-    text += "      transitions: [effect, state]\n"  # the reproduce stage is the last
-    assert text.count("transitions: [effect, state]") == 2
-    scenario = tmp_path / "smoke_star.yaml"
-    scenario.write_text(text)
+    scenario = support.scenario("smoke", {"learn.transitions": ["effect", "state"],
+                                          "reproduce.transitions": ["effect", "state"]})
     out = tmp_path / "sweep"
-    result = sweep(str(scenario), [], repeats=2, out=str(out), record="summary", workers=2, say=print)
+    result = sweep(scenario, [], repeats=2, out=str(out), record="summary", workers=2, say=print)
     assert result["runs"] == 2 and result["failed"] == 0, result
     rows = list(csv.DictReader((out / "table.csv").open()))
     assert [(r["seed"], r["param model"]) for r in rows] == [("0", "ETAR"), ("0", "STAR"), ("1", "ETAR"), ("1", "STAR")]

@@ -10,7 +10,7 @@ import pytest
 
 from services.cli import bench as bench_cli
 from services.results.figures import write_figures
-from services.run.runner import RunOptions, run
+from tests import support
 
 ROOT = Path(__file__).resolve().parents[2]
 FIGURES = ["demonstrations_position_and_force.png", "bic_by_phase_count.png", "forward_variable_demonstrations.png",
@@ -22,11 +22,8 @@ PNG = b"\x89PNG\r\n\x1a\n"
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory):
     out = tmp_path_factory.mktemp("figures")
-    text = (ROOT / "scenarios" / "smoke.yaml").read_text().replace(
-        "      phases: 3\n", "      phases: auto\n      candidates: [2, 3]\n")
-    scenario = out / "smoke_bic.yaml"
-    scenario.write_text(text)
-    report = run(RunOptions(scenario=str(scenario), out=str(out / "run"), transport="inproc", run_id="figures"))
+    scenario = support.scenario("smoke", {"learn.phases": "auto", "learn.candidates": [2, 3]})
+    report = support.run(scenario, out / "run", figures=True, transport="inproc", run_id="figures")
     assert report["error"] is None, report["error"]
     return out / "run"
 
@@ -54,8 +51,8 @@ def test_the_figures_command_draws_them_again_and_refuses_a_folder_that_is_no_ru
 
 
 def test_a_run_without_demonstrations_says_which_figures_it_skips(tmp_path):
-    report = run(RunOptions(scenario=str(ROOT / "scenarios" / "fri_dropout.yaml"), out=str(tmp_path / "run"),
-                            transport="inproc", run_id="nodemos"))
+    report = support.run(support.scenario("fri_dropout"), tmp_path / "run", figures=True, transport="inproc",
+                         run_id="nodemos")
     assert report["error"] is None
     written, skipped = write_figures(tmp_path / "run")
     assert [p.name for p in written] == ["reproduction_00_force_phase_alpha.png"]

@@ -15,10 +15,10 @@ from services.foxglove.export import add_visual_topics, export_foxglove
 from services.recordings.format import RecordingError
 from services.recordings.reader import read_episode
 from services.recordings.recovery import write_copy
-from services.run.runner import RunOptions, run
 from services.foxglove.scene import ARROW_M_PER_N, ELLIPSOID_M_PER_N_M, FRAMES, VisualScene, world_geometry
 from services.runtime.visual_topics import SCHEMA_DIR, SCHEMA_NAMES, schema_bytes
 from services.foxglove.tap import VisualTap
+from tests import support
 
 ROOT = Path(__file__).resolve().parents[2]
 NPM_SCHEMAS = ROOT / ".cache" / "foxglove-schemas" / "jsonschema"  # `make foxglove-schemas`
@@ -28,12 +28,8 @@ NPM_SCHEMAS = ROOT / ".cache" / "foxglove-schemas" / "jsonschema"  # `make foxgl
 def run_dir(tmp_path_factory):
     """A demonstration and a reproduction of the smoke task, in one process."""
     out = tmp_path_factory.mktemp("foxglove")
-    text = (ROOT / "scenarios" / "smoke.yaml").read_text().replace("count: 2", "count: 1", 1)
-    text = text.replace("      phases: 3\n", "      phases: 2\n")
-    scenario = out / "smoke_one.yaml"
-    scenario.write_text(text)
-    report = run(RunOptions(figures=False, scenario=str(scenario), out=str(out / "run"), transport="inproc",
-                            run_id="foxglove"))
+    scenario = support.scenario("smoke", {"demonstrate.count": 1, "learn.phases": 2})
+    report = support.run(scenario, out / "run", transport="inproc", run_id="foxglove")
     assert report["error"] is None, report["error"]
     return out / "run"
 

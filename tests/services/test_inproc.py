@@ -3,18 +3,20 @@ cell parameters reaching the nodes, and the check that messages handed over in m
 are what their bytes decode to."""
 
 import tempfile
-from pathlib import Path
 
 import pytest
 
 from services.nodes import CommanderConfig, EstimatorConfig, FtSensorConfig, RecorderConfig, RobotConfig
-from services.run.runner import RunOptions, Runner
+from services.run.configs import node_configs
+from services.run.episode import Episodes
+from services.run.options import RunOptions
 from services.runtime.bus import Node, Subscription
-from services.transport.inproc import InProcessBus, InProcessCell
 from services.runtime.messages import ROBOT_CONTACT
+from services.scenario import Scenario, ScenarioError
+from services.transport.inproc import InProcessBus, InProcessCell
+from tests import support
 
-ROOT = Path(__file__).resolve().parents[2]
-MODEL = str(ROOT / "scenarios" / "models" / "smoke.json")
+MODEL = support.SMOKE_MODEL
 START = [0.62, -0.06, 0.30]
 
 
@@ -26,19 +28,20 @@ def cell(**robot):
 
 
 def reproduce(c, seconds):
-    c.request("robot", "reset", start=START, episode=0, kind="reproduction")
-    c.request("ft_sensor", "tare", samples=100)
-    c.request("robot", "settle", cycles=200, wait_for=["ft"])
-    c.request("phase_estimator", "reset", model=MODEL, episode=0)
-    c.request("impedance_commander", "reset", model=MODEL, episode=0)
-    return c.run_episode(["command"], None, seconds)
+    """The smoke reproduction with the stored model, unrecorded, for ``seconds`` (no goal ends it)."""
+    summary, _, _ = Episodes(c).reproduce(0, START, model=MODEL, stop_at_goal=False, max_seconds=seconds)
+    return summary
+
+
+def configs_of(scenario: Scenario, tmp_path) -> dict:
+    """Each role's node config for ``scenario``, as the runner would build it."""
+    return node_configs(scenario, RunOptions(out=str(tmp_path)), scenario.roles, tmp_path, False)
 
 
 def test_scenario_cell_parameters_reach_the_nodes(tmp_path):
-    scenario = tmp_path / "s.yaml"
-    scenario.write_text((ROOT / "scenarios" / "smoke.yaml").read_text() +
-                        "cell: {sensor_noise: 2.5, plate_friction: 0.4, fri_packet_loss: 0.1}\n")
-    configs = Runner(RunOptions(figures=False, scenario=str(scenario), out=str(tmp_path / "out"), transport="inproc")).node_configs()
+    scenario = support.scenario("smoke", {"cell.sensor_noise": 2.5, "cell.plate_friction": 0.4,
+                                          "cell.fri_packet_loss": 0.1})
+    configs = configs_of(scenario, tmp_path)
     assert configs["ft_sensor"].noise_scale == 2.5
     assert configs["robot"].plate_friction == 0.4 and configs["robot"].fri_packet_loss == 0.1
     assert 'friction="0.4 ' in configs["robot"].world_spec().xml
@@ -62,11 +65,9 @@ def test_fri_link_delay_jitter_and_corruption_degrade_the_link_as_fri_does(tmp_p
     above PERFECT's latency, so command mode is never entered; 1.5 ms makes every
     answer late; jitter makes the share beyond the deadline late; corruption is
     counted and rejected."""
-    scenario = tmp_path / "s.yaml"
-    scenario.write_text((ROOT / "scenarios" / "smoke.yaml").read_text() +
-                        "cell: {fri_delay_ms: 0.5, fri_jitter_ms: 1.2, fri_corruption: 0.1}\n")
-    robot = Runner(RunOptions(figures=False, scenario=str(scenario), out=str(tmp_path / "out"), transport="inproc")).node_configs()[
-        "robot"]
+    scenario = support.scenario("smoke", {"cell.fri_delay_ms": 0.5, "cell.fri_jitter_ms": 1.2,
+                                          "cell.fri_corruption": 0.1})
+    robot = configs_of(scenario, tmp_path)["robot"]
     faults = robot.link_faults()
     assert (faults.delay_ns, faults.jitter_ns, faults.corrupt_probability) == (500_000, 1_200_000, 0.1)
     slow = reproduce(cell(fri_delay_ms=0.5), 1.5)
@@ -78,11 +79,9 @@ def test_fri_link_delay_jitter_and_corruption_degrade_the_link_as_fri_does(tmp_p
     assert 0.18 < jittery["fri"]["late"] / cycles < 0.32, jittery["fri"]  # U(0.1, 1.3) ms past 1 ms: 25 %
     damaged = reproduce(cell(fri_corruption=0.1), 1.5)
     assert 0.06 < damaged["fri"]["corrupt"] / cycles < 0.14, damaged["fri"]
-    for bad, field in (("fri_delay_ms: -1", "fri_delay_ms"), ("fri_jitter_ms: 5000", "fri_jitter_ms"),
-                       ("fri_corruption: 1.5", "fri_corruption")):
-        scenario.write_text((ROOT / "scenarios" / "smoke.yaml").read_text() + f"cell: {{{bad}}}\n")
-        with pytest.raises(Exception, match=f"cell.{field}"):
-            Runner(RunOptions(figures=False, scenario=str(scenario), out=str(tmp_path / "out"), transport="inproc"))
+    for field, bad in (("fri_delay_ms", -1), ("fri_jitter_ms", 5000), ("fri_corruption", 1.5)):
+        with pytest.raises(ScenarioError, match=f"cell.{field}"):
+            support.scenario("smoke", {f"cell.{field}": bad})
 
 
 def test_control_errors_name_the_role_and_the_command():
@@ -238,10 +237,7 @@ def test_a_transient_fri_dropout_leaves_command_mode_and_it_comes_back(tmp_path)
     """scenarios/fri_dropout.yaml: 60 ms without a command packet, a second into each
     reproduction.  The quality falls below OK, the KRC leaves command mode (the arm holds),
     and once the link is PERFECT again command mode is entered again; the report says so."""
-    from services.run.runner import run
-
-    report = run(RunOptions(figures=False, scenario=str(ROOT / "scenarios" / "fri_dropout.yaml"), out=str(tmp_path / "out"),
-                            transport="inproc", run_id="dropout"))
+    report = support.run(support.scenario("fri_dropout"), tmp_path / "out", transport="inproc", run_id="dropout")
     for rp in report["reproductions"]:
         fri, states = rp["fri"], rp["fri_quality"]["state_changes"]
         assert fri["missed"] == 60 and fri["longest_miss_run"] == 60, fri
@@ -266,20 +262,16 @@ def test_duplicated_fri_commands_change_nothing_the_arm_does():
 
 
 def test_fri_fault_window_and_order_faults_are_checked_in_the_scenario(tmp_path):
-    scenario = tmp_path / "s.yaml"
-    base = (ROOT / "scenarios" / "smoke.yaml").read_text()
-    scenario.write_text(base + "cell: {fri_reordering: 0.01, fri_faults_from_s: 0.5, fri_faults_until_s: 0.8}\n")
-    robot = Runner(RunOptions(figures=False, scenario=str(scenario), out=str(tmp_path / "out"), transport="inproc")).node_configs()[
-        "robot"]
+    scenario = support.scenario("smoke", {"cell.fri_reordering": 0.01, "cell.fri_faults_from_s": 0.5,
+                                          "cell.fri_faults_until_s": 0.8})
+    robot = configs_of(scenario, tmp_path)["robot"]
     assert robot.link_faults().reorder_probability == 0.01
     assert [robot.faults_active(t) for t in (0.4, 0.5, 0.79, 0.8)] == [False, True, True, False]
-    for bad, field in (("fri_duplication: 1.5", "fri_duplication"), ("fri_reordering: -0.1", "fri_reordering"),
-                       ("{fri_faults_from_s: 2, fri_faults_until_s: 1}", "fri_faults_until_s"),
-                       ("fri_faults_until_s: .nan", "fri_faults_until_s")):
-        body = bad if bad.startswith("{") else "{" + bad + "}"
-        scenario.write_text(base + f"cell: {body}\n")
-        with pytest.raises(Exception, match=f"cell.{field}"):
-            Runner(RunOptions(figures=False, scenario=str(scenario), out=str(tmp_path / "out"), transport="inproc"))
+    for bad, field in (({"fri_duplication": 1.5}, "fri_duplication"), ({"fri_reordering": -0.1}, "fri_reordering"),
+                       ({"fri_faults_from_s": 2, "fri_faults_until_s": 1}, "fri_faults_until_s"),
+                       ({"fri_faults_until_s": float("nan")}, "fri_faults_until_s")):
+        with pytest.raises(ScenarioError, match=f"cell.{field}"):
+            support.scenario("smoke", {f"cell.{k}": v for k, v in bad.items()})
 
 
 @pytest.mark.parametrize("fault, reason, within", [("stop", "stale_estimate", 51), ("saturate", "wrench_saturated", 10),
@@ -310,13 +302,10 @@ def test_sensor_fault_flags_are_checked():
 
 
 def test_progress_counts_each_stages_episodes_and_the_recordings_go_on_numbering(tmp_path):
-    scenario = tmp_path / "two_stages.yaml"
-    stage = ("  - reproduce:\n      count: 1\n      start: [0.62, -0.06, 0.30]\n      start_perturbation: 0.01\n"
-             "      goal_x: 0.57\n      max_seconds: 15\n")
-    scenario.write_text(f"name: two_stages\nworld: valley\nseed: 0\nmodel: {MODEL}\nstages:\n" + stage + stage)
+    stage = {"reproduce": dict(count=1, start=START, start_perturbation=0.01, goal_x=0.57, max_seconds=15)}
+    scenario = Scenario.from_dict(dict(name="two_stages", world="valley", seed=0, model=MODEL, stages=[stage, stage]))
     lines = []
-    report = Runner(RunOptions(figures=False, scenario=str(scenario), out=str(tmp_path / "out"), transport="inproc"),
-                    progress=lines.append).run()
+    report = support.run(scenario, tmp_path / "out", progress=lines.append, transport="inproc")
     assert report["error"] is None, report["error"]
     done = [line.split(" (")[0] for line in lines if line.startswith("reproduction ") and "goal_reached" in line]
     assert done == ["reproduction 1/1", "reproduction 1/1"], lines

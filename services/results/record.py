@@ -1,0 +1,75 @@
+"""What a run did, as the runner hands it to the report: a typed record, not the runner.
+
+The runner fills one ``RunRecord`` as it walks the stages (each episode's recording,
+start and the robot's summary; what the learn stage fitted) and adds what it knows at
+the end (the services' statistics, restarts, hosts, the realtime profile's grant);
+``services.results.report.write_report`` reads nothing else.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+
+@dataclass
+class EpisodeRecord:
+    """One demonstration or reproduction."""
+
+    path: str  # its recording, as this runner sees it
+    side: str
+    start: list
+    summary: dict  # the robot's episode summary (services.runtime.messages.EPISODE_SUMMARY)
+    recording: dict | None = None  # what the recorder said when it closed the file (None: it could not)
+    # reproductions: the force that fails it, the model that drove it and that model's phase mapping
+    max_contact_force: float | None = None
+    model: str | None = None
+    phase_to_truth: dict | None = None
+
+
+@dataclass
+class ModelRecord:
+    """One model the learn stage fitted (or the scenario's stored model)."""
+
+    name: str | None  # ETAR or STAR when the learn stage fitted more than one
+    path: str
+    goal: list
+    phase_to_truth: dict | None
+
+
+@dataclass
+class LearningRecord:
+    model_path: str | None = None  # the run's model (the first learned, or the scenario's)
+    selection: dict | None = None  # how the number of phases was chosen
+    phase_to_truth: dict | None = None
+    goal: list | None = None
+    learned_from: list = field(default_factory=list)  # dicts: path, samples (what the learn stage read)
+    seconds: float | None = None
+    # every model the learn stage fitted, by transition model ("effect", "state"): the run's first
+    models: dict[str, ModelRecord] = field(default_factory=dict)
+    # each model scored against the true phases of the demonstrations (etar.comparison), with more than one
+    offline: list = field(default_factory=list)
+
+    def adopt(self, model: ModelRecord, selection: dict | None) -> None:
+        """``model`` is the run's model from now on."""
+        self.model_path, self.goal, self.phase_to_truth = model.path, list(model.goal), model.phase_to_truth
+        self.selection = selection
+
+
+@dataclass
+class RunRecord:
+    scenario_name: str
+    source: str  # where the scenario came from (a file name)
+    clock: str
+    run_id: str
+    out: Path  # the run's folder, absolute
+    transport: str
+    workers: int | None = None  # processes for reading the recordings (None: one per CPU)
+    demonstrations: list[EpisodeRecord] = field(default_factory=list)
+    reproductions: list[EpisodeRecord] = field(default_factory=list)
+    learning: LearningRecord = field(default_factory=LearningRecord)
+    # filled in at the end of the run
+    service_stats: dict = field(default_factory=dict)  # role -> its last status (links, counters)
+    realtime_profile: dict | None = None  # what the profile asked for and was granted, when it asked
+    restarts: list = field(default_factory=list)
+    hosts: list = field(default_factory=list)

@@ -1,0 +1,152 @@
+"""report.txt and timing.txt: a run's report for people, from report.json's content."""
+
+from __future__ import annotations
+
+from services.runtime.timing import Histogram
+
+
+def pooled_histogram(loops, key) -> Histogram:
+    h = Histogram()
+    for lp in loops:
+        d = lp.get(key) or {}
+        for start_us, count in (d.get("bins") or {}).items():
+            h.counts[int(start_us) * 1000 // h.bin_ns] += count
+        h.overflow += d.get("overflow", 0)
+    return h
+
+
+def histograms_text(loops) -> str:
+    """cyclictest-style histograms of the robot loop and its answers, all episodes pooled."""
+    parts = []
+    for key, title in (("lateness", "robot 1 kHz loop: wake-up lateness (us)"),
+                       ("execution", "robot 1 kHz loop: execution time per cycle (us)"),
+                       ("answer_latency", "FRI answer latency: measurement published -> command received (us)"),
+                       ("closed_loop_latency", "closed loop: measurement -> sensor -> estimator -> commander -> "
+                                               "robot (us)")):
+        parts.append(pooled_histogram(loops, key).text(title))
+    return "\n".join(parts)
+
+
+
+def render_text(r: dict) -> str:
+    s = r["summary"]
+    lines = [f"ETAR testbench run {r['run_id']} - scenario {r['scenario']} ({r['source']})",
+             f"clock {r['environment']['clock']}, SCHED_FIFO {'yes' if r['environment']['sched_fifo'] else 'no'}, "
+             f"kernel {r['environment']['kernel']}, {r['environment']['cpus']} CPUs, "
+             f"{r['wall_seconds']:.1f} s wall"]
+    prof = r["environment"].get("realtime_profile")
+    if prof:
+        fifo = {k: v["sched_fifo"] for k, v in r["environment"].get("services", {}).items() if v["sched_fifo"]}
+        lines.append(f"realtime profile: asked {', '.join(prof['requested'])}; granted "
+                     f"{', '.join(prof['granted']) or 'nothing'}"
+                     + "".join(f"; {k} refused: {v}" for k, v in prof["refused"].items())
+                     + (f"; SCHED_FIFO {', '.join(f'{k} {v}' for k, v in fifo.items())}" if fifo else ""))
+    if r["error"]:
+        lines.append(f"RUN FAILED: {r['error']}")
+    for rs in r.get("restarts") or []:
+        lines.append(f"service {rs['role']} lost {rs['lost_at_s']:.1f} s into the run (exit code {rs['exit_code']}), "
+                     f"restarted by its policy, back after {rs['back_after_s']:.1f} s")
+    for kind in ("demonstrations", "reproductions"):
+        for i, e in enumerate(r[kind]):
+            for g in e.get("recording_gaps") or []:
+                if g["cycles_missing"] is None:
+                    what = "the robot cycles between them are unknown"
+                else:
+                    what = (f"robot cycles {g['last_cycle'] + 1}..{g['next_first_cycle'] - 1} not recorded "
+                            f"({g['cycles_missing']} cycles)")
+                lines.append(f"{kind[:-1]} {i}: the recorder restarted; the recording goes on in "
+                             f"{g['next_part']}: {what}")
+    lines.append("")
+    lines.append(f"demonstrations: {len(r['demonstrations'])}")
+    for i, d in enumerate(r["demonstrations"]):
+        lines.append(f"  {i:2d} {d['side']:>5}  {d['reason']:<13} {d['sim_seconds']:6.1f} s sim  "
+                     f"{d['wall_seconds']:6.1f} s wall")
+    sel = r["learning"]["selection"]
+    if sel:
+        lines.append("")
+        method = sel.get("method", "pooled")
+        lines.append(f"phases chosen: {sel['best']} ({sel['criterion']}"
+                     f"{', per demonstration' if method == 'per_demonstration' else ''})")
+        for i, d in enumerate(sel.get("per_demonstration", [])):
+            lines.append(f"  demo {i:2d}: " + "  ".join(
+                f"K={k} {d['scores'][k]:.0f}{'*' if int(k) == d['best'] else ''}" for k in sorted(d["scores"], key=int))
+                + f"  -> {d['best']}")
+        if "votes" in sel:
+            lines.append("  votes: " + ", ".join(f"{k} phases: {v}" for k, v in sel["votes"].items()))
+        for k in sorted(sel.get("scores", {}), key=int):
+            lines.append(f"  K={k}: score {sel['scores'][k]:.1f}, log-likelihood {sel['log_likelihoods'][k]:.1f}, "
+                         f"{sel['n_parameters'][k]} parameters{'  <-' if int(k) == sel['best'] else ''}")
+    if r["reproductions"]:
+        lines.append("")
+        lines.append(f"reproductions: {s['successes']} of {s['reproductions']} reached the goal with bounded force")
+        models = any(rp.get("model") for rp in r["reproductions"])
+        lines.append("   #  side  " + ("model " if models else "") +
+                     "result                 peak F [N]  phase acc  trans. err [s]  sim [s]  wall [s]")
+        for rp in r["reproductions"]:
+            ph = rp["phases"]
+            acc = ph.get("accuracy")
+            te = ph.get("mean_transition_error_s")
+            lines.append(f"  {rp['index']:2d} {rp['side']:>5}  " + (f"{rp.get('model') or '-':<5} " if models else "")
+                         + f"{rp['reason']:<22} {rp['peak_contact_force']:10.1f}  "
+                         f"{'-' if acc is None else f'{acc:9.3f}'}  "
+                         f"{'-' if te is None or te != te else f'{te:14.3f}'}  {rp['sim_seconds']:7.1f}  "
+                         f"{rp['wall_seconds']:8.1f}")
+        acc = s["online_phase_accuracy"]
+        te = s["mean_transition_error_s"]
+        lines.append(f"online phase accuracy overall: {'-' if acc is None else f'{acc:.4f}'}; mean transition "
+                     f"error: {'-' if te is None else f'{te:.3f} s'}")
+    if r["learning"].get("offline") or s.get("by_model"):
+        from services.results.compare import comparison_text
+
+        lines.append("")
+        lines += comparison_text(r)
+    t = r["timing"]
+    lines.append("")
+    lines.append(f"robot loop: {t['robot_loop']['cycles']} cycles, {t['robot_loop']['deadline_misses']} deadline "
+                 f"misses, longest run {t['robot_loop']['longest_miss_run']}")
+    episodes = [("demonstration", i, d) for i, d in enumerate(r["demonstrations"])] + \
+               [("reproduction", rp["index"], rp) for rp in r["reproductions"]]
+    if any(e.get("fri") for _, _, e in episodes):
+        lines.append("FRI per episode:        answered   missed     late  longest miss run  at PERFECT  drops from "
+                     "PERFECT  CMD after [s]  CMD left/entered  duplicates")
+        for kind, i, e in episodes:
+            f, fq = e.get("fri") or {}, e.get("fri_quality") or {}
+            if not f:
+                continue
+            if kind == "demonstration" and f["answered"] == 0:
+                # the teacher guides the arm in gravity compensation: no commander
+                # runs, so every cycle closes unanswered; that is not a link fault
+                lines.append(f"  {kind:<13} {i:3d}  gravity compensation, nobody answers FRI "
+                             f"({f['missed']} cycles unanswered, as expected)")
+                continue
+            span = sum((fq.get("seconds_at") or {}).values())
+            at = (fq["seconds_at"]["PERFECT"] / span) if span else None
+            cmd = fq.get("first_cmd_s")
+            # the robot's clock runs over the whole run; the column is from the episode's start
+            cmd = None if cmd is None else cmd - fq.get("start_s", 0.0)
+            lines.append(f"  {kind:<13} {i:3d} {f['answered']:10d} {f['missed']:8d} {f['late']:8d} "
+                         f"{f['longest_miss_run']:17d}  {'-' if at is None else f'{at:9.1%}'}  "
+                         f"{fq.get('drops_from_perfect', 0):18d}  {'-' if cmd is None else round(cmd, 3):>13}"
+                         f"  {f.get('command_mode_left', 0):7d}/{f.get('command_mode_entered', 0):<8d}"
+                         f"  {f.get('duplicate', 0):10d}")
+    rtf = s["real_time_factor"]
+    lines.append(f"simulated {s['simulated_seconds']:.1f} s in {s['episode_wall_seconds']:.1f} s of episodes: "
+                 f"{'-' if rtf is None else f'{rtf:.2f}'} x real time")
+    cl = t.get("closed_loop", {})
+    if cl.get("p99_us_max") is not None:
+        lines.append(f"closed loop (measurement -> sensor -> estimator -> commander -> robot): worst p99 "
+                     f"{cl['p99_us_max']:.0f} us over {len(cl['per_episode'])} reproduction(s)")
+    if t.get("links_received"):
+        lines.append("link latency at the receiver (us):                    p50      p99    p99.9      max   lost"
+                     "  out-of-order  garbage")
+        for name, v in sorted(t["links_received"].items()):
+            lat = v.get("latency", {})
+            if not lat.get("count"):
+                continue
+            lines.append(f"  {name:<45} {lat['p50_us']:8.0f} {lat['p99_us']:8.0f} {lat['p99_9_us']:8.0f} "
+                         f"{lat['max_us']:8.0f} {v['lost']:6d} {v['out_of_order']:13d} {v['bad']:8d}")
+    lines.append("link latency, publish -> recorder (us):   p50      p99      max   lost  out-of-order")
+    for topic, v in sorted(t["links_publish_to_recorder"].items()):
+        lines.append(f"  {topic:<22} {v['p50_us']:9.0f} {v['p99_us']:8.0f} {v['max_us']:8.0f} {v['lost']:6d} "
+                     f"{v['out_of_order']:6d}")
+    return "\n".join(lines) + "\n"

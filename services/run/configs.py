@@ -1,0 +1,37 @@
+"""Each role's node config for a scenario: what the scenario's cell says, and the flags a
+run adds (fault injection, the recorder's visual rate)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from services.nodes import (CommanderConfig, EstimatorConfig, FoxgloveBridgeConfig, FtSensorConfig, RecorderConfig,
+                            RobotConfig, TeacherConfig)
+from services.runtime.config import with_flags
+from services.scenario import Scenario
+
+
+def node_configs(scenario: Scenario, options, roles, recordings: Path, offload_recording: bool) -> dict:
+    """role -> node config for every role of ``roles``.  ``options``: the run's
+    (``services.run.options.RunOptions``); ``offload_recording``: the transport wants the
+    MCAP writing in a helper process."""
+    sc, cell = scenario, scenario.cell
+    configs = {
+        "robot": RobotConfig(world=sc.world, seed=sc.seed, plate_friction=cell.plate_friction,
+                             fri_packet_loss=cell.fri_packet_loss, fri_delay_ms=cell.fri_delay_ms,
+                             fri_jitter_ms=cell.fri_jitter_ms, fri_corruption=cell.fri_corruption,
+                             fri_duplication=cell.fri_duplication, fri_reordering=cell.fri_reordering,
+                             fri_faults_from_s=cell.fri_faults_from_s,
+                             fri_faults_until_s=cell.fri_faults_until_s),
+        "ft_sensor": FtSensorConfig(seed=sc.seed, noise_scale=cell.sensor_noise),
+        "teacher": TeacherConfig(world=sc.world),
+        "recorder": RecorderConfig(out_dir=str(recordings), writer_process=offload_recording),
+        "phase_estimator": EstimatorConfig(),
+        "impedance_commander": CommanderConfig(),
+        "foxglove_bridge": FoxgloveBridgeConfig(world=sc.world, port=options.foxglove or 0),
+    }
+    configs["robot"] = with_flags(configs["robot"], options.robot_args)
+    configs["impedance_commander"] = with_flags(configs["impedance_commander"], options.commander_args)
+    configs["ft_sensor"] = with_flags(configs["ft_sensor"], options.sensor_args)
+    configs["recorder"] = with_flags(configs["recorder"], options.recorder_args)
+    return {role: configs[role] for role in roles}
