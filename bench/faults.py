@@ -34,12 +34,14 @@ MODEL = str(ROOT / "scenarios" / "models" / "smoke.json")
 START = [0.62, -0.06, 0.30]
 
 
-def cell(sensor=None, **robot):
+def cell(sensor=None, **faults):
+    """The reproduction's nodes in one process; ``faults``: the FRI link's (robot_sim.fri.LinkFaultSpec)."""
+    from robot_sim.fri import LinkFaultSpec
     from services.nodes import CommanderConfig, EstimatorConfig, FtSensorConfig, RecorderConfig, RobotConfig
     from services.transport.inproc import InProcessCell
 
     return InProcessCell("faults", {
-        "robot": RobotConfig(**robot), "ft_sensor": FtSensorConfig(**(sensor or {})),
+        "robot": RobotConfig(fri=LinkFaultSpec(**faults)), "ft_sensor": FtSensorConfig(**(sensor or {})),
         "recorder": RecorderConfig(out_dir=tempfile.mkdtemp()), "phase_estimator": EstimatorConfig(),
         "impedance_commander": CommanderConfig()})
 
@@ -74,18 +76,18 @@ def main() -> int:
         print(f"{fault:<14} {h['reason']:<18} {round((h['at_s'] - at) * 1000):14d} "
               f"{1e3 * h['max_displacement_m']:15.2f} {h['peak_contact_force']:20.1f}")
 
-    dropout = reproduce(cell(fri_packet_loss=1.0, fri_faults_from_s=at, fri_faults_until_s=at + 0.06), at + 2.0)
+    dropout = reproduce(cell(packet_loss=1.0, faults_from_s=at, faults_until_s=at + 0.06), at + 2.0)
     f = dropout["fri"]
     print(f"FRI dropout of 60 ms: {f['missed']} cycles missed (longest run {f['longest_miss_run']}), command mode "
           f"left {f['command_mode_left']}x and entered {f['command_mode_entered']}x, ending in "
           f"{'CMD' if f['state'] == 2 else 'MON'}; peak contact force {dropout['peak_contact_force']:.1f} N")
-    doubled = reproduce(cell(fri_duplication=0.3), at + 2.0)
+    doubled = reproduce(cell(duplication=0.3), at + 2.0)
     same = doubled["final_position"] == clean["final_position"] and \
         doubled["peak_contact_force"] == clean["peak_contact_force"]
     print(f"30 % duplicated command packets: {doubled['fri']['duplicate']} rejected as duplicates, "
           f"{doubled['fri']['late']} copies late; the arm's path {'identical to' if same else 'DIFFERENT from'} "
           f"the clean run's")
-    reordered = reproduce(cell(fri_reordering=0.05), at + 2.0)
+    reordered = reproduce(cell(reordering=0.05), at + 2.0)
     r = reordered["fri"]
     print(f"5 % reordered command packets: {r['late']} late, {r['missed']} cycles missed, command mode "
           f"{'entered' if r['command_mode_entered'] else 'never entered (PERFECT needs a window without a miss)'}")

@@ -88,9 +88,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from dataclasses import fields as dataclasses_fields
 from enum import IntEnum
 
 import numpy as np
+
+# The KRC's FRI cycle in this testbench: 1 ms, the rate of the thesis' lab (FRI 1.0 allows
+# 1..100 ms).  The physics steps once per cycle; every layer takes the cycle from here.
+FRI_CYCLE_NS = 1_000_000
 
 __all__ = [
     "FriState",
@@ -334,7 +339,7 @@ class FriConfig:
     anything worse is UNACCEPTABLE.
     """
 
-    cycle_ns: int = 1_000_000  # FRI 1.0 allows 1..100 ms
+    cycle_ns: int = FRI_CYCLE_NS  # FRI 1.0 allows 1..100 ms
     window: int = 100  # packets the statistics and quality are taken over
     perfect_hold_cycles: int = 500  # consecutive PERFECT cycles before MON -> CMD
     perfect_max_latency_cycles: float = 0.5
@@ -434,7 +439,7 @@ class LinkFaults:
     corrupt_probability: float = 0.0
     measurement_drop_probability: float = 0.0
     duplicate_probability: float = 0.0
-    duplicate_spread_ns: int = 1_000_000
+    duplicate_spread_ns: int = FRI_CYCLE_NS
     reorder_probability: float = 0.0
     reorder_lag_ns: int = 1_500_000
     active: bool = True
@@ -506,6 +511,74 @@ class LinkFaults:
         # the third stream is drawn only where it is used: a run without these faults
         # costs nothing more per packet
         return self.duplicate_probability > 0.0 or self.reorder_probability > 0.0
+
+
+class LinkFaultError(ValueError):
+    """A fault specification that cannot be used: ``field`` (e.g. ``packet_loss``), what is
+    expected (``problem``) and the ``value``."""
+
+    def __init__(self, field_name: str, problem: str, value):
+        super().__init__(f"{field_name}: {problem}, got {value!r}")
+        self.field, self.problem, self.value = field_name, problem, value
+
+
+_PROBABILITY, _MS, _SECONDS = "probability", "ms", "seconds"
+
+
+def _fault(default: float, kind: str, doc: str):
+    return field(default=default, metadata={"kind": kind, "doc": doc})
+
+
+@dataclass(frozen=True)
+class LinkFaultSpec:
+    """The FRI link's faults as a study sets them, checked here once: a scenario's
+    ``cell.fri_<field>`` and the robot's ``--fri-<field>`` flags are these fields.
+    ``link_faults`` is the seeded model of them (``LinkFaults``), ``active`` the window."""
+
+    packet_loss: float = _fault(0.0, _PROBABILITY, "probability that a command packet is lost on the FRI link")
+    delay_ms: float = _fault(0.0, _MS, "every command packet arrives this much later, ms")
+    jitter_ms: float = _fault(0.0, _MS, "and a further uniform 0..this, ms (reorders late answers)")
+    corruption: float = _fault(0.0, _PROBABILITY, "probability that a command packet arrives damaged (the KRC "
+                                                  "rejects it)")
+    duplication: float = _fault(0.0, _PROBABILITY, "probability that a command packet arrives twice (the copy "
+                                                   "0..1 cycle after it)")
+    reordering: float = _fault(0.0, _PROBABILITY, "probability that a command packet is held back 1.5 ms (it "
+                                                  "arrives after the next cycle's)")
+    faults_from_s: float = _fault(0.0, _SECONDS, "the faults act from this many seconds into each episode")
+    faults_until_s: float = _fault(math.inf, _SECONDS, "... until this many seconds into it (default: to its end)")
+
+    MAX_DELAY_MS = 1000.0
+
+    def __post_init__(self):
+        for f in dataclasses_fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+                    or math.isnan(value):
+                raise LinkFaultError(f.name, "expected a number", value)
+            kind = f.metadata["kind"]
+            if kind == _PROBABILITY and not 0.0 <= value <= 1.0:
+                raise LinkFaultError(f.name, "expected a probability in [0, 1]", value)
+            if kind == _MS and not 0.0 <= value <= self.MAX_DELAY_MS:
+                raise LinkFaultError(f.name, f"expected a number of ms in [0, {self.MAX_DELAY_MS:g}]", value)
+            if f.name == "faults_from_s" and not 0.0 <= value < math.inf:
+                raise LinkFaultError(f.name, "expected a finite number of seconds >= 0", value)
+            object.__setattr__(self, f.name, float(value))
+        if not self.faults_until_s > self.faults_from_s:
+            raise LinkFaultError("faults_until_s", f"expected a number of seconds > the window's start "
+                                                   f"({self.faults_from_s})", self.faults_until_s)
+
+    def link_faults(self, seed: int) -> LinkFaults | None:
+        """The seeded fault model, or None when the link is clean."""
+        if not (self.packet_loss or self.corruption or self.duplication or self.reordering or self.delay_ms
+                or self.jitter_ms):
+            return None
+        return LinkFaults(seed=seed, drop_probability=self.packet_loss, delay_ns=round(self.delay_ms * 1e6),
+                          jitter_ns=round(self.jitter_ms * 1e6), corrupt_probability=self.corruption,
+                          duplicate_probability=self.duplication, reorder_probability=self.reordering)
+
+    def active(self, episode_s: float) -> bool:
+        """Whether the faults act ``episode_s`` seconds into an episode."""
+        return self.faults_from_s <= episode_s < self.faults_until_s
 
 
 _NO_LATENCY = -1

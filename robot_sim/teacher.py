@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
+from robot_sim.fri import FRI_CYCLE_NS
 from robot_sim.labels import CouplerLabeler, ValleyLabeler
 from robot_sim.lwr4.description import LWR4
 from robot_sim.worlds import HoseCoupler, Valley
@@ -72,7 +73,7 @@ class Teacher:
         self._noise = np.zeros(3)
         self._wrench = np.zeros(6)
         # tremor: a resonant AR(2) process around tremor_hz, scaled to unit variance
-        dt = 0.001
+        dt = FRI_CYCLE_NS / 1e9  # the teacher's hand is stepped once per FRI cycle
         r = math.exp(-0.3 * 2 * math.pi * config.tremor_hz * dt)
         self._a1 = 2 * r * math.cos(2 * math.pi * config.tremor_hz * dt)
         self._a2 = -r * r

@@ -28,9 +28,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from robot_sim.fri import FRI_CYCLE_NS
 from robot_sim.lwr4.description import LWR4, ArmDescription
 
-TIMESTEP = 0.001  # s: the physics step, one FRI cycle at 1 kHz
+TIMESTEP = FRI_CYCLE_NS / 1e9  # s: the physics step, one FRI cycle
 
 
 @dataclass(frozen=True)
@@ -44,6 +45,10 @@ class Valley:
     thickness: float = 0.006
     angle: float = math.pi / 4
     friction: float = 0.25  # sliding friction coefficient of the plates (aluminium on the tool tip)
+    # where a demonstration starts by default: the tcp above the left plate (the right side
+    # mirrors y), and where the teacher stops sliding along the groove (towards -x)
+    start_left: tuple = (0.68, -0.10, 0.40)
+    goal_x: float = 0.42
 
     def plate_normal(self, side: int) -> np.ndarray:
         """Unit normal of the plate on side -1 (y < 0) or +1 (y > 0), pointing into the valley."""
@@ -60,6 +65,7 @@ class HoseCoupler:
     center: tuple = (0.55, 0.0, 0.20)  # top face centre of the socket floor, m
     bore_radius: float = 0.018
     depth: float = 0.03
+    start_left: tuple = (0.62, -0.08, 0.36)  # the default tcp start: above and beside the socket
 
 
 @dataclass(frozen=True)

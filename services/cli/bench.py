@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 from services.cli.zenoh_flags import add_zenoh_arguments, zenoh_options
+from services.runtime.visual_topics import VISUAL_RATE_HZ, check_visual_rate
 
 
 def _profile(text: str) -> str:
@@ -178,8 +179,10 @@ def cmd_export(args) -> int:
     if not args.foxglove:
         _say("etar-bench export: error: say what to add: --foxglove (the only export so far)")
         return 2
-    if not (0 < args.rate <= 1000):
-        _say(f"etar-bench export: error: --rate must be in (0, 1000] Hz, got {args.rate}")
+    try:
+        check_visual_rate(args.rate, "--rate")
+    except ValueError as exc:
+        _say(f"etar-bench export: error: {exc}")
         return 2
     try:
         results = export_foxglove(args.run_dir, args.rate, progress=print)
@@ -327,7 +330,8 @@ def build_parser() -> argparse.ArgumentParser:
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("run_dir", help="a finished run's folder (recordings/*.mcap)")
     p.add_argument("--foxglove", action="store_true", help="the visual topics for Foxglove (required)")
-    p.add_argument("--rate", type=float, default=50.0, metavar="HZ", help="visual rate, Hz (default 50)")
+    p.add_argument("--rate", type=float, default=VISUAL_RATE_HZ, metavar="HZ",
+                   help=f"visual frames per second of simulated time (default {VISUAL_RATE_HZ:g})")
     p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("compare", help="ETAR against STAR (thesis 6.3) on a finished run's demonstrations: both "

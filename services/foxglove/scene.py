@@ -35,9 +35,11 @@ from functools import lru_cache
 
 import numpy as np
 
-from services.runtime.visual_topics import TOPIC_LOG, TOPIC_SCENE, TOPIC_STATUS, TOPIC_TF, VISUAL_RATE_HZ
+from robot_sim.fri import FRI_CYCLE_NS
+from services.runtime.visual_topics import (TOPIC_LOG, TOPIC_SCENE, TOPIC_STATUS, TOPIC_TF, VISUAL_RATE_HZ,
+                                            check_visual_rate)
 
-FRI_RATE_HZ = 1000
+FRI_RATE_HZ = 1_000_000_000 // FRI_CYCLE_NS  # FRI cycles per second
 FRAMES = ("link1", "link2", "link3", "link4", "link5", "link6", "link7", "flange", "ati_sensor", "tool", "tcp")
 ARROW_M_PER_N = 0.005  # the force arrow: 5 mm per newton, at most MAX_ARROW_M
 MAX_ARROW_M = 0.4
@@ -157,8 +159,7 @@ class VisualScene:
     def __init__(self, world: str, rate_hz: float = VISUAL_RATE_HZ):
         from robot_sim.kinematics import ArmKinematics
 
-        if not (0 < rate_hz <= FRI_RATE_HZ):
-            raise ValueError(f"visual rate must be in (0, {FRI_RATE_HZ}] Hz, got {rate_hz}")
+        check_visual_rate(rate_hz)
         self.world = world
         self.every = max(1, round(FRI_RATE_HZ / rate_hz))
         self.kinematics = ArmKinematics()

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from services.runtime import topics
 from services.runtime.bus import Node, Subscription
 from services.runtime.config import option
-from services.runtime.visual_topics import SCHEMA_NAMES, VISUAL_RATE_HZ, schema_bytes
+from services.runtime.visual_topics import SCHEMA_NAMES, VISUAL_RATE_HZ, check_visual_rate, schema_bytes
 from services.foxglove.scene import VisualScene
 from services.foxglove.tap import VisualTap, encode
 
@@ -40,8 +40,7 @@ class FoxgloveBridgeConfig:
     def __post_init__(self):
         if not (0 <= self.port <= 65535):
             raise ValueError(f"port must be in 0..65535, got {self.port}")
-        if not (0 < self.visual_rate_hz <= 1000):
-            raise ValueError(f"visual_rate_hz must be in (0, 1000] Hz, got {self.visual_rate_hz}")
+        check_visual_rate(self.visual_rate_hz, "visual_rate_hz")
 
 
 class FoxgloveBridgeNode(Node):

@@ -43,16 +43,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from etar.policy import DT, LEAD, ReproductionPolicy
+from etar.policy import LEAD, ReproductionPolicy
 from etar.task import load_task
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import option
 from services.runtime.loop import Sections
-from services.runtime.messages import ROBOT_COMMAND
+from robot_sim.fri import FRI_CYCLE_NS
+from services.runtime.messages import ROBOT_COMMAND, estimator_instant
 from services.runtime.timing import Histogram
 
-CYCLE_NS = 1_000_000  # the FRI cycle: an answer later than this after its measurement is late
-PERIOD_NS = 10_000_000  # the estimator's period (simulated time)
 ROT_STIFFNESS = 150.0
 # five estimator periods: realtime estimates arrive up to a few cycles after their
 # measurement, so only a silence far past that is a fault
@@ -138,7 +137,7 @@ class ImpedanceCommanderNode(Node):
             if self.policy is None or msg["episode"] != self.episode:
                 return
             t = self.clock.now_ns()
-            if not self.lockstep and t - msg["sent_ns"] >= CYCLE_NS:
+            if not self.lockstep and t - msg["sent_ns"] >= FRI_CYCLE_NS:
                 self.stale += 1  # its cycle is over: an answer now could only be late
                 return
             self.sections.cycles += 1
@@ -150,7 +149,7 @@ class ImpedanceCommanderNode(Node):
     def _drain(self, give_up: bool = False):
         for seq in sorted(self._pending):
             # holding, it needs no estimate: it waits for none
-            if self.lockstep and self.hold is None and self._pending[seq]["stamp_ns"] % PERIOD_NS == 0 \
+            if self.lockstep and self.hold is None and estimator_instant(self._pending[seq]["stamp_ns"]) \
                     and seq not in self._phases:
                 if not give_up:
                     if self._waiting_since is None:
@@ -172,7 +171,7 @@ class ImpedanceCommanderNode(Node):
             # injected fault: the first answer of every stall_every of simulated time comes late
             # (the first one answered: realtime may have left the cycle on the mark unanswered)
             every, stamp = int(c.stall_every * 1e9), state["stamp_ns"]
-            if stamp % every == 0 or (last is not None and stamp // every > (stamp - (seq - last) * CYCLE_NS) // every):
+            if stamp % every == 0 or (last is not None and stamp // every > (stamp - (seq - last) * FRI_CYCLE_NS) // every):
                 self.clock.sleep(c.stall_ms / 1e3)
         now = self.clock.now_ns
         t0 = now()
@@ -197,7 +196,7 @@ class ImpedanceCommanderNode(Node):
         # the KRC's estimate of the external force (tcp axes, FRI order Fx Fy Fz first) in base
         # axes: the policy slides a free-space phase along a surface it meets (etar.policy)
         force = R @ np.asarray(state["est_ext_tcp_ft"][:3], dtype=np.float64)
-        F, R_set = self.policy.step(x, R, None if self.hold else self._latest_phase, cycles * DT, force)
+        F, R_set = self.policy.step(x, R, None if self.hold else self._latest_phase, cycles * FRI_CYCLE_NS / 1e9, force)
         # the force in tcp axes; FRI orders the torques Tz, Ty, Tx (all zero here)
         add = (R.T @ F).tolist() + [0.0, 0.0, 0.0]
         cart = self._cart_pos

@@ -31,11 +31,10 @@ from etar.features import force_vector, pose_of, state_vector
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import option
 from robot_sim.ati import AtiStatus
-from services.runtime.messages import ESTIMATOR_PHASE
+from services.runtime.messages import ESTIMATOR_PHASE, estimator_instant
 
 _SATURATED = int(AtiStatus.FT_OUT_OF_RANGE)
 
-PERIOD_NS = 10_000_000  # 100 Hz on simulated time, the instants the learner's samples were taken at
 
 
 @dataclass(frozen=True)
@@ -79,7 +78,7 @@ class PhaseEstimatorNode(Node):
         return self.filter is not None  # before its first reproduction it has nothing to estimate
 
     def on_state(self, msg, recv_ns, raw):
-        if msg["stamp_ns"] % PERIOD_NS:
+        if not estimator_instant(msg["stamp_ns"]):
             return
         with self._lock:
             # a cycle still waiting for its wrench when the next one comes has lost it
@@ -92,7 +91,7 @@ class PhaseEstimatorNode(Node):
             self._try(msg["seq"])
 
     def on_wrench(self, msg, recv_ns, raw):
-        if msg["stamp_ns"] % PERIOD_NS:
+        if not estimator_instant(msg["stamp_ns"]):
             return
         with self._lock:
             self._wrenches[msg["seq"]] = msg

@@ -22,7 +22,7 @@ from services.runtime import topics
 from services.runtime.bus import Node, Subscription
 from services.runtime.config import option
 from services.runtime.messages import MAX_PAYLOAD_BYTES, SEQ_PREFIX
-from services.runtime.visual_topics import VISUAL_RATE_HZ
+from services.runtime.visual_topics import VISUAL_RATE_HZ, check_visual_rate
 from services.foxglove.scene import VisualScene, world_of_scenario
 from services.foxglove.tap import VisualTap, encode
 
@@ -39,8 +39,7 @@ class RecorderConfig:
                                                    "run's own; 0: none", metavar="HZ")
 
     def __post_init__(self):
-        if not (self.visual_rate_hz == 0 or 0 < self.visual_rate_hz <= 1000):
-            raise ValueError(f"visual_rate_hz must be 0 (none) or in (0, 1000] Hz, got {self.visual_rate_hz}")
+        check_visual_rate(self.visual_rate_hz, "visual_rate_hz", none=True)
 
 
 def episode_path(out_dir, name) -> Path:

@@ -23,13 +23,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from robot_sim.cell import RobotCell
-from robot_sim.fri import CommandPacket, ControlMode, FriState, LinkFaults
+from robot_sim.fri import FRI_CYCLE_NS, CommandPacket, ControlMode, FriState, LinkFaults, LinkFaultSpec
 from robot_sim.krc import SafetyReason
 from robot_sim.labels import LABELERS
 from robot_sim.teacher import DOWN
 from robot_sim.worlds import WORLDS, Valley, valley
 from services.runtime.bus import Node, Publication, Subscription
-from services.runtime.config import option
+from services.runtime.config import nested, option
 from services.runtime.cycle import EpisodePlan
 from services.runtime.roles import PARTICIPANTS, ROLES
 from services.runtime.loop import Sections
@@ -40,13 +40,12 @@ LOCKSTEP_LATENCY_NS = 100_000
 # once the commander holds the arm the episode is lost: the robot watches the hold
 # this long (its summary says how far the tcp went, how hard it pressed) and ends it
 HOLD_WATCH_S = 1.0
-HOLD_WATCH_CYCLES = int(HOLD_WATCH_S * 1000)
+HOLD_WATCH_CYCLES = int(HOLD_WATCH_S * (1e9 / FRI_CYCLE_NS))
 # per-cycle sections (episode summary, loop.sections): waiting for the deadline or the
 # answers, handing the answers to the FRI link, the physics step (KRC law + MuJoCo +
 # sensing), measuring (FRI packet, labels), encoding, publishing
 SECTIONS = ("wait", "answers", "step", "measure", "encode", "publish")
 ANSWER_TOPICS = {participant: ROLES[role].answer_topic for participant, role in PARTICIPANTS.items()}
-FAULT_PROBABILITIES = ("fri_packet_loss", "fri_corruption", "fri_duplication", "fri_reordering")
 
 
 @dataclass(frozen=True)
@@ -57,17 +56,8 @@ class RobotConfig:
     stall_every: float = option(0.0, "fault injection: stall the loop every N s")
     stall_ms: float = option(0.0, "fault injection: stall length, ms")
     plate_friction: float = option(Valley.friction, "valley: sliding friction coefficient of the plates")
-    fri_packet_loss: float = option(0.0, "probability that a command packet is lost on the FRI link")
-    fri_delay_ms: float = option(0.0, "FRI link fault: every command packet arrives this much later, ms")
-    fri_jitter_ms: float = option(0.0, "FRI link fault: and a further uniform 0..this, ms (reorders late answers)")
-    fri_corruption: float = option(0.0, "FRI link fault: probability that a command packet arrives damaged "
-                                        "(the KRC rejects it)")
-    fri_duplication: float = option(0.0, "FRI link fault: probability that a command packet arrives twice "
-                                         "(the copy 0..1 ms after it)")
-    fri_reordering: float = option(0.0, "FRI link fault: probability that a command packet is held back 1.5 ms "
-                                        "(it arrives after the next cycle's)")
-    fri_faults_from_s: float = option(0.0, "the FRI link faults act from this many seconds into each episode")
-    fri_faults_until_s: float = option(math.inf, "... until this many seconds into it (default: to its end)")
+    # the FRI link's faults (--fri-packet-loss, ... --fri-faults-until-s): robot_sim.fri.LinkFaultSpec
+    fri: LinkFaultSpec = nested(LinkFaultSpec(), "fri_")
 
     def __post_init__(self):
         if self.world not in WORLDS:
@@ -76,15 +66,6 @@ class RobotConfig:
             raise ValueError(f"answer_timeout must be > 0 s, got {self.answer_timeout!r}")
         if not (math.isfinite(self.plate_friction) and self.plate_friction > 0):
             raise ValueError(f"plate_friction must be a finite number > 0, got {self.plate_friction!r}")
-        for name in FAULT_PROBABILITIES:
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"{name} must be a probability in [0, 1], got {getattr(self, name)!r}")
-        if not (0.0 <= self.fri_faults_from_s < self.fri_faults_until_s):
-            raise ValueError(f"the FRI fault window must satisfy 0 <= fri_faults_from_s < fri_faults_until_s, "
-                             f"got {self.fri_faults_from_s!r} and {self.fri_faults_until_s!r}")
-        for name in ("fri_delay_ms", "fri_jitter_ms"):
-            if not (math.isfinite(getattr(self, name)) and 0.0 <= getattr(self, name) <= 1000.0):
-                raise ValueError(f"{name} must be a number of ms in [0, 1000], got {getattr(self, name)!r}")
 
     def world_spec(self):
         if self.world == "valley":
@@ -92,15 +73,8 @@ class RobotConfig:
         return WORLDS[self.world]()
 
     def link_faults(self) -> LinkFaults | None:
-        if not (any(getattr(self, name) for name in FAULT_PROBABILITIES) or self.fri_delay_ms or self.fri_jitter_ms):
-            return None
-        return LinkFaults(seed=self.seed, drop_probability=self.fri_packet_loss,
-                          delay_ns=round(self.fri_delay_ms * 1e6), jitter_ns=round(self.fri_jitter_ms * 1e6),
-                          corrupt_probability=self.fri_corruption, duplicate_probability=self.fri_duplication,
-                          reorder_probability=self.fri_reordering)
-
-    def faults_active(self, episode_s: float) -> bool:
-        return self.fri_faults_from_s <= episode_s < self.fri_faults_until_s
+        """The FRI link's fault model, seeded with the cell's seed (None: a clean link)."""
+        return self.fri.link_faults(self.seed)
 
 
 class _Episode:
@@ -226,7 +200,8 @@ class RobotNode(Node):
         seconds = float(p.get("max_seconds", 40.0))
         if not (np.isfinite(seconds) and seconds > 0):
             raise ValueError(f"max_seconds must be > 0, got {p.get('max_seconds')!r}")
-        return EpisodePlan(max_cycles=max(1, int(seconds * 1000)), answers_from=answers, stop_on=p.get("stop_on"))
+        return EpisodePlan(max_cycles=max(1, int(seconds * (1e9 / FRI_CYCLE_NS))), answers_from=answers,
+                           stop_on=p.get("stop_on"))
 
     def status(self) -> dict:
         return {"episode": self.episode, "seq": self.cell.fri.seq, "fri_state": int(self.cell.fri.state),
@@ -335,7 +310,7 @@ class RobotNode(Node):
             latest_teacher = self._latest_teacher
         faults = cell.fri.faults
         if faults is not None:
-            faults.active = self.config.faults_active(ep.k * cell.cycle_ns / 1e9)
+            faults.active = self.config.fri.active(ep.k * cell.cycle_ns / 1e9)
         goal_reached = teacher_done = False
         cycle_hold = None  # this cycle's command: why it holds ('' it does not); None: no command
         cycle_estimate = -1  # the estimate this cycle's command used

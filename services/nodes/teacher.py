@@ -16,13 +16,14 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
+from robot_sim.fri import FRI_CYCLE_NS
 from robot_sim.teacher import HoseCouplerTeacher, ValleyTeacher
 from robot_sim.worlds import HoseCoupler, Valley
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import option
 from services.runtime.messages import TEACHER_WRENCH
 
-DT = 0.001
+DT = FRI_CYCLE_NS / 1e9  # the hand answers every FRI cycle
 
 
 @dataclass(frozen=True)
@@ -111,7 +112,7 @@ class TeacherNode(Node):
         rng = np.random.default_rng(int(p.get("seed", 0)))
         with self._lock:
             if self.config.world == "valley":
-                self.teacher = ValleyTeacher(Valley(), start, float(p.get("goal_x", 0.42)), rng)
+                self.teacher = ValleyTeacher(Valley(), start, float(p.get("goal_x", Valley.goal_x)), rng)
             else:
                 self.teacher = HoseCouplerTeacher(HoseCoupler(), start, rng)
             self.episode = int(p["episode"])

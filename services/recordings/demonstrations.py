@@ -12,14 +12,14 @@ import numpy as np
 from etar.features import force_vector, state_vector
 from services.recordings.format import RecordingError
 from services.recordings.reader import read_episode
-from services.runtime.messages import FT_WRENCH, ROBOT_CONTACT, ROBOT_STATE, MessageError
+from services.runtime.messages import FT_WRENCH, ROBOT_CONTACT, ROBOT_STATE, SAMPLE_RATE_HZ, MessageError
 
 STATE_KINDS = {"position": 3, "pose": 6}
 FEATURE_KINDS = {"force": 3, "force_torque": 6}
 _DEMONSTRATION_TOPICS = {"/robot/state": ROBOT_STATE, "/ft/wrench": FT_WRENCH, "/robot/contact": ROBOT_CONTACT}
 
 
-def load_demonstration(path, *, state: str = "position", features: str = "force", rate_hz: float = 100.0,
+def load_demonstration(path, *, state: str = "position", features: str = "force", rate_hz: float = SAMPLE_RATE_HZ,
                        allow_incomplete: bool = False) -> dict:
     """One recorded demonstration as the ETAR learner takes it.
 

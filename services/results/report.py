@@ -27,8 +27,7 @@ from etar.metrics import score_segmentation
 from services.recordings.reader import read_episode
 from services.results.record import EpisodeRecord, RunRecord
 from services.nodes.robot import HOLD_WATCH_S
-from services.runtime.messages import BY_TOPIC, loads
-from services.transport.service import STRIDES
+from services.runtime.messages import BY_TOPIC, ESTIMATOR_PERIOD_NS, STRIDES, loads
 from services.runtime.threads import process_map
 from services.results.text import pooled_histogram, histograms_text, render_text
 from services.runtime.timing import SequenceTracker, percentiles
@@ -81,7 +80,7 @@ def episode_links(decoded: dict) -> dict:
     return out
 
 
-def reproduction_phases(decoded: dict, phase_to_truth: dict, dt: float = 0.01) -> dict:
+def reproduction_phases(decoded: dict, phase_to_truth: dict, dt: float = ESTIMATOR_PERIOD_NS / 1e9) -> dict:
     """Accuracy and transition-time error of the online estimate in one recorded reproduction."""
     truth_by_seq = {d["seq"]: d["true_phase"] for _, d in decoded.get("robot/contact", ())}
     est_by_seq = {d["seq"]: d["phase"] for _, d in decoded.get("estimator/phase", ())}

@@ -17,12 +17,7 @@ def node_configs(scenario: Scenario, options, roles, recordings: Path, offload_r
     MCAP writing in a helper process."""
     sc, cell = scenario, scenario.cell
     configs = {
-        "robot": RobotConfig(world=sc.world, seed=sc.seed, plate_friction=cell.plate_friction,
-                             fri_packet_loss=cell.fri_packet_loss, fri_delay_ms=cell.fri_delay_ms,
-                             fri_jitter_ms=cell.fri_jitter_ms, fri_corruption=cell.fri_corruption,
-                             fri_duplication=cell.fri_duplication, fri_reordering=cell.fri_reordering,
-                             fri_faults_from_s=cell.fri_faults_from_s,
-                             fri_faults_until_s=cell.fri_faults_until_s),
+        "robot": RobotConfig(world=sc.world, seed=sc.seed, plate_friction=cell.plate_friction, fri=cell.fri),
         "ft_sensor": FtSensorConfig(seed=sc.seed, noise_scale=cell.sensor_noise),
         "teacher": TeacherConfig(world=sc.world),
         "recorder": RecorderConfig(out_dir=str(recordings), writer_process=offload_recording),

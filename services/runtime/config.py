@@ -5,7 +5,9 @@ Each field made with ``option(default, help)`` becomes ``--field-name`` (or the
 (``config_from_args``), and the runner turns a config back into the flags of the
 process it spawns (``config_to_args``), so a parameter is named once.  Types
 come from the defaults: int, float, str, bool (a ``--flag``/``--no-flag`` pair),
-or None (an optional string).
+or None (an optional string).  A field made with ``nested(spec, prefix)`` holds a
+frozen dataclass defined elsewhere (``robot_sim.fri.LinkFaultSpec``): each of its
+fields is a flag ``--<prefix><field>``, its help the field's ``doc`` metadata.
 """
 
 from __future__ import annotations
@@ -19,12 +21,42 @@ def option(default, help: str, *, choices=None, flag: str | None = None, metavar
                                                         "metavar": metavar})
 
 
+def nested(default, prefix: str):
+    """A field holding the frozen dataclass ``default`` is an instance of; its fields are
+    flags named ``--<prefix><field>``."""
+    return dataclasses.field(default=default, metadata={"nested": prefix})
+
+
 def _flag(f: dataclasses.Field) -> str:
     return f.metadata.get("flag") or "--" + f.name.replace("_", "-")
 
 
 def _fields(cls):
-    return [f for f in dataclasses.fields(cls) if "help" in f.metadata]
+    """The config's flags: its options, and each nested spec's fields (renamed with the
+    prefix, carrying the spec's doc as help and its default)."""
+    out = []
+    for f in dataclasses.fields(cls):
+        if "help" in f.metadata:
+            out.append(f)
+        elif "nested" in f.metadata:
+            for g in dataclasses.fields(type(f.default)):
+                flat = dataclasses.field(default=getattr(f.default, g.name), metadata={"help": g.metadata["doc"]})
+                flat.name = f.metadata["nested"] + g.name
+                out.append(flat)
+    return out
+
+
+def _nested(cls):
+    return [(f.name, type(f.default), f.metadata["nested"]) for f in dataclasses.fields(cls) if "nested" in f.metadata]
+
+
+def _values(config) -> dict:
+    """Flag name -> value of ``config`` (a nested spec's fields under their prefixed names)."""
+    out = {f.name: getattr(config, f.name) for f in dataclasses.fields(config) if "help" in f.metadata}
+    for name, spec_cls, prefix in _nested(type(config)):
+        spec = getattr(config, name)
+        out.update({prefix + g.name: getattr(spec, g.name) for g in dataclasses.fields(spec_cls)})
+    return out
 
 
 def add_config_arguments(parser: argparse.ArgumentParser, cls) -> None:
@@ -54,14 +86,24 @@ def _typed(kind, flag):
 
 
 def config_from_args(cls, args: argparse.Namespace):
-    return cls(**{f.name: getattr(args, f.name) for f in _fields(cls)})
+    values = {f.name: getattr(args, f.name) for f in dataclasses.fields(cls) if "help" in f.metadata}
+    for name, spec_cls, prefix in _nested(cls):
+        try:
+            values[name] = spec_cls(**{g.name: getattr(args, prefix + g.name) for g in dataclasses.fields(spec_cls)})
+        except ValueError as exc:
+            if getattr(exc, "field", None) is None:
+                raise
+            # the spec names its own field (robot_sim.fri.LinkFaultError): say the flag instead
+            raise ValueError(f"--{(prefix + exc.field).replace('_', '-')}: {exc.problem}, got {exc.value!r}") from None
+    return cls(**values)
 
 
 def config_to_args(config) -> list[str]:
     """The flags that make ``config_from_args`` rebuild ``config`` (defaults left out)."""
     out = []
+    values = _values(config)
     for f in _fields(type(config)):
-        value = getattr(config, f.name)
+        value = values[f.name]
         if value == f.default:
             continue
         if isinstance(f.default, bool):
@@ -79,7 +121,7 @@ def with_flags(config, flags):
         return config
     parser = argparse.ArgumentParser(prog=type(config).__name__, add_help=False, exit_on_error=False)
     add_config_arguments(parser, type(config))
-    parser.set_defaults(**{f.name: getattr(config, f.name) for f in _fields(type(config))})
+    parser.set_defaults(**_values(config))
     try:
         args = parser.parse_args(flags)
     except (argparse.ArgumentError, SystemExit) as exc:

@@ -37,9 +37,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from services.runtime.loop import LoopTiming
+from services.runtime.messages import estimator_instant
 from services.runtime.roles import PARTICIPANTS as ROLE_OF_PARTICIPANT
 
-PHASE_PERIOD_NS = 10_000_000  # the estimator answers every tenth cycle (100 Hz of simulated time)
 CLOCKS = ("lockstep", "realtime")
 PARTICIPANTS = tuple(ROLE_OF_PARTICIPANT)
 LOCKSTEP_GIVE_UP = 2  # consecutive timed-out cycles before a lockstep episode ends as unanswered
@@ -107,7 +107,7 @@ class CycleEngine:
         return self._open_seq is not None and not self._answered()
 
     def _needed(self) -> list:
-        return [w for w in self.plan.answers_from if w != "phase" or self._open_stamp % PHASE_PERIOD_NS == 0]
+        return [w for w in self.plan.answers_from if w != "phase" or estimator_instant(self._open_stamp)]
 
     def _answered(self) -> bool:
         return self.p.answered(self._needed(), self._open_seq)

@@ -38,6 +38,22 @@ from dataclasses import dataclass
 
 import orjson
 
+from robot_sim.fri import FRI_CYCLE_NS
+
+# The estimator's period on simulated time: every tenth FRI cycle, the 100 Hz at which the
+# thesis sampled its demonstrations.  The learner's samples and the estimator's updates are
+# the same instants (stamps that are multiples of it), so a model learned from recordings
+# runs online at the rate it was learned at.
+ESTIMATOR_PERIOD_NS = 10 * FRI_CYCLE_NS
+ESTIMATOR_STRIDE = ESTIMATOR_PERIOD_NS // FRI_CYCLE_NS  # FRI cycles per estimator update
+SAMPLE_RATE_HZ = 1e9 / ESTIMATOR_PERIOD_NS  # the demonstrations' sample rate, Hz
+
+
+def estimator_instant(stamp_ns: int) -> bool:
+    """A stamp the estimator updates at (and the learner samples at)."""
+    return stamp_ns % ESTIMATOR_PERIOD_NS == 0
+
+
 HEADER = (
     ("seq", "int", "sequence number; robot-cycle messages carry the FRI cycle they belong to"),
     ("stamp_ns", "int", "simulation time, ns"),
@@ -116,10 +132,11 @@ class Field:
 
 
 class MessageType:
-    def __init__(self, name: str, topic: str, doc: str, fields: tuple):
+    def __init__(self, name: str, topic: str, doc: str, fields: tuple, period_ns: int | None = None):
         self.name = name
         self.topic = topic  # relative to the run prefix etar/<run_id>/
         self.doc = doc
+        self.period_ns = period_ns  # how often it is published, simulated time (None: on events)
         self.fields = tuple(Field(*h) for h in HEADER) + tuple(f if isinstance(f, Field) else Field(*f) for f in fields)
         self._required = [f for f in self.fields if not f.optional]
         self._fast = [(f.name, _fast_check(f)) for f in self.fields]
@@ -193,7 +210,8 @@ class MessageType:
         }
 
     def markdown(self) -> str:
-        lines = [f"### `{self.name}` — `etar/<run_id>/{self.topic}`", "", self.doc, "",
+        rate = f"Every {self.period_ns / 1e6:g} ms of simulated time." if self.period_ns else "On events."
+        lines = [f"### `{self.name}` — `etar/<run_id>/{self.topic}`", "", self.doc, "", rate, "",
                  "| field | type | meaning |", "|---|---|---|"]
         for f in self.fields:
             lines.append(f"| `{f.name}` | `{f.type}`{' (optional)' if f.optional else ''} | {f.doc} |")
@@ -320,6 +338,7 @@ ROBOT_STATE = MessageType(
         ("gravity_compensation", "bool", "the KRC runs gravity compensation (kinesthetic teaching)"),
         ("episode", "int", "demonstration/reproduction index (-1: none)"),
     ),
+    period_ns=FRI_CYCLE_NS,
 )
 
 ROBOT_CONTACT = MessageType(
@@ -333,6 +352,7 @@ ROBOT_CONTACT = MessageType(
         ("true_phase", "int", "physical phase label (valley: 0 free, 1 plate, 2 groove; coupler: 0 approach, 1 coupling)"),
         ("episode", "int", "demonstration/reproduction index"),
     ),
+    period_ns=FRI_CYCLE_NS,
 )
 
 FT_WRENCH = MessageType(
@@ -347,6 +367,7 @@ FT_WRENCH = MessageType(
         ("counts_per_torque", "float", "counts per N m"),
         ("wrench", "float[6]", "counts converted: [Fx Fy Fz Tx Ty Tz], sensor frame, N / N m"),
     ),
+    period_ns=FRI_CYCLE_NS,
 )
 
 TEACHER_WRENCH = MessageType(
@@ -358,6 +379,7 @@ TEACHER_WRENCH = MessageType(
         ("done", "bool", "the demonstration is complete"),
         ("episode", "int", "demonstration index"),
     ),
+    period_ns=FRI_CYCLE_NS,
 )
 
 ESTIMATOR_PHASE = MessageType(
@@ -373,6 +395,7 @@ ESTIMATOR_PHASE = MessageType(
                                     "or 'wrench_invalid' (the sensor's status bits); the filter was not "
                                     "updated and posterior/phase are the last ones", optional=True),
     ),
+    period_ns=ESTIMATOR_PERIOD_NS,
 )
 
 ROBOT_COMMAND = MessageType(
@@ -394,6 +417,7 @@ ROBOT_COMMAND = MessageType(
                         "says its wrench could not be used)"),
         ("episode", "int", "reproduction index"),
     ),
+    period_ns=FRI_CYCLE_NS,
 )
 
 RUNNER_EVENT = MessageType(
@@ -451,6 +475,9 @@ SERVICE_LOG = MessageType(
 MESSAGES = {m.name: m for m in (ROBOT_STATE, ROBOT_CONTACT, FT_WRENCH, TEACHER_WRENCH, ESTIMATOR_PHASE,
                                 ROBOT_COMMAND, RUNNER_EVENT, EPISODE_SUMMARY, SERVICE_LOG)}
 BY_TOPIC = {m.topic: m for m in MESSAGES.values()}
+# topics published every n-th FRI cycle: their seq counts FRI cycles, so it advances by n
+STRIDES = {m.topic: m.period_ns // FRI_CYCLE_NS for m in MESSAGES.values()
+           if m.period_ns is not None and m.period_ns > FRI_CYCLE_NS}
 
 
 def documentation() -> str:

@@ -10,8 +10,11 @@ import json
 from functools import lru_cache
 from pathlib import Path
 
+from robot_sim.fri import FRI_CYCLE_NS
+
 SCHEMA_DIR = Path(__file__).with_name("foxglove_schemas")  # from @foxglove/schemas 2.1.0 (MIT), unchanged
-VISUAL_RATE_HZ = 50.0
+VISUAL_RATE_HZ = 50.0  # visual frames per second of simulated time: one in every 20 FRI cycles
+MAX_VISUAL_RATE_HZ = 1e9 / FRI_CYCLE_NS  # a frame every FRI cycle at most
 TOPIC_TF = "/viz/tf"
 TOPIC_SCENE = "/viz/scene"
 TOPIC_STATUS = "/viz/status"
@@ -19,6 +22,16 @@ TOPIC_LOG = "/viz/log"
 # topic -> schema name; a foxglove.* name is what makes Foxglove recognise the schema
 SCHEMA_NAMES = {TOPIC_TF: "foxglove.FrameTransforms", TOPIC_SCENE: "foxglove.SceneUpdate",
                 TOPIC_STATUS: "etar.VisualStatus", TOPIC_LOG: "foxglove.Log"}
+
+
+def check_visual_rate(rate_hz: float, name: str = "visual rate", none: bool = False) -> float:
+    """``rate_hz`` if it is a visual rate (0 too with ``none``: no visual topics); ValueError naming ``name``."""
+    if (none and rate_hz == 0) or 0 < rate_hz <= MAX_VISUAL_RATE_HZ:
+        return rate_hz
+    raise ValueError(f"{name} must be {'0 (none) or ' if none else ''}in (0, {MAX_VISUAL_RATE_HZ:g}] Hz "
+                     f"(a frame every FRI cycle at most), got {rate_hz}")
+
+
 # the channel metadata that marks a visual topic as derived by the recorder, not received
 # (the value recordings have carried since the visual topics came: readers still rely on it)
 DERIVED_BY = "services.visual"

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
-import math
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -14,6 +13,9 @@ from typing import Any, Union
 
 import yaml
 
+from robot_sim.fri import LinkFaultError, LinkFaultSpec
+from robot_sim.worlds import HoseCoupler, Valley
+
 from services.runtime.cycle import CLOCKS
 from services.runtime.roles import RESTARTABLE
 from services.scenario.checks import (CRITERIA, FEATURES, MAX_EPISODES, RESTART_POLICIES,
@@ -22,8 +24,9 @@ from services.scenario.checks import (CRITERIA, FEATURES, MAX_EPISODES, RESTART_
                                       _transitions, _xyz)
 from services.scenario.starts import DEMONSTRATE_SEED_OFFSET, REPRODUCE_SEED_OFFSET
 
-DEFAULT_STARTS = {"valley": (0.68, -0.10, 0.40), "hose_coupler": (0.62, -0.08, 0.36)}
-VALLEY_GOAL_X = 0.42
+FRI_PREFIX = "fri_"  # the cell's keys for the FRI link's faults (robot_sim.fri.LinkFaultSpec)
+DEFAULT_STARTS = {"valley": Valley.start_left, "hose_coupler": HoseCoupler.start_left}
+VALLEY_GOAL_X = Valley.goal_x
 
 
 # --- stages ------------------------------------------------------------------------------
@@ -202,38 +205,39 @@ class ReproduceStage(_MotionStage):
 
 @dataclass(frozen=True)
 class CellSpec:
-    """The simulated cell's parameters a study may vary (``etar-bench sweep``)."""
+    """The simulated cell's parameters a study may vary (``etar-bench sweep``).  In a
+    scenario the FRI link's faults are keys of the cell's own, ``fri_<field>`` for each
+    field of ``robot_sim.fri.LinkFaultSpec`` (``fri_packet_loss``, ``fri_delay_ms``, ...)."""
 
     sensor_noise: float = 1.0  # ATI white noise, as a multiple of the Mini45's
-    plate_friction: float = 0.25  # valley: sliding friction coefficient of the plates
-    fri_packet_loss: float = 0.0  # probability that a command packet is lost on the FRI link
-    fri_delay_ms: float = 0.0  # every command packet arrives this much later, ms
-    fri_jitter_ms: float = 0.0  # and a further uniform 0..this, ms
-    fri_corruption: float = 0.0  # probability that a command packet arrives damaged
-    fri_duplication: float = 0.0  # probability that a command packet arrives twice
-    fri_reordering: float = 0.0  # probability that a command packet arrives after the next cycle's
-    fri_faults_from_s: float = 0.0  # the link faults act from this many seconds into each episode
-    fri_faults_until_s: float = math.inf  # ... until this many
+    plate_friction: float = Valley.friction  # valley: sliding friction coefficient of the plates
+    fri: LinkFaultSpec = LinkFaultSpec()  # the FRI link's faults
 
     def __post_init__(self):
         _set(self, "sensor_noise", _number(self.sensor_noise, "sensor_noise", 0.0))
         _set(self, "plate_friction", _number(self.plate_friction, "plate_friction", 0.0, strict=True))
-        for name in ("fri_packet_loss", "fri_corruption", "fri_duplication", "fri_reordering"):
-            p = _number(getattr(self, name), name, 0.0)
-            if p > 1.0:
-                raise ScenarioError("expected a probability in [0, 1]", path=name, value=getattr(self, name))
-            _set(self, name, p)
-        for name in ("fri_delay_ms", "fri_jitter_ms"):
-            ms = _number(getattr(self, name), name, 0.0)
-            if ms > 1000.0:
-                raise ScenarioError("expected at most 1000 ms", path=name, value=getattr(self, name))
-            _set(self, name, ms)
-        _set(self, "fri_faults_from_s", _number(self.fri_faults_from_s, "fri_faults_from_s", 0.0))
-        until = self.fri_faults_until_s
-        if not (isinstance(until, (int, float)) and not isinstance(until, bool) and until > self.fri_faults_from_s):
-            raise ScenarioError(f"expected a number of seconds > fri_faults_from_s ({self.fri_faults_from_s})",
-                                path="fri_faults_until_s", value=until)
-        _set(self, "fri_faults_until_s", float(until))
+        if not isinstance(self.fri, LinkFaultSpec):
+            raise ScenarioError("expected a LinkFaultSpec", path="fri", value=self.fri)
+
+    @classmethod
+    def keys(cls) -> list[str]:
+        """The keys of ``cell`` in a scenario."""
+        return ["sensor_noise", "plate_friction", *(FRI_PREFIX + f.name for f in dataclasses.fields(LinkFaultSpec))]
+
+    @classmethod
+    def from_keys(cls, data: Mapping) -> CellSpec:
+        """The cell of a scenario's ``cell`` mapping; a ScenarioError names the key."""
+        faults = {k[len(FRI_PREFIX):]: v for k, v in data.items() if k.startswith(FRI_PREFIX)}
+        try:
+            fri = LinkFaultSpec(**faults)
+        except LinkFaultError as err:
+            raise ScenarioError(err.problem, path=FRI_PREFIX + err.field, value=err.value) from None
+        return cls(**{k: v for k, v in data.items() if not k.startswith(FRI_PREFIX)}, fri=fri)
+
+    def to_keys(self) -> dict[str, Any]:
+        out = {"sensor_noise": self.sensor_noise, "plate_friction": self.plate_friction}
+        out.update({FRI_PREFIX + f.name: getattr(self.fri, f.name) for f in dataclasses.fields(LinkFaultSpec)})
+        return out
 
 
 Stage = Union[DemonstrateStage, LearnStage, ReproduceStage]
@@ -436,7 +440,7 @@ class Scenario:
         if self.cell == CellSpec():
             del out["cell"]
         else:
-            out["cell"] = dataclasses.asdict(self.cell)
+            out["cell"] = self.cell.to_keys()
         out["stages"] = [{stage.kind: _stage_dict(stage)} for stage in self.stages]
         return out
 
@@ -488,17 +492,23 @@ def _stage_dict(stage: Stage) -> dict[str, Any]:
 def _construct_args(cls: type, data: Mapping, path: str, source: str, exclude=frozenset()) -> dict:
     """Check ``data``'s keys against ``cls``'s fields: unknown keys and missing required ones."""
     known = [f.name for f in dataclasses.fields(cls) if f.init and f.name not in exclude]
+    required = [f.name for f in dataclasses.fields(cls) if f.name in known and f.default is dataclasses.MISSING
+                and f.default_factory is dataclasses.MISSING]
+    _check_keys(known, required, data, path, source)
+    return dict(data)
+
+
+def _check_keys(known: list, required: list, data: Mapping, path: str, source: str) -> None:
+    """Unknown keys (with the nearest known one) and missing required ones."""
     for key in data:
         if key not in known:
             close = difflib.get_close_matches(str(key), known, n=1)
             hint = f"did you mean {close[0]!r}? " if close else ""
             raise ScenarioError(f"unknown key ({hint}known keys: {', '.join(known)})",
                                 path=_join(path, str(key)), value=key, source=source)
-    for f in dataclasses.fields(cls):
-        required = f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
-        if f.name in known and required and f.name not in data:
-            raise ScenarioError("required field is missing", path=_join(path, f.name), source=source)
-    return dict(data)
+    for name in required:
+        if name not in data:
+            raise ScenarioError("required field is missing", path=_join(path, name), source=source)
 
 
 def _restart(value: Any) -> tuple:
@@ -522,9 +532,9 @@ def _parse_cell(value: Any, source: str) -> CellSpec:
         return CellSpec()
     if not isinstance(value, Mapping):
         raise ScenarioError("expected a mapping of cell parameters", path="cell", value=value, source=source)
-    args = _construct_args(CellSpec, value, "cell", source)
+    _check_keys(CellSpec.keys(), [], value, "cell", source)
     try:
-        return CellSpec(**args)
+        return CellSpec.from_keys(value)
     except ScenarioError as err:
         raise err.within("cell", source) from None
 

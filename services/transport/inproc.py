@@ -27,17 +27,17 @@ from collections import deque
 from services.nodes import NODES
 from services.runtime.bus import MonotonicClock
 from services.runtime.cycle import CycleEngine
-from services.runtime.messages import BY_TOPIC, EPISODE_SUMMARY, MessageError
-from services.transport.service import _tenth_cycle
+from services.runtime.messages import BY_TOPIC, EPISODE_SUMMARY, MessageError, estimator_instant
+from services.transport.service import tenth_cycle
 
 _UNDECODED = object()
 PROGRESS_CYCLES = 500  # how often an episode tells its progress (simulated 0.5 s)
 
 
 def _tenth_stamp(message: dict) -> bool:
-    """``_tenth_cycle`` of a message packed in this process, from its stamp instead of its bytes."""
+    """``tenth_cycle`` of a message packed in this process, from its stamp instead of its bytes."""
     stamp = message["stamp_ns"]
-    return stamp < 0 or stamp % 10_000_000 == 0
+    return stamp < 0 or estimator_instant(stamp)
 
 
 def _same(a, b) -> bool:
@@ -89,7 +89,7 @@ class InProcessBus:
             # decoding is what a network needs: a message packed in this process is handed over as it is
             msg = _UNDECODED if message is None else message
             for name, sub in subs.get(topic, ()):
-                if sub.every_tenth and not (_tenth_cycle(raw) if message is None else _tenth_stamp(message)):
+                if sub.every_tenth and not (tenth_cycle(raw) if message is None else _tenth_stamp(message)):
                     continue
                 if sub.decode:
                     if msg is _UNDECODED:

@@ -22,6 +22,7 @@ import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+from robot_sim.fri import FRI_CYCLE_NS
 from services.runtime import topics
 from services.runtime.config import config_to_args
 from services.transport.cell import ServiceLost, Start
@@ -380,7 +381,7 @@ class ServiceProcesses:
             except (TimeoutError, RuntimeError):
                 continue  # busy: the next second will tell
             if seq is not None:
-                progress(max(0, seq - first) / 1000.0)
+                progress(max(0, seq - first) * FRI_CYCLE_NS / 1e9)
         return summary
 
     def _lost_during_episode(self, started: float) -> None:

@@ -22,14 +22,13 @@ from dataclasses import dataclass, field
 import zenoh
 
 from services.runtime import topics
-from services.runtime.messages import BY_TOPIC, MessageError, MessageType
+from services.runtime.messages import (BY_TOPIC, ESTIMATOR_STRIDE, STRIDES, MessageError, MessageType,
+                                      estimator_instant)
 from services.transport.profiling import ProcessProfile
 from services.transport.session import ZenohOptions, open_session
 from services.runtime.timing import FRESH, STALE, Histogram, SequenceTracker
 
 
-# topics whose sequence numbers (robot cycles) advance by more than one per message
-STRIDES = {"estimator/phase": 10}
 # the wildcard subscription (the recorder's) takes what has arrived every BATCH_S, from
 # a queue of ~10 s of every message of a run; when full, Zenoh holds further samples
 # back (the publishers' congestion control decides what drops)
@@ -294,7 +293,7 @@ class Service:
         if topic == "**":
             return self._subscribe_all(on_message)
         message_type: MessageType | None = BY_TOPIC.get(topic)
-        stride = 10 if every_tenth else STRIDES.get(topic, 1)
+        stride = ESTIMATOR_STRIDE if every_tenth else STRIDES.get(topic, 1)
         counters = self.links.setdefault(topic, LinkCounters(sequence=SequenceTracker(stride=stride)))
 
         def deliver(raw: bytes, recv: int) -> None:
@@ -334,7 +333,7 @@ class Service:
         key = topics.key(self.run_id, topic)
         if latest:
             sub = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(
-                10 if every_tenth or keep_tenth else 1))
+                ESTIMATOR_STRIDE if every_tenth or keep_tenth else 1))
             deliver = self.profile.wrap(deliver)
             ring = sub.handler  # not the subscriber: undeclaring it while a thread waits in its recv() fails
 
@@ -343,14 +342,14 @@ class Service:
                     while True:
                         raw = ring.recv().payload.to_bytes()
                         recv = now_ns()
-                        if every_tenth and not _tenth_cycle(raw):
+                        if every_tenth and not tenth_cycle(raw):
                             raw = None
                         while (sample := ring.try_recv()) is not None:
                             newer = sample.payload.to_bytes()
-                            if every_tenth and not _tenth_cycle(newer):
+                            if every_tenth and not tenth_cycle(newer):
                                 continue
                             if raw is not None:
-                                if keep_tenth and _tenth_cycle(raw):
+                                if keep_tenth and tenth_cycle(raw):
                                     deliver(raw, recv)
                                 else:
                                     counters.skipped += 1
@@ -368,7 +367,7 @@ class Service:
         def callback(sample: zenoh.Sample) -> None:
             recv = now_ns()
             raw = sample.payload.to_bytes()
-            if every_tenth and not _tenth_cycle(raw):
+            if every_tenth and not tenth_cycle(raw):
                 return
             deliver(raw, recv)
 
@@ -411,11 +410,11 @@ class Service:
 _STAMP = re.compile(rb'^\{"seq":-?\d+,"stamp_ns":(\d+)')
 
 
-def _tenth_cycle(raw: bytes) -> bool:
-    """True for a message stamped at a multiple of 10 ms (the encoder writes seq and
+def tenth_cycle(raw: bytes) -> bool:
+    """True for a message stamped at an estimator instant (the encoder writes seq and
     stamp_ns first); anything unrecognisable passes, to be decoded and judged."""
     m = _STAMP.match(raw)
-    return m is None or m.group(1).endswith(b"0000000") or m.group(1) == b"0"
+    return m is None or estimator_instant(int(m.group(1)))
 
 
 def request(session: zenoh.Session, run_id: str, service: str, cmd: str, *, timeout: float = 10.0,

@@ -6,6 +6,7 @@ import tempfile
 
 import pytest
 
+from robot_sim.fri import LinkFaultSpec
 from services.nodes import CommanderConfig, EstimatorConfig, FtSensorConfig, RecorderConfig, RobotConfig
 from services.run.configs import node_configs
 from services.run.episode import Episodes
@@ -20,9 +21,10 @@ MODEL = support.SMOKE_MODEL
 START = [0.62, -0.06, 0.30]
 
 
-def cell(**robot):
+def cell(**faults):
+    """The reproduction's nodes in this process, the FRI link with ``faults`` (robot_sim.fri.LinkFaultSpec)."""
     return InProcessCell("inproc-test", {
-        "robot": RobotConfig(**robot), "ft_sensor": FtSensorConfig(),
+        "robot": RobotConfig(fri=LinkFaultSpec(**faults)), "ft_sensor": FtSensorConfig(),
         "recorder": RecorderConfig(out_dir=tempfile.mkdtemp()), "phase_estimator": EstimatorConfig(),
         "impedance_commander": CommanderConfig()})
 
@@ -43,14 +45,14 @@ def test_scenario_cell_parameters_reach_the_nodes(tmp_path):
                                           "cell.fri_packet_loss": 0.1})
     configs = configs_of(scenario, tmp_path)
     assert configs["ft_sensor"].noise_scale == 2.5
-    assert configs["robot"].plate_friction == 0.4 and configs["robot"].fri_packet_loss == 0.1
+    assert configs["robot"].plate_friction == 0.4 and configs["robot"].fri.packet_loss == 0.1
     assert 'friction="0.4 ' in configs["robot"].world_spec().xml
     assert configs["ft_sensor"].ati().noise_std[0] == pytest.approx(2.5 * FtSensorConfig().ati().noise_std[0])
 
 
 def test_fri_packet_loss_loses_commands_and_the_link_counts_them():
     clean = reproduce(cell(), 1.5)
-    lossy = reproduce(cell(fri_packet_loss=0.2), 1.5)
+    lossy = reproduce(cell(packet_loss=0.2), 1.5)
     assert clean["fri"]["missed"] == 0
     # where a cycle's time went, per cycle: microseconds, not the episode's total
     sections = clean["loop"]["sections"]
@@ -70,14 +72,14 @@ def test_fri_link_delay_jitter_and_corruption_degrade_the_link_as_fri_does(tmp_p
     robot = configs_of(scenario, tmp_path)["robot"]
     faults = robot.link_faults()
     assert (faults.delay_ns, faults.jitter_ns, faults.corrupt_probability) == (500_000, 1_200_000, 0.1)
-    slow = reproduce(cell(fri_delay_ms=0.5), 1.5)
+    slow = reproduce(cell(delay_ms=0.5), 1.5)
     assert slow["fri"]["missed"] == 0 and slow["fri"]["state"] == 1, slow["fri"]  # in time, but never CMD
-    late = reproduce(cell(fri_delay_ms=1.5), 1.0)
+    late = reproduce(cell(delay_ms=1.5), 1.0)
     assert late["fri"]["answered"] == 0 and late["fri"]["late"] > 900, late["fri"]
-    jittery = reproduce(cell(fri_jitter_ms=1.2), 1.5)
+    jittery = reproduce(cell(jitter_ms=1.2), 1.5)
     cycles = jittery["fri"]["answered"] + jittery["fri"]["missed"]
     assert 0.18 < jittery["fri"]["late"] / cycles < 0.32, jittery["fri"]  # U(0.1, 1.3) ms past 1 ms: 25 %
-    damaged = reproduce(cell(fri_corruption=0.1), 1.5)
+    damaged = reproduce(cell(corruption=0.1), 1.5)
     assert 0.06 < damaged["fri"]["corrupt"] / cycles < 0.14, damaged["fri"]
     for field, bad in (("fri_delay_ms", -1), ("fri_jitter_ms", 5000), ("fri_corruption", 1.5)):
         with pytest.raises(ScenarioError, match=f"cell.{field}"):
@@ -254,7 +256,7 @@ def test_duplicated_fri_commands_change_nothing_the_arm_does():
     """Copies of command packets, rejected by seq: in lockstep the arm's path is the
     clean run's to the last bit."""
     clean = reproduce(cell(), 1.5)
-    doubled = reproduce(cell(fri_duplication=0.3), 1.5)
+    doubled = reproduce(cell(duplication=0.3), 1.5)
     assert doubled["fri"]["duplicate"] + doubled["fri"]["late"] > 300, doubled["fri"]
     assert doubled["final_position"] == clean["final_position"]
     assert doubled["peak_contact_force"] == clean["peak_contact_force"]
@@ -266,7 +268,7 @@ def test_fri_fault_window_and_order_faults_are_checked_in_the_scenario(tmp_path)
                                           "cell.fri_faults_until_s": 0.8})
     robot = configs_of(scenario, tmp_path)["robot"]
     assert robot.link_faults().reorder_probability == 0.01
-    assert [robot.faults_active(t) for t in (0.4, 0.5, 0.79, 0.8)] == [False, True, True, False]
+    assert [robot.fri.active(t) for t in (0.4, 0.5, 0.79, 0.8)] == [False, True, True, False]
     for bad, field in (({"fri_duplication": 1.5}, "fri_duplication"), ({"fri_reordering": -0.1}, "fri_reordering"),
                        ({"fri_faults_from_s": 2, "fri_faults_until_s": 1}, "fri_faults_until_s"),
                        ({"fri_faults_until_s": float("nan")}, "fri_faults_until_s")):
