@@ -22,7 +22,7 @@ from services.runtime.cycle import LOCKSTEP_GIVE_UP
 from services.runtime.messages import RUNNER_EVENT
 from services.runtime.roles import PARTICIPANTS
 from services.transport.cell import Cell, ServiceLost
-from services.transport.service import now_ns
+from services.transport.subscriptions import now_ns
 
 # what the recorder waits for before it closes an episode's file
 DEMONSTRATION_TOPICS = ("robot/state", "robot/contact", "ft/wrench", "teacher/wrench")

@@ -6,7 +6,7 @@ the two ways to open one.  The choice between them is made here, once
   (``services.transport.inproc``); the recorder's MCAP writing goes to a helper
   process, since every node shares this process' CPU.
 - ``OverZenoh``: one process per role over Zenoh, realtime or lockstep
-  (``services.transport.launch``): on loopback, through a router with mutual TLS,
+  (``services.transport.zenoh_cell``): on loopback, through a router with mutual TLS,
   on hosts in network namespaces, or attached to services someone else started.
 """
 
@@ -122,13 +122,13 @@ class OverZenoh:
         """The runner's session (the run's router with ``tls`` or ``hosts``), with the hosts
         up; ``start()`` then spawns the services."""
         from services.transport.hosts import Hosts
-        from services.transport.launch import ServiceProcesses
+        from services.transport.zenoh_cell import ZenohCell
 
         hosts = Hosts(self.hosts) if self.hosts is not None else None
         if hosts is not None:
             hosts.up()
         try:
-            return ServiceProcesses(run_id, start, configs, attach=self.attach, zenoh=self.zenoh, tls=self.tls,
+            return ZenohCell(run_id, start, configs, attach=self.attach, zenoh=self.zenoh, tls=self.tls,
                                     hosts=hosts)
         except BaseException:
             if hosts is not None:

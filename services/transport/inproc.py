@@ -28,7 +28,7 @@ from services.nodes import NODES
 from services.runtime.bus import MonotonicClock
 from services.runtime.cycle import CycleEngine
 from services.runtime.messages import BY_TOPIC, EPISODE_SUMMARY, MessageError, estimator_instant
-from services.transport.service import tenth_cycle
+from services.transport.subscriptions import tenth_cycle
 
 _UNDECODED = object()
 PROGRESS_CYCLES = 500  # how often an episode tells its progress (simulated 0.5 s)

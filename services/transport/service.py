@@ -12,65 +12,17 @@ from __future__ import annotations
 
 import json
 import queue
-import re
 import signal
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
 
 import zenoh
 
 from services.runtime import topics
-from services.runtime.messages import (BY_TOPIC, ESTIMATOR_STRIDE, STRIDES, MessageError, MessageType,
-                                      estimator_instant)
 from services.transport.profiling import ProcessProfile
 from services.transport.session import ZenohOptions, open_session
-from services.runtime.timing import FRESH, STALE, Histogram, SequenceTracker
-
-
-# the wildcard subscription (the recorder's) takes what has arrived every BATCH_S, from
-# a queue of ~10 s of every message of a run; when full, Zenoh holds further samples
-# back (the publishers' congestion control decides what drops)
-BATCH_S = 0.005
-BATCH_CAPACITY = 50_000
-# older messages in a row after which a link takes them as its stream again: a replayed
-# copy comes between new ones, the real stream behind a forged far-ahead seq does not
-# (50 cycles: FRI command mode drops, and comes back, rather than the link going silent)
-RESYNC_AFTER = 50
-
-
-def now_ns() -> int:
-    return time.monotonic_ns()
-
-
-@dataclass
-class LinkCounters:
-    """Per subscribed topic, at the receiving end: what arrived, what was garbage,
-    one-way latency (publish -> this callback, same-host CLOCK_MONOTONIC) and
-    lost / out-of-order messages from the sequence numbers.  ``skipped``: messages
-    a ``latest`` subscriber passed over for a newer one (also in ``lost``).
-    ``dropped``: duplicates and messages older than one already delivered, which
-    are counted (``duplicates``, ``out_of_order``) but not handed to the node;
-    ``resyncs``: times ``RESYNC_AFTER`` older messages in a row made the link take
-    them as its stream again (the newest had been forged far ahead)."""
-
-    received: int = 0
-    bad: int = 0
-    skipped: int = 0
-    dropped: int = 0
-    resyncs: int = 0
-    stale_run: int = 0
-    last_error: str = ""
-    latency: Histogram = field(default_factory=Histogram)
-    sequence: SequenceTracker = field(default_factory=SequenceTracker)
-
-    def to_dict(self) -> dict:
-        seq = self.sequence.to_dict()
-        return {"received": self.received, "bad": self.bad, "skipped": self.skipped, "dropped": self.dropped,
-                "resyncs": self.resyncs, "last_error": self.last_error,
-                "latency": self.latency.summary(), "lost": seq["lost"], "out_of_order": seq["out_of_order"],
-                "duplicates": seq["duplicates"]}
+from services.transport.subscriptions import LinkCounters, subscribe, subscribe_all
 
 
 def _plain(value):
@@ -259,162 +211,17 @@ class Service:
 
     def subscribe(self, topic: str, on_message, *, decode: bool = True, every_tenth: bool = False,
                   latest: bool = False, keep_tenth: bool = False):
-        """Deliver (message dict, receive time ns, raw bytes) for every valid
-        sample on etar/<run_id>/<topic>; garbage (including payloads over
-        ``MAX_PAYLOAD_BYTES``) is counted in ``links``, never raised, and so are
-        duplicates and messages older than the newest delivered (by ``seq``),
-        which are dropped.
-
-        ``every_tenth``: only the messages of every tenth robot cycle (stamp a
-        multiple of 10 ms), told from the raw bytes before anything is decoded: a
-        100 Hz consumer of a 1 kHz topic then pays for the other nine at the cost
-        of a byte comparison.
-
-        ``latest``: for a realtime consumer that needs only the current data (the
-        sensor, the estimator, the commander's measurements).  When it gets to the
-        next message it takes the newest one that has arrived and skips the older
-        ones: one that fell behind (a stall, a crowded CPU) starts again from the
-        present instead of working through a stale backlog.  Skipped messages are
-        never decoded; they show as gaps in the sequence numbers (``lost``) and, as
-        far as this process saw them, in ``skipped``.  Zenoh keeps the newest
-        samples in a ring (``zenoh.handlers.RingChannel``: 1 sample, 10 with
-        ``every_tenth`` so that a tenth cycle is among them) and drops older ones
-        without waking Python; one thread of this process drains it.  Never for
-        the recorder or for lockstep, which need every message.  ``keep_tenth``
-        (with ``latest``): a tenth cycle's message in the backlog is delivered
-        before the newest instead of skipped (the sensor: the estimator needs the
-        wrench of every tenth cycle); the ring then holds 10.
-
-        ``"**"`` (every topic of the run, undecoded: the recorder's): Zenoh queues
-        the samples (``FifoChannel``) and one thread takes what has come every
-        ``BATCH_S``, so a consumer that needs every message but not at once wakes a
-        few hundred times a second instead of once per message.
-        Returns the subscriber (for ``unsubscribe``)."""
+        """Deliver (message dict, receive time ns, raw bytes) for every valid sample on
+        etar/<run_id>/<topic>, its link counted in ``links``; ``"**"``: every topic of the
+        run, undecoded, in batches (``services.transport.subscriptions``).  Returns the
+        subscriber (for ``unsubscribe``)."""
         if topic == "**":
-            return self._subscribe_all(on_message)
-        message_type: MessageType | None = BY_TOPIC.get(topic)
-        stride = ESTIMATOR_STRIDE if every_tenth else STRIDES.get(topic, 1)
-        counters = self.links.setdefault(topic, LinkCounters(sequence=SequenceTracker(stride=stride)))
-
-        def deliver(raw: bytes, recv: int) -> None:
-            counters.received += 1
-            msg = None
-            if decode and message_type is not None:
-                try:
-                    msg = message_type.decode(raw)
-                except MessageError as exc:
-                    counters.bad += 1
-                    counters.last_error = str(exc)
-                    return
-                counters.latency.add(recv - msg["sent_ns"])
-                verdict = counters.sequence.add(msg["seq"])
-                if verdict is STALE:
-                    counters.stale_run += 1
-                    if counters.stale_run >= RESYNC_AFTER:
-                        # this many older ones in a row are the stream itself: the newest
-                        # seen was forged far ahead, and would otherwise silence the link
-                        counters.sequence.resync(msg["seq"])
-                        counters.resyncs += 1
-                        verdict = FRESH
-                if verdict is not FRESH:
-                    # a copy, or older than what was acted on: within a run every topic's
-                    # seq only grows (one robot, its FRI cycles), so this is a replay or a
-                    # duplicate from the network or a foreign peer; acting on it would
-                    # answer a cycle twice or go back in time
-                    counters.dropped += 1
-                    return
-                counters.stale_run = 0
-            try:
-                on_message(msg, recv, raw)
-            except Exception as exc:  # a bad message must not kill the subscriber thread
-                counters.bad += 1
-                counters.last_error = f"{type(exc).__name__}: {exc}"
-
-        key = topics.key(self.run_id, topic)
-        if latest:
-            sub = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(
-                ESTIMATOR_STRIDE if every_tenth or keep_tenth else 1))
-            deliver = self.profile.wrap(deliver)
-            ring = sub.handler  # not the subscriber: undeclaring it while a thread waits in its recv() fails
-
-            def drain() -> None:
-                try:
-                    while True:
-                        raw = ring.recv().payload.to_bytes()
-                        recv = now_ns()
-                        if every_tenth and not tenth_cycle(raw):
-                            raw = None
-                        while (sample := ring.try_recv()) is not None:
-                            newer = sample.payload.to_bytes()
-                            if every_tenth and not tenth_cycle(newer):
-                                continue
-                            if raw is not None:
-                                if keep_tenth and tenth_cycle(raw):
-                                    deliver(raw, recv)
-                                else:
-                                    counters.skipped += 1
-                            raw, recv = newer, now_ns()
-                        if raw is not None:
-                            deliver(raw, recv)
-                except zenoh.ZError:
-                    return  # undeclared: the ring is closed
-
-            # started from the thread that subscribes: under --sched-fifo it inherits the policy
-            threading.Thread(target=drain, name=f"latest {topic}", daemon=True).start()
-            self._subscribers.append(sub)
-            return sub
-
-        def callback(sample: zenoh.Sample) -> None:
-            recv = now_ns()
-            raw = sample.payload.to_bytes()
-            if every_tenth and not tenth_cycle(raw):
-                return
-            deliver(raw, recv)
-
-        # Zenoh's default hands each sample to a Python thread.  Running the callback on
-        # the network thread itself (Callback(indirect=False)) was measured worse: a
-        # callback that publishes (the sensor) then blocks reception, and the sensor fell
-        # 150 ms behind instead of 0.75 ms (hold run, 2 CPUs); no gain for the FRI link
-        sub = self.session.declare_subscriber(key, self.profile.wrap(callback))
+            sub = subscribe_all(self.session, self.run_id, on_message, self.profile, self.stop)
+        else:
+            sub = subscribe(self.session, self.run_id, topic, on_message, self.links, self.profile, decode=decode,
+                            every_tenth=every_tenth, latest=latest, keep_tenth=keep_tenth)
         self._subscribers.append(sub)
         return sub
-
-    def _subscribe_all(self, on_sample):
-        """Every sample of the run, undecoded and in batches: ``on_sample(topic, receive
-        time ns, raw bytes, None)``, the receive time that of the batch's turn."""
-        prefix = topics.prefix(self.run_id) + "/"
-        cut = len(prefix)
-        sub = self.session.declare_subscriber(prefix + "**", zenoh.handlers.FifoChannel(BATCH_CAPACITY))
-        fifo = sub.handler
-        stop = self.stop
-
-        @self.profile.wrap
-        def take(sample) -> None:
-            on_sample(str(sample.key_expr)[cut:], now_ns(), sample.payload.to_bytes(), None)
-
-        def drain() -> None:
-            try:
-                while True:
-                    take(fifo.recv())  # the first of a batch: blocks until something comes
-                    while (sample := fifo.try_recv()) is not None:
-                        take(sample)
-                    stop.wait(BATCH_S)
-            except zenoh.ZError:
-                return  # undeclared: the channel is closed
-
-        threading.Thread(target=drain, name="batched **", daemon=True).start()
-        self._subscribers.append(sub)
-        return sub
-
-
-_STAMP = re.compile(rb'^\{"seq":-?\d+,"stamp_ns":(\d+)')
-
-
-def tenth_cycle(raw: bytes) -> bool:
-    """True for a message stamped at an estimator instant (the encoder writes seq and
-    stamp_ns first); anything unrecognisable passes, to be decoded and judged."""
-    m = _STAMP.match(raw)
-    return m is None or estimator_instant(int(m.group(1)))
 
 
 def request(session: zenoh.Session, run_id: str, service: str, cmd: str, *, timeout: float = 10.0,

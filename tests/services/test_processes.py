@@ -100,7 +100,7 @@ def test_garbage_is_dropped_and_counted_valid_messages_are_answered(ft_sensor):
     assert links["bad"] == 4 and "byte limit" in links["last_error"], links
     # a well-formed message forged far ahead is taken (it is the newest), then the real
     # stream, older than it, is dropped until RESYNC_AFTER of it in a row resynchronise the link
-    from services.transport.service import RESYNC_AFTER
+    from services.transport.subscriptions import RESYNC_AFTER
 
     n = len(got)
     for seq in (10**12, *range(12, 81)):
