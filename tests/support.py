@@ -3,8 +3,12 @@ processes of a run."""
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
+
+import numpy as np
+from mcap.reader import make_reader
 
 from services.run.options import RunOptions
 from services.run.runner import Runner
@@ -56,3 +60,46 @@ def service_pid(role: str, run_id: str) -> int | None:
         if at >= 0 and argv[at:at + 2] == program and run_id.encode() in argv:
             return int(pid)
     return None
+
+
+# the demonstrations' sample instants, 100 Hz on simulated time, written out here: the
+# oracle below does not take it from the code it checks
+SAMPLE_PERIOD_NS = 10_000_000
+
+
+def recorded_samples(path, period_ns: int | None = SAMPLE_PERIOD_NS) -> dict:
+    """An episode's recording as arrays, read with mcap's own reader and plain ``json``:
+    an oracle that shares no code with ``load_demonstration`` (nor with the services'
+    message decoding).
+
+    The robot cycles that have a ``robot/state`` of the episode (not ``episode`` -1, the
+    arm resting while the sensor is tared), an ``ft/wrench`` and a ``robot/contact``, the
+    first message of each cycle, at the stamps that are multiples of ``period_ns`` (None:
+    every cycle).  Arrays: ``seq``, ``stamp_ns``, ``pose`` (T, 12) msr_cart_pos,
+    ``position`` (T, 3), ``R`` (T, 3, 3), ``safety`` (the KRC's), ``wrench`` (T, 6) the
+    tared sensor's, sensor frame, ``wrench_base`` (T, 6) the same in base axes (R f,
+    R tau), ``contact_force`` (T, 3) the physics', base frame, ``true_phase`` (T,)."""
+    tables: dict[str, dict[int, dict]] = {"/robot/state": {}, "/ft/wrench": {}, "/robot/contact": {}}
+    with open(path, "rb") as f:
+        for _, channel, message in make_reader(f).iter_messages(log_time_order=True):
+            table = tables.get(channel.topic)
+            if table is None:
+                continue
+            msg = json.loads(message.data)
+            table.setdefault(msg["seq"], msg)
+    states, wrenches, contacts = tables.values()
+    cycles = sorted(seq for seq, s in states.items() if s["episode"] != -1 and seq in wrenches and seq in contacts
+                    and (period_ns is None or s["stamp_ns"] % period_ns == 0))
+    pose = np.array([states[s]["msr_cart_pos"] for s in cycles], dtype=np.float64).reshape(-1, 12)
+    R = pose.reshape(-1, 3, 4)[:, :, :3]
+    wrench = np.array([wrenches[s]["wrench"] for s in cycles], dtype=np.float64).reshape(-1, 6)
+    return dict(
+        seq=np.array(cycles, dtype=np.int64),
+        stamp_ns=np.array([states[s]["stamp_ns"] for s in cycles], dtype=np.int64),
+        pose=pose, position=pose.reshape(-1, 3, 4)[:, :, 3], R=R,
+        safety=np.array([states[s]["safety"] for s in cycles], dtype=np.int64),
+        wrench=wrench,
+        wrench_base=np.concatenate([np.einsum("tij,tj->ti", R, wrench[:, :3]),
+                                    np.einsum("tij,tj->ti", R, wrench[:, 3:])], axis=1),
+        contact_force=np.array([contacts[s]["contact_force"] for s in cycles], dtype=np.float64).reshape(-1, 3),
+        true_phase=np.array([contacts[s]["true_phase"] for s in cycles], dtype=np.int64))

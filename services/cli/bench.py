@@ -1,6 +1,7 @@
 """``etar-bench``: run scenarios and read their reports.
 
     etar-bench run SCENARIO [--out DIR] [--clock realtime|lockstep] [--transport zenoh|inproc] [--foxglove [PORT]]
+    etar-bench demo [--world valley|hose_coupler] [--side left|right] [--png FILE] [--npz FILE]
     etar-bench sweep SCENARIO --param PATH=V1,V2,... [--repeats N] --out DIR [--cluster ADDRESS]
     etar-bench report RUN_DIR
     etar-bench recover FILE... [--out FILE]
@@ -19,6 +20,8 @@ import signal
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 from services.cli.zenoh_flags import add_zenoh_arguments, zenoh_options
 from services.runtime.visual_topics import VISUAL_RATE_HZ, check_visual_rate
@@ -92,6 +95,56 @@ def summary_line(report: dict, out) -> str:
     if report["error"] is not None:
         return f"{report['scenario']}: RUN FAILED ({report['error']}); " + "; ".join(parts + [f"partial {where}"])
     return f"{report['scenario']}: " + "; ".join(parts + [where])
+
+
+def cmd_demo(args) -> int:
+    """One demonstration by the teacher, run by the nodes in one process; its recording,
+    and on request a picture and the arrays ``etar learn`` reads."""
+    from robot_sim.labels import LABELERS
+    from services.recordings.demonstrations import load_demonstration
+    from services.recordings.format import RecordingError
+    from services.run.demonstration import demonstration_scenario, record_demonstration
+    from services.scenario import ScenarioError
+
+    out = args.out or f"runs/demo-{args.world}-{time.strftime('%Y%m%d-%H%M%S')}"
+    for flag, path in (("--png", args.png), ("--npz", args.npz)):
+        if path is not None and not Path(path).expanduser().resolve().parent.is_dir():
+            _say(f"etar-bench demo: error: {flag} {path}: the folder {Path(path).parent} does not exist")
+            return 2
+    try:
+        scenario = demonstration_scenario(args.world, side=args.side, seed=args.seed, spread=args.spread,
+                                          max_seconds=args.max_seconds)
+    except ScenarioError as exc:
+        field = exc.path.rsplit(".", 1)[-1]
+        flag = {"sides": "--side", "start_spread": "--spread", "max_seconds": "--max-seconds"}.get(field, f"--{field}")
+        _say(f"etar-bench demo: error: {flag}: {exc.problem}" + (f", got {exc.value!r}" if exc.has_value else ""))
+        return 2
+    report, recording = record_demonstration(scenario, out, progress=_say)
+    if report["error"] is not None:
+        _say(f"etar-bench demo: the demonstration failed: {report['error']} (run folder {out})")
+        return 1
+    (d,) = report["demonstrations"]
+    try:
+        demo = load_demonstration(recording)
+    except RecordingError as exc:  # e.g. too short to give two samples
+        _say(f"etar-bench demo: the demonstration ended {d['reason']} after {d['sim_seconds']:.3f} s simulated and "
+             f"gives no demonstration to learn from: {exc}")
+        return 1
+    counts = np.bincount(demo["phases"]).tolist()
+    _say(f"{args.world} demonstration ({args.side}): {d['reason']} after {d['sim_seconds']:.2f} s simulated, "
+         f"{len(demo['states'])} samples at {1 / demo['dt']:.0f} Hz, steps per true phase {counts}; "
+         f"recording {recording}")
+    if args.png:
+        from services.results.figures import demonstration_figure
+
+        demonstration_figure(demo, Path(args.png), f"{args.world} demonstration (seed {args.seed})",
+                             LABELERS[args.world].names)
+        _say(f"wrote {args.png}")
+    if args.npz:
+        np.savez(args.npz, states=demo["states"], forces=demo["forces"], phases=demo["phases"],
+                 dt=np.float64(demo["dt"]), t=demo["t"])
+        _say(f"wrote {args.npz} (etar learn {args.npz} ... reads it)")
+    return 0 if d["reason"] == "teacher_done" else 1
 
 
 def cmd_sweep(args) -> int:
@@ -289,6 +342,17 @@ def build_parser() -> argparse.ArgumentParser:
                         "draws them later)")
     add_zenoh_arguments(p)
     p.set_defaults(func=cmd_run)
+    p = sub.add_parser("demo", help="one demonstration by the simulated teacher, in one process: its recording, "
+                                    "and on request a picture and the arrays etar learn reads")
+    p.add_argument("--world", choices=("valley", "hose_coupler"), default="valley", help="the task world")
+    p.add_argument("--side", choices=("left", "right"), default="left", help="valley: starting side (default left)")
+    p.add_argument("--seed", type=int, default=0, help="the scenario's seed (default 0)")
+    p.add_argument("--spread", type=float, default=0.0, help="random start offset per axis, m (default 0)")
+    p.add_argument("--max-seconds", type=float, default=60.0, help="simulated-time limit (default 60)")
+    p.add_argument("--out", help="run folder for the recording (default runs/demo-<world>-<time>)")
+    p.add_argument("--png", help="write a picture of the demonstration here")
+    p.add_argument("--npz", help="write its arrays here (states, forces, phases, dt: what etar learn reads)")
+    p.set_defaults(func=cmd_demo)
     p = sub.add_parser("sweep", help="run every combination of scenario parameters x seeds in parallel, "
                                      "in-process; a table and plots",
                        description=__import__("services.run.sweep", fromlist=["x"]).__doc__,

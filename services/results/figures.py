@@ -89,6 +89,42 @@ def demonstrations_figure(demos, out: Path) -> Path:
     return _save(fig, out / "demonstrations_position_and_force.png")
 
 
+def demonstration_figure(demo: dict, path: Path, title: str = "", phase_names=()) -> Path:
+    """One demonstration (``load_demonstration``'s arrays): the 3-D tool path coloured by the
+    true phase, beside the tool position and the (tared) force in base axes over time
+    (thesis fig. 13 and 15b)."""
+    plt = _plt()
+    p, t = demo["states"][:, :3], demo["t"]
+    # a sample's phase is the phase of the step into it (the first sample: the first step's)
+    ph = np.concatenate([demo["phases"][:1], demo["phases"]]).astype(int)
+    names = list(phase_names) or [f"phase {k}" for k in range(int(ph.max()) + 1)]
+    colours = _phase_colors(int(ph.max()) + 1)
+    fig = plt.figure(figsize=(13, 5.5))
+    ax = fig.add_subplot(1, 2, 1, projection="3d")
+    for k in np.unique(ph):
+        sel = ph == k
+        ax.scatter(p[sel, 0], p[sel, 1], p[sel, 2], s=3, color=colours[k], label=names[k])
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_zlabel("z [m]")
+    ax.legend(loc="upper left")
+    ax.set_title(title or "tool path (tip centre), coloured by true phase")
+    axp = fig.add_subplot(2, 2, 2)
+    axf = fig.add_subplot(2, 2, 4, sharex=axp)
+    for i, c in enumerate("xyz"):
+        axp.plot(t, p[:, i], label=c)
+        axf.plot(t, demo["forces"][:, i], label=f"F{c}")
+    for ax_ in (axp, axf):
+        for b in _boundaries(ph):
+            ax_.axvline(t[b], color="k", lw=0.8, ls="--")
+        ax_.legend(loc="upper right", fontsize=8)
+        ax_.grid(alpha=0.3)
+    axp.set_ylabel("position [m]")
+    axf.set_ylabel("force on tool [N]")
+    axf.set_xlabel("time [s]  (dashed: true phase changes)")
+    return _save(fig, Path(path))
+
+
 def bic_figure(selection: dict, out: Path) -> Path | str:
     per = selection.get("per_demonstration") or []
     pooled = selection.get("scores") or {}

@@ -7,23 +7,20 @@ import re
 import signal
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
 from mcap.reader import make_reader
 from scipy.spatial.transform import Rotation
 
-from robot_sim.cell import RobotCell
-from robot_sim.demonstration import settle_and_tare
-from robot_sim.teacher import DOWN, ValleyTeacher
-from robot_sim.worlds import valley
 from services.recordings.writer import EpisodeWriter
 from services.recordings.format import RecordingError
 from services.recordings.demonstrations import load_demonstration
 from services.recordings.reader import read_episode
 from services.runtime.messages import (BY_TOPIC, ESTIMATOR_PHASE, FT_WRENCH, ROBOT_COMMAND, ROBOT_CONTACT,
                                        ROBOT_STATE, RUNNER_EVENT, TEACHER_WRENCH)
+from services.run.demonstration import demonstration_scenario, record_demonstration
+from tests.support import recorded_samples
 
 RUN = "r42"
 SCENARIO = "name: valley\nstages:\n  - demonstrate: {episodes: 1}\n"
@@ -341,58 +338,24 @@ def test_corrupt_or_foreign_files_raise_naming_the_file(tmp_path, long_episode):
 
 @pytest.fixture(scope="module")
 def simulated_demo(tmp_path_factory):
-    """A short valley demonstration (all three phases) recorded as the services
-    publish it, every cycle, and the record_demonstration-style reference at 100 Hz."""
-    cell = RobotCell(valley(), seed=0)
-    start = np.array([0.68, 0.06, 0.34])  # close to the plate, so all three phases fit in ~5 s
-    cell.place_tcp(start, DOWN)
-    cell.start()
-    settle_and_tare(cell)
-    teacher = ValleyTeacher(cell.world.task, start, goal_x=0.60, rng=np.random.default_rng(0))
-    cfg = cell.ati_config
-    dt_cycle = cell.cycle_ns * 1e-9
-    true_wrench = np.zeros(6)
-    ref = dict(position=[], R=[], force=[], torque=[], phase=[], stamp=[])
-    path = tmp_path_factory.mktemp("demo") / "demo_000.mcap"
-    with EpisodeWriter(path, run_id=RUN, episode_kind="demonstration", episode_index=0,
-                       scenario_text=SCENARIO) as w:
-        for k in range(int(8.0 / dt_cycle)):
-            m = cell.begin_cycle()
-            pose = m.msr_cart_pos.reshape(3, 4)
-            twist = cell.tcp_twist()
-            hand = teacher.step(dt_cycle, pose[:, 3], twist[:3], pose[:, :3], twist[3:],
-                                cell.sim.contact_wrench()[0], cell.sim.touching())
-            out = cell.end_cycle(hand)
-            teacher.update_label(out.touching)
-            cell.sim.sensor_wrench(true_wrench)
-            hdr = dict(seq=m.seq, stamp_ns=m.stamp_ns)
-            w.add(key("robot/state"), ROBOT_STATE.encode(
-                **hdr, sent_ns=time.monotonic_ns(), reflected_seq=m.reflected_seq, fri_state=int(m.state),
-                fri_quality=int(m.quality), control_mode=int(m.control_mode), msr_jnt_pos=m.msr_jnt_pos,
-                msr_cart_pos=m.msr_cart_pos, est_ext_tcp_ft=m.est_ext_tcp_ft, answer_rate=m.answer_rate,
-                latency_s=m.latency_s, jitter_s=m.jitter_s, miss_rate=m.miss_rate, safety=int(cell.krc.safety),
-                gravity_compensation=True, episode=0), time.monotonic_ns())
-            w.add(key("robot/contact"), ROBOT_CONTACT.encode(
-                **hdr, sent_ns=time.monotonic_ns(), wrench=true_wrench, contact_force=out.contact_force,
-                touching=list(out.touching), true_phase=teacher.true_phase, episode=0), time.monotonic_ns())
-            wrench = out.ft.wrench(cfg)
-            w.add(key("ft/wrench"), FT_WRENCH.encode(
-                **hdr, sent_ns=time.monotonic_ns(), rdt_sequence=out.ft.rdt_sequence,
-                ft_sequence=out.ft.ft_sequence, status=out.ft.status, counts=out.ft.counts,
-                counts_per_force=float(cfg.counts_per_force), counts_per_torque=float(cfg.counts_per_torque),
-                wrench=wrench), time.monotonic_ns())
-            if k % 10 == 0:  # record_demonstration's 100 Hz sampling
-                R = pose[:, :3]
-                ref["position"].append(pose[:, 3].copy())
-                ref["R"].append(R.copy())
-                ref["force"].append(R @ wrench[:3])
-                ref["torque"].append(R @ wrench[3:])
-                ref["phase"].append(teacher.true_phase)
-                ref["stamp"].append(m.stamp_ns)
-            if teacher.done:
-                break
-    assert teacher.done and w.bad_payloads == 0
-    return path, {k: np.array(v) for k, v in ref.items()}
+    """A short valley demonstration (all three phases) run by the nodes and recorded as
+    they publish it, every cycle, and the reference at 100 Hz read from the recording's
+    messages with plain json (``tests.support.recorded_samples``, which shares no code
+    with load_demonstration)."""
+    # close to the plate, so all three phases fit in a few seconds; the right side: y = +0.06
+    scenario = demonstration_scenario("valley", side="right", start=(0.68, -0.06, 0.34), goal_x=0.60,
+                                      max_seconds=8.0, seed=0)
+    report, path = record_demonstration(scenario, tmp_path_factory.mktemp("demo"), progress=lambda line: None)
+    assert report["error"] is None, report["error"]
+    (demo,) = report["demonstrations"]
+    assert demo["reason"] == "teacher_done" and demo["start"] == [0.68, 0.06, 0.34]
+    assert demo["undecodable_messages"] == 0
+    samples = recorded_samples(path)
+    R = samples["R"]
+    ref = dict(position=samples["position"], R=R, force=np.einsum("tij,tj->ti", R, samples["wrench"][:, :3]),
+               torque=np.einsum("tij,tj->ti", R, samples["wrench"][:, 3:]), phase=samples["true_phase"],
+               stamp=samples["stamp_ns"])
+    return path, ref
 
 
 def test_load_demonstration_matches_the_simulation(simulated_demo):
