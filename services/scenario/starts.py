@@ -12,7 +12,7 @@ from services.scenario.checks import (MAX_START_DRAWS, SIDES, WORLDS, ScenarioEr
                                       _xyz)
 
 if TYPE_CHECKING:
-    from services.scenario.model import DemonstrateStage, ReproduceStage
+    from services.scenario.stages import DemonstrateStage, ReproduceStage
 
 # Offsets keep demonstrations, learning and reproductions on independent random streams
 # even when every stage inherits the scenario's seed.

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.scenario.model import DEFAULT_STARTS, DemonstrateStage, LearnStage, ReproduceStage, Scenario
+from services.scenario import DEFAULT_STARTS, DemonstrateStage, LearnStage, ReproduceStage, Scenario
 from services.scenario.checks import MAX_START_DRAWS, ScenarioError
 from services.scenario.starts import demonstration_starts, reproduction_starts
 from services.scenario.loading import load_scenario
