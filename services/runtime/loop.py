@@ -15,6 +15,7 @@ import os
 import time
 from dataclasses import dataclass, field
 
+from services.runtime.bus import MonotonicClock
 from services.runtime.timing import Histogram
 
 
@@ -76,19 +77,21 @@ class LoopTiming:
 
 
 class AbsoluteDeadlineTimer:
-    """Wakes at t0 + k * period (CLOCK_MONOTONIC)."""
+    """Wakes at t0 + k * period on ``clock`` (``services.runtime.bus``: CLOCK_MONOTONIC by
+    default, a fake one in tests)."""
 
-    def __init__(self, period_ns: int):
+    def __init__(self, period_ns: int, clock=None):
         self.period_ns = period_ns
-        self.next_deadline = time.monotonic_ns() + period_ns
+        self.clock = clock or MonotonicClock()
+        self.next_deadline = self.clock.now_ns() + period_ns
 
     def wait(self) -> tuple[int, int]:
         """Sleep until the next deadline; returns (deadline, wake time)."""
         deadline = self.next_deadline
-        now = time.monotonic_ns()
+        now = self.clock.now_ns()
         if deadline > now:
-            time.sleep((deadline - now) / 1e9)
-        wake = time.monotonic_ns()
+            self.clock.sleep((deadline - now) / 1e9)
+        wake = self.clock.now_ns()
         self.next_deadline = deadline + self.period_ns
         if wake >= self.next_deadline:
             # overran by whole periods: drop them instead of bursting to catch up

@@ -16,24 +16,14 @@ import pytest
 import yaml
 
 from services.cli import bench as bench_cli
-from services import ft_sensor
-from services import impedance_commander
-from services import phase_estimator
-from services import recorder
-from services import robot
-from services import teacher
+from services.cli import roles
+from services.runtime.roles import ROLES as ALL_ROLES
 
 ROOT = Path(__file__).resolve().parents[2]
-PARSERS = {
-    "etar-bench": bench_cli.build_parser,
-    "etar-robot": robot.build_parser,
-    "etar-ft-sensor": ft_sensor.build_parser,
-    "etar-teacher": teacher.build_parser,
-    "etar-phase-estimator": phase_estimator.build_parser,
-    "etar-impedance-commander": impedance_commander.build_parser,
-    "etar-recorder": recorder.build_parser,
-}
-ROLES = {"robot", "ft_sensor", "teacher", "phase_estimator", "impedance_commander", "recorder"}
+PARSERS = {"etar-bench": bench_cli.build_parser,
+           **{r.program: (lambda name=name: roles.build_parser(name)) for name, r in ALL_ROLES.items()}}
+# every role of a run but the live view's bridge (compose runs no live view)
+ROLES = set(ALL_ROLES) - {"foxglove_bridge"}
 
 
 def expand(text: str) -> str:
@@ -78,6 +68,8 @@ def _podman_ready() -> tuple[bool, str]:
 
 
 @pytest.mark.compose
+@pytest.mark.slow
+@pytest.mark.zenoh
 def test_smoke_scenario_on_docker_compose_with_podman(tmp_path):
     ok, why = _podman_ready()
     if not ok:

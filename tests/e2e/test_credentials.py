@@ -15,6 +15,9 @@ from services.transport.credentials import CredentialsError, client_options, mak
 from services.transport.session import ZenohOptions, open_session
 from tests import support
 
+# a whole run (or the service processes) over Zenoh: the slow lane
+pytestmark = [pytest.mark.slow, pytest.mark.zenoh]
+
 
 def test_only_the_runs_credentials_get_a_message_into_or_out_of_it(tmp_path):
     creds = make_credentials(tmp_path / "run", roles=("runner", "robot", "ft_sensor", "teacher", "phase_estimator",

@@ -10,6 +10,7 @@ from etar.cli import main as etar_main
 from services.cli.bench import main
 
 
+@pytest.mark.slow
 def test_demo_writes_png_and_npz_that_etar_learns_from(tmp_path, capsys):
     png, npz, out = tmp_path / "valley.png", tmp_path / "valley.npz", tmp_path / "run"
     assert main(["demo", "--world", "valley", "--side", "right", "--seed", "2", "--png", str(png),

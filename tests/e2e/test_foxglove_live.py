@@ -2,6 +2,7 @@
 over Zenoh (`etar-bench run --foxglove`) and receives the advertised visual channels and
 their messages; and the live view changes nothing the run records or does."""
 
+import pytest
 import asyncio
 import json
 import re
@@ -15,6 +16,9 @@ from services.foxglove.scene import FRAMES
 from services.recordings.reader import recorded_content
 from services.runtime.visual_topics import SCHEMA_NAMES
 from tests import support
+
+# a whole run (or the service processes) over Zenoh: the slow lane
+pytestmark = [pytest.mark.slow, pytest.mark.zenoh]
 # foxglove-sdk's server names the protocol foxglove.sdk.v1, the wire format of
 # foxglove.websocket.v1; it refuses a client that offers only the old name (HTTP 400)
 SUBPROTOCOLS = ["foxglove.websocket.v1", "foxglove.sdk.v1"]

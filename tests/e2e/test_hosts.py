@@ -20,6 +20,9 @@ from services.transport.session import ZenohOptions, open_session
 from tests import support
 from tests.support import ROOT
 
+# a whole run (or the service processes) over Zenoh: the slow lane
+pytestmark = [pytest.mark.slow, pytest.mark.zenoh]
+
 LAYOUT = "robot,ft_sensor:phase_estimator,impedance_commander:recorder,teacher"
 
 FOREIGN = """

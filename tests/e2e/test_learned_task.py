@@ -1,11 +1,15 @@
 """A model made by ``etar learn`` from a run's recordings is a learned task a scenario
 can reproduce (``model:``), the same as the runner's own learn stage makes."""
 
+import pytest
 import json
 
 from services.cli.etar import main as etar
 from services.scenario import Scenario
 from tests import support
+
+# whole runs in one process (seconds each): the slow lane
+pytestmark = [pytest.mark.slow]
 
 
 def test_a_model_learned_by_etar_learn_is_reproduced_by_a_scenario(tmp_path):

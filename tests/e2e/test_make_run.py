@@ -6,10 +6,14 @@ gave the runner an absolute ``--out``, and only a relative one made the recorder
 join the folder twice (out/valley/recordings/out/valley/recordings/...).  So this
 test goes through the Makefile itself, on the smoke scenario (``SCENARIO=``, ``OUT=``)."""
 
+import pytest
 import json
 import os
 import subprocess
 from pathlib import Path
+
+# whole runs in one process (seconds each): the slow lane
+pytestmark = [pytest.mark.slow]
 
 ROOT = Path(__file__).resolve().parents[2]
 

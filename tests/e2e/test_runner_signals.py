@@ -1,6 +1,7 @@
 """`etar-bench run` stopped with SIGTERM (kill, docker stop) stops the services it
 started and leaves a report, instead of leaving six orphans behind."""
 
+import pytest
 import json
 import os
 import signal
@@ -10,6 +11,9 @@ import threading
 import time
 import uuid
 from pathlib import Path
+
+# a whole run (or the service processes) over Zenoh: the slow lane
+pytestmark = [pytest.mark.slow, pytest.mark.zenoh]
 
 ROOT = Path(__file__).resolve().parents[2]
 

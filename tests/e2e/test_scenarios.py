@@ -1,5 +1,6 @@
 """End to end: the real service processes over Zenoh on loopback, driven by the runner."""
 
+import pytest
 import json
 import threading
 import time
@@ -13,6 +14,9 @@ from services.runtime.visual_topics import SCHEMA_NAMES as VISUAL_TOPICS
 from services.scenario import Scenario
 from tests import support
 from tests.support import hold, run
+
+# a whole run (or the service processes) over Zenoh: the slow lane
+pytestmark = [pytest.mark.slow, pytest.mark.zenoh]
 
 content = recorded_content
 

@@ -16,6 +16,9 @@ from services.transport.session import ZenohOptions, open_session
 from tests import support
 from tests.support import run, service_pid
 
+# a whole run (or the service processes) over Zenoh: the slow lane
+pytestmark = [pytest.mark.slow, pytest.mark.zenoh]
+
 
 
 # a lost liveliness token is seen the same way on either clock (the lockstep SIGKILL case,

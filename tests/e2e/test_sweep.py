@@ -67,6 +67,7 @@ def check(result, out: Path, n_runs: int, record: str):
         assert all(not (r / "recordings").exists() for r in runs) == (record == "summary")
 
 
+@pytest.mark.slow
 def test_a_sweep_on_local_processes(tmp_path):
     out = tmp_path / "sweep"
     t = time.monotonic()
@@ -104,6 +105,7 @@ def dask_cluster(tmp_path):
             f.close()
 
 
+@pytest.mark.slow
 def test_a_sweep_on_a_dask_cluster(tmp_path, dask_cluster):
     out = tmp_path / "sweep"
     t = time.monotonic()
@@ -116,6 +118,7 @@ def test_a_sweep_on_a_dask_cluster(tmp_path, dask_cluster):
     assert re.search(r"Registered to", worker_log), worker_log[-2000:]
 
 
+@pytest.mark.slow
 def test_a_sweep_of_etar_against_star_over_data_seeds(tmp_path):
     """The smoke scenario learning both transition models and reproducing its start with
     each, over two data seeds: a row per run and model, each run's own figures, and the

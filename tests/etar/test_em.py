@@ -76,6 +76,7 @@ def test_bic_picks_the_true_number_of_phases(n_phases, task_seed):
     assert sel.n_parameters[3] == ETAR.count_free_parameters(3, 3, 3) == 3 * (9 + 12 + 6) + 4 * 2 * 4
 
 
+@pytest.mark.slow
 def test_per_demonstration_vote_picks_the_true_number_of_phases():
     _, demos, _ = synthetic(3, task_seed=0, n_demos=3, length=500, seed=10)
     messages = []

@@ -23,6 +23,7 @@ def exit_code(call):
         return exc.code
 
 
+@pytest.mark.zenoh
 @pytest.mark.parametrize("argv,says", SERVICE_CASES, ids=[" ".join(a) for a, _ in SERVICE_CASES])
 def test_a_service_refuses_a_bad_flag_in_one_line(capsys, argv, says):
     assert exit_code(lambda: roles.main("ft_sensor", argv)) == 2

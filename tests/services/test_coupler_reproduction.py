@@ -14,6 +14,9 @@ from robot_sim.worlds import HoseCoupler
 from tests import support
 from tests.support import recorded_samples
 
+# whole runs in one process (seconds each): the slow lane
+pytestmark = [pytest.mark.slow]
+
 REPRODUCTIONS = 2
 
 

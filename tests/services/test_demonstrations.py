@@ -12,6 +12,9 @@ from robot_sim.worlds import HoseCoupler, Valley
 from services.run.demonstration import demonstration_scenario, record_demonstration
 from tests.support import recorded_samples
 
+# whole runs in one process (seconds each): the slow lane
+pytestmark = [pytest.mark.slow]
+
 VALLEY_START = (0.68, -0.10, 0.40)  # the left side's; the right side mirrors y
 SIDES = {-1: "left", 1: "right"}  # the sign of y on each side
 

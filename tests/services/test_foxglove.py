@@ -4,7 +4,6 @@ robot measured it, and added to older recordings by `etar-bench export --foxglov
 
 import json
 import shutil
-import time
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +42,7 @@ def visual_messages(path):
     return out
 
 
+@pytest.mark.slow
 def test_every_visual_message_is_valid_against_foxglove_own_json_schemas(run_dir):
     if not (NPM_SCHEMAS / "VERSION").exists():
         pytest.skip(f"{NPM_SCHEMAS} is missing: `make foxglove-schemas` (part of `make test`) installs "
@@ -80,6 +80,7 @@ def test_every_visual_message_is_valid_against_foxglove_own_json_schemas(run_dir
     assert any(e.json_path.endswith("frame_id") for e in validators["/viz/scene"].iter_errors(bad))
 
 
+@pytest.mark.slow
 def test_the_visual_topics_show_the_arm_where_the_robot_measured_it(run_dir):
     path = run_dir / "recordings" / "reproduction_00.mcap"
     states, wrenches, phases, commands = {}, [], [], []
@@ -179,6 +180,7 @@ def strip_visual(src: Path, dst: Path) -> dict:
     return had
 
 
+@pytest.mark.slow
 def test_export_adds_the_visual_topics_the_recorder_would_have_written(run_dir, tmp_path, capsys):
     old = tmp_path / "old"
     had = strip_visual(run_dir, old)
@@ -196,6 +198,7 @@ def test_export_adds_the_visual_topics_the_recorder_would_have_written(run_dir, 
     assert all(r.added == 0 and "already" in r.why for r in again)
 
 
+@pytest.mark.slow
 def test_export_refuses_what_it_cannot_read_and_leaves_it_as_it_was(run_dir, tmp_path, capsys):
     assert bench_cli.main(["export", str(tmp_path), "--foxglove"]) == 1
     assert "no recordings/ folder" in capsys.readouterr().err
@@ -223,6 +226,7 @@ def test_export_refuses_what_it_cannot_read_and_leaves_it_as_it_was(run_dir, tmp
     shutil.rmtree(old)
 
 
+@pytest.mark.zenoh
 def test_a_services_log_line_crosses_the_wire_and_becomes_a_foxglove_log_line(capsys):
     import threading
 
@@ -234,7 +238,11 @@ def test_a_services_log_line_crosses_the_wire_and_becomes_a_foxglove_log_line(ca
     with service_with_peer("phase_estimator", "svclog") as (svc, run_id, peer):
         sub = peer.declare_subscriber(topics.key(run_id, "service/log"),
                                       lambda s: (got.append(bytes(s.payload.to_bytes())), arrived.set()))
-        time.sleep(0.3)  # the subscription reaches the service's session
+        # the service's publisher says when the subscription has reached it
+        pub, matched = svc.publisher("service/log", realtime=False), threading.Event()
+        listener = pub.declare_matching_listener(lambda status: status.matching and matched.set())
+        assert pub.matching_status.matching or matched.wait(5), "the subscription never reached the service"
+        listener.undeclare()
         svc.log("model reloaded", level=3)
         assert arrived.wait(5)
         sub.undeclare()

@@ -87,6 +87,7 @@ def payload(mtype, spec) -> bytes:
     return json.dumps(d, allow_nan=True).encode()
 
 
+@pytest.mark.slow
 @FUZZ
 @given(st.lists(case, min_size=PER_EXAMPLE, max_size=PER_EXAMPLE))
 def test_every_decoder_raises_message_error_or_returns_a_message_that_encodes_again(cases):
@@ -103,6 +104,7 @@ def test_every_decoder_raises_message_error_or_returns_a_message_that_encodes_ag
             assert mtype.decode(again) == fields
 
 
+@pytest.mark.slow
 @FUZZ
 @given(st.lists(case, min_size=PER_EXAMPLE, max_size=PER_EXAMPLE))
 def test_the_report_reads_any_recorded_episode_without_failing(cases):
@@ -171,6 +173,7 @@ def damaged(spec) -> bytes:
     return bytes(data)
 
 
+@pytest.mark.slow
 @FUZZ
 @given(st.lists(damage, min_size=PER_EXAMPLE, max_size=PER_EXAMPLE))
 def test_the_recording_reader_returns_what_it_kept_or_raises_recording_error(damages):

@@ -235,6 +235,7 @@ def test_on_the_realtime_clock_the_commander_holds_while_the_estimate_is_stale_a
     assert all(holds["lockstep"][s] == "stale_estimate" for s in range(61, 301))
 
 
+@pytest.mark.slow
 def test_a_transient_fri_dropout_leaves_command_mode_and_it_comes_back(tmp_path):
     """scenarios/fri_dropout.yaml: 60 ms without a command packet, a second into each
     reproduction.  The quality falls below OK, the KRC leaves command mode (the arm holds),
@@ -303,6 +304,7 @@ def test_sensor_fault_flags_are_checked():
         FtSensorConfig(fault="stop", fault_after=-1.0)
 
 
+@pytest.mark.slow
 def test_progress_counts_each_stages_episodes_and_the_recordings_go_on_numbering(tmp_path):
     stage = {"reproduce": dict(count=1, start=START, start_perturbation=0.01, goal_x=0.57, max_seconds=15)}
     scenario = Scenario.from_dict(dict(name="two_stages", world="valley", seed=0, model=MODEL, stages=[stage, stage]))

@@ -10,6 +10,9 @@ from services.runtime import topics
 from services.runtime.messages import ROBOT_CONTACT, ROBOT_STATE
 from tests.services.conftest import service_with_peer
 
+# service sessions over Zenoh on loopback
+pytestmark = [pytest.mark.zenoh]
+
 
 def contact(seq):
     return ROBOT_CONTACT.encode(seq=seq, stamp_ns=seq * 1_000_000, sent_ns=time.monotonic_ns(),

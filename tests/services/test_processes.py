@@ -12,6 +12,9 @@ from services.runtime.messages import FT_WRENCH, MAX_PAYLOAD_BYTES, ROBOT_CONTAC
 from services.transport.service import request
 from services.transport.session import ZenohOptions, open_session
 
+# service sessions over Zenoh on loopback
+pytestmark = [pytest.mark.zenoh]
+
 
 def wait_until_matched(publisher, timeout: float = 10.0) -> bool:
     """Until a subscriber somewhere matches ``publisher`` (Zenoh's matching status: an

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from services.runtime.bus import FakeClock
 from services.runtime.loop import AbsoluteDeadlineTimer, LoopTiming
 from services.runtime.timing import Histogram, SequenceTracker, longest_run, percentiles
 
@@ -58,16 +59,15 @@ def test_sequence_tracker_counts_loss_reordering_and_duplicates():
 
 
 def test_absolute_deadline_timer_skips_overruns_instead_of_bursting():
-    timer = AbsoluteDeadlineTimer(2_000_000)  # 2 ms
-    d0, w0 = timer.wait()
-    assert w0 >= d0
-    import time
-
-    time.sleep(0.0071)  # overrun by more than three periods
+    clock = FakeClock()
+    timer = AbsoluteDeadlineTimer(2_000_000, clock)  # 2 ms
+    assert timer.wait() == (2_000_000, 2_000_000)  # slept to its first deadline
+    clock.advance(7_100_000)  # overrun by more than three periods
     d1, w1 = timer.wait()
+    assert (d1, w1) == (4_000_000, 9_100_000)  # late: no sleep
     # the next deadline after the stall is in the future, not one of the missed ones
-    assert timer.next_deadline > w1
-    assert (timer.next_deadline - d0) % 2_000_000 == 0
+    assert timer.next_deadline == 10_000_000 > w1
+    assert timer.wait() == (10_000_000, 10_000_000)
 
 
 def test_a_long_histogram_keeps_bounded_memory_and_percentiles_within_half_a_microsecond():
