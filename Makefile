@@ -9,7 +9,7 @@ STAMP := $(VENV)/.installed-stamp
 SCENARIO ?= scenarios/valley.yaml
 OUT ?= out/$(basename $(notdir $(SCENARIO)))
 
-.PHONY: run test bench venv clean browser foxglove-schemas
+.PHONY: run test test-fast bench venv clean browser foxglove-schemas
 
 $(STAMP): pyproject.toml setup.py robot_sim/native/pinocchio_inplace.cpp
 	$(PYTHON) -m venv $(VENV)
@@ -27,6 +27,10 @@ run: $(STAMP)
 
 test: $(STAMP) browser foxglove-schemas
 	$(BIN)/python -m pytest -q
+
+# the fast lane: every test but the slow ones (whole scenarios, runs over Zenoh, compose)
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -q -m "not slow"
 
 # the browser test renders report.html in Debian's chromium: installed when missing and
 # this runs as root with apt; elsewhere that one test is skipped (it says why)

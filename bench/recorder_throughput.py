@@ -7,7 +7,7 @@ Writes the message mix of a reproduction (robot_state, robot_contact,
 ft_wrench, robot_command every cycle, estimator_phase every tenth) for the
 given simulated time and reports messages/s, MB/s in and on disk, and the
 headroom over the 4.1 kHz the services produce.  Then again as the recorder
-does with its visual topics on: every payload through ``services.visual.VisualTap``
+does with its visual topics on: every payload through ``services.foxglove.tap.VisualTap``
 and its visual messages written beside; what they cost in time per simulated
 second (the recorder's CPU) and in file size.
 """

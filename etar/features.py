@@ -1,6 +1,6 @@
 """What ETAR sees of the robot: the state and force vectors built from messages.
 
-One definition, used offline (``services.recording.load_demonstration``, the
+One definition, used offline (``services.recordings.demonstrations.load_demonstration``, the
 learner's input) and online (the phase estimator), so both see the same numbers.
 
 - state ``position``: tcp position, base frame (3,);
@@ -15,8 +15,9 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
-STATES = ("position", "pose")
-FEATURES = ("force", "force_torque")
+# kind -> columns: the one list of what ETAR's state and features can be
+STATES = {"position": 3, "pose": 6}  # pose: position and rotation vector
+FEATURES = {"force": 3, "force_torque": 6}
 
 
 def pose_of(msr_cart_pos) -> tuple[np.ndarray, np.ndarray]:
@@ -31,7 +32,7 @@ def state_vector(msr_cart_pos, kind: str = "position", R0: np.ndarray | None = N
     if kind == "pose":
         ref = R if R0 is None else R0
         return np.concatenate([p, pin.log3(ref.T @ R)])
-    raise ValueError(f"state must be one of {STATES}, got {kind!r}")
+    raise ValueError(f"state must be one of {tuple(STATES)}, got {kind!r}")
 
 
 def force_vector(wrench, msr_cart_pos, kind: str = "force") -> np.ndarray:
@@ -41,4 +42,4 @@ def force_vector(wrench, msr_cart_pos, kind: str = "force") -> np.ndarray:
         return R @ w[:3]
     if kind == "force_torque":
         return np.concatenate([R @ w[:3], R @ w[3:]])
-    raise ValueError(f"features must be one of {FEATURES}, got {kind!r}")
+    raise ValueError(f"features must be one of {tuple(FEATURES)}, got {kind!r}")

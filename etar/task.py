@@ -24,12 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
+from etar.features import FEATURES, STATES
 from etar.impedance import PhaseImpedance, impedance_from_file, phase_impedances
 from etar.metrics import match_phases
 from etar.model import ETAR
 
-STATES = {"position": 3, "pose": 6}  # state kind -> columns (pose: position, rotation vector)
-FEATURES = {"force": 3, "force_torque": 6}
 
 
 class TaskError(ValueError):

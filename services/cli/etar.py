@@ -1,7 +1,7 @@
 """The ``etar`` command line with MCAP recordings as demonstrations.
 
 ``etar`` (the console script) is ``etar.cli`` plus the ``.mcap`` loader from
-``services.recording``: etar knows nothing of recordings, so the format is
+``services.recordings.demonstrations``: etar knows nothing of recordings, so the format is
 registered here, one layer up.  A truncated recording (a recorder killed
 mid-episode) is learned from with a warning that says what it lost: every
 complete chunk of it is real data (``etar-bench recover`` makes it a finished file).

@@ -2,7 +2,7 @@
 without them (before they existed, or with the recorder's ``--visual-rate-hz 0``).
 
 Each recording of the run is read, its own messages fed through the recorder's
-``services.visual.VisualTap`` in the order the recorder received them (log
+``services.foxglove.tap.VisualTap`` in the order the recorder received them (log
 time), and the file written again with the visual topics beside (the world from
 the scenario the recording carries).  Every original message stays byte for byte
 (``services.recordings.recovery.write_copy`` reads the new file back and compares before it

@@ -1,7 +1,7 @@
 """The Foxglove bridge node: the run's visual topics live over Foxglove's WebSocket protocol.
 
 Takes every message of the run undecoded, as the recorder does, turns them into
-the visual topics with the recorder's own ``services.visual.VisualTap`` (so the
+the visual topics with the recorder's own ``services.foxglove.tap.VisualTap`` (so the
 live view shows what the recording holds), and logs them to channels of a
 Foxglove SDK server (``foxglove-sdk``): connect Foxglove to ``ws://HOST:PORT``.
 It publishes nothing on the run's bus and answers no cycle, so it cannot change

@@ -2,7 +2,7 @@
 
 Takes every message of the run (``"**"``, undecoded) and writes its payload
 unchanged (a payload over ``MAX_PAYLOAD_BYTES`` is counted, not recorded;
-``services.recording.EpisodeWriter``: chunked, zstd, a JSON Schema
+``services.recordings.writer.EpisodeWriter``: chunked, zstd, a JSON Schema
 per channel so Foxglove plots the wrench and phase topics, the scenario
 attached).  Control: ``begin_episode`` (path relative to ``out_dir``, kind,
 index, scenario text), ``end_episode`` (finalises the file; says which listed
@@ -34,7 +34,7 @@ class RecorderConfig:
                                         "(resolved when the recorder starts)", metavar="DIR")
     writer_process: bool = option(False, "write the MCAP files from a helper process (what an in-process run "
                                          "does: its nodes share one CPU)")
-    visual_rate_hz: float = option(VISUAL_RATE_HZ, "Foxglove's visual topics (/viz/..., services.visual: the arm, "
+    visual_rate_hz: float = option(VISUAL_RATE_HZ, "Foxglove's visual topics (/viz/..., services.foxglove: the arm, "
                                                    "the world, wrench, stiffness, phase) at this rate beside the "
                                                    "run's own; 0: none", metavar="HZ")
 

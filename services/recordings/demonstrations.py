@@ -9,13 +9,11 @@ from pathlib import Path
 
 import numpy as np
 
-from etar.features import force_vector, state_vector
+from etar.features import FEATURES, STATES, force_vector, state_vector
 from services.recordings.format import RecordingError
 from services.recordings.reader import read_episode
 from services.runtime.messages import FT_WRENCH, ROBOT_CONTACT, ROBOT_STATE, SAMPLE_RATE_HZ, MessageError
 
-STATE_KINDS = {"position": 3, "pose": 6}
-FEATURE_KINDS = {"force": 3, "force_torque": 6}
 _DEMONSTRATION_TOPICS = {"/robot/state": ROBOT_STATE, "/ft/wrench": FT_WRENCH, "/robot/contact": ROBOT_CONTACT}
 
 
@@ -40,10 +38,10 @@ def load_demonstration(path, *, state: str = "position", features: str = "force"
     incomplete recording raises unless ``allow_incomplete``.
     """
     path = Path(path)
-    if state not in STATE_KINDS:
-        raise RecordingError(f"state must be one of {sorted(STATE_KINDS)}, got {state!r}")
-    if features not in FEATURE_KINDS:
-        raise RecordingError(f"features must be one of {sorted(FEATURE_KINDS)}, got {features!r}")
+    if state not in STATES:
+        raise RecordingError(f"state must be one of {sorted(STATES)}, got {state!r}")
+    if features not in FEATURES:
+        raise RecordingError(f"features must be one of {sorted(FEATURES)}, got {features!r}")
     period_ns = _sample_period_ns(rate_hz)
     episode = read_episode(path)
     if not episode.complete and not allow_incomplete:

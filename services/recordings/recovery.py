@@ -85,7 +85,7 @@ def write_copy(episode, path: Path, *, library: str, metadata: dict, extra=(), w
     path = Path(path)
     tmp = path.with_name(path.name + ".part")
     with open(tmp, "wb") as f:
-        # as services.recording writes them: no index for a group that is empty
+        # as services.recordings.writer writes them: no index for a group that is empty
         index_types = IndexType.CHUNK | IndexType.MESSAGE | IndexType.METADATA
         if episode.attachments:
             index_types |= IndexType.ATTACHMENT

@@ -61,7 +61,7 @@ class EpisodeWriter:
         try:
             self._writer = Writer(self._file, chunk_size=CHUNK_SIZE, compression=CompressionType.ZSTD,
                                   index_types=index_types)
-            self._writer.start(profile="", library=f"etar-testbench services.recording; {LIBRARY_IDENTIFIER}")
+            self._writer.start(profile="", library=f"etar-testbench services.recordings; {LIBRARY_IDENTIFIER}")
             self._writer.add_metadata(METADATA_NAME, record)
             if scenario_text is not None:
                 now = time.monotonic_ns()
@@ -138,7 +138,7 @@ class EpisodeWriter:
         return channel_id, mtype
 
     def _register_visual(self, topic: str) -> tuple[int, None]:
-        """A visual topic (services.visual): derived by the recorder, not received, so under
+        """A visual topic (services.runtime.visual_topics): derived by the recorder, not received, so under
         its own name (/viz/...) with Foxglove's schema, beside the run's topics."""
         name = VISUAL_SCHEMA_NAMES[topic]
         schema_id = self._schemas.get(name)

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import ctypes
 import os
-import time
 from dataclasses import dataclass, field
 
 from services.runtime.bus import MonotonicClock

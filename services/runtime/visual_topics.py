@@ -38,7 +38,7 @@ DERIVED_BY = "services.visual"
 
 STATUS_SCHEMA = {
     "title": "etar.VisualStatus",
-    "description": "The run's state at the visual rate, for plots and state transitions (services.visual)",
+    "description": "The run's state at the visual rate, for plots and state transitions (services.foxglove.scene)",
     "type": "object",
     "properties": {
         "timestamp": {"type": "object", "title": "time", "description": "simulation time",

@@ -9,10 +9,12 @@ from typing import Any
 
 import numpy as np
 
+from etar.features import FEATURES as ETAR_FEATURES, STATES as ETAR_STATES
+
 WORLDS = ("valley", "hose_coupler")
 RESTART_POLICIES = ("never", "on_failure")
-STATES = ("position", "pose")
-FEATURES = ("force", "force_torque")
+STATES = tuple(ETAR_STATES)  # what ETAR's state and features can be (etar.features)
+FEATURES = tuple(ETAR_FEATURES)
 SIDES = ("left", "right")
 CRITERIA = ("bic", "aic")
 TRANSITIONS = ("effect", "state")

@@ -29,7 +29,7 @@ def check_recordings(run_dir: Path, report: dict) -> None:
         counts = Counter((m.topic, json.loads(m.payload)["seq"]) for m in ep.messages
                          if m.topic not in WALL_CLOCK_TOPICS and m.topic not in VISUAL_TOPICS)
         assert max(counts.values()) == 1
-        # the visual topics the recorder derived (services.visual): one status per 20 FRI cycles, once each
+        # the visual topics the recorder derived (services.foxglove): one status per 20 FRI cycles, once each
         status = Counter(json.loads(m.payload)["seq"] for m in ep.messages if m.topic == "/viz/status")
         assert status and max(status.values()) == 1 and all(seq % 20 == 0 for seq in status)
         topics = set(ep.topics())
