@@ -213,10 +213,6 @@ class RobotCell:
 
     # ------------------------------------------------------------ helpers
 
-    def tcp_twist(self) -> np.ndarray:
-        """(6,) [v; w] of the tcp in world axes (from the last begin_cycle state)."""
-        return self.kin.jacobian("tcp") @ self._qd
-
     def switch_control_mode(self, mode: ControlMode) -> bool:
         """Switch the KRC's control mode (FRI allows it only in MON)."""
         if not self.fri.switch_control_mode(mode):

@@ -39,7 +39,7 @@ import numpy as np
 import pinocchio as pin
 from numba import njit
 
-from robot_sim.fri import ControlMode
+from robot_sim.fri import FRI_CYCLE_NS, ControlMode
 from robot_sim.kinematics import ArmKinematics
 from robot_sim.physics import address, carray_at, farray_at
 
@@ -69,7 +69,7 @@ class KrcConfig:
     hold_stiffness: tuple = (2000.0, 2000.0, 2000.0, 150.0, 150.0, 150.0)  # cartesian hold in MON
     hold_damping: float = 0.7
     inertia_period: int = 10  # cycles between refreshes of Lambda
-    cycle_s: float = 0.001
+    cycle_s: float = FRI_CYCLE_NS / 1e9
 
 
 @dataclass

@@ -9,14 +9,9 @@ an explicit generator: speed (+-20 %), pressing force (N(8, 2) N, within
 physiological tremor (a 10 Hz resonant force of 1.5 N per axis; physiological
 tremor is 8-12 Hz), and a gentle speed ramp at the start.
 
-The teacher also labels the true phase of every sample from the physics
-(``true_phase``), apart from its own script (``phase``): for the valley
-0 = free motion (the tip has touched nothing yet), 1 = sliding along a plate
-(from the first touch of a plate), 2 = sliding along the groove (from the
-first touch of the other plate, which only the groove's bottom allows); for
-the hose coupler 0 = approach, 1 = coupling (from the first touch of the
-coupler).  Labels never go back within a demonstration (a tip lifting off a
-plate for a millisecond is still sliding along it).
+The teacher's ``phase`` is its script's; the true phase of every cycle is labelled
+from the physics by ``robot_sim.labels``, in the robot, the same way in demonstrations
+and reproductions.
 """
 
 from __future__ import annotations
@@ -28,7 +23,6 @@ import numpy as np
 import pinocchio as pin
 
 from robot_sim.fri import FRI_CYCLE_NS
-from robot_sim.labels import CouplerLabeler, ValleyLabeler
 from robot_sim.lwr4.description import LWR4
 from robot_sim.worlds import HoseCoupler, Valley
 
@@ -67,7 +61,6 @@ class Teacher:
         self.speed = config.speed * rng.uniform(1 - config.speed_variation, 1 + config.speed_variation)
         self.press = float(np.clip(rng.normal(config.press_force, config.press_force_std), 4.0, 14.0))
         self.phase = 0  # the script's phase
-        self.true_phase = 0  # the physical phase label (monotone)
         self.done = False
         self.time = 0.0
         self._noise = np.zeros(3)
@@ -122,10 +115,6 @@ class Teacher:
         """Advance by dt seconds and return the hand wrench [F; T] (world)."""
         raise NotImplementedError
 
-    def update_label(self, touching) -> int:
-        """Update the physical phase label from what the tip touches after a step."""
-        raise NotImplementedError
-
 
 class ValleyTeacher(Teacher):
     """Free motion down to one plate, slide down it to the groove, slide along the groove."""
@@ -135,7 +124,6 @@ class ValleyTeacher(Teacher):
     def __init__(self, valley: Valley, start: np.ndarray, goal_x: float, rng: np.random.Generator,
                  config: TeacherConfig = TeacherConfig(), tip_radius: float = LWR4.tool.tip_radius):
         super().__init__(rng, config)
-        self._labeler = ValleyLabeler()
         self.valley = valley
         self.side = -1 if start[1] < 0 else 1
         self.goal_x = goal_x
@@ -179,10 +167,6 @@ class ValleyTeacher(Teacher):
                 self.done = True
         return self._hand(x, v, R, w)
 
-    def update_label(self, touching) -> int:
-        self.true_phase = self._labeler.update(touching)
-        return self.true_phase
-
 
 class HoseCouplerTeacher(Teacher):
     """Approach over the coupler, enter it, press and turn the hose end a quarter turn."""
@@ -193,7 +177,6 @@ class HoseCouplerTeacher(Teacher):
                  config: TeacherConfig = TeacherConfig(), tip_radius: float = LWR4.tool.tip_radius,
                  turn: float = math.pi / 2, turn_rate: float = math.radians(40.0)):
         super().__init__(rng, config)
-        self._labeler = CouplerLabeler()
         self.coupler = coupler
         self.tip = tip_radius
         self.start = np.array(start, dtype=np.float64)
@@ -230,10 +213,6 @@ class HoseCouplerTeacher(Teacher):
                 self.turned = min(self.turn, self.turned + self.turn_rate * self._ramp() * dt)
             self.R_target = pin.exp3(np.array([0.0, 0.0, self.turned])) @ DOWN
         return self._hand(x, v, R, w)
-
-    def update_label(self, touching) -> int:
-        self.true_phase = self._labeler.update(touching)
-        return self.true_phase
 
     def rotation_done(self, R: np.ndarray, tolerance: float = math.radians(5.0)) -> bool:
         """The tool has turned (nearly) the full quarter turn about the vertical."""

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from robot_sim.fri import FRI_CYCLE_NS
+from robot_sim.labels import LABELERS
 from robot_sim.lwr4.description import LWR4, ArmDescription
 
 TIMESTEP = FRI_CYCLE_NS / 1e9  # s: the physics step, one FRI cycle
@@ -160,6 +161,9 @@ def hose_coupler(geometry: HoseCoupler = HoseCoupler(), description: ArmDescript
 
 
 WORLDS = {"free_space": free_space, "valley": valley, "hose_coupler": hose_coupler}
+# the worlds with a task: a teacher to demonstrate it, true phases to label it
+TASK_WORLDS = tuple(LABELERS)
+assert set(TASK_WORLDS) <= set(WORLDS)
 
 
 def _f(values) -> str:

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from robot_sim.worlds import TASK_WORLDS
 from services.cli.zenoh_flags import add_zenoh_arguments, zenoh_options
 from services.runtime.visual_topics import VISUAL_RATE_HZ, check_visual_rate
 
@@ -116,7 +117,8 @@ def cmd_demo(args) -> int:
                                           max_seconds=args.max_seconds)
     except ScenarioError as exc:
         field = exc.path.rsplit(".", 1)[-1]
-        flag = {"sides": "--side", "start_spread": "--spread", "max_seconds": "--max-seconds"}.get(field, f"--{field}")
+        flag = {"sides": "--side", "start_spread": "--spread", "start": "--spread", "goal_x": "--spread",
+                "max_seconds": "--max-seconds"}.get(field, f"--{field}")
         _say(f"etar-bench demo: error: {flag}: {exc.problem}" + (f", got {exc.value!r}" if exc.has_value else ""))
         return 2
     report, recording = record_demonstration(scenario, out, progress=_say)
@@ -302,30 +304,42 @@ def cmd_router(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from services.foxglove import export
+    from services.nodes.foxglove_bridge import DEFAULT_PORT
+    from services.recordings import recovery
+    from services.run import sweep
+    from services.run.options import RunOptions
+    from services.runtime.cycle import CLOCKS
+    from services.runtime.roles import FIFO_CHAIN
+    from services.transport.cell import TRANSPORTS
+
+    fifo = ", ".join(f"{role} {priority}" for role, priority in FIFO_CHAIN)
+    fifo_ends = " and ".join(f"{role} ({priority})" for role, priority in RunOptions.fifo_priorities)
     parser = argparse.ArgumentParser(prog="etar-bench", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("run", help="run a scenario: demonstrate, learn, reproduce, report")
     p.add_argument("scenario", help="scenario YAML file (see docs/scenarios.md)")
     p.add_argument("--out", help="output directory (default runs/<scenario>-<time>)")
-    p.add_argument("--clock", choices=("lockstep", "realtime"), help="override the scenario's clock")
+    p.add_argument("--clock", choices=CLOCKS, help="override the scenario's clock")
     p.add_argument("--run-id", help="run id (default <scenario>-<random>)")
-    p.add_argument("--transport", choices=("zenoh", "inproc"), default="zenoh",
+    p.add_argument("--transport", choices=TRANSPORTS, default=RunOptions.transport,
                    help="zenoh: every role in its own process over Zenoh (the lab's layout, realtime or lockstep; "
                         "default); inproc: every role in this process on an in-memory bus (lockstep only, "
                         "several times faster, the same recordings)")
     p.add_argument("--attach", action="store_true",
                    help="drive services that are already running (docker-compose) instead of starting them")
-    p.add_argument("--ready-timeout", type=float, default=60.0, help="seconds to wait for the services")
+    p.add_argument("--ready-timeout", type=float, default=RunOptions.ready_timeout,
+                   help="seconds to wait for the services")
     p.add_argument("--realtime-profile", default="auto", type=_profile, metavar="auto|none|PARTS",
                    help="with --clock realtime, what the run asks of the machine, each where permitted: fifo "
-                        "(SCHED_FIFO for the FRI chain: robot 60, commander and teacher 55, sensor 50, "
-                        "estimator 45), isolate (the robot alone on the last CPU), poll (idle CPUs poll: "
+                        f"(SCHED_FIFO for the FRI chain: {fifo}), isolate (the robot alone on the last CPU), "
+                        "poll (idle CPUs poll: "
                         "/dev/cpu_dma_latency 0). auto (default): all three; none; or a comma list. The report "
                         "says what was granted")
     p.add_argument("--sched-fifo", action="store_true",
-                   help="SCHED_FIFO (where permitted) for the robot (priority 60) and the impedance commander (55) "
-                        "only, whatever the profile (the profile's fifo covers the whole chain)")
+                   help=f"SCHED_FIFO (where permitted) for {fifo_ends} only, whatever the profile (the "
+                        "profile's fifo covers the whole chain)")
     p.add_argument("--tls", metavar="DIR",
                    help="the run's credentials (etar-bench certs DIR): the runner is the run's Zenoh router, which "
                         "takes mutual TLS only and lets only the run's roles publish or read")
@@ -333,9 +347,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the services on hosts of this machine, each a network namespace with its own address "
                         "(root and iproute2 needed), roles by host, e.g. robot,ft_sensor:phase_estimator,"
                         "impedance_commander:recorder,teacher; the runner is the run's Zenoh router")
-    p.add_argument("--foxglove", nargs="?", const=8765, type=int, metavar="PORT",
+    p.add_argument("--foxglove", nargs="?", const=DEFAULT_PORT, type=int, metavar="PORT",
                    help="watch the run live in Foxglove: the arm, the world, the wrench, the stiffness and the phase "
-                        "over Foxglove's WebSocket protocol on PORT (default 8765; 0: any free port, printed); "
+                        f"over Foxglove's WebSocket protocol on PORT (default {DEFAULT_PORT}; 0: any free port, "
+                        "printed); "
                         "connect Foxglove to ws://localhost:PORT")
     p.add_argument("--no-figures", action="store_true",
                    help="skip the thesis' figures and report.html after the report (etar-bench figures RUN_DIR "
@@ -344,7 +359,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_run)
     p = sub.add_parser("demo", help="one demonstration by the simulated teacher, in one process: its recording, "
                                     "and on request a picture and the arrays etar learn reads")
-    p.add_argument("--world", choices=("valley", "hose_coupler"), default="valley", help="the task world")
+    p.add_argument("--world", choices=TASK_WORLDS, default="valley", help="the task world")
     p.add_argument("--side", choices=("left", "right"), default="left", help="valley: starting side (default left)")
     p.add_argument("--seed", type=int, default=0, help="the scenario's seed (default 0)")
     p.add_argument("--spread", type=float, default=0.0, help="random start offset per axis, m (default 0)")
@@ -355,7 +370,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_demo)
     p = sub.add_parser("sweep", help="run every combination of scenario parameters x seeds in parallel, "
                                      "in-process; a table and plots",
-                       description=__import__("services.run.sweep", fromlist=["x"]).__doc__,
+                       description=sweep.__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scenario", help="scenario YAML file (see docs/scenarios.md)")
     p.add_argument("--param", action="append", default=[], metavar="PATH=V1,V2,...",
@@ -377,7 +392,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_report)
     p = sub.add_parser("recover", help="make a truncated recording (a recorder killed mid-episode) a finished "
                                        "MCAP file with every complete chunk; the original is kept",
-                       description=__import__("services.recordings.recovery", fromlist=["x"]).__doc__,
+                       description=recovery.__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("files", nargs="+", metavar="FILE", help="truncated .mcap recording(s)")
     p.add_argument("--out", help="output file (one FILE only; default FILE's name + .recovered.mcap beside it)")
@@ -390,7 +405,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("export", help="add Foxglove's visual topics (the arm, the world, wrench, stiffness, "
                                       "phase) to a run's recordings made without them",
-                       description=__import__("services.foxglove.export", fromlist=["x"]).__doc__,
+                       description=export.__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("run_dir", help="a finished run's folder (recordings/*.mcap)")
     p.add_argument("--foxglove", action="store_true", help="the visual topics for Foxglove (required)")

@@ -35,11 +35,10 @@ from functools import lru_cache
 
 import numpy as np
 
-from robot_sim.fri import FRI_CYCLE_NS
+from robot_sim.fri import FRI_RATE_HZ
 from services.runtime.visual_topics import (TOPIC_LOG, TOPIC_SCENE, TOPIC_STATUS, TOPIC_TF, VISUAL_RATE_HZ,
                                             check_visual_rate)
 
-FRI_RATE_HZ = 1_000_000_000 // FRI_CYCLE_NS  # FRI cycles per second
 FRAMES = ("link1", "link2", "link3", "link4", "link5", "link6", "link7", "flange", "ati_sensor", "tool", "tcp")
 ARROW_M_PER_N = 0.005  # the force arrow: 5 mm per newton, at most MAX_ARROW_M
 MAX_ARROW_M = 0.4

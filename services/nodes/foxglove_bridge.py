@@ -19,6 +19,7 @@ import json
 import threading
 from dataclasses import dataclass
 
+from robot_sim.worlds import TASK_WORLDS
 from services.runtime import topics
 from services.runtime.bus import Node, Subscription
 from services.runtime.config import option
@@ -31,7 +32,7 @@ DEFAULT_PORT = 8765  # Foxglove's own default
 
 @dataclass(frozen=True)
 class FoxgloveBridgeConfig:
-    world: str = option("valley", "the task world whose geometry is drawn", choices=("valley", "hose_coupler"))
+    world: str = option("valley", "the task world whose geometry is drawn", choices=TASK_WORLDS)
     host: str = option("127.0.0.1", "address the WebSocket server listens on", metavar="ADDR")
     port: int = option(DEFAULT_PORT, "port of the WebSocket server (0: any free one, said in status)",
                        metavar="PORT")

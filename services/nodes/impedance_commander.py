@@ -49,13 +49,13 @@ from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import option
 from services.runtime.loop import Sections
 from robot_sim.fri import FRI_CYCLE_NS
-from services.runtime.messages import ROBOT_COMMAND, estimator_instant
+from services.runtime.messages import ESTIMATOR_STRIDE, ROBOT_COMMAND, estimator_instant
 from services.runtime.timing import Histogram
 
 ROT_STIFFNESS = 150.0
 # five estimator periods: realtime estimates arrive up to a few cycles after their
 # measurement, so only a silence far past that is a fault
-STALE_ESTIMATE_CYCLES = 50
+STALE_ESTIMATE_CYCLES = 5 * ESTIMATOR_STRIDE
 ESTIMATE_WAIT_S = 2.0  # lockstep over a network: how long to wait for a cycle's estimate before going on
 CART_STIFFNESS = [0.0, 0.0, 0.0] + [ROT_STIFFNESS] * 3
 CART_DAMPING = [0.7] * 6

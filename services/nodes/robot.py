@@ -23,11 +23,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from robot_sim.cell import RobotCell
-from robot_sim.fri import FRI_CYCLE_NS, CommandPacket, ControlMode, FriState, LinkFaults, LinkFaultSpec
+from robot_sim.fri import FRI_RATE_HZ, CommandPacket, ControlMode, FriState, LinkFaults, LinkFaultSpec
 from robot_sim.krc import SafetyReason
 from robot_sim.labels import LABELERS
 from robot_sim.teacher import DOWN
-from robot_sim.worlds import WORLDS, Valley, valley
+from robot_sim.worlds import TASK_WORLDS, WORLDS, Valley, valley
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import nested, option
 from services.runtime.cycle import EpisodePlan
@@ -40,7 +40,7 @@ LOCKSTEP_LATENCY_NS = 100_000
 # once the commander holds the arm the episode is lost: the robot watches the hold
 # this long (its summary says how far the tcp went, how hard it pressed) and ends it
 HOLD_WATCH_S = 1.0
-HOLD_WATCH_CYCLES = int(HOLD_WATCH_S * (1e9 / FRI_CYCLE_NS))
+HOLD_WATCH_CYCLES = int(HOLD_WATCH_S * FRI_RATE_HZ)
 # per-cycle sections (episode summary, loop.sections): waiting for the deadline or the
 # answers, handing the answers to the FRI link, the physics step (KRC law + MuJoCo +
 # sensing), measuring (FRI packet, labels), encoding, publishing
@@ -50,7 +50,7 @@ ANSWER_TOPICS = {participant: ROLES[role].answer_topic for participant, role in 
 
 @dataclass(frozen=True)
 class RobotConfig:
-    world: str = option("valley", "task world", choices=sorted(WORLDS))
+    world: str = option("valley", "task world", choices=TASK_WORLDS)
     seed: int = option(0, "seed of the cell (joint measurement noise)")
     answer_timeout: float = option(5.0, "lockstep: seconds to wait for a cycle's answers before counting a miss")
     stall_every: float = option(0.0, "fault injection: stall the loop every N s")
@@ -60,8 +60,8 @@ class RobotConfig:
     fri: LinkFaultSpec = nested(LinkFaultSpec(), "fri_")
 
     def __post_init__(self):
-        if self.world not in WORLDS:
-            raise ValueError(f"world {self.world!r} unknown (known: {sorted(WORLDS)})")
+        if self.world not in TASK_WORLDS:
+            raise ValueError(f"world {self.world!r} unknown (known: {', '.join(TASK_WORLDS)})")
         if not self.answer_timeout > 0:
             raise ValueError(f"answer_timeout must be > 0 s, got {self.answer_timeout!r}")
         if not (math.isfinite(self.plate_friction) and self.plate_friction > 0):
@@ -200,7 +200,7 @@ class RobotNode(Node):
         seconds = float(p.get("max_seconds", 40.0))
         if not (np.isfinite(seconds) and seconds > 0):
             raise ValueError(f"max_seconds must be > 0, got {p.get('max_seconds')!r}")
-        return EpisodePlan(max_cycles=max(1, int(seconds * (1e9 / FRI_CYCLE_NS))), answers_from=answers,
+        return EpisodePlan(max_cycles=max(1, int(seconds * FRI_RATE_HZ)), answers_from=answers,
                            stop_on=p.get("stop_on"))
 
     def status(self) -> dict:

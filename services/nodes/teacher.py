@@ -18,7 +18,7 @@ import pinocchio as pin
 
 from robot_sim.fri import FRI_CYCLE_NS
 from robot_sim.teacher import HoseCouplerTeacher, ValleyTeacher
-from robot_sim.worlds import HoseCoupler, Valley
+from robot_sim.worlds import TASK_WORLDS, HoseCoupler, Valley
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import option
 from services.runtime.messages import TEACHER_WRENCH
@@ -28,11 +28,11 @@ DT = FRI_CYCLE_NS / 1e9  # the hand answers every FRI cycle
 
 @dataclass(frozen=True)
 class TeacherConfig:
-    world: str = option("valley", "task world", choices=("valley", "hose_coupler"))
+    world: str = option("valley", "task world", choices=TASK_WORLDS)
 
     def __post_init__(self):
-        if self.world not in ("valley", "hose_coupler"):
-            raise ValueError(f"world must be valley or hose_coupler, got {self.world!r}")
+        if self.world not in TASK_WORLDS:
+            raise ValueError(f"world must be one of {', '.join(TASK_WORLDS)}, got {self.world!r}")
 
 
 class TeacherNode(Node):

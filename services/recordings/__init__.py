@@ -3,6 +3,6 @@
 ``format`` (the layout and its one error), ``writer`` (``EpisodeWriter``), ``offload``
 (the same writer in a helper process, for an in-process run), ``reader``
 (``read_episode``, truncated files included), ``demonstrations`` (a recording as
-the learner's arrays), ``recovery`` (a truncated file made whole).  Imports the
-runtime's messages and visual topic registry only.
+the learner's arrays, with ``etar.features``), ``recovery`` (a truncated file made
+whole).  Imports the runtime's messages and visual topic registry.
 """

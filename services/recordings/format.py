@@ -11,7 +11,7 @@ clock, on one host), or the receive time when the payload does not decode.  The
 
 Layout, chosen so a killed recorder loses little: the header, the ``etar``
 metadata record and the ``scenario.yaml`` attachment come first; messages
-follow in zstd chunks of about 256 KiB; the summary (statistics, chunk and
+follow in zstd chunks of about ``CHUNK_SIZE`` (160 KiB) of records; the summary (statistics, chunk and
 message indexes) is written by ``finish()``.  Indexes are written only for
 groups that cannot be empty (chunks, messages, metadata, and attachments when
 there is a scenario): mcap's default writer emits summary offsets for empty

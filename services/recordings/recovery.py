@@ -21,6 +21,7 @@ from mcap.writer import CompressionType, IndexType, Writer
 
 from services.recordings.format import CHUNK_SIZE, METADATA_NAME, SCENARIO_ATTACHMENT, SCENARIO_MEDIA_TYPE, RecordingError
 from services.recordings.reader import read_episode
+from services.runtime.visual_topics import DERIVED_BY
 
 
 @dataclass(frozen=True)
@@ -99,7 +100,7 @@ def write_copy(episode, path: Path, *, library: str, metadata: dict, extra=(), w
         channels = [(topic, ch.schema_name, ch.schema_encoding, ch.schema_data, ch.message_encoding, ch.metadata)
                     for topic, ch in sorted(episode.channels.items())]
         for topic, name, data in dict.fromkeys((t, n, d) for t, n, d, _, _ in extra):
-            channels.append((topic, name, "jsonschema", data, "json", {"derived_by": "services.visual"}))
+            channels.append((topic, name, "jsonschema", data, "json", {"derived_by": DERIVED_BY}))
         for topic, name, encoding, data, message_encoding, meta in channels:
             key = (name, encoding, data)
             if name and key not in schema_ids:

@@ -16,7 +16,7 @@ from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, IndexType, Writer
 
 from services.recordings.format import CHUNK_SIZE, METADATA_NAME, SCENARIO_ATTACHMENT, SCENARIO_MEDIA_TYPE, RecordingError
 from services.runtime.messages import BY_TOPIC, MessageError, MessageType
-from services.runtime.visual_topics import SCHEMA_NAMES as VISUAL_SCHEMA_NAMES, schema_bytes as visual_schema
+from services.runtime.visual_topics import DERIVED_BY, SCHEMA_NAMES as VISUAL_SCHEMA_NAMES, schema_bytes as visual_schema
 
 _GENERIC_SCHEMA_NAME = "json_object"
 _UINT64 = 2**64
@@ -146,7 +146,7 @@ class EpisodeWriter:
             schema_id = self._writer.register_schema(name=name, encoding="jsonschema", data=visual_schema(topic))
             self._schemas[name] = schema_id
         channel_id = self._writer.register_channel(topic=topic, message_encoding="json", schema_id=schema_id,
-                                                   metadata={"derived_by": "services.visual"})
+                                                   metadata={"derived_by": DERIVED_BY})
         self._channels[topic] = (channel_id, None)
         return channel_id, None
 

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from etar.metrics import score_segmentation
+from robot_sim.fri import FRI_CYCLE_NS
 from services.recordings.reader import read_episode
 from services.results.record import EpisodeRecord, RunRecord
 from services.nodes.robot import HOLD_WATCH_S
@@ -122,7 +123,7 @@ def fri_quality_timeline(t, q, state) -> dict:
     episode's), the time spent at each quality, and how often PERFECT was lost."""
     if len(t) == 0:
         return {"cycles": 0}
-    dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.001
+    dt = float(np.median(np.diff(t))) if len(t) > 1 else FRI_CYCLE_NS / 1e9
     quality, states = _changes(t, q), _changes(t, state)
     drops = int(np.sum((q[:-1] == 3) & (q[1:] < 3)))
     perfect = np.flatnonzero(q == 3)

@@ -29,4 +29,5 @@ def demonstration_scenario(world: str = "valley", *, side: str = "left", seed: i
 def record_demonstration(scenario: Scenario, out, progress=print) -> tuple[dict, Path]:
     """``scenario`` run in one process into ``out``: (its report, the demonstration's recording)."""
     report = Runner(scenario, RunOptions(out=str(out), transport="inproc", figures=False), progress).run()
-    return report, Path(out).resolve() / "recordings" / "demonstration_00.mcap"
+    (demonstration,) = report["demonstrations"]
+    return report, Path(out).resolve() / demonstration["path"]

@@ -102,7 +102,7 @@ class Episodes:
         ``model``: the model file a reproduction runs (in the recording's metadata: what
         its visual topics draw the stiffness of)."""
         name = f"{kind}_{index:02d}.mcap"
-        self._episode, self._parts = (kind, index, tuple(start)), []
+        self._episode, self._parts = (kind, index), []
         path = None
         if self.recording is not None:
             self._metadata = {"start": json.dumps(list(start)), "scenario": self.recording.scenario_name}
@@ -192,7 +192,7 @@ class Episodes:
         reported); the estimator's filter starts again where the reproduction is."""
         if self._episode is None:
             return
-        kind, index, _ = self._episode
+        kind, index = self._episode
         if role == "recorder" and self.recording is not None:
             name = f"{kind}_{index:02d}.part{len(self._parts) + 2}.mcap"
             self.request("recorder", "begin_episode", path=name, kind=kind, index=index,

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 from services.run.realtime_profile import parse_profile
 from services.runtime import topics
+from services.runtime.roles import FIFO_CHAIN
 from services.scenario import Scenario, ScenarioError
 from services.transport.cell import TRANSPORTS, carrier
 from services.transport.session import ZenohOptions
@@ -47,7 +48,8 @@ class RunOptions:
     # commander; the others stay ordinary processes.  All six at one priority starve
     # one another on two cores (measured: 97 % missed deadlines)
     sched_fifo: bool = False
-    fifo_priorities: tuple = (("robot", 60), ("impedance_commander", 55))  # (role, priority) used with sched_fifo
+    # (role, priority) used with sched_fifo: the chain's two ends at their priorities in it
+    fifo_priorities: tuple = tuple((r, p) for r, p in FIFO_CHAIN if r in ("robot", "impedance_commander"))
     # the robot on the last CPU, every other service on the others: the 1 kHz loop keeps
     # most of a core (and its caches) instead of sharing it with five processes that each
     # wake a thousand times a second
@@ -93,24 +95,23 @@ class RunOptions:
             if value is not None and not (isinstance(value, int) and value >= 1):
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
 
-    def check(self, scenario: Scenario) -> None:
-        """The rules that need the scenario: a ScenarioError naming its field."""
-        if self.transport == "inproc" and scenario.clock != "lockstep":
-            raise ScenarioError("the in-process transport runs lockstep only; use --transport zenoh for realtime",
-                                path="clock", value=scenario.clock, source=scenario.source)
 
     def roles(self, scenario: Scenario) -> list[str]:
         """The services this run needs: the scenario's, and the live view's bridge."""
         return list(scenario.roles) + (["foxglove_bridge"] if self.foxglove is not None else [])
 
     def carrier(self, scenario: Scenario):
-        """The transport (``services.transport.cell``), checked against the run's roles:
-        every option and every credential before anything starts."""
-        self.check(scenario)
+        """The transport (``services.transport.cell``), checked against the scenario's clock
+        and the run's roles: every option and every credential before anything starts."""
         if self.foxglove:
             port_free(self.foxglove)
-        return carrier(self.transport, self.roles(scenario), zenoh=self.zenoh, tls=self.tls, hosts=self.hosts,
-                       attach=self.attach)
+        chosen = carrier(self.transport, self.roles(scenario), zenoh=self.zenoh, tls=self.tls, hosts=self.hosts,
+                         attach=self.attach)
+        if scenario.clock not in chosen.clocks:
+            raise ScenarioError(f"the {chosen.describe()} transport runs {' or '.join(chosen.clocks)} only; "
+                                "use --transport zenoh for realtime", path="clock", value=scenario.clock,
+                                source=scenario.source)
+        return chosen
 
 
 def port_free(port: int, host: str = "127.0.0.1") -> None:

@@ -29,7 +29,7 @@ from services.runtime.roles import FIFO_CHAIN
 
 PARTS = ("fifo", "isolate", "poll")
 CPU_LATENCY_DEVICE = "/dev/cpu_dma_latency"
-# what a refused part costs, measured on this project's 2-CPU machine (README, "Realtime")
+# what a refused part costs, measured on this project's 2-CPU machine (docs/realtime.md)
 COST = {"fifo": "the FRI chain shares the CPUs with everything else: expect most cycles missed",
         "isolate": "the robot shares a CPU with the other services: expect loop deadline misses",
         "poll": "idle CPUs halt: each message waits for a vCPU to wake (hundreds of us)"}

@@ -62,12 +62,16 @@ class Runner:
         self.ready = threading.Event()  # set once every service is up (tests and benches wait on it)
         self.profile = Grant(parse_profile(options.realtime_profile) if scenario.clock == "realtime"
                              else frozenset())
+        try:  # the last check before anything starts: where the run goes
+            self.recordings.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ValueError(f"--out {options.out}: cannot make the run's folder {self.recordings} "
+                             f"({exc.strerror or exc})") from None
 
     # ----------------------------------------------------------------- run
 
     def run(self) -> dict:
         sc = self.scenario
-        self.recordings.mkdir(parents=True, exist_ok=True)
         t0 = time.monotonic()
         self.say(f"run {self.run_id}: scenario {sc.name} ({sc.source}), clock {sc.clock}, transport "
                  f"{self.transport.name}, output {self.out}")
@@ -94,15 +98,19 @@ class Runner:
             if isinstance(exc, KeyboardInterrupt):
                 raise
         finally:
-            if self.cell is not None:
-                self.record.service_stats = self.cell.statistics(self.roles)
-                self.record.restarts = list(self.cell.restarts)
-                self.record.hosts = self.cell.where()
-                codes = self.cell.stop(self.roles, before_report=True)
-            self.profile.release()
-            if self.profile.requested:
-                self.record.realtime_profile = self.profile.to_dict()
+            # whatever fails here, the services, the session and the hosts are let go (the
+            # outer finally) and the profile's hold on the machine too (the inner one)
             try:
+                try:
+                    if self.cell is not None:
+                        self.record.service_stats = self.cell.statistics(self.roles)
+                        self.record.restarts = list(self.cell.restarts)
+                        self.record.hosts = self.cell.where()
+                        codes = self.cell.stop(self.roles, before_report=True)
+                finally:
+                    self.profile.release()
+                if self.profile.requested:
+                    self.record.realtime_profile = self.profile.to_dict()
                 report = write_report(self.record, codes, error, time.monotonic() - t0)
                 if self.options.figures:
                     from services.results.html import write_figures_and_page

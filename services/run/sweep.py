@@ -98,11 +98,14 @@ class RunSpec:
     index: int
     name: str
     params: dict
-    seed: int
     scenario: Scenario
     out: str
     record: str
     learn_threads: int
+
+    @property
+    def seed(self) -> int:
+        return self.scenario.seed
 
 
 def plan(base: Scenario, parameters: list, repeats: int, out: Path, record: str,
@@ -133,8 +136,7 @@ def plan(base: Scenario, parameters: list, repeats: int, out: Path, record: str,
             index = len(specs)
             name = f"run{index:03d}"
             (out / "scenarios" / f"{name}.yaml").write_text(scenario.to_yaml())
-            specs.append(RunSpec(index, name, params, seed, scenario, str(out / "runs" / name), record,
-                                 learn_threads))
+            specs.append(RunSpec(index, name, params, scenario, str(out / "runs" / name), record, learn_threads))
     return specs
 
 

@@ -10,11 +10,11 @@ import json
 from functools import lru_cache
 from pathlib import Path
 
-from robot_sim.fri import FRI_CYCLE_NS
+from robot_sim.fri import FRI_RATE_HZ
 
 SCHEMA_DIR = Path(__file__).with_name("foxglove_schemas")  # from @foxglove/schemas 2.1.0 (MIT), unchanged
 VISUAL_RATE_HZ = 50.0  # visual frames per second of simulated time: one in every 20 FRI cycles
-MAX_VISUAL_RATE_HZ = 1e9 / FRI_CYCLE_NS  # a frame every FRI cycle at most
+MAX_VISUAL_RATE_HZ = float(FRI_RATE_HZ)  # a frame every FRI cycle at most
 TOPIC_TF = "/viz/tf"
 TOPIC_SCENE = "/viz/scene"
 TOPIC_STATUS = "/viz/status"

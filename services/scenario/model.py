@@ -133,10 +133,6 @@ class Scenario:
             path = (source.parent / path) if source.is_file() else path
         return path.resolve()  # absolute: it is handed to other processes
 
-    def with_clock(self, clock: str) -> Scenario:
-        """A copy run on another clock: the same scenario, lockstep for CI, realtime for the lab."""
-        return self.replace("clock", clock)
-
     def replace(self, path: str, value: Any) -> Scenario:
         """This scenario with one field set, validated as any scenario (a ScenarioError names
         ``path``).  ``path`` is a top-level key (``seed``, ``clock``), ``cell.KEY``, or

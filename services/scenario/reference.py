@@ -19,6 +19,8 @@ from robot_sim.fri import LinkFaultSpec
 from services.scenario.loading import load_scenario
 from services.scenario.model import Scenario
 from robot_sim.worlds import Valley
+from services.scenario.checks import MAX_START_DRAWS
+from services.scenario.starts import DEMONSTRATE_SEED_OFFSET, REPRODUCE_SEED_OFFSET, TEACHER_SEED_STRIDE
 from services.scenario.stages import DEFAULT_STARTS, FRI_PREFIX, STAGE_TYPES, VALLEY_GOAL_X, CellSpec
 
 INTRO = """\
@@ -36,7 +38,7 @@ variant = scenario.replace("cell.sensor_noise", 2.0).replace("seed", 3)   # a ne
 ```
 """
 
-RULES = """\
+RULES = f"""\
 ## Rules
 
 - **Stage order**: `demonstrate*`, then at most one `learn`, then `reproduce*`.  A `learn`
@@ -50,15 +52,15 @@ RULES = """\
   hose coupler has one side: omit `sides` or give `[left]`, and omit `goal_x`.
 - **Goal**: `goal_x` lies below the x of every start: the valley's teacher slides towards -x.
 - **Seeds** are non-negative (numpy's generators refuse negative ones).  A stage's default
-  seed is the scenario's seed plus 1000 (demonstrate), 0 (learn) or 2000 (reproduce), plus j
+  seed is the scenario's seed plus {DEMONSTRATE_SEED_OFFSET} (demonstrate), 0 (learn) or {REPRODUCE_SEED_OFFSET} (reproduce), plus j
   for the j-th stage of that kind, so two demonstrate stages that inherit the seed do not
   replay each other.  The teacher's hand in the i-th demonstration of a stage is seeded
-  with the stage's seed x 1000 + i (`services/scenario/starts.py` holds every seed rule).
+  with the stage's seed x {TEACHER_SEED_STRIDE} + i (`services/scenario/starts.py` holds every seed rule).
 - **Starts** belong to the description: `demonstration_starts(stage, world, seed)` and
   `reproduction_starts(stage, world, seed, demonstration_starts)` depend on the stage and
   the seed alone, so a run can be replayed and its report says where each episode began.
   A reproduction start closer than `min_distance_from_demonstrations` to a demonstration
-  start of its side is drawn again; after 1000 draws the scenario is refused (the
+  start of its side is drawn again; after {MAX_START_DRAWS} draws the scenario is refused (the
   perturbation is too small for that distance).
 - **Learning**: with `phases: auto` every count in `candidates` is fitted and `criterion`
   picks one: per demonstration (the count most demonstrations choose wins, ties to fewer

@@ -11,9 +11,10 @@ from typing import Any, Union
 
 from robot_sim.fri import LinkFaultError, LinkFaultSpec
 from robot_sim.worlds import HoseCoupler, Valley
-from services.scenario.checks import (CRITERIA, MAX_EPISODES, SELECTIONS, ScenarioError, Xyz, _bool, _candidates,
+from services.scenario.checks import (CRITERIA, MAX_EPISODE_SECONDS, MAX_EPISODES, SELECTIONS, ScenarioError, Xyz, _bool, _candidates,
                                       _choice, _int, _number, _phases, _seconds, _seed, _set, _sides, _transitions,
                                       _xyz)
+from services.scenario.starts import DEMONSTRATE_SEED_OFFSET, REPRODUCE_SEED_OFFSET
 
 def doc(text: str, default: Any = dataclasses.MISSING) -> Any:
     """A field with its documentation (the scenario reference, docs/scenarios.md, is made of it)."""
@@ -70,13 +71,14 @@ class DemonstrateStage(_MotionStage):
     scenario's default", which `Scenario` fills in.
     """
 
-    count: int = doc('how many demonstrations, 1..10000')
+    count: int = doc(f'how many demonstrations, 1..{MAX_EPISODES}')
     sides: tuple[str, ...] = doc('left | right, cycled over the demonstrations (valley; the hose coupler has one side: omit or [left])', ("left",))
     start: Xyz | None = doc("[x, y, z] tcp start for the LEFT side, m, base frame (the right side mirrors y); default: the world's (see the world defaults)", None)
     start_spread: float = doc('m >= 0: a uniform random offset per axis', 0.01)
     goal_x: float | None = doc("valley only: the teacher stops sliding at this x (below every start's x); default the valley's", None)
-    max_seconds: float = doc('simulated-time limit per demonstration, s, > 0 and <= 3600', 40.0)
-    seed: int | None = doc("int >= 0; default the scenario's seed + 1000 (+ j for the j-th demonstrate stage)", None)
+    max_seconds: float = doc(f'simulated-time limit per demonstration, s, > 0 and <= {MAX_EPISODE_SECONDS:g}', 40.0)
+    seed: int | None = doc(f"int >= 0; default the scenario's seed + {DEMONSTRATE_SEED_OFFSET} (+ j for the j-th "
+                           "demonstrate stage)", None)
 
     @property
     def kind(self) -> str:
@@ -159,7 +161,7 @@ class ReproduceStage(_MotionStage):
     have learned (``[effect, state]``: the same starts driven by ETAR and by STAR).
     """
 
-    count: int = doc('how many starts, 1..10000')
+    count: int = doc(f'how many starts, 1..{MAX_EPISODES}')
     sides: tuple[str, ...] = doc('as in demonstrate', ("left",))
     start: Xyz | None = doc('nominal start for the LEFT side, m; default as in demonstrate', None)
     start_perturbation: float = doc('m >= 0: each start is drawn uniformly within +- this per axis of the nominal one', 0.03)
@@ -167,10 +169,11 @@ class ReproduceStage(_MotionStage):
     goal_x: float | None = doc('valley only, as in demonstrate', None)
     goal_tolerance: float = doc('m > 0: a reproduction ending within this of the goal reached it', 0.01)
     max_contact_force: float = doc('N > 0: a reproduction whose peak contact force exceeds this fails', 60.0)
-    max_seconds: float = doc('simulated-time limit per reproduction, s, > 0 and <= 3600', 40.0)
+    max_seconds: float = doc(f'simulated-time limit per reproduction, s, > 0 and <= {MAX_EPISODE_SECONDS:g}', 40.0)
     stop_at_goal: bool = doc('true: an episode ends at the goal; false: it runs the whole max_seconds, holding at the goal (load and timing runs)', True)
     transitions: str | tuple[str, ...] | None = doc("default the run's model; a list (e.g. [effect, state]): every start is reproduced once with each listed model, which the learn stage must have learned", None)
-    seed: int | None = doc("int >= 0; default the scenario's seed + 2000 (+ j for the j-th reproduce stage)", None)
+    seed: int | None = doc(f"int >= 0; default the scenario's seed + {REPRODUCE_SEED_OFFSET} (+ j for the j-th "
+                           "reproduce stage)", None)
 
     @property
     def kind(self) -> str:

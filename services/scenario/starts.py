@@ -20,9 +20,12 @@ DEMONSTRATE_SEED_OFFSET = 1000
 REPRODUCE_SEED_OFFSET = 2000
 
 
+TEACHER_SEED_STRIDE = 1000  # the teacher's seeds of one stage: stage seed x this + i
+
+
 def teacher_seed(stage_seed: int, i: int) -> int:
     """The seed of the teacher's hand in the i-th demonstration of a stage."""
-    return stage_seed * 1000 + i
+    return stage_seed * TEACHER_SEED_STRIDE + i
 
 
 def _mirror(xyz: Xyz, side: str) -> Xyz:

@@ -96,7 +96,7 @@ class InProcess:
         return InProcessCell(run_id, configs)
 
     def describe(self) -> str:
-        return "every node in this process"
+        return "in-process"
 
 
 @dataclass(frozen=True)
@@ -136,8 +136,7 @@ class OverZenoh:
             raise
 
     def describe(self) -> str:
-        how = ("attached to services already running" if self.attach else "one process per role")
-        return how + (", on hosts" if self.hosts else "") + (", mutual TLS" if self.tls else "")
+        return "Zenoh"
 
 
 TRANSPORTS = ("zenoh", "inproc")

@@ -14,8 +14,8 @@ A peer without the run's credentials is refused at the TLS handshake (no
 certificate, or one another CA signed); one with a certificate of the right CA
 but another name gets a session whose traffic the router drops.
 
-The command that makes the credentials is documented in the README
-(``etar-bench certs DIR``); ``openssl_commands`` prints the openssl calls it makes.
+The command that makes the credentials is ``etar-bench certs DIR`` (docs/cli.md);
+``openssl_commands`` prints the openssl calls it makes.
 """
 
 from __future__ import annotations

@@ -16,7 +16,7 @@ been delivered and a cycle still waits, nothing more can come: the nodes are
 told (``Node.quiescent``: the commander goes on without an estimate that will not
 come, as it does after ``ESTIMATE_WAIT_S`` over Zenoh) and then the cycle closes
 with a missed answer, as after the answer timeout over Zenoh.  So the same seed
-records the same messages either way (tests/e2e/test_transports.py).
+records the same messages either way (tests/e2e/test_scenarios.py).
 """
 
 from __future__ import annotations
@@ -61,7 +61,6 @@ class InProcessBus:
         self._queue: deque = deque()
         self._subs: dict[str, list] = {}
         self._all: list = []
-        self.received: dict[tuple, int] = {}  # (node, topic) -> messages handed over
         self.bad: dict[tuple, int] = {}  # (node, topic) -> messages that did not decode or whose handler raised
         self.last_error: dict[tuple, str] = {}
         self._decode_error = ""
@@ -132,7 +131,7 @@ class InProcessCell:
     """The nodes of one run in this process (a ``services.transport.cell.Cell``).
     ``configs``: role -> node config."""
 
-    restarts: list = []  # nothing restarts in one process
+    restarts = ()  # nothing restarts in one process
 
     def __init__(self, run_id: str, configs: dict, clock=None):
         self.clock = clock or MonotonicClock()
@@ -140,11 +139,15 @@ class InProcessCell:
         self.bus = InProcessBus(self.clock)
         self.nodes = {}
         self._progress = None  # run_episode's progress callback, for the cycles of that episode
-        for role, config in configs.items():
-            node_cls, _ = NODES[role]
-            node = node_cls(config, self.bus, self.clock, run_id=run_id, mode="lockstep")
-            self.nodes[role] = node
-            self.bus.attach(node)
+        try:
+            for role, config in configs.items():
+                node_cls, _ = NODES[role]
+                node = node_cls(config, self.bus, self.clock, run_id=run_id, mode="lockstep")
+                self.nodes[role] = node
+                self.bus.attach(node)
+        except BaseException:
+            self.close()  # the nodes built so far (the recorder's writer process among them)
+            raise
 
     def request(self, role: str, cmd: str, timeout: float | None = None, **args) -> dict:
         """A control request, answered as a service over Zenoh would answer it; raises

@@ -2,12 +2,11 @@
 
 Each service runs as ``python -m services.cli.roles ROLE`` in its own process group,
 with its output in a log file.  Readiness is its liveliness token, never a
-sleep.  Once ready, the runner watches every token: the moment one disappears
-(the process died, or its session did) that service is *lost*, an episode in
-progress is stopped by the robot (its summary kept) and ``ServiceLost`` names
-the service and when; a request to a lost service fails at once instead of
-waiting for its timeout.  Stopping escalates SIGINT -> SIGTERM -> SIGKILL, each
-with a timeout.
+sleep.  Once ready, ``Supervisor`` watches every token: the moment one disappears
+(the process died, or its session did) that service is *lost* (the runner's cell,
+``services.transport.zenoh_cell``, then stops the episode in progress and says so);
+a role with a restart policy is started again.  Stopping escalates SIGINT -> SIGTERM
+-> SIGKILL, each with a timeout.
 """
 
 from __future__ import annotations
@@ -210,15 +209,14 @@ class Supervisor:
 
         def on_token(sample) -> None:
             role = str(sample.key_expr).rsplit("/", 1)[-1]
-            if role in self.watched and sample.kind == zenoh.SampleKind.DELETE and role not in self.lost:
-                self.lost[role] = time.monotonic()
-                self._wake.set()
+            if role in self.watched and sample.kind == zenoh.SampleKind.DELETE:
+                self.mark_lost(role)
 
         self._alive_sub = self.session.liveliness().declare_subscriber(topics.alive(self.run_id, "*"), on_token)
         # a token that went away between wait_alive and the subscriber is missing now
         missing = self.watched - alive_services(self.session, self.run_id, timeout=1.0)
         for role in missing:
-            self.lost.setdefault(role, time.monotonic())
+            self.mark_lost(role)
 
     def lost_message(self, role: str, during: str = "") -> str:
         at = self.lost[role] - self._t0

@@ -16,6 +16,7 @@ import os
 import time
 from dataclasses import dataclass
 
+from robot_sim.fri import FRI_RATE_HZ
 from services.nodes import NODES
 from services.runtime.bus import MonotonicClock
 from services.transport.collector import PausedCollector
@@ -164,7 +165,7 @@ def drive_episode(node, svc: Service, plan, mode: str, clock, config, settle: bo
     node.begin_episode(settle)
     engine = CycleEngine(node, plan, clock, mode=mode, cycle_ns=node.cell.cycle_ns,
                          answer_timeout_ns=int(config.answer_timeout * 1e9),
-                         stall_every_cycles=int(config.stall_every * 1000) if config.stall_ms > 0 else 0,
+                         stall_every_cycles=int(config.stall_every * FRI_RATE_HZ) if config.stall_ms > 0 else 0,
                          stall_s=config.stall_ms / 1e3)
     lockstep = mode == "lockstep"
     checked, checked_at = 0, clock.now_ns()

@@ -13,8 +13,13 @@ from dataclasses import replace
 from robot_sim.fri import FRI_CYCLE_NS
 from services.runtime import topics
 from services.runtime.config import config_to_args
+from services.runtime.messages import EPISODE_SUMMARY
 from services.transport.cell import ServiceLost, Start
+from services.transport.credentials import client_options, router_options
+from services.transport.hosts import ROUTER_ADDRESS, ZENOH_CFG as HOSTS_CFG
 from services.transport.launch import Supervisor, free_port
+from services.transport.service import request
+from services.transport.session import ZenohOptions, open_session
 
 
 class ZenohCell:
@@ -26,8 +31,6 @@ class ZenohCell:
         (services.transport.credentials); ``hosts``: the services on hosts in network
         namespaces (services.transport.hosts), already up.  With either, the runner's
         session is the run's router and every service is its client."""
-        from services.transport.session import ZenohOptions, open_session
-
         self.run_id = run_id
         self.attach = attach
         self.hosts = hosts
@@ -38,14 +41,10 @@ class ZenohCell:
         address = "127.0.0.1"
         hosts_cfg = ()
         if hosts is not None:
-            from services.transport.hosts import ROUTER_ADDRESS, ZENOH_CFG
-
-            address, hosts_cfg = ROUTER_ADDRESS, ZENOH_CFG
+            address, hosts_cfg = ROUTER_ADDRESS, HOSTS_CFG
         if zenoh is not None:
             self.zenoh, self.endpoint = zenoh, ""
         elif tls is not None:
-            from services.transport.credentials import router_options
-
             self.endpoint = f"tls/{address}:{free_port()}"
             options = router_options(tls, run_id, self.endpoint)
             self.zenoh = replace(options, cfg=options.cfg + hosts_cfg)
@@ -62,12 +61,17 @@ class ZenohCell:
         # copy of an earlier summary once ended a demonstration after 1.5 s)
         self._summaries: dict[int, dict] = {}
         self._episode_first = None
-        self._sub = self.session.declare_subscriber(topics.key(run_id, "robot/episode"), self._on_episode)
         self._stopped = False
         self._codes = {}
         self._wake = threading.Event()  # an episode's summary came, or a service was lost
-        self.supervisor = Supervisor(self.session, run_id, start.log_dir, hosts=hosts, attach=attach,
-                                     restartable=start.restartable, on_restart=start.on_restart, wake=self._wake)
+        try:
+            self._sub = self.session.declare_subscriber(topics.key(run_id, "robot/episode"), self._on_episode)
+            self.supervisor = Supervisor(self.session, run_id, start.log_dir, hosts=hosts, attach=attach,
+                                         restartable=start.restartable, on_restart=start.on_restart,
+                                         wake=self._wake)
+        except BaseException:
+            self.session.close()
+            raise
         self.lost = self.supervisor.lost  # role -> monotonic time it was lost
 
     def start(self) -> None:
@@ -86,14 +90,10 @@ class ZenohCell:
         elif self.tls is not None or self.hosts is not None:
             # a client of the runner's router (peers listening on loopback cannot reach
             # one another across hosts), with the router's short lease on a host
-            from services.transport.credentials import client_options
-            from services.transport.hosts import ZENOH_CFG
-            from services.transport.session import ZenohOptions
-
             zo = (client_options(self.tls, role, self.endpoint) if self.tls is not None
                   else ZenohOptions(mode="client", connect=(self.endpoint,), listen=()))
             if self.hosts is not None:
-                zo = replace(zo, cfg=zo.cfg + ZENOH_CFG)
+                zo = replace(zo, cfg=zo.cfg + HOSTS_CFG)
             args += zo.to_args()
         else:
             args += ["--connect", self.endpoint]
@@ -114,8 +114,6 @@ class ZenohCell:
         return silent
 
     def _on_episode(self, sample) -> None:
-        from services.runtime.messages import EPISODE_SUMMARY
-
         try:
             summary = EPISODE_SUMMARY.decode(sample.payload.to_bytes())
         except ValueError:
@@ -133,8 +131,6 @@ class ZenohCell:
         return summary
 
     def request(self, role: str, cmd: str, timeout: float = 30.0, **args) -> dict:
-        from services.transport.service import request
-
         if role in self.lost and self.supervisor.may_restart(role):
             self.supervisor.restart(role)
         if role in self.lost:
@@ -242,10 +238,12 @@ class ZenohCell:
                 self._shutdown(roles)
             self.supervisor.close()
             self._sub.undeclare()
-            self.session.close()
         finally:
-            if self.hosts is not None:
-                self.hosts.down()
+            try:
+                self.session.close()
+            finally:
+                if self.hosts is not None:
+                    self.hosts.down()
         return self._codes
 
     # what the supervisor knows, as the Cell protocol and the tests ask for it

@@ -82,6 +82,7 @@ def matched_within(publisher, want: bool, timeout: float = 10.0) -> bool:
 
 
 @pytest.mark.parametrize("clock", ["realtime", "lockstep"])
+@pytest.mark.zenoh
 def test_an_idle_teacher_takes_no_messages_in_realtime_and_every_one_in_lockstep(teacher_service, clock):
     svc, run_id, robot = teacher_service
     node = TeacherNode(TeacherConfig(), ZenohBus(svc, clock == "realtime"), MonotonicClock(), mode=clock)

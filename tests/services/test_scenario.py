@@ -151,13 +151,27 @@ def test_to_dict_round_trips_through_from_dict():
     assert Scenario.from_dict(data).to_dict() == data
 
 
-def test_with_clock_returns_a_changed_copy():
+def test_replace_returns_a_changed_copy_validated_and_keeps_defaults_defaults():
     s = Scenario.from_dict(minimal())
-    r = s.with_clock("realtime")
+    r = s.replace("clock", "realtime")
     assert (s.clock, r.clock) == ("lockstep", "realtime")
     assert r.stages == s.stages and r.name == s.name
     with pytest.raises(ScenarioError, match=r"clock: expected one of 'lockstep', 'realtime', got 'wall'"):
-        s.with_clock("wall")
+        s.replace("clock", "wall")
+    # a new seed reaches every stage that inherits it, not one that sets its own
+    seeded = Scenario.from_dict(minimal(stages=[{"demonstrate": {"count": 1}},
+                                                {"demonstrate": {"count": 1, "seed": 7}}]))
+    assert [st.seed for st in seeded.replace("seed", 3).stages] == [1003, 7]
+    # every stage of a kind, or the i-th
+    assert [st.count for st in seeded.replace("demonstrate.count", 2).stages] == [2, 2]
+    assert [st.count for st in seeded.replace("demonstrate[1].count", 4).stages] == [1, 4]
+    assert seeded.replace("cell.sensor_noise", 2.0).cell.sensor_noise == 2.0
+    for path, says in (("demonstrate[2].count", "the scenario has 2 demonstrate stage"),
+                       ("learn.phases", "the scenario has no learn stage"),
+                       ("teach.count", "STAGE one of demonstrate, learn, reproduce"),
+                       ("cell.fri_packet_los", "did you mean 'fri_packet_loss'")):
+        with pytest.raises(ScenarioError, match=says):
+            seeded.replace(path, 1)
 
 
 def test_constructors_validate_on_their_own():
