@@ -15,9 +15,7 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
-# kind -> columns: the one list of what ETAR's state and features can be
-STATES = {"position": 3, "pose": 6}  # pose: position and rotation vector
-FEATURES = {"force": 3, "force_torque": 6}
+from etar.vocabulary import FEATURES, STATES
 
 
 def pose_of(msr_cart_pos) -> tuple[np.ndarray, np.ndarray]:

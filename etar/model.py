@@ -28,11 +28,11 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from etar import em, inference
+from etar.vocabulary import TRANSITIONS
 from etar.demonstrations import DemonstrationError, check_demonstration, check_demonstrations, step_arrays
 
 FORMAT_NAME = "etar-model"
 FORMAT_VERSION = 1
-TRANSITIONS = ("effect", "state")
 
 
 @dataclass(frozen=True)

@@ -24,8 +24,8 @@ from typing import Callable, Sequence
 
 from etar.demonstrations import check_demonstrations
 from etar.model import ETAR
+from etar.vocabulary import CRITERIA
 
-CRITERIA = ("bic", "aic")
 METHODS = ("per_demonstration", "pooled")
 
 

@@ -24,10 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
-from etar.features import FEATURES, STATES
 from etar.impedance import PhaseImpedance, impedance_from_file, phase_impedances
 from etar.metrics import match_phases
 from etar.model import ETAR
+from etar.vocabulary import FEATURES, STATES
 
 
 

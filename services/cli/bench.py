@@ -25,7 +25,7 @@ import numpy as np
 
 from robot_sim.worlds import TASK_WORLDS
 from services.cli.zenoh_flags import add_zenoh_arguments, zenoh_options
-from services.runtime.visual_topics import VISUAL_RATE_HZ, check_visual_rate
+from services.runtime.visual_topics import FOXGLOVE_PORT, VISUAL_RATE_HZ, check_visual_rate
 
 
 def _profile(text: str) -> str:
@@ -305,7 +305,6 @@ def cmd_router(args) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     from services.foxglove import export
-    from services.nodes.foxglove_bridge import DEFAULT_PORT
     from services.recordings import recovery
     from services.run import sweep
     from services.run.options import RunOptions
@@ -347,9 +346,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the services on hosts of this machine, each a network namespace with its own address "
                         "(root and iproute2 needed), roles by host, e.g. robot,ft_sensor:phase_estimator,"
                         "impedance_commander:recorder,teacher; the runner is the run's Zenoh router")
-    p.add_argument("--foxglove", nargs="?", const=DEFAULT_PORT, type=int, metavar="PORT",
+    p.add_argument("--foxglove", nargs="?", const=FOXGLOVE_PORT, type=int, metavar="PORT",
                    help="watch the run live in Foxglove: the arm, the world, the wrench, the stiffness and the phase "
-                        f"over Foxglove's WebSocket protocol on PORT (default {DEFAULT_PORT}; 0: any free port, "
+                        f"over Foxglove's WebSocket protocol on PORT (default {FOXGLOVE_PORT}; 0: any free port, "
                         "printed); "
                         "connect Foxglove to ws://localhost:PORT")
     p.add_argument("--no-figures", action="store_true",

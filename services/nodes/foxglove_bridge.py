@@ -23,18 +23,17 @@ from robot_sim.worlds import TASK_WORLDS
 from services.runtime import topics
 from services.runtime.bus import Node, Subscription
 from services.runtime.config import option
-from services.runtime.visual_topics import SCHEMA_NAMES, VISUAL_RATE_HZ, check_visual_rate, schema_bytes
+from services.runtime.visual_topics import FOXGLOVE_PORT, SCHEMA_NAMES, VISUAL_RATE_HZ, check_visual_rate, schema_bytes
 from services.foxglove.scene import VisualScene
 from services.foxglove.tap import VisualTap, encode
 
-DEFAULT_PORT = 8765  # Foxglove's own default
 
 
 @dataclass(frozen=True)
 class FoxgloveBridgeConfig:
     world: str = option("valley", "the task world whose geometry is drawn", choices=TASK_WORLDS)
     host: str = option("127.0.0.1", "address the WebSocket server listens on", metavar="ADDR")
-    port: int = option(DEFAULT_PORT, "port of the WebSocket server (0: any free one, said in status)",
+    port: int = option(FOXGLOVE_PORT, "port of the WebSocket server (0: any free one, said in status)",
                        metavar="PORT")
     visual_rate_hz: float = option(VISUAL_RATE_HZ, "visual topics' rate, Hz", metavar="HZ")
 

@@ -9,7 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from etar.features import FEATURES, STATES, force_vector, state_vector
+from etar.features import force_vector, state_vector
+from etar.vocabulary import FEATURES, STATES
 from services.recordings.format import RecordingError
 from services.recordings.reader import read_episode
 from services.runtime.messages import FT_WRENCH, ROBOT_CONTACT, ROBOT_STATE, SAMPLE_RATE_HZ, MessageError

@@ -15,6 +15,7 @@ from robot_sim.fri import FRI_RATE_HZ
 SCHEMA_DIR = Path(__file__).with_name("foxglove_schemas")  # from @foxglove/schemas 2.1.0 (MIT), unchanged
 VISUAL_RATE_HZ = 50.0  # visual frames per second of simulated time: one in every 20 FRI cycles
 MAX_VISUAL_RATE_HZ = float(FRI_RATE_HZ)  # a frame every FRI cycle at most
+FOXGLOVE_PORT = 8765  # Foxglove's own default for a live view's WebSocket
 TOPIC_TF = "/viz/tf"
 TOPIC_SCENE = "/viz/scene"
 TOPIC_STATUS = "/viz/status"

@@ -9,9 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from etar.features import FEATURES as ETAR_FEATURES, STATES as ETAR_STATES
-from etar.model import TRANSITIONS
-from etar.selection import CRITERIA  # noqa: F401  (the scenario's vocabulary: the stages check it)
+from etar.vocabulary import CRITERIA, TRANSITIONS  # noqa: F401  (CRITERIA: the stages check it)
+from etar.vocabulary import FEATURES as ETAR_FEATURES, STATES as ETAR_STATES
 from robot_sim.worlds import TASK_WORLDS
 
 WORLDS = TASK_WORLDS

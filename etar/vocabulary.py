@@ -1,0 +1,8 @@
+"""The words a model and its users share: what ETAR's state and features can be (with
+their columns), which transition models there are and which criteria choose the number
+of phases.  Plain Python, so that a scenario can check them without loading the learner."""
+
+STATES = {"position": 3, "pose": 6}  # pose: position and rotation vector
+FEATURES = {"force": 3, "force_torque": 6}
+TRANSITIONS = ("effect", "state")  # effect: ETAR (features from the force); state: STAR
+CRITERIA = ("bic", "aic")
