@@ -306,7 +306,8 @@ def cmd_router(args) -> int:
 def build_parser() -> argparse.ArgumentParser:
     from services.foxglove import export
     from services.recordings import recovery
-    from services.run import sweep
+    from services.run import demonstration, sweep
+    from services.scenario.checks import SIDES
     from services.run.options import RunOptions
     from services.runtime.cycle import CLOCKS
     from services.runtime.roles import FIFO_CHAIN
@@ -359,10 +360,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="one demonstration by the simulated teacher, in one process: its recording, "
                                     "and on request a picture and the arrays etar learn reads")
     p.add_argument("--world", choices=TASK_WORLDS, default="valley", help="the task world")
-    p.add_argument("--side", choices=("left", "right"), default="left", help="valley: starting side (default left)")
+    p.add_argument("--side", choices=SIDES, default=SIDES[0], help=f"valley: starting side (default {SIDES[0]})")
     p.add_argument("--seed", type=int, default=0, help="the scenario's seed (default 0)")
     p.add_argument("--spread", type=float, default=0.0, help="random start offset per axis, m (default 0)")
-    p.add_argument("--max-seconds", type=float, default=60.0, help="simulated-time limit (default 60)")
+    p.add_argument("--max-seconds", type=float, default=demonstration.MAX_SECONDS,
+                   help=f"simulated-time limit (default {demonstration.MAX_SECONDS:g})")
     p.add_argument("--out", help="run folder for the recording (default runs/demo-<world>-<time>)")
     p.add_argument("--png", help="write a picture of the demonstration here")
     p.add_argument("--npz", help="write its arrays here (states, forces, phases, dt: what etar learn reads)")
@@ -377,7 +379,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "reproduce.start_perturbation=0.01,0.03 (repeatable: every combination runs)")
     p.add_argument("--repeats", type=int, default=1, help="seeds per combination: the scenario's seed + 0..N-1")
     p.add_argument("--out", required=True, help="folder for the table, the plots and the runs")
-    p.add_argument("--record", choices=("full", "summary", "none"), default="summary",
+    p.add_argument("--record", choices=sweep.RECORD, default="summary",
                    help="what to keep of each run: everything, its report and model (default), or nothing")
     p.add_argument("--workers", type=int, help="local processes (default: the CPUs this process may use)")
     p.add_argument("--cluster", metavar="ADDRESS",

@@ -10,6 +10,7 @@ is the node's documentation.
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 
 import zenoh
@@ -53,33 +54,14 @@ def main(role: str, argv=None) -> int:
         return 2
 
 
-# the console scripts (pyproject.toml)
-def robot() -> int:
-    return main("robot")
-
-
-def ft_sensor() -> int:
-    return main("ft_sensor")
-
-
-def teacher() -> int:
-    return main("teacher")
-
-
-def phase_estimator() -> int:
-    return main("phase_estimator")
-
-
-def impedance_commander() -> int:
-    return main("impedance_commander")
-
-
-def recorder() -> int:
-    return main("recorder")
-
-
-def foxglove_bridge() -> int:
-    return main("foxglove_bridge")
+# the console scripts (pyproject.toml): one program per role
+robot = functools.partial(main, "robot")
+ft_sensor = functools.partial(main, "ft_sensor")
+teacher = functools.partial(main, "teacher")
+phase_estimator = functools.partial(main, "phase_estimator")
+impedance_commander = functools.partial(main, "impedance_commander")
+recorder = functools.partial(main, "recorder")
+foxglove_bridge = functools.partial(main, "foxglove_bridge")
 
 
 if __name__ == "__main__":

@@ -39,10 +39,8 @@ class ModelRecord:
 
 @dataclass
 class LearningRecord:
-    model_path: str | None = None  # the run's model (the first learned, or the scenario's)
+    model: ModelRecord | None = None  # the run's model (the first learned, or the scenario's)
     selection: dict | None = None  # how the number of phases was chosen
-    phase_to_truth: dict | None = None
-    goal: list | None = None
     learned_from: list = field(default_factory=list)  # dicts: path, samples (what the learn stage read)
     seconds: float | None = None
     # every model the learn stage fitted, by transition model ("effect", "state"): the run's first
@@ -52,8 +50,20 @@ class LearningRecord:
 
     def adopt(self, model: ModelRecord, selection: dict | None) -> None:
         """``model`` is the run's model from now on."""
-        self.model_path, self.goal, self.phase_to_truth = model.path, list(model.goal), model.phase_to_truth
-        self.selection = selection
+        self.model, self.selection = model, selection
+
+    # the run's model, as the report names it (None before one is learned or loaded)
+    @property
+    def model_path(self) -> str | None:
+        return None if self.model is None else self.model.path
+
+    @property
+    def goal(self) -> list | None:
+        return None if self.model is None else self.model.goal
+
+    @property
+    def phase_to_truth(self) -> dict | None:
+        return None if self.model is None else self.model.phase_to_truth
 
 
 @dataclass

@@ -6,13 +6,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from services.run.options import RunOptions
-from services.run.runner import Runner
 from services.scenario import Scenario
+
+MAX_SECONDS = 60.0  # a demonstration's simulated-time limit unless told otherwise
 
 
 def demonstration_scenario(world: str = "valley", *, side: str = "left", seed: int = 0, spread: float = 0.0,
-                           max_seconds: float = 60.0, start=None, goal_x: float | None = None) -> Scenario:
+                           max_seconds: float = MAX_SECONDS, start=None, goal_x: float | None = None) -> Scenario:
     """A scenario of one demonstration.  ``start``: the left-side tcp start (the right side
     mirrors it; default the world's), ``spread``: a uniform offset per axis, m; ``goal_x``:
     where the valley's teacher stops (default the world's).  A ScenarioError names what
@@ -28,6 +28,9 @@ def demonstration_scenario(world: str = "valley", *, side: str = "left", seed: i
 
 def record_demonstration(scenario: Scenario, out, progress=print) -> tuple[dict, Path]:
     """``scenario`` run in one process into ``out``: (its report, the demonstration's recording)."""
+    from services.run.options import RunOptions  # the runner on use: the CLI reads this module's defaults
+    from services.run.runner import Runner
+
     report = Runner(scenario, RunOptions(out=str(out), transport="inproc", figures=False), progress).run()
     (demonstration,) = report["demonstrations"]
     return report, Path(out).resolve() / demonstration["path"]

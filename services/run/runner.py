@@ -166,7 +166,7 @@ class Runner:
 
     def stage_reproduce(self, stage):
         learning = self.record.learning
-        if learning.model_path is None:
+        if learning.model is None:
             raise RuntimeError("reproduce needs a learned model")
         demo_starts = [(d.side, tuple(d.start)) for d in self.record.demonstrations]
         starts = reproduction_starts(stage, self.scenario.world, stage.seed, demo_starts)
@@ -176,16 +176,17 @@ class Runner:
         episodes = [(side, start, m) for side, start in starts for m in models]
         for i, (side, start, m) in enumerate(episodes):
             index = len(self.record.reproductions)
-            path, goal = (learning.model_path, learning.goal) if m is None else (m.path, m.goal)
-            name = None if m is None else m.name
+            model = learning.model if m is None else m
+            name = None if m is None else m.name  # named only when the stage lists its models
             # counted within the stage (a scenario may have several); the recording is named by index
             label = f"reproduction {i + 1}/{len(episodes)}" + (f" ({name})" if name else "")
             summary, rec, recording = self.episodes.reproduce(
-                index, start, model=str(Path(path).resolve()), goal=goal, goal_tolerance=stage.goal_tolerance,
+                index, start, model=str(Path(model.path).resolve()), goal=model.goal,
+                goal_tolerance=stage.goal_tolerance,
                 stop_at_goal=stage.stop_at_goal, max_seconds=stage.max_seconds, label=label)
             self.record.reproductions.append(EpisodeRecord(
                 str(recording), side, list(start), summary, rec, max_contact_force=stage.max_contact_force,
-                model=name, phase_to_truth=learning.phase_to_truth if m is None else m.phase_to_truth))
+                model=name, phase_to_truth=model.phase_to_truth))
             self.say(f"{label} ({side}): {summary['reason']}, peak contact "
                      f"{summary['peak_contact_force']:.1f} N, {summary['sim_seconds']:.1f} s simulated / "
                      f"{summary['wall_seconds']:.1f} s wall")
