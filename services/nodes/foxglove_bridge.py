@@ -1,12 +1,12 @@
 """The Foxglove bridge node: the run's visual topics live over Foxglove's WebSocket protocol.
 
 Takes every message of the run undecoded, as the recorder does, turns them into
-the visual topics with the recorder's own ``services.foxglove.tap.VisualTap`` (so the
+the visual topics exactly as the recorder does (``services.foxglove.tap``: the
 live view shows what the recording holds), and logs them to channels of a
-Foxglove SDK server (``foxglove-sdk``): connect Foxglove to ``ws://HOST:PORT``.
-It publishes nothing on the run's bus and answers no cycle, so it cannot change
-what is recorded or what the cell does; a slow viewer only loses visual messages
-(the SDK drops the oldest of a client's queue).
+Foxglove SDK server (``foxglove-sdk``): connect Foxglove to ``ws://HOST:PORT``
+(``--host``, ``--port``).  It publishes nothing on the run's bus and answers no
+cycle, so it cannot change what is recorded or what the cell does; a slow viewer
+only loses visual messages (the SDK drops the oldest of a client's queue).
 
 The channels carry JSON with Foxglove's JSON Schemas (the recording's encoding);
 the SDK's server speaks ``foxglove.sdk.v1``, the wire format of
@@ -33,9 +33,10 @@ from services.foxglove.tap import VisualTap, encode
 class FoxgloveBridgeConfig:
     world: str = option("valley", "the task world whose geometry is drawn", choices=TASK_WORLDS)
     host: str = option("127.0.0.1", "address the WebSocket server listens on", metavar="ADDR")
-    port: int = option(FOXGLOVE_PORT, "port of the WebSocket server (0: any free one, said in status)",
+    port: int = option(FOXGLOVE_PORT, "port of the WebSocket server, 0..65535 (0: any free one, said in status)",
                        metavar="PORT")
-    visual_rate_hz: float = option(VISUAL_RATE_HZ, "visual topics' rate, Hz", metavar="HZ")
+    visual_rate_hz: float = option(VISUAL_RATE_HZ, "rate of the visual topics sent to Foxglove, Hz, at most one "
+                                                   "per FRI cycle (1000)", metavar="HZ")
 
     def __post_init__(self):
         if not (0 <= self.port <= 65535):

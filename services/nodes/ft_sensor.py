@@ -12,9 +12,9 @@ Fault injection (``--fault``, from ``--fault-after`` s of simulated time into
 each episode, for the rest of it): ``stop``, the RDT stream stops (nothing more
 is published); ``saturate``, the load on the gauges is far beyond the Mini45's
 range (the ATI model clips and sets its saturation bits); ``nan``, the gauges
-read NaN (the model repeats the last counts and sets ``INPUT_NONFINITE``).  The
-last two go through the sensor model itself, so the status bits are the ones a
-real record would carry.
+read NaN (the model repeats the last counts and sets its non-finite-input status
+bit).  The last two go through the sensor model itself, so the status bits are
+the ones a real record would carry.
 """
 
 from __future__ import annotations
@@ -39,10 +39,12 @@ SATURATING_LOAD = 10.0
 @dataclass(frozen=True)
 class FtSensorConfig:
     seed: int = option(0, "seed of the sensor's noise and drift")
-    noise_scale: float = option(1.0, "white noise as a multiple of the Mini45's (0: none)")
-    fault: str = option("none", "fault injection: the sensor fails from --fault-after s into each episode",
+    noise_scale: float = option(1.0, "white noise as a multiple of the Mini45's (0: none)", metavar="FACTOR")
+    fault: str = option("none", "fault injection: the sensor fails from --fault-after s into each episode "
+                                "(stop: no more records; saturate: beyond its range; nan: the gauges read NaN)",
                         choices=SENSOR_FAULTS)
-    fault_after: float = option(0.0, "fault injection: seconds of simulated time into each episode")
+    fault_after: float = option(0.0, "fault injection: when --fault starts, seconds of simulated time into each "
+                                     "episode", metavar="S")
 
     def __post_init__(self):
         if not (math.isfinite(self.noise_scale) and self.noise_scale >= 0):

@@ -4,29 +4,30 @@ Answers every FRI measurement (``robot/state``) with a command echoing its seq
 (``robot/command``).  The phase is the estimator's most likely phase
 (``estimator/phase``, 100 Hz; in lockstep the commander waits for the estimate of
 the same cycle every tenth cycle, and goes on with the last one if it does not
-come: after ``ESTIMATE_WAIT_S`` over a network, at once in one process, where
-nothing more can arrive).
+come: after 2 s over a network, at once in one process, where nothing more can
+arrive).
 
-The force comes from ``etar.policy.ReproductionPolicy``.  FRI's own stiffness is
-diagonal in the tcp frame, so the full K = R V R^T is realised through addTcpFT
-(the superposed wrench, thesis eq. 79) with the KRC's translational stiffness at
-zero; the KRC's rotational stiffness holds (or turns) the setpoint orientation.
+The force comes from the learned task's reproduction policy (``etar.policy``).
+FRI's own stiffness is diagonal in the tcp frame, so the full K = R V R^T is
+realised through addTcpFT (the superposed wrench, thesis eq. 79) with the KRC's
+translational stiffness at zero; the KRC's rotational stiffness holds (or turns)
+the setpoint orientation.
 
 A stale phase estimate is a fault, as in a real cell: when the newest estimate
-is more than ``STALE_ESTIMATE_CYCLES`` cycles older than the measurement being
-answered (the estimator is dead, hung or cut off, or it skips every sample
-because the wrench stream stopped, saturated or went non-finite), the commander
-holds the arm stiffly where it is (the policy's hold: ``HOLD_STIFFNESS`` on every
-axis, no feed-forward) and says why in every command (``hold``).  Following the
-last phase on would drive the arm on a frozen belief (59-81 mm, up to 11 N,
+is more than 50 cycles (five estimator periods, 50 ms) older than the
+measurement being answered (the estimator is dead, hung or cut off, or it skips
+every sample because the wrench stream stopped, saturated or went non-finite),
+the commander holds the arm stiffly where it is (the policy's hold: 2000 N/m on
+every axis, no feed-forward) and says why in every command (``hold``).  Following
+the last phase on would drive the arm on a frozen belief (59-81 mm, up to 11 N,
 before this hold existed).  In lockstep the hold lasts for the rest of the
 episode: nothing is ever late there, so a stale estimate is one that will not
 come.  On the realtime clock an estimate can be late and then come (a crowded
 CPU): the hold lasts while the estimate is stale, and the policy resumes with
-the next fresh one.  The robot ends the episode once a hold has lasted
-``services.nodes.robot.HOLD_WATCH_S``.  An estimate that says its wrench could
-not be used (``input_fault``: the sensor saturated or read non-finite) is a fault
-of the same kind, acted on at once: the hold's reason is the estimate's.
+the next fresh one.  The robot ends the episode once a hold has lasted 1 s.  An
+estimate that says its wrench could not be used (``input_fault``: the sensor
+saturated or read non-finite) is a fault of the same kind, acted on at once: the
+hold's reason is the estimate's.
 
 On the realtime clock only answers that can still count are sent: the commander
 takes the newest measurement that has arrived (``latest``) and leaves unanswered
@@ -65,10 +66,11 @@ CART_DAMPING = [0.7] * 6
 class CommanderConfig:
     model: str | None = option(None, "learned model file with per-phase impedance; can also come with reset",
                                metavar="FILE")
-    lead: float = option(LEAD, "how far the reference may run ahead of the tool, m")
-    damping_ratio: float = option(0.7, "damping ratio of the commanded impedance")
-    stall_every: float = option(0.0, "fault injection: stall before answering every N s of simulated time")
-    stall_ms: float = option(0.0, "fault injection: stall length, ms")
+    lead: float = option(LEAD, "how far the reference may run ahead of the tool, m (> 0)", metavar="M")
+    damping_ratio: float = option(0.7, "damping ratio of the commanded impedance (1: critical)", metavar="RATIO")
+    stall_every: float = option(0.0, "fault injection: stall before answering, every S seconds of simulated time "
+                                     "(0: never)", metavar="S")
+    stall_ms: float = option(0.0, "fault injection: how long each stall lasts, ms", metavar="MS")
 
     def __post_init__(self):
         if not self.lead > 0:

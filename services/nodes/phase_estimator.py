@@ -10,12 +10,13 @@ counted.  The other nine cycles' messages are not even decoded
 (``every_tenth``); realtime takes the newest tenth cycle (``latest``).
 Control: ``reset`` (episode, model file; state and features default to the
 task's; ``resync``: the filter joins a reproduction under way, every phase
-equally likely at first, as after a restart).  A wrench with error status or a sample the filter rejects
-(non-finite) is skipped and counted; the filter keeps its state.  A wrench the
-sensor flags (saturated, non-finite input) is a fault the commander must act
-on at once: the estimate of that cycle is still published, with the last
-posterior and ``input_fault`` saying why it did not move.  A wrench that never
-comes shows as estimates that stop (the commander's stale-estimate hold).
+equally likely at first, as after a restart).  A wrench with error status or a
+sample the filter rejects (non-finite) is skipped and counted; the filter keeps
+its state.  A wrench the sensor flags (saturated, non-finite input) is a fault
+the commander must act on at once: the estimate of that cycle is still
+published, with the last posterior and ``input_fault`` saying why it did not
+move.  A wrench that never comes shows as estimates that stop (the commander's
+stale-estimate hold).
 """
 
 from __future__ import annotations
@@ -41,8 +42,8 @@ _SATURATED = int(AtiStatus.FT_OUT_OF_RANGE)
 class EstimatorConfig:
     model: str | None = option(None, "learned model file (etar learn --out); can also come with reset",
                                metavar="FILE")
-    mute_after: float = option(0.0, "fault injection: publish no estimate after N s of each reproduction "
-                                    "(simulated time; 0: never)")
+    mute_after: float = option(0.0, "fault injection: publish no estimate after S seconds of each "
+                                    "reproduction (simulated time; 0: never)", metavar="S")
 
     def __post_init__(self):
         if not (math.isfinite(self.mute_after) and self.mute_after >= 0):

@@ -1,17 +1,19 @@
 """The recorder node: everything of a run, byte for byte, to MCAP - one file per episode.
 
 Takes every message of the run (``"**"``, undecoded) and writes its payload
-unchanged (a payload over ``MAX_PAYLOAD_BYTES`` is counted, not recorded;
-``services.recordings.writer.EpisodeWriter``: chunked, zstd, a JSON Schema
-per channel so Foxglove plots the wrench and phase topics, the scenario
-attached).  Control: ``begin_episode`` (path relative to ``out_dir``, kind,
-index, scenario text), ``end_episode`` (finalises the file; says which listed
-topics had not reached ``last_seq``), ``status``.  ``close`` finalises an open
-file: nothing already recorded is lost.
+unchanged (a payload over 64 KiB is counted, not recorded).  The files
+(``services.recordings.writer``) are chunked and zstd-compressed, with a JSON
+Schema per channel so Foxglove plots the wrench and phase topics, and the
+scenario attached; beside the run's own topics go Foxglove's visual topics
+(``--visual-rate-hz``).  Control: ``begin_episode`` (path relative to
+``--out-dir``, kind, index, scenario text), ``end_episode`` (finalises the file;
+says which listed topics had not reached the cycle it names), ``status``.
+Stopping the recorder finalises an open file: nothing already recorded is lost.
 """
 
 from __future__ import annotations
 
+import os
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,7 +22,7 @@ from services.recordings.writer import EpisodeWriter
 from services.recordings.offload import WriterProcess
 from services.runtime import topics
 from services.runtime.bus import Node, Subscription
-from services.runtime.config import option
+from services.runtime.config import FieldError, option
 from services.runtime.messages import MAX_PAYLOAD_BYTES, SEQ_PREFIX
 from services.runtime.visual_topics import VISUAL_RATE_HZ, check_visual_rate
 from services.foxglove.scene import VisualScene, world_of_scenario
@@ -30,16 +32,39 @@ from services.foxglove.tap import VisualTap, encode
 
 @dataclass(frozen=True)
 class RecorderConfig:
-    out_dir: str = option("recordings", "folder the episode files go into; the runner names them relative to it "
-                                        "(resolved when the recorder starts)", metavar="DIR")
+    out_dir: str = option("recordings", "folder the episode files go into (made if missing; a file there, or a "
+                                        "folder this user may not write in, is refused); the runner names the "
+                                        "files relative to it", metavar="DIR")
     writer_process: bool = option(False, "write the MCAP files from a helper process (what an in-process run "
                                          "does: its nodes share one CPU)")
-    visual_rate_hz: float = option(VISUAL_RATE_HZ, "Foxglove's visual topics (/viz/..., services.foxglove: the arm, "
-                                                   "the world, wrench, stiffness, phase) at this rate beside the "
-                                                   "run's own; 0: none", metavar="HZ")
+    visual_rate_hz: float = option(VISUAL_RATE_HZ, "rate of Foxglove's visual topics (/viz/...: the arm, the world, "
+                                                   "wrench, stiffness, phase) recorded beside the run's own, Hz, "
+                                                   "at most one per FRI cycle (1000); 0: none", metavar="HZ")
 
     def __post_init__(self):
         check_visual_rate(self.visual_rate_hz, "visual_rate_hz", none=True)
+        check_out_dir(self.out_dir)
+
+
+def check_out_dir(out_dir) -> None:
+    """FieldError unless the recorder can put its files in ``out_dir``: a folder, or one it
+    can make (its nearest existing parent a folder it may write in).  Nothing is made."""
+    path = Path(out_dir)
+    if not str(out_dir):
+        raise FieldError("out_dir", "expected a folder", "''")
+    if path.exists():
+        if not path.is_dir():
+            raise FieldError("out_dir", "not a folder (it is a file)", out_dir)
+        if not os.access(path, os.W_OK | os.X_OK):
+            raise FieldError("out_dir", "this user may not write in that folder", out_dir)
+        return
+    parent = path.absolute().parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise FieldError("out_dir", f"cannot be made: {parent} is a file, not a folder", out_dir)
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise FieldError("out_dir", f"cannot be made: this user may not write in {parent}", out_dir)
 
 
 def episode_path(out_dir, name) -> Path:

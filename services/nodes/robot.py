@@ -1,17 +1,18 @@
 """The robot node: the simulated LWR4+ behind its KRC/FRI link (``robot_sim.cell``).
 
-Every FRI cycle it publishes ``robot/state`` (the FRI measurement) and
+Every FRI cycle (1 ms) it publishes ``robot/state`` (the FRI measurement) and
 ``robot/contact`` (the physics' truth for the F/T sensor and the labels); when
 the cycle closes it applies the impedance commander's answer (``robot/command``,
 echoing the measurement's seq) and the teacher's hand (``teacher/wrench``) and
 steps the physics.  When cycles open and close is the cycle engine's business
 (``services.runtime.cycle``): the node does the work of each.
 
-In lockstep an answer is taken to arrive ``LOCKSTEP_LATENCY_NS`` after its
-measurement; in realtime at its measured latency (receive time - publish time).
+In lockstep an answer is taken to arrive 0.1 ms after its measurement; in
+realtime at its measured latency (receive time - publish time).
 
 Control: ``reset`` (start, episode, kind), ``status``; the transports add
-``settle``, ``run`` and ``stop``, which drive the engine (``plan`` checks them).
+``settle``, ``run`` and ``stop``, which drive the engine (a request is checked
+before its episode starts).
 """
 
 from __future__ import annotations
@@ -52,10 +53,12 @@ ANSWER_TOPICS = {participant: ROLES[role].answer_topic for participant, role in 
 class RobotConfig:
     world: str = option("valley", "task world", choices=TASK_WORLDS)
     seed: int = option(0, "seed of the cell (joint measurement noise)")
-    answer_timeout: float = option(5.0, "lockstep: seconds to wait for a cycle's answers before counting a miss")
-    stall_every: float = option(0.0, "fault injection: stall the loop every N s")
-    stall_ms: float = option(0.0, "fault injection: stall length, ms")
-    plate_friction: float = option(Valley.friction, "valley: sliding friction coefficient of the plates")
+    answer_timeout: float = option(5.0, "lockstep: seconds to wait for a cycle's answers before counting a miss",
+                                   metavar="S")
+    stall_every: float = option(0.0, "fault injection: stall the loop every S seconds (0: never)", metavar="S")
+    stall_ms: float = option(0.0, "fault injection: how long each stall lasts, ms", metavar="MS")
+    plate_friction: float = option(Valley.friction, "valley: sliding friction coefficient of the plates (> 0)",
+                                   metavar="MU")
     # the FRI link's faults (--fri-packet-loss, ... --fri-faults-until-s): robot_sim.fri.LinkFaultSpec
     fri: LinkFaultSpec = nested(LinkFaultSpec(), "fri_")
 

@@ -5,20 +5,37 @@ Each field made with ``option(default, help)`` becomes ``--field-name`` (or the
 (``config_from_args``), and the runner turns a config back into the flags of the
 process it spawns (``config_to_args``), so a parameter is named once.  Types
 come from the defaults: int, float, str, bool (a ``--flag``/``--no-flag`` pair),
-or None (an optional string).  A field made with ``nested(spec, prefix)`` holds a
-frozen dataclass defined elsewhere (``robot_sim.fri.LinkFaultSpec``): each of its
-fields is a flag ``--<prefix><field>``, its help the field's ``doc`` metadata.
+or None (an optional string).  A flag's help is the field's, with its default
+added (unless the help says its own), and its value's name (``metavar``) is the one
+given or says the unit its name ends in (``_s``: S, ``_ms``: MS, ``_hz``: HZ), P for
+a probability, or its type (N, NUMBER, TEXT).  A config that refuses a value raises
+``FieldError`` (or a ValueError whose message begins with the field's name):
+``config_from_args`` words it ``<flag> <value>: <problem>``.  A field made with
+``nested(spec, prefix)`` holds a frozen dataclass defined elsewhere
+(``robot_sim.fri.LinkFaultSpec``): each of its fields is a flag
+``--<prefix><field>``, its help the field's ``doc`` metadata.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
+import re
+from pathlib import Path
 
 
 def option(default, help: str, *, choices=None, flag: str | None = None, metavar: str | None = None):
     return dataclasses.field(default=default, metadata={"help": help, "choices": choices, "flag": flag,
                                                         "metavar": metavar})
+
+
+class FieldError(ValueError):
+    """A config's field refuses its value; ``str()`` names the field, a command line the flag."""
+
+    def __init__(self, field: str, problem: str, value):
+        super().__init__(f"{field} {value}: {problem}")
+        self.field, self.problem, self.value = field, problem, value
 
 
 def nested(default, prefix: str):
@@ -64,28 +81,56 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls) -> None:
         meta, default = f.metadata, f.default
         if isinstance(default, bool):
             parser.add_argument(_flag(f), dest=f.name, action=argparse.BooleanOptionalAction, default=default,
-                                help=meta["help"])
+                                help=meta["help"] + (" (default on)" if default else " (default off)"))
             continue
         kind = type(default) if default is not None else str
+        help_text = meta["help"]
+        if "default" not in help_text:
+            help_text += f" (default {_shown(default) if default is not None else 'none'})"
         parser.add_argument(_flag(f), dest=f.name, type=_typed(kind, _flag(f)), default=default,
-                            choices=meta.get("choices"), metavar=meta.get("metavar"),
-                            help=f"{meta['help']} (default {default})")
+                            choices=meta.get("choices"), metavar=_metavar(f, kind), help=help_text)
+
+
+_UNITS = (("_ms", "MS"), ("_hz", "HZ"), ("_s", "S"))
+_KINDS = {int: "N", float: "NUMBER", str: "TEXT"}
+
+
+def _metavar(f: dataclasses.Field, kind) -> str | None:
+    if f.metadata.get("metavar") or f.metadata.get("choices"):
+        return f.metadata.get("metavar")
+    unit = next((u for suffix, u in _UNITS if f.name.endswith(suffix)), None)
+    if unit is None and kind is float and f.metadata["help"].startswith("probability"):
+        unit = "P"
+    return unit or _KINDS.get(kind, "VALUE")
+
+
+def _shown(value) -> str:
+    """A value as a person writes it: 0 rather than 0.0, '' for an empty text."""
+    if value == "":
+        return "''"
+    if isinstance(value, float) and math.isfinite(value) and value.is_integer():
+        return str(int(value))
+    return str(value)
 
 
 def _typed(kind, flag):
+    wanted = {int: "an integer", float: "a number"}.get(kind, kind.__name__)
+
     def parse(text):
         try:
             value = kind(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"{flag} expects {kind.__name__}, got {text!r}") from None
+            raise argparse.ArgumentTypeError(f"{flag} {text}: expected {wanted}") from None
         if kind is float and value != value:
-            raise argparse.ArgumentTypeError(f"{flag} expects a number, got {text!r}")
+            raise argparse.ArgumentTypeError(f"{flag} {text}: expected a number")
         return value
     parse.__name__ = kind.__name__
     return parse
 
 
 def config_from_args(cls, args: argparse.Namespace):
+    """The config ``cls`` of parsed flags; a value it refuses raises ValueError worded
+    ``<flag> <value>: <problem>``."""
     values = {f.name: getattr(args, f.name) for f in dataclasses.fields(cls) if "help" in f.metadata}
     for name, spec_cls, prefix in _nested(cls):
         try:
@@ -94,8 +139,42 @@ def config_from_args(cls, args: argparse.Namespace):
             if getattr(exc, "field", None) is None:
                 raise
             # the spec names its own field (robot_sim.fri.LinkFaultError): say the flag instead
-            raise ValueError(f"--{(prefix + exc.field).replace('_', '-')}: {exc.problem}, got {exc.value!r}") from None
-    return cls(**values)
+            raise ValueError(f"--{(prefix + exc.field).replace('_', '-')} {_shown(exc.value)}: "
+                             f"{exc.problem}") from None
+    try:
+        return cls(**values)
+    except ValueError as exc:
+        raise _flag_error(cls, exc, values) from None
+
+
+def _flag_error(cls, exc: ValueError, values: dict) -> ValueError:
+    """``exc`` of a config's check, worded ``<flag> <value>: <problem>`` when it names a field
+    (``FieldError``, or a message that begins with the field's name)."""
+    fields = {f.name: f for f in _fields(cls)}
+    name = getattr(exc, "field", None)
+    if name in fields:
+        problem = exc.problem
+    else:
+        text = str(exc)
+        name = next((n for n in sorted(fields, key=len, reverse=True) if re.match(rf"{n}\b", text)), None)
+        if name is None:
+            return exc
+        # "noise_scale must be ... >= 0, got -1.0": the flag and the value say the "got"
+        problem = re.sub(r",? got [^,;()]*$", "", text[len(name):]).lstrip(" :")
+    return ValueError(f"{_flag(fields[name])} {_shown(values.get(name))}: {problem}")
+
+
+def check_files(config) -> None:
+    """ValueError ``<flag> <value>: ...`` for a FILE flag (``metavar="FILE"``) of ``config``
+    that names no file: a program refuses it before it starts, not when its node loads it."""
+    values = _values(config)
+    for f in _fields(type(config)):
+        value = values[f.name]
+        if f.metadata.get("metavar") == "FILE" and value is not None:
+            path = Path(value)
+            if not path.is_file():
+                raise ValueError(f"{_flag(f)} {_shown(value)}: "
+                                 + ("a folder, not a file" if path.is_dir() else "no such file"))
 
 
 def config_to_args(config) -> list[str]:

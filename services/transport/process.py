@@ -35,8 +35,36 @@ class ProcessConfig:
     run_id: str
     zenoh: ZenohOptions
     clock: str = "lockstep"
-    sched_fifo: int = 0  # SCHED_FIFO priority for the whole process, 0: none
+    sched_fifo: int = 0  # SCHED_FIFO priority for the whole process (1..99), 0: none
     cpus: tuple = ()  # CPU affinity of the whole process, (): any
+
+    def __post_init__(self):
+        if self.sched_fifo is not True and not 0 <= int(self.sched_fifo) <= 99:
+            raise ValueError(f"--sched-fifo {self.sched_fifo}: a SCHED_FIFO priority is 1..99 (0: off)")
+
+
+def fifo_refusal(priority: int) -> str | None:
+    """Switch this process to SCHED_FIFO at ``priority``: None if granted, else why not, in
+    the system's words (e.g. "Operation not permitted": root, CAP_SYS_NICE or an rtprio
+    limit is needed).  The service applies the policy again before its session opens (a
+    no-op once granted): this says why it could not."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except AttributeError:
+        return "SCHED_FIFO is not available on this system"
+    except OSError as exc:
+        return exc.strerror or str(exc)
+    return None
+
+
+def fifo_words(requested, granted, refusal: str | None) -> str:
+    """The ready line's word on SCHED_FIFO: off, the priority in use, or why it was not granted."""
+    if not requested:
+        return "SCHED_FIFO off"
+    if granted:
+        return f"SCHED_FIFO {granted}"
+    priority = 50 if requested is True else int(requested)
+    return f"SCHED_FIFO {priority} not granted: {refusal or 'refused'}"
 
 
 class ZenohBus:
@@ -62,6 +90,8 @@ def run_node(role: str, node_config, process: ProcessConfig) -> int:
         raise ValueError(f"clock must be lockstep or realtime, got {process.clock!r}")
     realtime = process.clock == "realtime"
     clock = MonotonicClock()
+    refusal = fifo_refusal(50 if process.sched_fifo is True else int(process.sched_fifo)) if process.sched_fifo \
+        else None
     with Service(role, process.run_id, process.zenoh, sched_fifo=process.sched_fifo, cpus=process.cpus) as svc:
         bus = ZenohBus(svc, realtime)
         node = node_cls(node_config, bus, clock, run_id=process.run_id, mode=process.clock,
@@ -82,7 +112,7 @@ def run_node(role: str, node_config, process: ProcessConfig) -> int:
 
         if realtime:
             collector.start()
-        svc.log(f"ready: clock {process.clock}, SCHED_FIFO {'on' if svc.sched_fifo else 'off'}")
+        svc.log(f"ready: clock {process.clock}, {fifo_words(process.sched_fifo, svc.sched_fifo, refusal)}")
         try:
             svc.serve(handlers, status=lambda: dict(node.status(), sched_fifo=svc.sched_fifo,
                                                     cpus=sorted(os.sched_getaffinity(0)),

@@ -7,6 +7,12 @@ links them directly (DESIGN.md).  ``--mode client --connect tcp/HOST:PORT``
 joins a Zenoh router instead (docker-compose).  ``--cfg KEY:VALUE`` sets any
 other Zenoh configuration key (a misspelt key is refused by Zenoh); the flags
 themselves are parsed in ``services.cli.zenoh_flags``.
+
+Zenoh's configuration takes almost any endpoint (``tcp/127.0.0.1:99999``,
+``foo/bar``) and a client or peer then retries it for ever: ``check_endpoint``
+refuses one that cannot work before anything opens, and ``ZenohOptions.config``
+checks every endpoint with it (an ``EndpointError``, a ValueError naming the
+flag, the endpoint and what is wrong with it).
 """
 
 from __future__ import annotations
@@ -17,6 +23,48 @@ from dataclasses import dataclass
 
 import zenoh
 
+# the link protocols this Zenoh carries: those addressed HOST:PORT, and a Unix socket's path
+IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+PATH_PROTOCOLS = ("unixsock-stream",)
+_HOST = re.compile(r"\[[0-9A-Fa-f:.%\w]+\]|[A-Za-z0-9._-]+")
+
+
+class EndpointError(ValueError):
+    """An endpoint that cannot be one: ``str()`` is ``"<flag> <endpoint>: <problem>"``."""
+
+    def __init__(self, flag: str, endpoint: str, problem: str):
+        super().__init__(f"{flag} {endpoint}: {problem}")
+        self.flag, self.endpoint, self.problem = flag, endpoint, problem
+
+
+def check_endpoint(endpoint: str, flag: str = "--connect", *, listen: bool = False) -> str:
+    """``endpoint`` if it is a Zenoh endpoint this program can use, else EndpointError naming
+    ``flag``: ``<protocol>/<address>[?<metadata>][#<config>]``, the protocol one of
+    ``IP_PROTOCOLS`` (address ``HOST:PORT``, ``[IPv6]:PORT`` too; the port 1..65535, or 0 to
+    listen on any free one) or ``PATH_PROTOCOLS`` (address a path).  Whether the host is
+    reachable is not checked: a client or peer retries an endpoint that is not up yet."""
+    def refuse(problem):
+        raise EndpointError(flag, endpoint, problem)
+
+    text = str(endpoint)
+    protocol, slash, rest = text.partition("/")
+    address = re.split(r"[?#]", rest, maxsplit=1)[0]
+    if not slash or not protocol or not address:
+        refuse("Endpoints must be of the form PROTOCOL/ADDRESS, e.g. tcp/127.0.0.1:7447")
+    if protocol in PATH_PROTOCOLS:
+        return text
+    if protocol not in IP_PROTOCOLS:
+        refuse(f"unknown protocol {protocol!r} (known: {', '.join(IP_PROTOCOLS + PATH_PROTOCOLS)})")
+    host, colon, port = address.rpartition(":")
+    if not colon or not host:
+        refuse(f"expected {protocol}/HOST:PORT, e.g. {protocol}/127.0.0.1:7447")
+    if not _HOST.fullmatch(host):
+        refuse(f"{host!r} is not a host name or address (an IPv6 address goes in brackets: [::1])")
+    lowest = 0 if listen else 1
+    if not port.isdigit() or not lowest <= int(port) <= 65535:
+        refuse(f"port {port!r} is not in {lowest}..65535" + (" (0: any free port)" if listen else ""))
+    return text
+
 
 @dataclass(frozen=True)
 class ZenohOptions:
@@ -26,13 +74,15 @@ class ZenohOptions:
     cfg: tuple = ()  # (key, json5 value) pairs
 
     def config(self) -> zenoh.Config:
-        """The Zenoh configuration; a value Zenoh refuses raises ValueError naming the flag."""
+        """The Zenoh configuration.  An endpoint that cannot be one raises EndpointError
+        (``check_endpoint``), a value Zenoh refuses ValueError; both name the flag."""
         conf = zenoh.Config()
         conf.insert_json5("mode", json.dumps(self.mode))
         conf.insert_json5("scouting/multicast/enabled", "false")
         for flag, key, values in (("--listen", "listen/endpoints", self.listen),
                                   ("--connect", "connect/endpoints", self.connect)):
             for value in values:  # one at a time: the error names the endpoint at fault
+                check_endpoint(value, flag, listen=flag == "--listen")
                 _insert(conf, key, json.dumps([value]), f"{flag} {value}")
             if values:
                 _insert(conf, key, json.dumps(list(values)), flag)
