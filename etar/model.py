@@ -33,6 +33,7 @@ from etar.demonstrations import DemonstrationError, check_demonstration, check_d
 
 FORMAT_NAME = "etar-model"
 FORMAT_VERSION = 1
+PROGRESS_EVERY = 50  # EM iterations between the progress lines of a long run
 
 
 @dataclass(frozen=True)
@@ -258,7 +259,7 @@ class ETAR:
                                     priors, self.solver, w_steps=30)
             mon = em.ConvergenceMonitor(tol, self.init_iter if self.n_restarts > 1 else max_iter,
                                         n_samples, self.window)
-            params = self._run_em(stacked, (C, Sigma, W), priors, mon)
+            params = self._run_em(stacked, (C, Sigma, W), priors, mon, progress)
             candidates.append((mon.history[-1], params, mon))
             say(f"restart {r + 1}/{self.n_restarts}: objective {mon.history[-1]:.3f} "
                 f"after {mon.n_iter} iterations")
@@ -268,7 +269,8 @@ class ETAR:
             # the continued run re-scores the same parameters first: drop that entry
             history = mon.history[:-1]
             mon = em.ConvergenceMonitor(tol, max_iter + len(history), n_samples, self.window, list(history))
-            params = self._run_em(stacked, params, priors, mon)
+            say(f"restart {best + 1} continues, up to {mon.max_iter} EM iterations in all")
+            params = self._run_em(stacked, params, priors, mon, progress)
         C, Sigma, W = params
         self._set_parameters(C, Sigma, W)
         if self.transitions == "state":
@@ -289,9 +291,10 @@ class ETAR:
             f"{'converged' if mon.converged else 'stopped at max_iter'}")
         return self
 
-    def _run_em(self, stacked, params, priors, monitor: em.ConvergenceMonitor):
+    def _run_em(self, stacked, params, priors, monitor: em.ConvergenceMonitor, progress=None):
         """Alternate E- and M-steps until the monitor is done; returns the last
-        parameters, which are also the ones the last reported objective scored."""
+        parameters, which are also the ones the last reported objective scored.
+        ``progress`` hears every ``PROGRESS_EVERY``-th iteration of a longer run."""
         C, Sigma, W = params
         while True:
             ex = em.e_step(stacked, C, Sigma, W)
@@ -303,6 +306,8 @@ class ETAR:
             monitor.report(ex.log_likelihood + em.log_prior(C, Sigma, W, priors, stacked.center))
             if monitor.done:
                 return C, Sigma, W
+            if progress is not None and monitor.n_iter and monitor.n_iter % PROGRESS_EVERY == 0:
+                progress(f"  EM iteration {monitor.n_iter}/{monitor.max_iter}: objective {monitor.history[-1]:.3f}")
             C, Sigma, W = em.m_step(stacked, ex, W, priors, self.solver, self.w_steps)
 
     # ------------------------------------------------------------------

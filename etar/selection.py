@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import Callable, Iterator, Sequence
 
 from etar.demonstrations import check_demonstrations
 from etar.model import ETAR
@@ -86,6 +86,19 @@ def _fit_candidate(job: tuple) -> ETAR:
     return ETAR(k, transitions, **model_options).fit(demos, max_iter=max_iter, tol=tol, seed=seed)
 
 
+def _fits(fit_map: Callable, jobs: list, labels: list, progress) -> Iterator[ETAR]:
+    """The models of ``jobs`` run through ``fit_map``, in order; as each is taken,
+    ``progress`` hears ``fit i/N done: <label>, ...`` (a pool's ``map`` runs ahead, so
+    the line comes when that fit and every one before it are done)."""
+    total = len(jobs)
+    for i, (label, model) in enumerate(zip(labels, fit_map(_fit_candidate, jobs)), 1):
+        if progress:
+            r = model.fit_report_
+            progress(f"fit {i}/{total} done: {label}, log-likelihood {r.log_likelihood:.2f}, "
+                     f"{r.n_iter} EM iterations ({r.seconds:.1f} s)")
+        yield model
+
+
 def _candidates(demos, candidates, transitions, progress) -> tuple[dict, int]:
     """(parameter count of each candidate that has fewer parameters than steps, in
     order; the number of steps); the others are reported through ``progress``."""
@@ -123,6 +136,7 @@ def select_order(
     tol: float = 1e-7,
     progress: Callable[[str], None] | None = None,
     fit_map: Callable = map,
+    fit_progress: Callable[[str], None] | None = None,
     **model_options,
 ) -> OrderSelection:
     """Fit one model per candidate number of phases and score each.
@@ -132,14 +146,15 @@ def select_order(
     are skipped (and reported through ``progress``); at least one must fit.
     ``fit_map``: how the candidates' fits are run, ``map`` or a ``map`` that runs
     them in parallel (``concurrent.futures.Executor.map``); each fit is seeded
-    alone, so the result does not depend on it.
+    alone, so the result does not depend on it.  ``fit_progress`` hears
+    ``fit i/N done: K=k, ...`` as each fit comes back.
     """
     candidates = _check_candidates(criterion, candidates)
     demos = check_demonstrations(demos)
     params, n_samples = _candidates(demos, candidates, transitions, progress)
     jobs = [(demos, k, transitions, model_options, max_iter, tol, seed) for k in params]
-    return _scored(dict(zip(params, fit_map(_fit_candidate, jobs))), params, n_samples, criterion, candidates,
-                   progress)
+    fitted = _fits(fit_map, jobs, [f"K={k}" for k in params], fit_progress)
+    return _scored(dict(zip(params, fitted)), params, n_samples, criterion, candidates, progress)
 
 
 def _scored(fitted: dict, params: dict, n_samples: int, criterion: str, candidates, progress) -> OrderSelection:
@@ -199,11 +214,14 @@ def vote_order(
     max_iter: int = 200,
     tol: float = 1e-7,
     fit_map: Callable = map,
+    fit_progress: Callable[[str], None] | None = None,
     **model_options,
 ) -> OrderVote:
     """Score the candidates on each demonstration alone (``select_order`` with
     the same options) and take the number of phases most of them choose.
-    ``fit_map`` runs every (demonstration, candidate) fit, in one batch.
+    ``fit_map`` runs every (demonstration, candidate) fit, in one batch;
+    ``progress`` hears each demonstration's choice, ``fit_progress``
+    ``fit i/N done: K=k demonstration d, ...`` as each fit comes back.
 
     The chosen model is not fitted here: fit it on all demonstrations with
     ``ETAR(vote.best, ...)``.
@@ -213,7 +231,9 @@ def vote_order(
     plans = [_candidates([demo], candidates, transitions, None) for demo in demos]
     jobs = [([demo], k, transitions, model_options, max_iter, tol, seed)
             for demo, (params, _) in zip(demos, plans) for k in params]
-    models = fit_map(_fit_candidate, jobs)  # in order: each demonstration's candidates, one after the other
+    labels = [f"K={k} demonstration {i}" for i, (params, _) in enumerate(plans) for k in params]
+    # in order: each demonstration's candidates, one after the other
+    models = _fits(fit_map, jobs, labels, fit_progress)
     selections = []
     for i, (params, n_samples) in enumerate(plans):
         sel = _scored({k: next(models) for k in params}, params, n_samples, criterion, candidates, None)
@@ -246,13 +266,13 @@ def fit_order(
     """Choose the number of phases by ``method`` (``vote_order`` for
     per_demonstration, ``select_order`` for pooled) and return (the model with
     that many phases fitted to all demonstrations, the selection's JSON-ready
-    summary).  The tables go to ``progress``; ``fit_map`` runs the candidates' fits
-    (``select_order``)."""
+    summary).  The tables go to ``progress``, and ``fit i/N done`` as each candidate's
+    fit comes back; ``fit_map`` runs the candidates' fits (``select_order``)."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     say = progress or (lambda msg: None)
     options = dict(transitions=transitions, seed=seed, max_iter=max_iter, tol=tol, progress=progress, fit_map=fit_map,
-                   **model_options)
+                   fit_progress=progress, **model_options)
     if method == "pooled":
         sel = select_order(demos, candidates, criterion, **options)
         say(sel.table())

@@ -32,6 +32,9 @@ def make_task(n_phases: int = 3, seed: int = 0, *, n: int = 3, m: int = 3, gain:
     ``gain`` m/N per step of free motion; ``speed`` m per step of drift along each
     phase's direction; ``noise`` m, per-axis standard deviation of the step noise.
     """
+    for name, value in (("n_phases", n_phases), ("n", n), ("m", m)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
     rng = np.random.default_rng(seed)
     K = n_phases
     levels = np.zeros((K, m))
@@ -75,8 +78,14 @@ def make_task(n_phases: int = 3, seed: int = 0, *, n: int = 3, m: int = 3, gain:
 def sample_demonstrations(task: SyntheticTask, n_demos: int, length: int | tuple, seed: int):
     """Draw demonstrations: list of (states (T, n), forces (T, m), phases (T-1,)).
 
-    ``length`` is T, or a (low, high) range for ragged demonstrations.
+    ``length`` is T, or a (low, high) range for ragged demonstrations; T >= 2.
     """
+    if isinstance(n_demos, bool) or not isinstance(n_demos, (int, np.integer)) or n_demos < 0:
+        raise ValueError(f"n_demos must be an integer >= 0, got {n_demos!r}")
+    low, high = length if isinstance(length, tuple) else (length, length)
+    if not 2 <= low <= high:
+        raise ValueError(f"length must be a number of samples >= 2 or a range (low, high) with 2 <= low <= high, "
+                         f"got {length!r}")
     rng = np.random.default_rng(seed)
     model = task.model
     K, n = model.A.shape[:2]

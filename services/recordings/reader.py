@@ -79,23 +79,52 @@ _READ_ERRORS = (McapError, struct.error, ValueError, EOFError, zstandard.ZstdErr
                 OverflowError)
 
 
-def recorded_content(run_dir) -> dict:
-    """Per recording file of a run directory, what the seed determines: every message
-    but the wall-clock ones, as (topic, seq, payload without ``sent_ns``), sorted.  Two
-    runs of one seed compare equal, over Zenoh or in one process.  The visual topics
-    are left out: the recorder derives them from the newest messages it has when a
-    state arrives, which over a network depends on the order of arrival."""
-    out = {}
-    for path in sorted((Path(run_dir) / "recordings").glob("*.mcap")):
-        msgs = []
-        for m in read_episode(path).messages:
-            if m.topic in WALL_CLOCK_TOPICS or m.topic in VISUAL_SCHEMA_NAMES:
-                continue
+def compared_messages(path) -> tuple[list[tuple[str, int, str]], bool]:
+    """What the seed determines of one recording, in the file's order: every message but
+    the wall-clock and the visual ones, as (topic, seq, payload without ``sent_ns`` as JSON
+    with sorted keys); a payload that is not a message is kept as its bytes' repr with
+    seq -1.  And whether the file is complete.  The one rule by which two runs' recordings
+    are compared (``recorded_content``, ``etar-bench diff``)."""
+    ep = read_episode(path)
+    out = []
+    for m in ep.messages:
+        if m.topic in WALL_CLOCK_TOPICS or m.topic in VISUAL_SCHEMA_NAMES:
+            continue
+        try:
             d = json.loads(m.payload)
+            seq = d["seq"]
             d.pop("sent_ns", None)
-            msgs.append((m.topic, d["seq"], json.dumps(d, sort_keys=True)))
-        out[path.name] = sorted(msgs)
-    return out
+            text = json.dumps(d, sort_keys=True)
+        except (ValueError, TypeError, KeyError, AttributeError):  # not a message: compared as bytes
+            seq, text = -1, repr(m.payload)
+        out.append((m.topic, seq, text))
+    return out, ep.complete
+
+
+def recorded_content(run_dir) -> dict:
+    """Per recording file of a run directory, what the seed determines (``compared_messages``),
+    sorted.  Two runs of one seed compare equal, over Zenoh or in one process.  The visual
+    topics are left out: the recorder derives them from the newest messages it has when a
+    state arrives, which over a network depends on the order of arrival."""
+    return {path.name: sorted(compared_messages(path)[0])
+            for path in sorted((Path(run_dir) / "recordings").glob("*.mcap"))}
+
+
+def recording_kind(path) -> str | None:
+    """The ``episode_kind`` of a recording's metadata record ('demonstration',
+    'reproduction'), read from the start of the file, where the writer puts it; None
+    when the file does not say (``read_episode`` then names what is wrong)."""
+    try:
+        with open(path, "rb") as f:
+            size = os.fstat(f.fileno()).st_size
+            for record in StreamReader(f, emit_chunks=True, record_size_limit=size).records:
+                if isinstance(record, Metadata) and record.name == METADATA_NAME:
+                    return record.metadata.get("episode_kind")
+                if isinstance(record, (Chunk, Message, DataEnd, Footer)):
+                    return None  # past where the writer puts it
+    except (OSError, *_READ_ERRORS):
+        return None
+    return None
 
 
 def read_episode(path) -> Episode:

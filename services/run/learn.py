@@ -13,7 +13,7 @@ import numpy as np
 from etar import ETAR
 from etar.comparison import MODEL_NAMES, evaluate
 from etar.selection import fit_order
-from etar.task import TaskError, learn_task, load_task
+from etar.task import learn_task
 from services.recordings.demonstrations import load_demonstration
 from services.results.record import LearningRecord, ModelRecord
 from services.runtime.threads import learning_threads, process_map
@@ -58,13 +58,17 @@ def _fit(stage: LearnStage, demos: list[dict], work_map, say) -> tuple[list, dic
     options = dict(n_restarts=stage.restarts)
     first, *others = stage.transitions
     if stage.phases == "auto":
+        # each candidate fit says `fit i/N done` as it comes back from the pool
         say(f"learning: {stage.criterion.upper()} over {list(stage.candidates)} phases from "
             f"{len(pairs)} demonstrations ({sum(len(s) for s, _ in pairs)} samples)")
         model, selection = fit_order(pairs, stage.candidates, stage.criterion, stage.selection, transitions=first,
                                      seed=stage.seed, max_iter=stage.max_iter, progress=say, fit_map=work_map,
                                      **options)
     else:
-        model = ETAR(int(stage.phases), first, **options).fit(pairs, max_iter=stage.max_iter, seed=stage.seed)
+        say(f"learning: {int(stage.phases)} phases from {len(pairs)} demonstrations "
+            f"({sum(len(s) for s, _ in pairs)} samples)")
+        model = ETAR(int(stage.phases), first, **options).fit(pairs, max_iter=stage.max_iter, seed=stage.seed,
+                                                              progress=say)
         selection = dict(criterion="fixed", best=int(stage.phases), scores={}, log_likelihoods={
             str(stage.phases): model.fit_report_.log_likelihood}, n_parameters={})
     models = [model]
@@ -72,7 +76,7 @@ def _fit(stage: LearnStage, demos: list[dict], work_map, say) -> tuple[list, dic
         # the comparison is between transition models, so the number of phases is the first's
         say(f"learning: {MODEL_NAMES[transitions]} with {model.n_phases} phases on the same demonstrations")
         models.append(ETAR(model.n_phases, transitions, **options).fit(pairs, max_iter=stage.max_iter,
-                                                                       seed=stage.seed))
+                                                                       seed=stage.seed, progress=say))
     return models, selection
 
 
@@ -90,14 +94,10 @@ def _score_offline(models, demos, seed: int, say) -> list[dict]:
     return scores
 
 
-def stored_model(scenario: Scenario, say=print) -> LearningRecord:
-    """The scenario's ``model`` file, checked against the scenario before anything starts."""
+def stored_model(scenario: Scenario, task, say=print) -> LearningRecord:
+    """The scenario's ``model`` file as the run's model: ``task``, loaded and checked
+    against the scenario before anything started (``services.run.preflight``)."""
     path = scenario.model_path()
-    task = load_task(path)
-    if task.state != scenario.state or task.features != scenario.features:
-        raise TaskError(str(path), "metadata.state/features",
-                        f"the model sees {task.state}/{task.features}, the scenario "
-                        f"{scenario.state}/{scenario.features}", has_value=False)
     record = LearningRecord()
     record.adopt(ModelRecord(name=None, path=str(path), goal=task.goal.tolist(), phase_to_truth=task.phase_to_truth),
                  task.selection)

@@ -56,7 +56,7 @@ def test_errors_name_the_file_and_field(tmp_path, capsys):
     f[4, 1] = np.nan
     np.savez(nan, states=np.zeros((10, 3)), forces=f)
     assert main(["learn", str(nan), "--out", str(tmp_path / "m.json")]) == 2
-    assert "forces[4, 1] is nan" in capsys.readouterr().err
+    assert f"{nan}: forces[4, 1] is nan" in capsys.readouterr().err
     assert main(["learn", str(tmp_path / "missing.npz"), "--out", str(tmp_path / "m.json")]) == 2
     assert "no such file" in capsys.readouterr().err
 
