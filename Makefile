@@ -23,7 +23,7 @@ venv: $(STAMP)
 # 6 demonstrations, learning with BIC, 20 reproductions, report (out/valley/).
 # Its last line sums the run up; it exits non-zero when the run failed.
 run: $(STAMP)
-	$(BIN)/etar-bench run $(SCENARIO) --out $(OUT)
+	$(BIN)/etar-bench run $(SCENARIO) --out $(OUT) --replace
 
 test: $(STAMP) browser foxglove-schemas
 	$(BIN)/python -m pytest -q

@@ -1,6 +1,6 @@
 """The realtime closed loop under the full service set, against a bare 1 kHz loop in the same run.
 
-    python bench/realtime_load.py [--seconds 60] [--sched-fifo] [--isolate-robot] [--out DIR]
+    python bench/realtime_load.py [--seconds 60] [--sched-fifo-ends] [--isolate-robot] [--out DIR]
 
 Runs scenarios/hold.yaml for ``--seconds``: the robot on absolute 1 ms
 deadlines in FRI command mode (once the link is PERFECT), answered every cycle
@@ -12,13 +12,13 @@ in a few seconds and the commander holds it there for the rest of the run.
 
 At the same time a separate process runs a bare absolute-deadline 1 kHz loop
 (sleep to the deadline, record the lateness, nothing else; under SCHED_FIFO
-when --sched-fifo): the virtual machine stalls now and then (~9 ms every
+when --sched-fifo-ends): the virtual machine stalls now and then (~9 ms every
 10-30 s here, DESIGN.md), and those stalls hit both loops.  A bare-loop cycle
 woken more than one period late is a miss.  Only the reproduction's wall-clock
 span counts for both.
 
---sched-fifo: the robot at priority 60 and the commander at 55 (whole processes,
-Zenoh threads included); --fifo-chain: with --sched-fifo, also the sensor at 50
+--sched-fifo-ends: the robot at priority 60 and the commander at 55 (whole processes,
+Zenoh threads included); --fifo-chain: with --sched-fifo-ends, also the sensor at 50
 and the estimator at 45 (the rest of the closed loop; the recorder stays an
 ordinary process); --isolate-robot: the robot alone on the last CPU, the
 other services on the others; --cpu-latency-qos: hold /dev/cpu_dma_latency at
@@ -78,16 +78,16 @@ def bare_loop(fifo: bool, stop, queue):
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seconds", type=float, default=60.0)
-    parser.add_argument("--sched-fifo", action="store_true")
+    parser.add_argument("--sched-fifo-ends", action="store_true")
     parser.add_argument("--fifo-chain", action="store_true",
-                        help="with --sched-fifo: the sensor (50) and the estimator (45) under SCHED_FIFO too")
+                        help="with --sched-fifo-ends: the sensor (50) and the estimator (45) under SCHED_FIFO too")
     parser.add_argument("--isolate-robot", action="store_true")
     parser.add_argument("--cpu-latency-qos", action="store_true",
                         help="hold /dev/cpu_dma_latency at 0 during the run (idle CPUs poll; needs root)")
     parser.add_argument("--profile", default="none",
                         help="the runner's realtime profile (auto, none or parts: fifo,isolate,poll; default none: "
                              "only the flags above apply)")
-    parser.add_argument("--visual-rate", type=float, default=50.0,
+    parser.add_argument("--visual-rate-hz", type=float, default=50.0,
                         help="the recorder's visual topics, Hz (0: none; default 50, as a run has them)")
     parser.add_argument("--foxglove", action="store_true",
                         help="with the live view (etar-bench run --foxglove) and a viewer subscribed to it")
@@ -114,7 +114,7 @@ def main():
         os.write(qos, struct.pack("i", 0))
     ctx = mp.get_context("spawn")
     stop, queue = ctx.Event(), ctx.Queue()
-    bare = ctx.Process(target=bare_loop, args=(args.sched_fifo, stop, queue))
+    bare = ctx.Process(target=bare_loop, args=(args.sched_fifo_ends, stop, queue))
     bare.start()
     watch = CpuWatch(run_id).start()
     watch.add(bare.pid, "bare loop")
@@ -132,10 +132,10 @@ def main():
                 viewers.append(Viewer(int(line.rsplit(":", 1)[1].split()[0])))
                 viewers[0].start()
 
-        report = run(scenario, RunOptions(out=str(out), run_id=run_id, sched_fifo=args.sched_fifo,
+        report = run(scenario, RunOptions(out=str(out), run_id=run_id, sched_fifo=args.sched_fifo_ends,
                                 isolate_robot=args.isolate_robot, fifo_priorities=priorities,
                                 realtime_profile=args.profile, foxglove=0 if args.foxglove else None,
-                                recorder_args=("--visual-rate-hz", str(args.visual_rate)),
+                                recorder_args=("--visual-rate-hz", str(args.visual_rate_hz)),
                                 figures=False),
                      progress=progress)
     finally:
@@ -166,14 +166,14 @@ def main():
 
     rows = [
         ("run", f"{args.seconds:g} s held, SCHED_FIFO "
-                f"{(', '.join(f'{r} {p}' for r, p in priorities)) if args.sched_fifo else 'no'}"
-                f"{' (robot: ' + str(loop['sched_fifo']) + ')' if args.sched_fifo else ''}, "
+                f"{(', '.join(f'{r} {p}' for r, p in priorities)) if args.sched_fifo_ends else 'no'}"
+                f"{' (robot: ' + str(loop['sched_fifo']) + ')' if args.sched_fifo_ends else ''}, "
                 f"robot {'alone on the last CPU' if args.isolate_robot else 'on any CPU'}"
                 f"{', /dev/cpu_dma_latency 0' if qos is not None else ''}; "
                 f"runner's realtime profile {args.profile}: granted "
                 f"{', '.join((report['environment'].get('realtime_profile') or {}).get('granted', [])) or 'nothing'}; "
                 f"{wall:.0f} s wall; run directory {out}"),
-        ("recorder's visual topics", f"{args.visual_rate:g} Hz" if args.visual_rate else "none"),
+        ("recorder's visual topics", f"{args.visual_rate_hz:g} Hz" if args.visual_rate_hz else "none"),
         ("live view", "none" if not args.foxglove else
          f"foxglove_bridge sent {report['timing']['services'].get('foxglove_bridge', {}).get('sent', 0)} visual "
          f"messages; the viewer received {viewers[0].messages if viewers else 0} "

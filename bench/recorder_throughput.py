@@ -1,7 +1,7 @@
 """MCAP recorder throughput: messages per second through ``EpisodeWriter``, without and
 with Foxglove's visual topics.
 
-    python bench/recorder_throughput.py [--seconds 30] [--visual-rate 50]
+    python bench/recorder_throughput.py [--seconds 30] [--visual-rate-hz 50]
 
 Writes the message mix of a reproduction (robot_state, robot_contact,
 ft_wrench, robot_command every cycle, estimator_phase every tenth) for the
@@ -75,7 +75,7 @@ def write(msgs, tap=None) -> tuple[float, int, int, int]:
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seconds", type=float, default=30.0, help="simulated seconds of traffic")
-    parser.add_argument("--visual-rate", type=float, default=50.0, help="the visual topics' rate, Hz (default 50)")
+    parser.add_argument("--visual-rate-hz", type=float, default=50.0, help="the visual topics' rate, Hz (default 50)")
     args = parser.parse_args()
     from services.foxglove.scene import VisualScene
     from services.foxglove.tap import VisualTap
@@ -89,9 +89,9 @@ def main():
     print(f"write: {dt:.2f} s, {rate:,.0f} messages/s, {raw / dt / 1e6:.1f} MB/s in, {size / 1e6:.2f} MB on disk "
           f"(zstd {raw / size:.1f}x); {rate / produced:.1f}x the {produced:,.0f} messages/s the services produce")
     print(f"read back: {n_read} messages")
-    tap = VisualTap(VisualScene("valley", args.visual_rate))
+    tap = VisualTap(VisualScene("valley", args.visual_rate_hz))
     dt_v, size_v, visual, n_read_v = write(msgs, tap)
-    print(f"with the visual topics at {args.visual_rate:g} Hz: {visual} visual messages, write {dt_v:.2f} s "
+    print(f"with the visual topics at {args.visual_rate_hz:g} Hz: {visual} visual messages, write {dt_v:.2f} s "
           f"({(dt_v - dt) / args.seconds * 1e3:.1f} ms more per simulated second = "
           f"{(dt_v - dt) / args.seconds * 100:.1f} % of one CPU), {size_v / 1e6:.2f} MB on disk "
           f"(+{(size_v - size) / size * 100:.0f} %, {(size_v - size) / args.seconds / 1e3:.0f} kB per simulated "

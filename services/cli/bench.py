@@ -1,13 +1,16 @@
 """``etar-bench``: run scenarios and read their reports.
 
     etar-bench run SCENARIO [--out DIR] [--clock realtime|lockstep] [--transport zenoh|inproc] [--foxglove [PORT]]
+    etar-bench check SCENARIO
     etar-bench demo [--world valley|hose_coupler] [--side left|right] [--png FILE] [--npz FILE]
     etar-bench sweep SCENARIO --param PATH=V1,V2,... [--repeats N] --out DIR [--cluster ADDRESS]
-    etar-bench report RUN_DIR
+    etar-bench report RUN_DIR [--json]
+    etar-bench info PATH [--json]
+    etar-bench diff RUN_A RUN_B [--json]
     etar-bench recover FILE... [--out FILE]
     etar-bench figures RUN_DIR
     etar-bench compare RUN_DIR [--seeds N] [--pair I,J]
-    etar-bench export RUN_DIR --foxglove [--rate HZ]
+    etar-bench export RUN_DIR --foxglove [--visual-rate-hz HZ]
     etar-bench certs DIR [--host IP]
     etar-bench router [--listen tcp/0.0.0.0:7447]
 """
@@ -16,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import signal
 import sys
 import time
@@ -24,6 +28,8 @@ from pathlib import Path
 import numpy as np
 
 from robot_sim.worlds import TASK_WORLDS
+from services.cli.version import add_version_argument
+from services.cli.parsing import OneLineErrorParser
 from services.cli.zenoh_flags import add_zenoh_arguments, zenoh_options
 from services.runtime.visual_topics import FOXGLOVE_PORT, VISUAL_RATE_HZ, check_visual_rate
 
@@ -57,8 +63,9 @@ def cmd_run(args) -> int:
             scenario = scenario.replace("clock", args.clock)
         options = RunOptions(out=out, run_id=args.run_id, zenoh=zenoh_options(args) if args.connect else None,
                              transport=args.transport, attach=args.attach, ready_timeout=args.ready_timeout,
-                             sched_fifo=args.sched_fifo, realtime_profile=args.realtime_profile, tls=args.tls,
-                             hosts=args.hosts, figures=not args.no_figures, foxglove=args.foxglove)
+                             sched_fifo=args.sched_fifo_ends, realtime_profile=args.realtime_profile, tls=args.tls,
+                             hosts=args.hosts, figures=not args.no_figures, foxglove=args.foxglove,
+                             replace=args.replace, command=args.command_line)
         runner = Runner(scenario, options, progress=_say)
     except (ScenarioError, TaskError, CredentialsError, HostsError, ValueError) as exc:
         # every option refused before anything started (services.run.options)
@@ -77,13 +84,14 @@ def cmd_run(args) -> int:
     print((Path(out) / "report.txt").read_text())
     _say(f"report: {out}/report.json, {out}/report.txt; recordings in {out}/recordings")
     # the last line, for a newcomer: what came out and where to read more
-    print(summary_line(report, out), flush=True)
+    print(summary_line(report, out, page=not args.no_figures), flush=True)
     return 0 if report["error"] is None else 1
 
 
-def summary_line(report: dict, out) -> str:
+def summary_line(report: dict, out, page: bool = True) -> str:
     """One line: phases chosen, reproductions that reached the goal, online accuracy,
-    where the report is; or that the run failed, and why."""
+    where the report is (report.html, with its figures, when it was written); or that
+    the run failed, and why."""
     s = report["summary"]
     parts = []
     if s.get("phases_chosen") is not None:
@@ -92,10 +100,34 @@ def summary_line(report: dict, out) -> str:
         parts.append(f"{s['successes']} of {s['reproductions']} reproductions reached the goal")
         acc = s.get("online_phase_accuracy")
         parts.append(f"online phase accuracy {acc:.4f}" if acc is not None else "no online phase estimate")
-    where = f"report {Path(out) / 'report.txt'}"
+    html = Path(out) / "report.html"
+    where = f"report {html if page and html.is_file() else Path(out) / 'report.txt'}"
     if report["error"] is not None:
         return f"{report['scenario']}: RUN FAILED ({report['error']}); " + "; ".join(parts + [f"partial {where}"])
     return f"{report['scenario']}: " + "; ".join(parts + [where])
+
+
+def cmd_check(args) -> int:
+    """Validate a scenario as the runner would before it starts anything, and print it with
+    every default filled in (what `etar-bench run` would run)."""
+    from etar.task import TaskError
+    from services.run.preflight import EPISODE_NAMES, preflight
+    from services.scenario import ScenarioError, load_scenario
+
+    try:
+        scenario = load_scenario(args.scenario)
+        found = preflight(scenario)
+    except (ScenarioError, TaskError) as exc:
+        _say(f"etar-bench check: error: {exc}")
+        return 2
+    print(scenario.to_yaml(), end="", flush=True)
+    kinds = {}
+    for _, kind, _, _, _ in found.starts:
+        kinds[EPISODE_NAMES[kind]] = kinds.get(EPISODE_NAMES[kind], 0) + 1
+    episodes = ", ".join(f"{n} {kind}{'s' if n > 1 else ''}" for kind, n in kinds.items()) or "no episodes"
+    model = f"; model {scenario.model_path()} loads ({found.model.n_phases} phases)" if found.model else ""
+    _say(f"{args.scenario}: valid: {episodes}, every start within the arm's reach{model}")
+    return 0
 
 
 def cmd_demo(args) -> int:
@@ -176,21 +208,53 @@ def _interrupt(signum, frame):
 
 
 def cmd_report(args) -> int:
+    from services.results.folder import RunFolderError, read_report
+
     path = Path(args.run_dir)
     for name in ("report.txt", "report.json"):
         if not (path / name).exists():
             _say(f"etar-bench report: {path / name} not found (is {path} a run directory?)")
             return 2
+    try:
+        report = read_report(path)
+    except RunFolderError as exc:
+        _say(f"etar-bench report: {exc}")
+        return 2
     if args.json:
-        try:
-            report = json.loads((path / "report.json").read_bytes())
-        except (ValueError, UnicodeDecodeError) as exc:
-            _say(f"etar-bench report: {path / 'report.json'}: not a JSON report ({type(exc).__name__}: {exc})")
-            return 2
-        print(json.dumps(report, indent=1))
+        print(json.dumps(report, indent=1, allow_nan=False))
     else:
-        print((path / "report.txt").read_text())
+        print((path / "report.txt").read_text(), end="")
+    if report.get("error"):
+        _say(f"etar-bench report: the run failed: {report['error']}")
+        return 1
     return 0
+
+
+def cmd_info(args) -> int:
+    """What a recording or a run holds, as ``mcap info`` / ``ros2 bag info`` would say it."""
+    from services.results.info import describe, info_text
+
+    try:
+        described = describe(args.path)
+    except ValueError as exc:  # InfoError, RecordingError: one line naming the file
+        _say(f"etar-bench info: error: {exc}")
+        return 2
+    print(json.dumps(described, indent=1, allow_nan=False) if args.json else info_text(described), flush=True)
+    return 0
+
+
+def cmd_diff(args) -> int:
+    """Like diff: 0 when the two runs recorded the same content and results, 1 when not,
+    2 on trouble."""
+    from services.results.diff import diff_runs
+
+    try:
+        result = diff_runs(args.run_a, args.run_b)
+    except ValueError as exc:  # DiffError, RecordingError
+        _say(f"etar-bench diff: error: {exc}")
+        return 2
+    print(json.dumps(result.to_dict(), indent=1, allow_nan=False) if args.json else result.text(), flush=True)
+    return 0 if result.same else 1
 
 
 def cmd_recover(args) -> int:
@@ -213,18 +277,20 @@ def cmd_recover(args) -> int:
 
 
 def cmd_figures(args) -> int:
-    from services.results.figures import FiguresError, write_figures
+    from services.results.figures import FiguresError, read_run_report
+    from services.results.html import write_figures_and_page
 
+    run_dir = Path(args.run_dir)
     try:
-        written, skipped = write_figures(args.run_dir, progress=_say)
+        read_run_report(run_dir)  # a run's folder, with a report to draw from
     except FiguresError as exc:
         _say(f"etar-bench figures: error: {exc}")
         return 2
-    for path in written:
-        print(path, flush=True)
-    for why in skipped:
-        _say(f"skipped: {why}")
-    return 0
+    print(write_figures_and_page(run_dir, progress=_say), flush=True)
+    problems = [run_dir / name for name in ("figures.error", "report.html.error") if (run_dir / name).is_file()]
+    for path in problems:
+        _say(f"etar-bench figures: {path}: {path.read_text().strip()}")
+    return 1 if problems else 0
 
 
 def cmd_export(args) -> int:
@@ -235,12 +301,12 @@ def cmd_export(args) -> int:
         _say("etar-bench export: error: say what to add: --foxglove (the only export so far)")
         return 2
     try:
-        check_visual_rate(args.rate, "--rate")
+        check_visual_rate(args.visual_rate_hz, "--visual-rate-hz")
     except ValueError as exc:
         _say(f"etar-bench export: error: {exc}")
         return 2
     try:
-        results = export_foxglove(args.run_dir, args.rate, progress=print)
+        results = export_foxglove(args.run_dir, args.visual_rate_hz, progress=print)
     except RecordingError as exc:
         _say(f"etar-bench export: error: {exc}")
         return 1
@@ -292,9 +358,19 @@ def cmd_router(args) -> int:
 
     from services.transport.session import ZenohOptions
 
+    from services.transport.session import zenoh_reason
+
     opts = ZenohOptions(mode="router", connect=(), listen=tuple(args.listen or ["tcp/0.0.0.0:7447"]))
-    conf = opts.config()
-    with zenoh.open(conf):
+    try:
+        conf = opts.config()
+        session = zenoh.open(conf)
+    except ValueError as exc:  # names the flag and the value
+        _say(f"etar-bench router: error: {exc}")
+        return 2
+    except zenoh.ZError as exc:  # e.g. an address it cannot listen on
+        _say(f"etar-bench router: error: --listen {' '.join(opts.listen)}: {zenoh_reason(exc)}")
+        return 2
+    with session:
         _say(f"zenoh router listening on {', '.join(opts.listen)}; Ctrl-C to stop")
         try:
             while True:
@@ -303,9 +379,10 @@ def cmd_router(args) -> int:
             return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser() -> OneLineErrorParser:
     from services.foxglove import export
     from services.recordings import recovery
+    from services.results import diff
     from services.run import demonstration, sweep
     from services.scenario.checks import SIDES
     from services.run.options import RunOptions
@@ -315,12 +392,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     fifo = ", ".join(f"{role} {priority}" for role, priority in FIFO_CHAIN)
     fifo_ends = " and ".join(f"{role} ({priority})" for role, priority in RunOptions.fifo_priorities)
-    parser = argparse.ArgumentParser(prog="etar-bench", description=__doc__,
+    parser = OneLineErrorParser(prog="etar-bench", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_version_argument(parser, "etar-bench")
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("run", help="run a scenario: demonstrate, learn, reproduce, report")
     p.add_argument("scenario", help="scenario YAML file (see docs/scenarios.md)")
-    p.add_argument("--out", help="output directory (default runs/<scenario>-<time>)")
+    p.add_argument("--out", metavar="DIR",
+                   help="the run's folder, created (default runs/<scenario>-<time>); one that holds a run is "
+                        "refused unless --replace")
+    p.add_argument("--replace", action="store_true",
+                   help="--out holds an earlier run: remove it first (its report, recordings, model, figures)")
     p.add_argument("--clock", choices=CLOCKS, help="override the scenario's clock")
     p.add_argument("--run-id", help="run id (default <scenario>-<random>)")
     p.add_argument("--transport", choices=TRANSPORTS, default=RunOptions.transport,
@@ -337,7 +419,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "poll (idle CPUs poll: "
                         "/dev/cpu_dma_latency 0). auto (default): all three; none; or a comma list. The report "
                         "says what was granted")
-    p.add_argument("--sched-fifo", action="store_true",
+    p.add_argument("--sched-fifo-ends", action="store_true",
                    help=f"SCHED_FIFO (where permitted) for {fifo_ends} only, whatever the profile (the "
                         "profile's fifo covers the whole chain)")
     p.add_argument("--tls", metavar="DIR",
@@ -354,9 +436,13 @@ def build_parser() -> argparse.ArgumentParser:
                         "connect Foxglove to ws://localhost:PORT")
     p.add_argument("--no-figures", action="store_true",
                    help="skip the thesis' figures and report.html after the report (etar-bench figures RUN_DIR "
-                        "draws them later)")
-    add_zenoh_arguments(p)
+                        "draws both later)")
+    add_zenoh_arguments(p, process_flags=False)  # the services get theirs from the run
     p.set_defaults(func=cmd_run)
+    p = sub.add_parser("check", help="validate a scenario without running it (the model file, every start) and "
+                                     "print it with every default filled in")
+    p.add_argument("scenario", help="scenario YAML file (see docs/scenarios.md)")
+    p.set_defaults(func=cmd_check)
     p = sub.add_parser("demo", help="one demonstration by the simulated teacher, in one process: its recording, "
                                     "and on request a picture and the arrays etar learn reads")
     p.add_argument("--world", choices=TASK_WORLDS, default="valley", help="the task world")
@@ -391,6 +477,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("run_dir")
     p.add_argument("--json", action="store_true", help="print report.json instead of the text")
     p.set_defaults(func=cmd_report)
+    p = sub.add_parser("info", help="what a recording or a run holds: topics with schema, counts, rates, duration, "
+                                    "gaps, episodes and their results, the scenario and the code that made it")
+    p.add_argument("path", help="a recording (.mcap) or a run's folder")
+    p.add_argument("--json", action="store_true", help="print it as JSON (for scripts)")
+    p.set_defaults(func=cmd_info)
+    p = sub.add_parser("diff", help="two runs compared: results side by side, and the recorded content as the "
+                                    "equivalence tests compare it; exit 0 same, 1 different, 2 trouble",
+                       description="Compare two runs' results and recorded content; name the first message that "
+                                   "differs. Exit code 0: the same; 1: different; 2: trouble.\n\n" + diff.IGNORED_TEXT,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("run_a", metavar="RUN_A", help="a run's folder")
+    p.add_argument("run_b", metavar="RUN_B", help="another run's folder")
+    p.add_argument("--json", action="store_true", help="print the comparison as JSON (for scripts)")
+    p.set_defaults(func=cmd_diff)
     p = sub.add_parser("recover", help="make a truncated recording (a recorder killed mid-episode) a finished "
                                        "MCAP file with every complete chunk; the original is kept",
                        description=recovery.__doc__,
@@ -400,7 +500,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="replace the output file if it exists")
     p.set_defaults(func=cmd_recover)
     p = sub.add_parser("figures", help="draw the thesis' figures (section 6) from a finished run into "
-                                       "RUN_DIR/figures/ (every run also does)")
+                                       "RUN_DIR/figures/ and rebuild RUN_DIR/report.html (every run does both unless "
+                                       "--no-figures)")
     p.add_argument("run_dir", help="a finished run's folder (report.json, model.json, recordings/)")
     p.set_defaults(func=cmd_figures)
 
@@ -410,7 +511,7 @@ def build_parser() -> argparse.ArgumentParser:
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("run_dir", help="a finished run's folder (recordings/*.mcap)")
     p.add_argument("--foxglove", action="store_true", help="the visual topics for Foxglove (required)")
-    p.add_argument("--rate", type=float, default=VISUAL_RATE_HZ, metavar="HZ",
+    p.add_argument("--visual-rate-hz", type=float, default=VISUAL_RATE_HZ, metavar="HZ",
                    help=f"visual frames per second of simulated time (default {VISUAL_RATE_HZ:g})")
     p.set_defaults(func=cmd_export)
 
@@ -440,7 +541,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser().parse_args(argv)
+    args.command_line = shlex.join(["etar-bench", *argv])  # what the report says made the run
     return args.func(args)
 
 

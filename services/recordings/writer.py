@@ -15,6 +15,7 @@ import numpy as np
 from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, IndexType, Writer
 
 from services.recordings.format import CHUNK_SIZE, METADATA_NAME, SCENARIO_ATTACHMENT, SCENARIO_MEDIA_TYPE, RecordingError
+from services.runtime.provenance import code_text
 from services.runtime.messages import BY_TOPIC, MessageError, MessageType
 from services.runtime.visual_topics import DERIVED_BY, SCHEMA_NAMES as VISUAL_SCHEMA_NAMES, schema_bytes as visual_schema
 
@@ -61,7 +62,9 @@ class EpisodeWriter:
         try:
             self._writer = Writer(self._file, chunk_size=CHUNK_SIZE, compression=CompressionType.ZSTD,
                                   index_types=index_types)
-            self._writer.start(profile="", library=f"etar-testbench services.recordings; {LIBRARY_IDENTIFIER}")
+            # the library string names the code that wrote the file (etar-bench info shows it)
+            self._writer.start(profile="", library=f"etar-testbench {code_text()} services.recordings; "
+                                                   f"{LIBRARY_IDENTIFIER}")
             self._writer.add_metadata(METADATA_NAME, record)
             if scenario_text is not None:
                 now = time.monotonic_ns()

@@ -40,6 +40,8 @@ def _demonstrations(run_dir: Path):
     return task, demos
 
 
+COMPARISON_FIGURE = "etar_vs_star_phases.png"  # in RUN_DIR/figures/, beside the run's own figures
+
 # (key, what, higher is better); the offline ones from etar.comparison.summarise, the
 # online ones from the reproductions each model drove (services.results.report.by_model)
 OFFLINE = (("filter_accuracy", "online filter accuracy (offline, demos)", True),
@@ -233,4 +235,4 @@ def _figure(run_dir: Path, demo: dict, truth, K: int, evals) -> Path:
                  f"demonstration 0, seed {evals[0].seed}\n(thesis fig. 26; phases matched to the truth)")
     out = run_dir / FIGURES_DIR
     out.mkdir(exist_ok=True)
-    return _save(fig, out / "etar_vs_star_phases.png")
+    return _save(fig, out / COMPARISON_FIGURE)

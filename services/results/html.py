@@ -14,7 +14,12 @@ import json
 import time
 from pathlib import Path
 
+from services.results.compare import COMPARISON_FIGURE
 from services.results.figures import FIGURES_DIR
+from services.results.text import provenance_text
+
+# what an earlier drawing of the figures and the page may have left
+STALE_FILES = ("figures.error", "figures.skipped", "report.html", "report.html.error")
 
 STYLE = """
 body { font-family: system-ui, sans-serif; margin: 2em auto; max-width: 1100px; color: #222; }
@@ -57,8 +62,11 @@ def render_html(run_dir) -> str:
              f"<style>{STYLE}</style></head><body>",
              f"<h1>ETAR testbench run {_e(r['run_id'])}</h1>",
              f"<p>scenario <b>{_e(r['scenario'])}</b> ({_e(r['source'])}); clock {_e(r['environment']['clock'])}; "
+             f"transport {_e(r.get('transport', '-'))}; "
              f"{r['environment']['cpus']} CPUs, kernel {_e(r['environment']['kernel'])}; "
              f"{r['wall_seconds']:.1f} s wall</p>"]
+    if r.get("provenance"):
+        parts.append(f"<p class='provenance'>{_e(provenance_text(r['provenance']))}</p>")
     if r.get("error"):
         parts.append(f"<p class='error'>RUN FAILED: {_e(r['error'])}</p>")
     parts.append("<h2>Result</h2>")
@@ -95,8 +103,13 @@ def render_html(run_dir) -> str:
     loop = (r.get("timing") or {}).get("robot_loop") or {}
     if loop:
         parts.append("<h2>Timing</h2>")
-        parts.append(f"<p>robot loop: {loop.get('cycles')} cycles, {loop.get('deadline_misses')} deadline misses, "
-                     f"longest run {loop.get('longest_miss_run')}</p>")
+        if r["environment"]["clock"] == "lockstep":
+            parts.append(f"<p>simulated: {loop.get('cycles')} FRI cycles of 1 ms in lockstep, each waiting for its "
+                         "answers, so every deadline is met by construction. The latencies in the text report are "
+                         "the host's wall clock running the simulation, not the system's timing.</p>")
+        else:
+            parts.append(f"<p>robot loop: {loop.get('cycles')} cycles, {loop.get('deadline_misses')} deadline misses, "
+                         f"longest run {loop.get('longest_miss_run')}</p>")
     figures = sorted((run_dir / FIGURES_DIR).glob("*.png")) if (run_dir / FIGURES_DIR).is_dir() else []
     extra = [run_dir / "timing.png"] if (run_dir / "timing.png").is_file() else []
     if figures or extra:
@@ -119,7 +132,7 @@ def write_html(run_dir) -> Path:
     return path
 
 
-def write_figures_and_page(run_dir) -> str:
+def write_figures_and_page(run_dir, progress=None) -> str:
     """The thesis' figures (``RUN_DIR/figures/``) and report.html after a run's report; one
     line saying what was written.  A figure that cannot be drawn must not cost the run
     its report: the reason goes in figures.error (figures.skipped: what was left out)."""
@@ -127,8 +140,14 @@ def write_figures_and_page(run_dir) -> str:
 
     run_dir = Path(run_dir)
     t = time.monotonic()
+    # the page embeds every figure in the folder: none may be left from an earlier drawing
+    # (a BIC figure of a run that has since fixed its phase count); etar-bench compare's
+    # figure is not the run's to redraw
+    for stale in [*(run_dir / FIGURES_DIR).glob("*.png"), *(run_dir / n for n in STALE_FILES)]:
+        if stale.name != COMPARISON_FIGURE:
+            stale.unlink(missing_ok=True)
     try:
-        written, skipped = write_figures(run_dir)
+        written, skipped = write_figures(run_dir, progress=progress)
     except Exception as exc:
         (run_dir / "figures.error").write_text(f"{type(exc).__name__}: {exc}\n")
         written, skipped = [], [f"{type(exc).__name__}: {exc}"]
@@ -138,4 +157,7 @@ def write_figures_and_page(run_dir) -> str:
         write_html(run_dir)
     except Exception as exc:
         (run_dir / "report.html.error").write_text(f"{type(exc).__name__}: {exc}\n")
-    return f"figures: {len(written)} in {run_dir / FIGURES_DIR}, report.html ({time.monotonic() - t:.1f} s)"
+    page = "report.html" if (run_dir / "report.html").is_file() and not (run_dir / "report.html.error").exists() \
+        else "no report.html (report.html.error says why)"
+    return (f"figures: {len(written)} in {run_dir / FIGURES_DIR}, {page} ({time.monotonic() - t:.1f} s)"
+            + (f"; {len(skipped)} left out (figures.skipped)" if skipped else ""))

@@ -83,3 +83,7 @@ class RunRecord:
     realtime_profile: dict | None = None  # what the profile asked for and was granted, when it asked
     restarts: list = field(default_factory=list)
     hosts: list = field(default_factory=list)
+    # what made the run: code version and commit, date, command line, library versions
+    # (services.runtime.provenance)
+    provenance: dict = field(default_factory=dict)
+    report: dict | None = None  # report.json's content, once written

@@ -16,6 +16,7 @@ statistics:
 from __future__ import annotations
 
 import json
+import math
 import os
 import platform
 from dataclasses import asdict
@@ -353,6 +354,10 @@ def write_report(run: RunRecord, exit_codes: dict, error: str | None, wall_secon
         "run_id": run.run_id,
         "error": error,
         "wall_seconds": wall_seconds,
+        "transport": run.transport,
+        # what made the run: the code (version, commit, uncommitted changes), the date, the
+        # command line and the libraries' versions
+        "provenance": run.provenance,
         "environment": environment(run.clock, any(loop.get("sched_fifo") for loop in loops), run.realtime_profile,
                                    run.service_stats),
         "paths": "relative to the folder of this report, unless absolute",
@@ -384,6 +389,10 @@ def write_report(run: RunRecord, exit_codes: dict, error: str | None, wall_secon
             "by_model": by_model(repro),
         },
         "timing": {
+            # lockstep: simulated time waits for every answer, so every deadline is met by
+            # construction and what follows is measured on the host's wall clock, not the
+            # system's timing; realtime: the 1 kHz loop's own deadlines on the wall clock
+            "basis": "host wall clock (lockstep)" if run.clock == "lockstep" else "wall clock (realtime)",
             "robot_loop": {"cycles": sum(lp["cycles"] for lp in loops),
                            "deadline_misses": sum(lp["misses"] for lp in loops),
                            "longest_miss_run": max((lp["longest_miss_run"] for lp in loops), default=0),
@@ -403,14 +412,32 @@ def write_report(run: RunRecord, exit_codes: dict, error: str | None, wall_secon
         # where each service ran (services.transport.hosts), when the run was split across hosts
         "hosts": list(run.hosts),
     }
-    (out / "report.json").write_text(json.dumps(report, indent=1, default=float) + "\n")
+    report = finite(report)
+    (out / "report.json").write_text(json.dumps(report, indent=1, allow_nan=False) + "\n")
     (out / "report.txt").write_text(render_text(report))
     (out / "timing.txt").write_text(histograms_text(loops))
-    try:
-        plot_timing(report, loops, quality, out / "timing.png")
-    except Exception as exc:  # a picture must not cost the run its report
-        (out / "timing.png.error").write_text(f"{type(exc).__name__}: {exc}\n")
+    for stale in ("timing.png", "timing.png.error"):
+        (out / stale).unlink(missing_ok=True)
+    if run.clock == "realtime":  # in lockstep its histograms are the host's, not the loop's timing
+        try:
+            plot_timing(report, loops, quality, out / "timing.png")
+        except Exception as exc:  # a picture must not cost the run its report
+            (out / "timing.png.error").write_text(f"{type(exc).__name__}: {exc}\n")
     return report
+
+
+def finite(value):
+    """``value`` as strict JSON can hold it: numpy scalars as Python numbers, NaN and
+    infinities as None (JSON has no NaN; a reader of report.json must not meet one)."""
+    if isinstance(value, dict):
+        return {k: finite(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
 
 
 def plot_timing(report, loops, quality: dict, path) -> None:

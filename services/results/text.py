@@ -28,12 +28,20 @@ def histograms_text(loops) -> str:
 
 
 
+def provenance_text(p: dict) -> str:
+    """One line: the code, the date and the command line that made a run."""
+    commit = f", git {p['commit'][:7]}{' with uncommitted changes' if p.get('dirty') else ''}" if p.get("commit") else ""
+    return f"made by etar-testbench {p.get('version')}{commit} on {p.get('date')}: {p.get('command')}"
+
+
 def render_text(r: dict) -> str:
     s = r["summary"]
     lines = [f"ETAR testbench run {r['run_id']} - scenario {r['scenario']} ({r['source']})",
-             f"clock {r['environment']['clock']}, SCHED_FIFO {'yes' if r['environment']['sched_fifo'] else 'no'}, "
-             f"kernel {r['environment']['kernel']}, {r['environment']['cpus']} CPUs, "
-             f"{r['wall_seconds']:.1f} s wall"]
+             f"clock {r['environment']['clock']}, transport {r.get('transport', '-')}, SCHED_FIFO "
+             f"{'yes' if r['environment']['sched_fifo'] else 'no'}, kernel {r['environment']['kernel']}, "
+             f"{r['environment']['cpus']} CPUs, {r['wall_seconds']:.1f} s wall"]
+    if r.get("provenance"):
+        lines.append(provenance_text(r["provenance"]))
     prof = r["environment"].get("realtime_profile")
     if prof:
         fifo = {k: v["sched_fifo"] for k, v in r["environment"].get("services", {}).items() if v["sched_fifo"]}
@@ -101,9 +109,16 @@ def render_text(r: dict) -> str:
         lines.append("")
         lines += comparison_text(r)
     t = r["timing"]
+    lockstep = r["environment"]["clock"] == "lockstep"
+    host = "host " if lockstep else ""
     lines.append("")
-    lines.append(f"robot loop: {t['robot_loop']['cycles']} cycles, {t['robot_loop']['deadline_misses']} deadline "
-                 f"misses, longest run {t['robot_loop']['longest_miss_run']}")
+    if lockstep:
+        lines.append(f"timing (simulated): {t['robot_loop']['cycles']} FRI cycles of 1 ms in lockstep - each waits "
+                     "for its answers, so every deadline is met by construction; the latencies below are the host's "
+                     "wall clock running the simulation, not the system's timing")
+    else:
+        lines.append(f"robot loop: {t['robot_loop']['cycles']} cycles, {t['robot_loop']['deadline_misses']} deadline "
+                     f"misses, longest run {t['robot_loop']['longest_miss_run']}")
     episodes = [("demonstration", i, d) for i, d in enumerate(r["demonstrations"])] + \
                [("reproduction", rp["index"], rp) for rp in r["reproductions"]]
     if any(e.get("fri") for _, _, e in episodes):
@@ -134,10 +149,10 @@ def render_text(r: dict) -> str:
                  f"{'-' if rtf is None else f'{rtf:.2f}'} x real time")
     cl = t.get("closed_loop", {})
     if cl.get("p99_us_max") is not None:
-        lines.append(f"closed loop (measurement -> sensor -> estimator -> commander -> robot): worst p99 "
+        lines.append(f"{host}closed loop (measurement -> sensor -> estimator -> commander -> robot): worst p99 "
                      f"{cl['p99_us_max']:.0f} us over {len(cl['per_episode'])} reproduction(s)")
     if t.get("links_received"):
-        lines.append("link latency at the receiver (us):                    p50      p99    p99.9      max   lost"
+        lines.append(f"{(host or 'link ') + 'latency at the receiver (us):':<54}p50      p99    p99.9      max   lost"
                      "  out-of-order  garbage")
         for name, v in sorted(t["links_received"].items()):
             lat = v.get("latency", {})
@@ -145,7 +160,7 @@ def render_text(r: dict) -> str:
                 continue
             lines.append(f"  {name:<45} {lat['p50_us']:8.0f} {lat['p99_us']:8.0f} {lat['p99_9_us']:8.0f} "
                          f"{lat['max_us']:8.0f} {v['lost']:6d} {v['out_of_order']:13d} {v['bad']:8d}")
-    lines.append("link latency, publish -> recorder (us):   p50      p99      max   lost  out-of-order")
+    lines.append(f"{(host or 'link ') + 'latency, publish -> recorder (us):':<42}p50      p99      max   lost  out-of-order")
     for topic, v in sorted(t["links_publish_to_recorder"].items()):
         lines.append(f"  {topic:<22} {v['p50_us']:9.0f} {v['p99_us']:8.0f} {v['max_us']:8.0f} {v['lost']:6d} "
                      f"{v['out_of_order']:6d}")

@@ -62,6 +62,10 @@ class RunOptions:
     # with the realtime clock: what to ask of the machine (services.run.realtime_profile);
     # sched_fifo / isolate_robot above add to it with their own priorities
     realtime_profile: str = "auto"
+    # an ``out`` that already holds a run is refused unless this says to remove that run first
+    replace: bool = False
+    # the command the report names (None: this process's command line)
+    command: str | None = None
 
     def __post_init__(self):
         if self.transport not in TRANSPORTS:

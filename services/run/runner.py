@@ -28,15 +28,18 @@ import time
 import uuid
 from pathlib import Path
 
+from services.results.folder import SCENARIO_FILE, prepare_run_folder
 from services.results.record import EpisodeRecord, RunRecord
 from services.results.report import write_report
 from services.run.configs import node_configs
 from services.run.episode import Episodes, Recording
 from services.run.learn import learn, stored_model
 from services.run.options import RunOptions
+from services.run.preflight import preflight
 from services.run.realtime_profile import Grant, parse_profile, placement, probe
 from services.scenario import Scenario, demonstration_starts, reproduction_starts
 from services.scenario.starts import teacher_seed
+from services.runtime.provenance import provenance
 from services.transport.cell import Start
 
 
@@ -48,6 +51,8 @@ class Runner:
         self.roles = options.roles(scenario)
         # every option, the hosts layout and every credential checked before anything starts
         self.transport = options.carrier(scenario)
+        # and what the services would find only once they are up: the model file, the starts
+        self.preflight = preflight(scenario)
         # resolved once, here: every path handed to a service or written in the report
         # follows from this absolute folder (a relative one, joined again by the
         # recorder, doubled itself: out/valley/recordings/out/valley/recordings/)
@@ -56,14 +61,19 @@ class Runner:
         self.run_id = options.run_id or f"{scenario.name}-{uuid.uuid4().hex[:8]}"
         self.record = RunRecord(scenario_name=scenario.name, source=scenario.source, clock=scenario.clock,
                                 run_id=self.run_id, out=self.out, transport=self.transport.name,
-                                workers=options.workers)
+                                workers=options.workers, provenance=provenance(options.command))
         self.cell = None
         self.episodes = None
         self.ready = threading.Event()  # set once every service is up (tests and benches wait on it)
         self.profile = Grant(parse_profile(options.realtime_profile) if scenario.clock == "realtime"
                              else frozenset())
-        try:  # the last check before anything starts: where the run goes
+        # the last check before anything starts: where the run goes (a folder, not holding a
+        # run unless asked to replace it: nothing of another run may be mistaken for this one's)
+        prepare_run_folder(self.out, options.out, replace=options.replace)
+        try:
             self.recordings.mkdir(parents=True, exist_ok=True)
+            # the scenario as run, every default filled in: what `etar-bench run` takes back
+            (self.out / SCENARIO_FILE).write_text(scenario.to_yaml())
         except OSError as exc:
             raise ValueError(f"--out {options.out}: cannot make the run's folder {self.recordings} "
                              f"({exc.strerror or exc})") from None
@@ -79,7 +89,7 @@ class Runner:
         codes = {}
         try:
             if sc.model is not None:
-                self.record.learning = stored_model(sc, self.say)  # a bad model fails before anything starts
+                self.record.learning = stored_model(sc, self.preflight.model, self.say)
             self._apply_profile()
             self._start_cell()
             self.say(f"services ready ({', '.join(self.roles)}) after {time.monotonic() - t0:.1f} s")

@@ -361,9 +361,10 @@ def sweep(scenario: Scenario, parameters: list, *, repeats: int, out: str, recor
     from services.runtime.threads import available_cpus
 
     out_dir = Path(out).expanduser().resolve()
-    workers = workers or available_cpus()
-    if workers < 1:
-        raise SweepError(f"--workers must be >= 1, got {workers}")
+    for flag, value in (("--workers", workers), ("--learn-threads", learn_threads), ("--repeats", repeats)):
+        if value is not None and value < 1:
+            raise SweepError(f"{flag} must be >= 1, got {value}")
+    workers = available_cpus() if workers is None else workers
     threads = learn_threads or max(1, available_cpus() // workers)
     specs = plan(scenario, parameters, repeats, out_dir, record, threads)
     t0 = time.monotonic()

@@ -73,7 +73,11 @@ def make_credentials(out, hosts=("127.0.0.1",), roles=ROLES) -> Path:
     for r in roles:
         if not r or not all(c.isalnum() or c in "_-" for c in r):
             raise CredentialsError(f"role {r!r}: use letters, digits, '_' or '-'")
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CredentialsError(f"{out}: cannot make the credentials' folder there "
+                               f"({'a file of that name exists' if out.is_file() else exc.strerror or exc})") from None
     if not ((out / "ca.pem").is_file() and (out / "ca.key").is_file()):
         _run(["openssl", "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes",
               "-days", str(DAYS), "-subj", "/CN=etar-run-ca", "-keyout", "ca.key", "-out", "ca.pem",

@@ -49,7 +49,7 @@ def test_make_run_with_a_relative_output_folder_that_does_not_exist_yet(tmp_path
     assert last.startswith("smoke: 3 phases; ")
     assert f"{s['successes']} of 1 reproductions reached the goal" in last
     assert f"online phase accuracy {s['online_phase_accuracy']:.4f}" in last
-    assert last.endswith(f"report {relative}/report.txt")
+    assert last.endswith(f"report {relative}/report.html")
     assert "RUN FAILED" not in last
 
 

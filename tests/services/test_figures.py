@@ -45,8 +45,9 @@ def test_the_figures_command_draws_them_again_and_refuses_a_folder_that_is_no_ru
     for p in (run_dir / "figures").glob("*.png"):
         p.unlink()
     assert bench_cli.main(["figures", str(run_dir)]) == 0
-    printed = capsys.readouterr().out.split()
-    assert sorted(Path(p).name for p in printed) == sorted(FIGURES)
+    printed = capsys.readouterr().out.strip()
+    assert printed.startswith(f"figures: {len(FIGURES)} in {run_dir / 'figures'}, report.html"), printed
+    assert sorted(p.name for p in (run_dir / "figures").glob("*.png")) == sorted(FIGURES)
     assert bench_cli.main(["figures", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1] == f"etar-bench figures: error: {tmp_path / 'report.json'}: missing (is {tmp_path} a " \
@@ -62,10 +63,43 @@ def test_a_run_without_demonstrations_says_which_figures_it_skips(tmp_path):
     assert any("no demonstrations" in s for s in skipped) and any("no selection scores" in s for s in skipped)
 
 
+def test_the_runs_figures_draw_its_world_and_name_its_phases_by_the_true_ones(run_dir, monkeypatch):
+    """The world from the run's scenario.yaml, the phase mapping from its model, the
+    reproduction scored as the report scores it."""
+    import json
+
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    from robot_sim.labels import LABELERS
+    from services.results import figures
+
+    kept = {}
+    save = figures._save
+    monkeypatch.setattr(figures, "_save", lambda fig, path, *a, **k: kept.setdefault(Path(path).name, fig)
+                        and save(fig, path, *a, **k))
+    written, _ = write_figures(run_dir)
+    assert sorted(p.name for p in written) == sorted(FIGURES)
+    meta = json.loads((run_dir / "model.json").read_text())["metadata"]
+    k = json.loads((run_dir / "model.json").read_text())["n_phases"]
+    names = figures.phase_labels(k, meta["phase_to_truth"], LABELERS["valley"].names)
+    assert any("=" in n for n in names), names  # the smoke run's phases were matched to true ones
+    (ax,) = [a for a in kept["tool_path_by_phase.png"].axes if a.name == "3d"]
+    assert any(isinstance(c, Poly3DCollection) for c in ax.collections)
+    assert {c.get_label() for c in ax.collections} >= {"start", "end", "valley plates"}
+    legend = [t.get_text() for lg in kept["tool_path_by_phase.png"].legends for t in lg.get_texts()]
+    assert set(names) <= set(legend), legend
+    repro = kept["reproduction_00_force_phase_alpha.png"]
+    report = json.loads((run_dir / "report.json").read_text())["reproductions"][0]["phases"]
+    assert f"online phase accuracy {report['accuracy']:.1%} over {report['updates']} estimates" in \
+        repro._suptitle.get_text()
+    legend = [t.get_text() for a in repro.axes if a.get_legend() for t in a.get_legend().get_texts()]
+    assert set(names) <= set(legend), legend
+
+
 def test_the_html_report_embeds_every_figure(run_dir):
     page = (run_dir / "report.html").read_text()
     images = page.count('src="data:image/png;base64,')
-    assert images == len(FIGURES) + 1  # and the timing plot
+    assert images == len(FIGURES)  # no timing plot: in lockstep its histograms are the host's
     first = page.index("data:image/png;base64,") + len("data:image/png;base64,")
     assert base64.b64decode(page[first:page.index('"', first)]).startswith(PNG)
     assert "smoke" in page and "Number of phases" in page and "Reproductions" in page
@@ -81,7 +115,7 @@ def test_the_html_report_renders_in_a_headless_browser_with_every_image_loaded(r
                           f"--user-data-dir={tmp_path / 'profile'}", "--virtual-time-budget=5000", "--dump-dom",
                           (run_dir / "report.html").as_uri()], capture_output=True, text=True, timeout=120)
     assert dom.returncode == 0, dom.stderr[-2000:]
-    n = len(FIGURES) + 1
+    n = len(FIGURES)
     assert f'data-images="{n}/{n}"' in dom.stdout, dom.stdout[:500]
 
 

@@ -204,7 +204,7 @@ def test_export_refuses_what_it_cannot_read_and_leaves_it_as_it_was(run_dir, tmp
     assert "no recordings/ folder" in capsys.readouterr().err
     assert bench_cli.main(["export", str(run_dir)]) == 2
     assert "--foxglove" in capsys.readouterr().err
-    assert bench_cli.main(["export", str(run_dir), "--foxglove", "--rate", "0"]) == 2
+    assert bench_cli.main(["export", str(run_dir), "--foxglove", "--visual-rate-hz", "0"]) == 2
     old = tmp_path / "old"
     strip_visual(run_dir, old)
     path = sorted((old / "recordings").glob("*.mcap"))[0]

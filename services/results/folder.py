@@ -1,0 +1,68 @@
+"""A run's folder: what a run leaves in it, and the rule that one folder holds one run.
+
+A run never writes over another: an ``--out`` that already holds a run is refused
+unless the run is asked to replace it, and then everything the earlier run left is
+removed first, so that no report, recording or figure of it can be taken for this
+run's (report.html embeds every figure it finds)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+SCENARIO_FILE = "scenario.yaml"  # the scenario as run, every default filled in
+# everything a run, `etar-bench figures` and `etar-bench compare` write into the folder
+RUN_PRODUCTS = ("report.json", "report.txt", "report.html", "report.html.error", "timing.txt", "timing.png",
+                "timing.png.error", "figures", "figures.error", "figures.skipped", "recordings", "logs",
+                "model.json", "model-ETAR.json", "model-STAR.json", SCENARIO_FILE, "comparison.txt",
+                "comparison.json", "comparison.png")
+# the files that say a folder holds a run
+RUN_MARKERS = ("report.json", SCENARIO_FILE, "recordings", "model.json")
+
+
+def holds_a_run(folder: Path) -> bool:
+    return any((folder / name).exists() for name in RUN_MARKERS)
+
+
+def prepare_run_folder(folder: Path, flag_value, *, replace: bool) -> None:
+    """Make sure ``folder`` can take a new run, or raise a ValueError naming ``--out``."""
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"--out {flag_value}: {folder} is a file; --out names the run's folder")
+    if not folder.exists() or not holds_a_run(folder):
+        return
+    if not replace:
+        raise ValueError(f"--out {flag_value}: {folder} already holds a run; choose another folder, or "
+                         "--replace to remove that run first")
+    for name in RUN_PRODUCTS:
+        path = folder / name
+        try:
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path)
+            elif path.exists() or path.is_symlink():
+                path.unlink()
+        except OSError as exc:
+            raise ValueError(f"--out {flag_value}: cannot remove the earlier run's {path} "
+                             f"({exc.strerror or exc})") from None
+
+
+class RunFolderError(ValueError):
+    """A folder that is not a finished run's, or its report.json unreadable: names the file."""
+
+
+def read_report(run_dir, *, required: bool = True) -> dict:
+    """A run's report.json (``{}`` when there is none and ``required`` is False).  NaN, which
+    reports written before they were strict JSON could hold, is read as None."""
+    run_dir = Path(run_dir)
+    path = run_dir / "report.json"
+    if not path.is_file():
+        if not required:
+            return {}
+        raise RunFolderError(f"{path}: missing (is {run_dir} a finished run's folder?)")
+    try:
+        report = json.loads(path.read_bytes(), parse_constant=lambda name: None)
+    except (OSError, ValueError) as exc:  # UnicodeDecodeError is a ValueError
+        raise RunFolderError(f"{path}: not a JSON report ({type(exc).__name__}: {exc})") from None
+    if not isinstance(report, dict):
+        raise RunFolderError(f"{path}: not a run report (a JSON {type(report).__name__}, not an object)")
+    return report

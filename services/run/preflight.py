@@ -1,0 +1,93 @@
+"""What a run would otherwise find out only once its services are up: that the
+scenario's model file exists, loads and fits the scenario, and that every episode's
+start is one the arm can reach with the tool pointing down, above the floor.  A
+scenario that passes here fails, if at all, for reasons the run is meant to measure.
+
+``preflight(scenario)`` raises a ScenarioError naming the field and the value; the runner
+calls it before anything starts and ``etar-bench check`` without running."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from etar.task import LearnedTask, TaskError, load_task
+from services.scenario import Scenario, ScenarioError, demonstration_starts, reproduction_starts
+
+FLOOR_Z = 0.0  # the floor plane of every task world (robot_sim.worlds), m
+EPISODE_NAMES = {"demonstrate": "demonstration", "reproduce": "reproduction"}  # by stage kind
+
+
+@dataclass(frozen=True)
+class Preflight:
+    """What the checks found: the scenario's stored model (None when it learns one) and
+    every episode's start, stage by stage, in the order the runner walks them."""
+
+    model: LearnedTask | None
+    starts: tuple  # (stage index, kind, episode within the stage, side, (x, y, z) m)
+
+
+def preflight(scenario: Scenario) -> Preflight:
+    task = _stored_model(scenario) if scenario.model is not None else None
+    starts = _starts(scenario)
+    _reachable(scenario, starts)
+    return Preflight(task, tuple(starts))
+
+
+def _stored_model(scenario: Scenario) -> LearnedTask:
+    path = scenario.model_path()
+    if not path.is_file():
+        raise ScenarioError("the model file does not exist" if not path.exists() else "the model is not a file",
+                            path="model", value=str(path), source=scenario.source)
+    try:
+        task = load_task(path)
+    except TaskError as exc:
+        raise ScenarioError(f"the model file does not load ({exc})", path="model", value=str(path),
+                            source=scenario.source) from None
+    if task.state != scenario.state or task.features != scenario.features:
+        raise ScenarioError(f"the model sees {task.state}/{task.features}, the scenario "
+                            f"{scenario.state}/{scenario.features} (state/features)", path="model",
+                            value=str(path), source=scenario.source)
+    return task
+
+
+def _starts(scenario: Scenario) -> list:
+    """Every episode's start as the runner will draw it (the same functions, the same seeds)."""
+    out, demos = [], []
+    for i, stage in enumerate(scenario.stages):
+        if stage.kind == "demonstrate":
+            drawn = demonstration_starts(stage, scenario.world, stage.seed)
+            demos += drawn
+        elif stage.kind == "reproduce":
+            try:
+                drawn = reproduction_starts(stage, scenario.world, stage.seed, demos)
+            except ScenarioError as exc:
+                raise exc.within(f"stages[{i}].reproduce", source=scenario.source) from None
+        else:
+            continue
+        out += [(i, stage.kind, j, side, xyz) for j, (side, xyz) in enumerate(drawn)]
+    return out
+
+
+def _reachable(scenario: Scenario, starts: list) -> None:
+    if not starts:
+        return
+    import pinocchio as pin
+
+    from robot_sim.kinematics import READY, ArmKinematics
+    from robot_sim.teacher import DOWN
+
+    kinematics = ArmKinematics()
+    for i, kind, j, side, xyz in starts:
+        where = dict(path=f"stages[{i}].{kind}.start", value=[round(v, 4) for v in xyz], source=scenario.source)
+        episode = f"{EPISODE_NAMES[kind]} {j + 1} ({side} side) would start at"
+        if xyz[2] <= FLOOR_Z:
+            raise ScenarioError(f"{episode} z = {xyz[2]:.3f} m, at or below the floor (z = {FLOOR_Z:g} m): "
+                                "raise the start's z", **where)
+        try:
+            kinematics.inverse_kinematics(pin.SE3(DOWN, np.asarray(xyz, dtype=np.float64)), READY)
+        except ValueError:
+            reach = float(np.linalg.norm(np.asarray(xyz)))
+            raise ScenarioError(f"{episode} a point the arm cannot reach with the tool pointing down "
+                                f"({reach:.2f} m from its base; the LWR4+ reaches about 0.8 m)", **where) from None

@@ -1,0 +1,167 @@
+"""Every ordinary mistake a user has been seen to make, answered in one line that names
+the flag or the file and the value, before any work is done: exit code 2 for a usage
+error, 1 for a run that failed, never a traceback.  The table below is docs/mistakes.md
+(``python -m tests.test_mistakes > docs/mistakes.md`` writes it again).
+
+Each command is what a user types, run through its console script's own function (the
+one pyproject.toml names), with the placeholders in capitals standing for the files the
+fixture below makes."""
+
+from __future__ import annotations
+
+import json
+import shlex
+import sys
+from importlib.metadata import entry_points
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+DOC = ROOT / "docs" / "mistakes.md"
+
+# (command, exit code, what its one line says); placeholders: FILE an existing file, DIR an
+# existing folder, RUN_DIR a finished run's folder, FAILED_RUN a failed run's, FAR.yaml,
+# LOW.yaml, NO_MODEL.yaml, BAD_MODEL.yaml scenarios with the mistake their name says,
+# DEMO.npz a demonstration, REPRO.mcap a reproduction's recording
+CASES = [
+    # etar-bench run
+    ("etar-bench run scenarios/smoke.yaml --out FILE", 2, "--out FILE: FILE is a file; --out names the run's folder"),
+    ("etar-bench run scenarios/smoke.yaml --out RUN_DIR", 2,
+     "--out RUN_DIR: RUN_DIR already holds a run; choose another folder, or --replace to remove that run first"),
+    ("etar-bench run scenarios/smoke.yaml --ready-timeout -5", 2,
+     "--ready-timeout must be a number of seconds > 0, got -5.0"),
+    ("etar-bench run NO_MODEL.yaml", 2, "NO_MODEL.yaml: model: the model file does not exist, got 'DIR/nosuch.json'"),
+    ("etar-bench run BAD_MODEL.yaml", 2, "BAD_MODEL.yaml: model: the model file does not load"),
+    ("etar-bench run FAR.yaml", 2, "FAR.yaml: stages[0].demonstrate.start: demonstration 1 (left side) would start "
+                                   "at a point the arm cannot reach"),
+    ("etar-bench run LOW.yaml", 2, "LOW.yaml: stages[0].demonstrate.start: demonstration 1 (left side) would start "
+                                   "at z = -0.101 m, at or below the floor"),
+    ("etar-bench run scenarios/smoke.yaml --bogus", 2, "--bogus: not a flag of this program"),
+    # etar-bench check
+    ("etar-bench check FAR.yaml", 2, "would start at a point the arm cannot reach with the tool pointing down"),
+    ("etar-bench check NO_MODEL.yaml", 2, "model: the model file does not exist"),
+    ("etar-bench check FILE", 2, "FILE: the file is empty"),
+    # etar-bench report / figures
+    ("etar-bench report FAILED_RUN", 1, "etar-bench report: the run failed: RuntimeError: the recorder died"),
+    ("etar-bench report DIR", 2, "DIR/report.txt not found (is DIR a run directory?)"),
+    ("etar-bench figures DIR", 2, "DIR/report.json: missing (is DIR a finished run's folder?)"),
+    # etar-bench sweep, demo, export, certs, router
+    ("etar-bench sweep scenarios/smoke.yaml --workers 0 --out DIR/sweep", 2, "--workers must be >= 1, got 0"),
+    ("etar-bench demo --max-seconds -1", 2, "--max-seconds: expected a finite number > 0, got -1.0"),
+    ("etar-bench demo --spread nan", 2, "--spread: expected a finite number >= 0, got nan"),
+    ("etar-bench demo --png DIR/missing/demo.png", 2, "--png DIR/missing/demo.png: the folder DIR/missing does not "
+                                                      "exist"),
+    ("etar-bench demo --world hose_coupler --side right", 2, "--side: the hose_coupler world has one side"),
+    ("etar-bench export RUN_DIR --foxglove --visual-rate-hz 0", 2, "--visual-rate-hz"),
+    ("etar-bench certs FILE", 2, "FILE: cannot make the credentials' folder there (a file of that name exists)"),
+    ("etar-bench router --listen garbage", 2, "--listen garbage: Endpoints must be of the form PROTOCOL/ADDRESS"),
+    ("etar-bench router --listen tcp/127.0.0.1:99999", 2, "--listen tcp/127.0.0.1:99999: port '99999' is not in "
+                                                          "0..65535"),
+    ("etar-bench info FILE", 2, "FILE: not an MCAP file (0 bytes)"),
+    ("etar-bench diff RUN_DIR DIR/nosuch", 2, "DIR/nosuch: no such folder"),
+    # etar
+    ("etar learn DEMO.npz --out DIR", 2, "--out: is a folder; give the model file to write, got 'DIR'"),
+    ("etar learn DEMO.npz --out FILE/model.json", 2, "--out: FILE is a file, not a folder"),
+    ("etar learn DEMO.npz --out DIR/m.json --max-iter 0", 2, "--max-iter: must be an integer >= 1, got 0"),
+    ("etar learn DEMO.npz --out DIR/m.json --phases 0", 2, "--phases: must be 'auto' or an integer >= 1, got '0'"),
+    ("etar learn REPRO.mcap --out DIR/m.json", 2, "REPRO.mcap: is a reproduction recording, not a demonstration"),
+    ("etar learn DIR/missing.npz --out DIR/m.json", 2, "DIR/missing.npz: no such file"),
+    ("etar synth --phases 0 --out DIR/synth", 2, "--phases: must be an integer >= 1, got 0"),
+    ("etar synth --demos 0 --out DIR/synth", 2, "--demos: must be an integer >= 1, got 0"),
+    ("etar synth --out FILE/sub", 2, "--out: FILE is a file, not a folder"),
+    ("etar inspect FILE", 2, "FILE: not a JSON model file"),
+    # the services
+    ("etar-robot --run-id x --world free_space", 2, "--world free_space: not one of"),
+    ("etar-robot --run-id x --sched-fifo 1000", 2, "--sched-fifo 1000: a SCHED_FIFO priority is 1..99 (0: off)"),
+    ("etar-robot --run-id x --sched-fifo -5", 2, "--sched-fifo -5: a SCHED_FIFO priority is 1..99 (0: off)"),
+    ("etar-robot --run-id x --connect tcp/127.0.0.1:99999", 2,
+     "--connect tcp/127.0.0.1:99999: port '99999' is not in 1..65535"),
+    ("etar-recorder --run-id x --out-dir FILE", 2, "--out-dir FILE: not a folder (it is a file)"),
+    ("etar-ft-sensor --run-id x --noise-scale -1", 2, "--noise-scale -1: must be a finite number >= 0"),
+    ("etar-phase-estimator --run-id x --model DIR/nosuch.json", 2, "--model DIR/nosuch.json: no such file"),
+    ("etar-robot", 2, "--run-id: required"),
+]
+
+
+def placeholders(base: Path) -> dict:
+    """The files the commands name, made in ``base``."""
+    p = {"FILE": base / "afile", "DIR": base, "RUN_DIR": base / "run", "FAILED_RUN": base / "failed"}
+    p["FILE"].write_text("")
+    scenario = "name: {name}\nworld: valley\n{model}stages:\n  - {stage}\n"
+    for name, model, stage in (
+            ("FAR", "", "demonstrate: {count: 1, start: [5.0, -0.1, 0.3]}"),
+            ("LOW", "", "demonstrate: {count: 1, start: [0.5, -0.1, -0.1]}"),
+            ("NO_MODEL", "model: nosuch.json\n", "reproduce: {count: 1}"),
+            ("BAD_MODEL", "model: bad.json\n", "reproduce: {count: 1}")):
+        p[f"{name}.yaml"] = base / f"{name}.yaml"
+        p[f"{name}.yaml"].write_text(scenario.format(name=name.lower(), model=model, stage=stage))
+    (base / "bad.json").write_text("garbage")
+    # a finished run's folder and a failed one: what the commands read of them
+    report = {"scenario": "smoke", "run_id": "smoke-1", "error": None, "summary": {}}
+    for key, error in (("RUN_DIR", None), ("FAILED_RUN", "RuntimeError: the recorder died")):
+        (p[key] / "recordings").mkdir(parents=True)
+        (p[key] / "report.json").write_text(json.dumps(dict(report, error=error)))
+        (p[key] / "report.txt").write_text("a report\n")
+    np.savez(base / "demo.npz", states=np.zeros((50, 3)), forces=np.zeros((50, 3)))
+    p["DEMO.npz"] = base / "demo.npz"
+    # a reproduction's recording: what etar learn reads of it first is its metadata record
+    from services.recordings.writer import EpisodeWriter
+
+    p["REPRO.mcap"] = base / "reproduction_00.mcap"
+    with EpisodeWriter(p["REPRO.mcap"], run_id="r1", episode_kind="reproduction", episode_index=0):
+        pass
+    return p
+
+
+def with_paths(text: str, paths: dict) -> str:
+    for key in sorted(paths, key=len, reverse=True):  # FAILED_RUN before RUN_DIR's RUN
+        text = text.replace(key, str(paths[key]))
+    return text
+
+
+def console_script(name: str):
+    (entry,) = [e for e in entry_points(group="console_scripts") if e.name == name]
+    return entry.load()
+
+
+@pytest.fixture(scope="module")
+def paths(tmp_path_factory):
+    return placeholders(tmp_path_factory.mktemp("mistakes"))
+
+
+@pytest.mark.parametrize("command,code,says", CASES, ids=[c for c, _, _ in CASES])
+def test_a_mistake_is_answered_in_one_line(command, code, says, paths, capsys, monkeypatch):
+    monkeypatch.chdir(ROOT)
+    program, *argv = shlex.split(with_paths(command, paths))
+    try:
+        got = console_script(program)(argv)
+    except SystemExit as exc:  # argparse's own refusals
+        got = exc.code
+    captured = capsys.readouterr()
+    lines = [line for line in captured.err.splitlines() if line.strip()]
+    assert "Traceback" not in captured.err
+    assert len(lines) == 1, lines  # refused before any work, so nothing else was said
+    assert lines and with_paths(says, paths) in lines[-1], lines
+    assert got == code, (got, lines)
+
+
+def table() -> str:
+    rows = ["# Ordinary mistakes and what they are told", "",
+            "Every command below is answered in one line on stderr, before any work is done; exit code 2 for a "
+            "usage error, 1 for a failed run. FILE, DIR, RUN_DIR and the capitalised file names stand for the "
+            "files of each case. Generated from `tests/test_mistakes.py`, which runs every one of them "
+            "(`python -m tests.test_mistakes > docs/mistakes.md`).", "",
+            "| command | exit | says |", "|---|---|---|"]
+    for command, code, says in CASES:
+        rows.append(f"| `{command}` | {code} | {says.replace('|', '&#124;')} |")
+    return "\n".join(rows) + "\n"
+
+
+def test_docs_mistakes_md_is_the_table_of_these_cases():
+    assert DOC.read_text() == table(), "regenerate: python -m tests.test_mistakes > docs/mistakes.md"
+
+
+if __name__ == "__main__":
+    sys.stdout.write(table())
