@@ -24,7 +24,7 @@ DOC = ROOT / "docs" / "mistakes.md"
 # (command, exit code, what its one line says); placeholders: FILE an existing file, DIR an
 # existing folder, RUN_DIR a finished run's folder, FAILED_RUN a failed run's, FAR.yaml,
 # LOW.yaml, NO_MODEL.yaml, BAD_MODEL.yaml scenarios with the mistake their name says,
-# DEMO.npz a demonstration, REPRO.mcap a reproduction's recording
+# DEMO.npz a demonstration, REPRO.mcap a reproduction's recording, SWEEP_DIR a sweep's folder
 CASES = [
     # etar-bench run
     ("etar-bench run scenarios/smoke.yaml --out FILE", 2, "--out FILE: FILE is a file; --out names the run's folder"),
@@ -49,6 +49,14 @@ CASES = [
     ("etar-bench figures DIR", 2, "DIR/report.json: missing (is DIR a finished run's folder?)"),
     # etar-bench sweep, demo, export, certs, router
     ("etar-bench sweep scenarios/smoke.yaml --workers 0 --out DIR/sweep", 2, "--workers must be >= 1, got 0"),
+    ("etar-bench sweep scenarios/smoke.yaml --out FILE", 2, "--out FILE: FILE is a file; --out names the sweep's folder"),
+    ("etar-bench sweep scenarios/smoke.yaml --out SWEEP_DIR", 2, "--out SWEEP_DIR: SWEEP_DIR already holds a sweep "
+                                                                  "(sweep.json); choose another folder, or --replace"),
+    ("etar-bench demo --out FILE", 2, "--out FILE: FILE is a file; --out names the run's folder"),
+    ("etar-bench demo --out RUN_DIR", 2, "--out RUN_DIR: RUN_DIR already holds a run; choose another folder, or "
+                                         "--replace"),
+    ("etar-bench recover DIR/nosuch.mcap", 2, "DIR/nosuch.mcap: no such file"),
+    ("etar-bench export DIR --foxglove", 2, "DIR: no recordings/ folder: not a run's folder"),
     ("etar-bench demo --max-seconds -1", 2, "--max-seconds: expected a finite number > 0, got -1.0"),
     ("etar-bench demo --spread nan", 2, "--spread: expected a finite number >= 0, got nan"),
     ("etar-bench demo --png DIR/missing/demo.png", 2, "--png DIR/missing/demo.png: the folder DIR/missing does not "
@@ -89,6 +97,9 @@ def placeholders(base: Path) -> dict:
     """The files the commands name, made in ``base``."""
     p = {"FILE": base / "afile", "DIR": base, "RUN_DIR": base / "run", "FAILED_RUN": base / "failed"}
     p["FILE"].write_text("")
+    p["SWEEP_DIR"] = base / "sweep"
+    p["SWEEP_DIR"].mkdir()
+    (p["SWEEP_DIR"] / "sweep.json").write_text("{}")
     scenario = "name: {name}\nworld: valley\n{model}stages:\n  - {stage}\n"
     for name, model, stage in (
             ("FAR", "", "demonstrate: {count: 1, start: [5.0, -0.1, 0.3]}"),
@@ -161,6 +172,16 @@ def table() -> str:
 
 def test_docs_mistakes_md_is_the_table_of_these_cases():
     assert DOC.read_text() == table(), "regenerate: python -m tests.test_mistakes > docs/mistakes.md"
+
+
+@pytest.mark.parametrize("program", sorted(e.name for e in entry_points(group="console_scripts")
+                                           if e.value.startswith("services.cli.")))
+def test_every_entry_point_answers_version_on_one_line(program, capsys):
+    with pytest.raises(SystemExit) as done:
+        console_script(program)(["--version"])
+    out, err = capsys.readouterr()
+    assert done.value.code == 0 and err == "" and out.count("\n") == 1, (out, err)
+    assert out.startswith(f"{program} ") and len(out.split()) >= 2
 
 
 if __name__ == "__main__":

@@ -153,7 +153,11 @@ def cmd_demo(args) -> int:
                 "max_seconds": "--max-seconds"}.get(field, f"--{field}")
         _say(f"etar-bench demo: error: {flag}: {exc.problem}" + (f", got {exc.value!r}" if exc.has_value else ""))
         return 2
-    report, recording = record_demonstration(scenario, out, progress=_say)
+    try:
+        report, recording = record_demonstration(scenario, out, progress=_say, replace=args.replace)
+    except ValueError as exc:  # the run folder: a file, or one that holds a run
+        _say(f"etar-bench demo: error: {exc}")
+        return 2
     if report["error"] is not None:
         _say(f"etar-bench demo: the demonstration failed: {report['error']} (run folder {out})")
         return 1
@@ -189,7 +193,8 @@ def cmd_sweep(args) -> int:
     try:
         params = [Parameter.parse(p) for p in args.param]
         result = sweep(load_scenario(args.scenario), params, repeats=args.repeats, out=args.out, record=args.record,
-                       workers=args.workers, cluster=args.cluster, learn_threads=args.learn_threads, say=_say)
+                       workers=args.workers, cluster=args.cluster, learn_threads=args.learn_threads,
+                       replace=args.replace, say=_say)
     except (SweepError, ScenarioError, TaskError) as exc:
         _say(f"etar-bench sweep: error: {exc}")
         return 2
@@ -264,6 +269,11 @@ def cmd_recover(args) -> int:
     if args.out is not None and len(args.files) > 1:
         _say("etar-bench recover: --out names one output file: give one FILE with it")
         return 2
+    missing = [f for f in args.files if not Path(f).is_file()]
+    if missing:
+        what = "a folder, not a recording" if Path(missing[0]).is_dir() else "no such file"
+        _say(f"etar-bench recover: error: {missing[0]}: {what}")
+        return 2
     failed = 0
     for f in args.files:
         try:
@@ -304,6 +314,9 @@ def cmd_export(args) -> int:
         check_visual_rate(args.visual_rate_hz, "--visual-rate-hz")
     except ValueError as exc:
         _say(f"etar-bench export: error: {exc}")
+        return 2
+    if not (Path(args.run_dir) / "recordings").is_dir():
+        _say(f"etar-bench export: error: {args.run_dir}: no recordings/ folder: not a run's folder")
         return 2
     try:
         results = export_foxglove(args.run_dir, args.visual_rate_hz, progress=print)
@@ -451,9 +464,14 @@ def build_parser() -> OneLineErrorParser:
     p.add_argument("--spread", type=float, default=0.0, help="random start offset per axis, m (default 0)")
     p.add_argument("--max-seconds", type=float, default=demonstration.MAX_SECONDS,
                    help=f"simulated-time limit (default {demonstration.MAX_SECONDS:g})")
-    p.add_argument("--out", help="run folder for the recording (default runs/demo-<world>-<time>)")
-    p.add_argument("--png", help="write a picture of the demonstration here")
-    p.add_argument("--npz", help="write its arrays here (states, forces, phases, dt: what etar learn reads)")
+    p.add_argument("--out", metavar="DIR", help="run folder for the recording, created (default "
+                                                "runs/demo-<world>-<time>); one that holds a run is refused unless "
+                                                "--replace")
+    p.add_argument("--replace", action="store_true", help="--out holds an earlier run: remove it first")
+    p.add_argument("--png", metavar="FILE", help="write a picture of the demonstration to this file (its folder must "
+                                                 "exist)")
+    p.add_argument("--npz", metavar="FILE", help="write its arrays to this file (states, forces, phases, dt: what etar "
+                                                 "learn reads)")
     p.set_defaults(func=cmd_demo)
     p = sub.add_parser("sweep", help="run every combination of scenario parameters x seeds in parallel, "
                                      "in-process; a table and plots",
@@ -464,7 +482,10 @@ def build_parser() -> OneLineErrorParser:
                    help="a scenario parameter and its values, e.g. cell.sensor_noise=0.5,1,2 or "
                         "reproduce.start_perturbation=0.01,0.03 (repeatable: every combination runs)")
     p.add_argument("--repeats", type=int, default=1, help="seeds per combination: the scenario's seed + 0..N-1")
-    p.add_argument("--out", required=True, help="folder for the table, the plots and the runs")
+    p.add_argument("--out", required=True, metavar="DIR",
+                   help="the sweep's folder, created, for the table, the plots and the runs; one that holds a sweep "
+                        "is refused unless --replace")
+    p.add_argument("--replace", action="store_true", help="--out holds an earlier sweep: remove it first")
     p.add_argument("--record", choices=sweep.RECORD, default="summary",
                    help="what to keep of each run: everything, its report and model (default), or nothing")
     p.add_argument("--workers", type=int, help="local processes (default: the CPUs this process may use)")

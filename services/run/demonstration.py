@@ -26,11 +26,12 @@ def demonstration_scenario(world: str = "valley", *, side: str = "left", seed: i
                                    stages=[{"demonstrate": stage}]), source="a demonstration")
 
 
-def record_demonstration(scenario: Scenario, out, progress=print) -> tuple[dict, Path]:
+def record_demonstration(scenario: Scenario, out, progress=print, replace: bool = False) -> tuple[dict, Path]:
     """``scenario`` run in one process into ``out``: (its report, the demonstration's recording)."""
     from services.run.options import RunOptions  # the runner on use: the CLI reads this module's defaults
     from services.run.runner import Runner
 
-    report = Runner(scenario, RunOptions(out=str(out), transport="inproc", figures=False), progress).run()
+    report = Runner(scenario, RunOptions(out=str(out), transport="inproc", figures=False, replace=replace),
+                    progress).run()
     (demonstration,) = report["demonstrations"]
     return report, Path(out).resolve() / demonstration["path"]

@@ -140,6 +140,28 @@ def plan(base: Scenario, parameters: list, repeats: int, out: Path, record: str,
     return specs
 
 
+# what a sweep writes into its --out (one folder holds one sweep, as one holds one run)
+SWEEP_PRODUCTS = ("sweep.json", "table.csv", "table.json", "comparison.txt", "scenarios", "runs")
+
+
+def _prepare(out_dir: Path, flag_value, replace: bool) -> None:
+    if out_dir.exists() and not out_dir.is_dir():
+        raise SweepError(f"--out {flag_value}: {out_dir} is a file; --out names the sweep's folder")
+    held = [name for name in SWEEP_PRODUCTS if (out_dir / name).exists()]
+    if held and not replace:
+        raise SweepError(f"--out {flag_value}: {out_dir} already holds a sweep ({', '.join(held)}); choose another "
+                         "folder, or --replace to remove that sweep first")
+    for name in held:
+        path = out_dir / name
+        shutil.rmtree(path) if path.is_dir() else path.unlink()
+    for png in out_dir.glob("*.png") if held else ():
+        png.unlink()  # the earlier sweep's plots
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise SweepError(f"--out {flag_value}: cannot make the sweep's folder ({exc.strerror or exc})") from None
+
+
 def run_one(spec: RunSpec) -> dict:
     """One run in this process (a pool worker or a Dask worker): its table row."""
     from services.run.options import RunOptions
@@ -357,13 +379,14 @@ def plot(rows: list[dict], parameters: list, out: Path) -> list[Path]:
 
 def sweep(scenario: Scenario, parameters: list, *, repeats: int, out: str, record: str = "summary",
           workers: int | None = None, cluster: str | None = None, learn_threads: int | None = None,
-          say=print) -> dict:
+          replace: bool = False, say=print) -> dict:
     from services.runtime.threads import available_cpus
 
     out_dir = Path(out).expanduser().resolve()
     for flag, value in (("--workers", workers), ("--learn-threads", learn_threads), ("--repeats", repeats)):
         if value is not None and value < 1:
             raise SweepError(f"{flag} must be >= 1, got {value}")
+    _prepare(out_dir, out, replace)
     workers = available_cpus() if workers is None else workers
     threads = learn_threads or max(1, available_cpus() // workers)
     specs = plan(scenario, parameters, repeats, out_dir, record, threads)
