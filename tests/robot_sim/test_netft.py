@@ -1,0 +1,453 @@
+"""The simulated ATI box speaks Net F/T: the unmodified PyPI clients ``netft`` 2.0.1 (module
+``NetFT``) and ``pynetft`` 2.1.3 against a served :class:`robot_sim.netft.NetFtBox` fed by a
+real :class:`robot_sim.ati.AtiSensor` at its 1 kHz rate; the rest with raw sockets.
+
+Each box gets its own loopback address (127.0.0.x), since ``netft`` hard-codes UDP 49152;
+HTTP runs on a free port (pynetft's ``http_port``).  The client tests skip, saying why, when
+a client is not installed."""
+
+import random
+import socket
+import struct
+import threading
+import time
+import urllib.error
+import urllib.request
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pytest
+
+from robot_sim.ati import AtiConfig, AtiSensor, AtiStatus, RdtRecord
+from robot_sim.netft import (
+    NETFT_ERROR,
+    NETFT_SATURATION,
+    NetFtBox,
+    RdtCommand,
+    netft_status,
+)
+
+WRENCH = np.array([12.5, -4.25, 31.0, 0.12, -0.31, 0.05])  # N, Nm: inside the Mini45's ranges
+IDEAL = AtiConfig.mini45(resolution=np.zeros(6), noise_std=np.zeros(6), bias=np.zeros(6),
+                         bias_drift_std=np.zeros(6))  # counts = rint(wrench * 1e6): one-count resolution
+REQUEST = struct.Struct(">HHI")
+RECORD = struct.Struct(">3I6i")
+
+
+def client(name: str):
+    """The client module, or a skip that says which package is missing."""
+    return pytest.importorskip(name, reason=f"the PyPI Net F/T client '{name}' is not installed "
+                                            f"(test extra: netft==2.0.1, pynetft==2.1.3)")
+
+
+def served_box(**kw) -> NetFtBox:
+    """A served box on a free 127.0.0.x with the standard RDT and calibration ports, HTTP on a
+    free port (several test runs on one machine each find their own address)."""
+    kw.setdefault("http_port", 0)
+    candidates = list(range(2, 255))
+    random.shuffle(candidates)
+    for x in candidates:
+        try:
+            return NetFtBox(address=f"127.0.0.{x}", **kw).serve()
+        except OSError:
+            continue
+    pytest.skip("no loopback address 127.0.0.2-254 has UDP 49152 and TCP 49151 free")
+
+
+class Feeder:
+    """The sensor's cycle at its own rate against the wall clock: every sample period
+    (1 ms) one ``AtiSensor.read`` of ``wrench`` at t = k * period, published to the box.
+    A late wake-up catches up sample by sample, so ft_sequence has no gaps.  ``log`` maps
+    ft_sequence to the record the sensor made."""
+
+    def __init__(self, box: NetFtBox, config: AtiConfig, seed: int = 7):
+        self.box, self.config = box, config
+        self.sensor = AtiSensor(config, seed)
+        AtiSensor(config, seed).read(np.zeros(6), 0)  # compile/load the kernel before streaming
+        self.wrench = WRENCH.copy()
+        self.lock = threading.Lock()  # guards the sensor and the wrench, as the ft_sensor node does
+        self.log: dict[int, RdtRecord] = {}
+        self._stop = threading.Event()
+        self._first = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="ati-feeder", daemon=True)
+
+    def __enter__(self):
+        self._thread.start()
+        assert self._first.wait(5), "the feeder published nothing"
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join()
+
+    def tare(self):
+        with self.lock:
+            self.sensor.tare(1)
+
+    def _run(self):
+        period = self.config.sample_period_ns
+        t0, k = time.monotonic_ns(), 0
+        while not self._stop.is_set():
+            now = time.monotonic_ns() - t0
+            while k * period <= now:
+                with self.lock:
+                    rec = self.sensor.read(self.wrench, k * period)
+                self.log[rec.ft_sequence] = rec
+                self.box.publish(rec)
+                k += 1
+                self._first.set()
+            self._stop.wait((k * period - (time.monotonic_ns() - t0)) / 1e9)
+
+
+def pynetft_client(pynetft, box: NetFtBox, **config):
+    return pynetft.Client(pynetft.Config(sensor_host=box.address, rdt_port=box.rdt_port,
+                                         http_port=box.http_port, **config), queue_size=100_000)
+
+
+def take(samples, seconds: float) -> list:
+    """The samples of the next ``seconds`` (at least one)."""
+    end = time.monotonic() + seconds
+    got = [next(samples)]
+    while time.monotonic() < end:
+        got.append(next(samples))
+    return got
+
+
+def raw_socket(box: NetFtBox) -> socket.socket:
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.connect((box.address, box.rdt_port))
+    sock.settimeout(2.0)
+    return sock
+
+
+def unpack_records(data: bytes) -> list[tuple]:
+    assert len(data) % RECORD.size == 0, len(data)
+    return [RECORD.unpack_from(data, i) for i in range(0, len(data), RECORD.size)]
+
+
+# -- pynetft 2.1.3: configuration over HTTP, streaming, bias, status ----------------------
+
+
+@pytest.mark.slow
+def test_pynetft_streams_every_sample_with_the_simulated_counts():
+    """3 s at 1 kHz through pynetft: no record lost (ft_sequence and rdt_sequence
+    contiguous, pynetft's own loss count 0), each sample's counts the ones the sensor made
+    for that ft_sequence, forces and torques counts / 1e6 in N and N·m."""
+    pynetft = client("pynetft")
+    with served_box() as box, Feeder(box, AtiConfig.mini45()) as feed:
+        with pynetft_client(pynetft, box) as c:
+            assert c.wait_for_first_sample(2.0)
+            got = take(c.samples(timeout=1.0), 3.0)
+            health = c.health()
+    assert len(got) >= 2500, len(got)
+    ft = np.array([s.ft_sequence for s in got])
+    rdt = np.array([s.rdt_sequence for s in got])
+    assert np.all(np.diff(ft) == 1), f"ft_sequence gaps at {np.flatnonzero(np.diff(ft) != 1)}"
+    assert np.array_equal(rdt, np.arange(1, len(got) + 1))
+    assert health.lost_count == 0 and health.out_of_order_count == 0 and health.ft_backward_count == 0
+    assert health.malformed_count == 0 and health.device_error_count == 0
+    for s in got:
+        rec = feed.log[s.ft_sequence]
+        assert s.raw_wrench == tuple(rec.counts.tolist()) and s.status == rec.status == 0
+        assert np.allclose(s.wrench, rec.wrench(feed.config), rtol=0, atol=1e-12)
+    # the sensor's noise and bias are on the wire, around the true wrench
+    mean = np.mean([s.wrench for s in got], axis=0)
+    assert np.all(np.abs(mean - WRENCH - feed.config.bias) < 0.1)
+
+
+def test_pynetft_reads_the_configuration_and_values_equal_the_wrench_to_one_count():
+    """pynetft reads /netftapi2.xml (product, 1e6 counts per N and per N·m, N and N-m);
+    with an ideal sensor every sample equals the simulated wrench to one count."""
+    pynetft = client("pynetft")
+    with served_box(config=IDEAL) as box, Feeder(box, IDEAL):
+        with pynetft_client(pynetft, box) as c:
+            assert c.wait_for_first_sample(2.0)
+            got = take(c.samples(timeout=1.0), 0.3)
+            conf = c.health().sensor_configuration
+    assert conf.product_name == box.product_name
+    assert conf.calibration.counts_per_force_unit == 1e6 and conf.calibration.counts_per_torque_unit == 1e6
+    assert conf.calibration.force_unit == pynetft.ForceUnit.NEWTON
+    assert conf.calibration.torque_unit == pynetft.TorqueUnit.NEWTON_METER
+    assert len(got) >= 200
+    for s in got:
+        assert np.all(np.abs(np.array(s.wrench) - WRENCH) <= 1e-6 + 1e-12), s
+
+
+def _post_bias(got, log):
+    """The samples from the first one that differs from the sensor's record on."""
+    for i, s in enumerate(got):
+        if s.raw_wrench != tuple(log[s.ft_sequence].counts.tolist()):
+            return got[:i], got[i:]
+    return got, []
+
+
+def test_pynetft_bias_zeroes_the_reading_in_the_box():
+    """pynetft's bias() (0x0042 then 0x0002): the next record reads exactly 0 and every
+    later one the sensor's counts minus that record's; the sensor model is untouched."""
+    pynetft = client("pynetft")
+    with served_box() as box, Feeder(box, AtiConfig.mini45()) as feed:
+        with pynetft_client(pynetft, box) as c:
+            assert c.wait_for_first_sample(2.0)
+            samples = c.samples(timeout=1.0)
+            before = take(samples, 0.2)
+            c.bias()
+            after = take(samples, 0.4)
+            health = c.health()
+    assert all(s.raw_wrench == tuple(feed.log[s.ft_sequence].counts.tolist()) for s in before)
+    _, biased = _post_bias(after, feed.log)
+    assert len(biased) >= 300
+    assert biased[0].raw_wrench == (0,) * 6
+    offset = feed.log[biased[0].ft_sequence].counts.astype(np.int64)
+    for s in biased:
+        assert np.array_equal(np.array(s.raw_wrench), feed.log[s.ft_sequence].counts - offset)
+    ft = [s.ft_sequence for s in before + after]
+    assert np.all(np.diff(ft) == 1) and health.lost_count == 0
+    # |mean| of biased readings: the noise of one sample (1/16 N), not the 1.5-3 N offset + load
+    assert np.all(np.abs(np.mean([s.force for s in biased], axis=0)) < 0.3)
+    assert box.stats().biases == 1
+
+
+def test_pynetft_bias_routed_to_the_sensor_model():
+    """With on_bias, the box tares the sensor model instead (AtiSensor.tare(1)): the
+    record that completes the tare reads 0, the box sends the model's counts unchanged."""
+    pynetft = client("pynetft")
+    feed_ref = {}
+    with served_box(on_bias=lambda: feed_ref["feed"].tare()) as box, Feeder(box, AtiConfig.mini45()) as feed:
+        feed_ref["feed"] = feed
+        with pynetft_client(pynetft, box) as c:
+            assert c.wait_for_first_sample(2.0)
+            samples = c.samples(timeout=1.0)
+            take(samples, 0.1)
+            c.bias()
+            after = take(samples, 0.3)
+    assert all(s.raw_wrench == tuple(feed.log[s.ft_sequence].counts.tolist()) for s in after)
+    first = next(i for i, s in enumerate(after) if s.raw_wrench == (0,) * 6)
+    assert all(s.force[2] > 20 for s in after[:first])  # the load of 31 N (+ the sensor's 3.2 N bias) until then
+    assert np.all(np.abs(np.mean([s.force for s in after[first:]], axis=0)) < 0.3)
+    assert not feed.sensor.tare_pending and np.all(feed.sensor.tare_offset != 0)
+    assert box.stats().biases == 1
+
+
+def test_pynetft_sees_the_saturation_status_of_a_saturating_load():
+    """A load ten times the Mini45's range: the record carries the Net F/T status
+    0x80020000 (error summary + transducer saturation) and full-scale counts; pynetft
+    delivers it (deliver_samples_with_error_status) and, fail-stop, faults on it."""
+    pynetft = client("pynetft")
+    config = AtiConfig.mini45()
+    got = []
+    with served_box(config=config) as box, Feeder(box, config) as feed:
+        c = pynetft_client(pynetft, box, deliver_samples_with_error_status=True,
+                           recovery_policy=pynetft.RecoveryPolicy.FAIL_STOP)
+        c.start(got.append)
+        try:
+            assert c.wait_for_first_sample(2.0)
+            with feed.lock:
+                feed.wrench[:] = 10 * config.ranges * np.sign(WRENCH)
+            deadline = time.monotonic() + 3.0
+            while c.health().state != pynetft.ClientState.FAULTED and time.monotonic() < deadline:
+                time.sleep(0.01)
+            health = c.health()
+        finally:
+            c.stop()
+    assert health.fault_code == pynetft.FaultCode.SERIOUS_STATUS
+    assert health.last_status == NETFT_ERROR | NETFT_SATURATION == 0x80020000
+    bad = [s for s in got if s.status]
+    assert len(bad) == 1 and bad[0].status == 0x80020000
+    assert all(s.status == 0 for s in got[:-1]) and got[-1] is bad[0]
+    full_scale = np.rint(config.full_scale * config.counts_per_unit) * np.sign(WRENCH)
+    assert np.array_equal(np.array(bad[0].raw_wrench), full_scale)
+    model = feed.log[bad[0].ft_sequence].status
+    assert model & AtiStatus.FT_OUT_OF_RANGE and model & AtiStatus.ERROR and netft_status(model) == 0x80020000
+
+
+# -- netft 2.0.1: UDP only, counts, port 49152 ---------------------------------------------
+
+
+def test_netft_client_counts_and_count_limited_requests():
+    """netft's single and count-limited requests (command 2 with a count) and streaming
+    (count 0, then stop): values equal the simulated counts, exactly the asked number of
+    records arrives, contiguous, and nothing after it."""
+    NetFT = client("NetFT")
+    expected = [int(v) for v in np.rint(WRENCH * 1e6)]
+    with served_box(config=IDEAL) as box, Feeder(box, IDEAL):
+        sensor = NetFT.Sensor(box.address)
+        sensor.sock.settimeout(2.0)
+        try:
+            assert sensor.getMeasurement() == expected
+            sensor.getMeasurements(50)
+            got = [sensor.receive() for _ in range(50)]
+            assert got == [expected] * 50
+            sensor.sock.settimeout(0.3)
+            with pytest.raises(socket.timeout):
+                sensor.receive()
+            # the same request, read as datagrams on netft's own socket: sequences contiguous
+            sensor.sock.settimeout(2.0)
+            sensor.getMeasurements(20)
+            records = [RECORD.unpack(sensor.sock.recv(1024)) for _ in range(20)]
+            assert [r[0] for r in records] == list(range(1, 21))
+            assert np.all(np.diff([r[1] for r in records]) == 1)
+            sensor.startStreaming(handler=False)
+            assert [sensor.receive() for _ in range(300)] == [expected] * 300
+            assert box.stats().streams == 1
+            sensor.send(RdtCommand.STOP)
+            deadline = time.monotonic() + 2.0
+            while box.stats().streams and time.monotonic() < deadline:
+                time.sleep(0.005)
+            assert box.stats().streams == 0
+        finally:
+            sensor.sock.close()
+
+
+# -- the wire itself: raw sockets, records published by hand ------------------------------
+
+
+def record(ft: int, counts=(1, 2, 3, 4, 5, 6), status: int = 0) -> RdtRecord:
+    return RdtRecord(999, ft, status, np.array(counts, dtype=np.int32))
+
+
+def test_records_requests_and_ft_sequence_that_only_increases():
+    """Replies come from the box's RDT port; rdt_sequence starts at 1 in each stream;
+    a record that repeats ft_sequence is not sent; a restarted sensor (ft_sequence back
+    to 1) continues the count; ft_sequence increases across streams; stop ends a stream;
+    malformed and unknown requests are ignored."""
+    with NetFtBox(rdt_port=0, http_port=None, calibration_port=None).serve() as box:
+        sock = raw_socket(box)
+        box.publish(record(1))  # nobody streams: nothing sent
+        sock.send(REQUEST.pack(0x1234, RdtCommand.REALTIME, 0))
+        _wait(lambda: box.stats().streams == 1)
+        for ft in (2, 3, 3, 4, 1, 2):  # a repeat, then a new sensor counting from 1
+            box.publish(record(ft, counts=(ft, -ft, 0, 2**31 - 1, -(2**31), 7)))
+        got = [RECORD.unpack(sock.recv(1024)) for _ in range(5)]
+        assert [r[:2] for r in got] == [(1, 2), (2, 3), (3, 4), (4, 5), (5, 6)]
+        assert got[0][3:] == (2, -2, 0, 2**31 - 1, -(2**31), 7)
+        assert box.stats().stale == 1
+        sock.send(REQUEST.pack(0x1234, RdtCommand.REALTIME, 0))  # a new stream: rdt restarts
+        sock.send(b"\x12\x34\x00")  # malformed
+        sock.send(REQUEST.pack(0x4321, RdtCommand.REALTIME, 0))  # wrong header
+        sock.send(REQUEST.pack(0x1234, 0x0004, 0))  # multi-unit: not offered
+        sock.send(REQUEST.pack(0x1234, RdtCommand.RESET_THRESHOLD_LATCH, 0))  # acknowledged, no-op
+        _wait(lambda: box.stats().requests + box.stats().ignored == 6)
+        box.publish(record(3))
+        assert RECORD.unpack(sock.recv(1024))[:2] == (1, 7)
+        assert box.stats().ignored == 3
+        sock.send(REQUEST.pack(0x1234, RdtCommand.STOP, 0))
+        _wait(lambda: box.stats().streams == 0)
+        assert box.publish(record(4)) == 0
+        sock.close()
+
+
+def test_several_clients_each_get_their_stream():
+    with NetFtBox(rdt_port=0, http_port=None, calibration_port=None).serve() as box:
+        a, b = raw_socket(box), raw_socket(box)
+        a.send(REQUEST.pack(0x1234, RdtCommand.REALTIME, 0))
+        b.send(REQUEST.pack(0x1234, RdtCommand.REALTIME, 2))
+        _wait(lambda: box.stats().streams == 2)
+        for ft in range(1, 5):
+            box.publish(record(ft))
+        assert [RECORD.unpack(a.recv(1024))[:2] for _ in range(4)] == [(1, 1), (2, 2), (3, 3), (4, 4)]
+        assert [RECORD.unpack(b.recv(1024))[:2] for _ in range(2)] == [(1, 1), (2, 2)]
+        assert box.stats().streams == 1
+        a.close(), b.close()
+
+
+def test_buffered_streaming_sends_the_buffer_size_per_datagram():
+    """Command 0x0003: rdt_buffer_size records per datagram; a count-limited stream ends
+    with the rest (25 = 10 + 10 + 5)."""
+    with NetFtBox(rdt_port=0, http_port=None, calibration_port=None, rdt_buffer_size=10).serve() as box:
+        sock = raw_socket(box)
+        sock.send(REQUEST.pack(0x1234, RdtCommand.BUFFERED, 25))
+        _wait(lambda: box.stats().streams == 1)
+        for ft in range(100, 130):
+            box.publish(record(ft))
+        sizes, records = [], []
+        for _ in range(3):
+            data = sock.recv(4096)
+            sizes.append(len(data))
+            records += unpack_records(data)
+        assert sizes == [360, 360, 180]
+        assert [r[0] for r in records] == list(range(1, 26))
+        assert [r[1] for r in records] == list(range(100, 125))
+        st = box.stats()
+        assert (st.records_sent, st.datagrams_sent, st.streams) == (25, 3, 0)
+        sock.close()
+
+
+def test_status_layouts():
+    """'netft' translates the model's word into Net F/T bits, 'model' sends it as is."""
+    sat = int(AtiStatus.ERROR | AtiStatus.FT_OUT_OF_RANGE | AtiStatus.SAT_FZ)
+    nonfinite = int(AtiStatus.ERROR | AtiStatus.INPUT_NONFINITE)
+    assert netft_status(0) == 0
+    assert netft_status(sat) == netft_status(nonfinite) == 0x80020000
+    assert netft_status(int(AtiStatus.ERROR)) == 0x80000000
+    for layout, expected in (("netft", 0x80020000), ("model", sat)):
+        with NetFtBox(rdt_port=0, http_port=None, calibration_port=None, status_layout=layout).serve() as box:
+            sock = raw_socket(box)
+            sock.send(REQUEST.pack(0x1234, RdtCommand.REALTIME, 1))
+            _wait(lambda: box.stats().streams == 1)
+            box.publish(record(1, status=sat))
+            assert RECORD.unpack(sock.recv(1024))[2] == expected
+            sock.close()
+
+
+def test_calibration_over_http_and_tcp_49151():
+    """/netftapi2.xml and /netftcalapi.xml carry the sensor's counts per unit and units
+    (each required pynetft field exactly once, no DOCTYPE); READCALINFO on TCP 49151
+    answers 24 bytes: header, N (2), N·m (3), counts per force and torque."""
+    config = AtiConfig.mini45(counts_per_force=1_000_000, counts_per_torque=2_000_000)
+    with served_box(config=config, rdt_buffer_size=4) as box:
+        base = f"http://{box.address}:{box.http_port}"
+        api_text = urllib.request.urlopen(f"{base}/netftapi2.xml", timeout=2).read().decode()
+        assert "DOCTYPE" not in api_text
+        api = ET.fromstring(api_text)
+        for tag in ("prodname", "cfgcpf", "cfgcpt", "scfgfu", "scfgtu"):
+            assert len(api.findall(tag)) == 1, tag
+        assert (api.findtext("cfgcpf"), api.findtext("cfgcpt")) == ("1000000", "2000000")
+        assert (api.findtext("scfgfu"), api.findtext("scfgtu")) == ("N", "Nm")
+        assert (api.findtext("comrdtrate"), api.findtext("comrdtbsiz")) == ("1000", "4")
+        cal = ET.fromstring(urllib.request.urlopen(f"{base}/netftcalapi.xml", timeout=2).read())
+        assert cal.tag == "netftCalibration"
+        assert (cal.findtext("calcpf"), cal.findtext("calcpt"), cal.findtext("calpn")) == ("1000000", "2000000",
+                                                                                           "SI-290-10")
+        with pytest.raises(urllib.error.HTTPError) as err:
+            urllib.request.urlopen(f"{base}/other.xml", timeout=2)
+        assert err.value.code == 404
+        with socket.create_connection((box.address, box.calibration_port), timeout=2) as tcp:
+            for _ in range(2):  # the connection serves several requests
+                tcp.sendall(b"\x01" + bytes(19))
+                reply = b""
+                while len(reply) < 24:
+                    reply += tcp.recv(24 - len(reply))
+                assert struct.unpack(">HBBII6H", reply) == (0x1234, 2, 3, 1_000_000, 2_000_000, 1, 1, 1, 1, 1, 1)
+
+
+def test_lifetime_and_arguments():
+    box = NetFtBox(rdt_port=0, http_port=0, calibration_port=0).serve()
+    ports = (box.rdt_port, box.http_port, box.calibration_port)
+    assert box.serving and all(ports)
+    with pytest.raises(RuntimeError):
+        box.serve()
+    box.close()
+    box.close()
+    assert not box.serving and box.publish(record(1)) == 0
+    # the ports are free again
+    again = NetFtBox(rdt_port=ports[0], http_port=ports[1], calibration_port=ports[2]).serve()
+    again.close()
+    # a port taken: serve raises and leaves nothing bound
+    with NetFtBox(rdt_port=0, http_port=None, calibration_port=0) as first:
+        with pytest.raises(OSError):
+            NetFtBox(rdt_port=0, http_port=None, calibration_port=first.calibration_port).serve()
+    for bad in ({"address": "192.168.1.1"}, {"address": "localhost"}, {"rdt_port": 70000},
+                {"rdt_buffer_size": 0}, {"rdt_buffer_size": 41}, {"status_layout": "axia"},
+                {"product_name": "a<b>"}):
+        with pytest.raises(ValueError):
+            NetFtBox(**bad)
+    with pytest.raises(TypeError):
+        NetFtBox(object())  # not an AtiConfig
+
+
+def _wait(condition, timeout: float = 2.0):
+    """Until the box's I/O thread has handled what was sent (its stats say so)."""
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, "the box did not handle the request in time"
+        time.sleep(0.001)
