@@ -15,7 +15,7 @@ import numpy as np
 from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, IndexType, Writer
 
 from services.recordings.format import CHUNK_SIZE, METADATA_NAME, SCENARIO_ATTACHMENT, SCENARIO_MEDIA_TYPE, RecordingError
-from services.runtime.provenance import code_text
+from services.runtime.provenance import code, code_text
 from services.runtime.messages import BY_TOPIC, MessageError, MessageType
 from services.runtime.visual_topics import DERIVED_BY, SCHEMA_NAMES as VISUAL_SCHEMA_NAMES, schema_bytes as visual_schema
 
@@ -44,7 +44,9 @@ class EpisodeWriter:
 
         record = {"run_id": run_id, "episode_kind": str(episode_kind), "episode_index": str(int(episode_index)),
                   "log_time": "CLOCK_MONOTONIC ns at reception (recorder)",
-                  "publish_time": "sent_ns header, CLOCK_MONOTONIC ns (log time if the payload does not decode)"}
+                  "publish_time": "sent_ns header, CLOCK_MONOTONIC ns (log time if the payload does not decode)",
+                  # the code that wrote the file (etar-bench info shows it)
+                  **{f"code_{k}": str(v) for k, v in code().items()}}
         for k, v in (metadata or {}).items():
             if str(k) in record:
                 raise RecordingError(f"{self.path}: metadata key {k!r} is reserved for the recorder")
@@ -62,7 +64,7 @@ class EpisodeWriter:
         try:
             self._writer = Writer(self._file, chunk_size=CHUNK_SIZE, compression=CompressionType.ZSTD,
                                   index_types=index_types)
-            # the library string names the code that wrote the file (etar-bench info shows it)
+            # the library string names the code too, for readers that show only the header
             self._writer.start(profile="", library=f"etar-testbench {code_text()} services.recordings; "
                                                    f"{LIBRARY_IDENTIFIER}")
             self._writer.add_metadata(METADATA_NAME, record)

@@ -24,7 +24,7 @@ import numpy as np
 
 from etar.comparison import PARAMETERS, compare_transitions, separate_fits, spread, summarise
 from etar.task import load_task
-from services.results.figures import FIGURES_DIR, FiguresError, _plt, _save, in_run, read_run_report
+from services.results.figures import COMPARISON_FIGURE, FIGURES_DIR, FiguresError, _plt, _save, in_run, read_run_report
 from services.recordings.demonstrations import load_demonstration
 
 
@@ -39,8 +39,6 @@ def _demonstrations(run_dir: Path):
              for d in report["demonstrations"]]
     return task, demos
 
-
-COMPARISON_FIGURE = "etar_vs_star_phases.png"  # in RUN_DIR/figures/, beside the run's own figures
 
 # (key, what, higher is better); the offline ones from etar.comparison.summarise, the
 # online ones from the reproductions each model drove (services.results.report.by_model)

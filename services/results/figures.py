@@ -52,6 +52,8 @@ from services.recordings.reader import read_episode
 from services.results.folder import RunFolderError, read_report
 
 FIGURES_DIR = "figures"
+# etar-bench compare's figure (services.results.compare), beside the run's own: not the run's to redraw
+COMPARISON_FIGURE = "etar_vs_star_phases.png"
 MM = 1e3  # m -> mm, for the axes that say [mm]
 UNMATCHED = (0.8, 0.8, 0.8, 1.0)  # a true phase no learned phase was matched to
 

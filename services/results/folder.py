@@ -8,15 +8,18 @@ run's (report.html embeds every figure it finds)."""
 from __future__ import annotations
 
 import json
+import math
 import shutil
 from pathlib import Path
+
+import numpy as np
 
 SCENARIO_FILE = "scenario.yaml"  # the scenario as run, every default filled in
 # everything a run, `etar-bench figures` and `etar-bench compare` write into the folder
 RUN_PRODUCTS = ("report.json", "report.txt", "report.html", "report.html.error", "timing.txt", "timing.png",
                 "timing.png.error", "figures", "figures.error", "figures.skipped", "recordings", "logs",
                 "model.json", "model-ETAR.json", "model-STAR.json", SCENARIO_FILE, "comparison.txt",
-                "comparison.json", "comparison.png")
+                "comparison.json")
 # the files that say a folder holds a run
 RUN_MARKERS = ("report.json", SCENARIO_FILE, "recordings", "model.json")
 
@@ -66,3 +69,20 @@ def read_report(run_dir, *, required: bool = True) -> dict:
     if not isinstance(report, dict):
         raise RunFolderError(f"{path}: not a run report (a JSON {type(report).__name__}, not an object)")
     return report
+
+
+def strict_json(value):
+    """``value`` as strict JSON can hold it (report.json, ``--json``): numpy scalars as
+    Python numbers, paths as strings, tuples as lists, NaN and infinities as None (JSON has
+    no NaN; a reader must not meet one)."""
+    if isinstance(value, dict):
+        return {str(k): strict_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [strict_json(v) for v in value]
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value

@@ -14,8 +14,7 @@ import json
 import time
 from pathlib import Path
 
-from services.results.compare import COMPARISON_FIGURE
-from services.results.figures import FIGURES_DIR
+from services.results.figures import COMPARISON_FIGURE, FIGURES_DIR
 from services.results.text import provenance_text
 
 # what an earlier drawing of the figures and the page may have left

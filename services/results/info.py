@@ -35,8 +35,6 @@ names the file.
 from __future__ import annotations
 
 import json
-import math
-import re
 from pathlib import Path
 
 import yaml
@@ -47,11 +45,12 @@ from mcap.stream_reader import StreamReader
 from robot_sim.fri import FRI_CYCLE_NS
 from services.recordings.format import METADATA_NAME, SCENARIO_ATTACHMENT, RecordingError
 from services.recordings.reader import Episode, read_episode
-from services.results.folder import SCENARIO_FILE, read_report
+from services.results.folder import SCENARIO_FILE, read_report, strict_json
+from services.runtime.provenance import describe_code
 from services.runtime.messages import BY_TOPIC, EPISODE_SUMMARY, loads
 
-# metadata keys that say which code made a recording (any a recorder writes is shown)
-CODE_KEYS = ("version", "commit", "dirty", "date", "command", "code_version", "git_commit")
+# the metadata record's keys that say which code wrote a recording (services.recordings.writer)
+CODE_KEYS = ("code_version", "code_commit", "code_dirty")
 # metadata keys the writer always puts in the etar record, shown as the run and episode or not at all
 _EPISODE_KEYS = ("run_id", "episode_kind", "episode_index", "log_time", "publish_time")
 GAP_FACTOR = 1.5  # an interval between consecutive stamps longer than this many periods is a gap
@@ -92,7 +91,7 @@ def describe_recording(path) -> dict:
         t["rate_hz"] = t["messages"] / sim["seconds"] if sim and sim["seconds"] > 0 else None
         del t["_stamps"]
     logs = [m.log_time_ns for m in ep.messages]
-    return _json_safe({
+    return strict_json({
         "kind": "recording",
         "file": str(path),
         "size_bytes": path.stat().st_size,
@@ -103,10 +102,10 @@ def describe_recording(path) -> dict:
         "episode": {"kind": metadata.get("episode_kind"),
                     "index": int(index) if index is not None and index.lstrip("-").isdigit() else index},
         "scenario": _scenario(ep.scenario_text, metadata.get("scenario")),
-        "code": _code(metadata, ep.library),
+        "code": _code(metadata),
         # the rest of the record (start, model, part, ...); the scenario's name is in "scenario"
         "metadata": {k: v for k, v in metadata.items() if k not in _EPISODE_KEYS and k not in CODE_KEYS
-                     and k not in ("provenance", "scenario")},
+                     and k != "scenario"},
         "simulated": sim,
         "log_time": {"first_ns": min(logs), "last_ns": max(logs), "seconds": (max(logs) - min(logs)) / 1e9,
                      "clock": metadata.get("log_time", "")} if logs else None,
@@ -213,34 +212,14 @@ def _scenario(text: str | None, name: str | None) -> dict:
             "world": data.get("world"), "clock": data.get("clock")}
 
 
-# the writer's MCAP library string names the code that wrote the file, as
-# services.runtime.provenance.code_text writes it: "etar-testbench 0.1.0 (git 1a2b3c4,
-# uncommitted changes) services.recordings; mcap-python/1.6.0"
-_LIBRARY_CODE = re.compile(r"^etar-testbench (?P<version>[^\s;]+)(?: \(git (?P<commit>[0-9a-f]+)"
-                           r"(?P<dirty>, uncommitted changes)?\))? services\.recordings")
-
-
-def _code(metadata: dict, library: str = "") -> dict | None:
-    """The code version a recording carries, first found of: code keys in the metadata
-    record, a JSON ``provenance`` metadata entry, the MCAP library string its writer put
-    in the header; ``from`` says which."""
-    keys = {k: metadata[k] for k in CODE_KEYS if k in metadata}
-    if keys:
-        return dict(keys, **{"from": "metadata"})
-    raw = metadata.get("provenance")
-    if raw:
-        try:
-            prov = json.loads(raw)
-        except ValueError:
-            prov = None
-        if isinstance(prov, dict):
-            return dict({k: v for k, v in prov.items() if k in CODE_KEYS}, **{"from": "metadata provenance"})
-        return {"provenance": raw, "from": "metadata provenance"}
-    m = _LIBRARY_CODE.match(library or "")
-    if m:
-        return {"version": m["version"], "commit": m["commit"], "dirty": bool(m["dirty"]) if m["commit"] else None,
-                "from": "MCAP library"}
-    return None
+def _code(metadata: dict) -> dict | None:
+    """The code that wrote a recording, as its writer put it in the metadata record
+    (``services.runtime.provenance.code``); None for a file that does not say."""
+    if "code_version" not in metadata:
+        return None
+    commit = metadata.get("code_commit")
+    return {"version": metadata["code_version"], "commit": None if commit in (None, "None") else commit,
+            "dirty": {"True": True, "False": False}.get(metadata.get("code_dirty"))}
 
 
 def _result(ep: Episode, path: Path, kind: str | None) -> dict | None:
@@ -331,7 +310,7 @@ def describe_run(path) -> dict:
               "size_bytes": sum(e["size_bytes"] or 0 for e in episodes),
               "sim_seconds": sum(e["sim_seconds"] or 0 for e in episodes),
               "incomplete": sum(not e["complete"] for e in episodes)}
-    return _json_safe({
+    return strict_json({
         "kind": "run",
         "path": str(run_dir),
         "report": report_path.exists(),
@@ -596,14 +575,7 @@ def _scenario_line(sc: dict) -> str:
 
 
 def _code_line(code: dict | None) -> str:
-    if not code:
-        return "not recorded"
-    line = str(code.get("version") or code.get("code_version") or "?")
-    commit = code.get("commit") or code.get("git_commit")
-    if commit:
-        dirty = str(code.get("dirty")).lower() in ("true", "1")
-        line += f" (git {str(commit)[:7]}{', uncommitted changes' if dirty else ''})"
-    return line
+    return describe_code(code) if code else "not recorded"
 
 
 def _result_line(r: dict | None) -> str:
@@ -640,18 +612,3 @@ def _size(n: int | None) -> str:
 
 def _is_int(x) -> bool:
     return type(x) is int
-
-
-def _json_safe(value):
-    """Strict JSON: NaN and infinities as None, paths as strings, tuples as lists."""
-    if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    if isinstance(value, Path):
-        return str(value)
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if hasattr(value, "item") and not isinstance(value, (str, bytes)):
-        return value.item()
-    return value

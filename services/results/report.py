@@ -16,7 +16,6 @@ statistics:
 from __future__ import annotations
 
 import json
-import math
 import os
 import platform
 from dataclasses import asdict
@@ -27,6 +26,7 @@ import numpy as np
 from etar.metrics import score_segmentation
 from robot_sim.fri import FRI_CYCLE_NS
 from services.recordings.reader import read_episode
+from services.results.folder import strict_json
 from services.results.record import EpisodeRecord, RunRecord
 from services.nodes.robot import HOLD_WATCH_S
 from services.runtime.messages import BY_TOPIC, ESTIMATOR_PERIOD_NS, STRIDES, loads
@@ -412,7 +412,7 @@ def write_report(run: RunRecord, exit_codes: dict, error: str | None, wall_secon
         # where each service ran (services.transport.hosts), when the run was split across hosts
         "hosts": list(run.hosts),
     }
-    report = finite(report)
+    report = strict_json(report)
     (out / "report.json").write_text(json.dumps(report, indent=1, allow_nan=False) + "\n")
     (out / "report.txt").write_text(render_text(report))
     (out / "timing.txt").write_text(histograms_text(loops))
@@ -424,20 +424,6 @@ def write_report(run: RunRecord, exit_codes: dict, error: str | None, wall_secon
         except Exception as exc:  # a picture must not cost the run its report
             (out / "timing.png.error").write_text(f"{type(exc).__name__}: {exc}\n")
     return report
-
-
-def finite(value):
-    """``value`` as strict JSON can hold it: numpy scalars as Python numbers, NaN and
-    infinities as None (JSON has no NaN; a reader of report.json must not meet one)."""
-    if isinstance(value, dict):
-        return {k: finite(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [finite(v) for v in value]
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
 
 
 def plot_timing(report, loops, quality: dict, path) -> None:

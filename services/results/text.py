@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from services.runtime.provenance import describe_code
 from services.runtime.timing import Histogram
 
 
@@ -30,8 +31,7 @@ def histograms_text(loops) -> str:
 
 def provenance_text(p: dict) -> str:
     """One line: the code, the date and the command line that made a run."""
-    commit = f", git {p['commit'][:7]}{' with uncommitted changes' if p.get('dirty') else ''}" if p.get("commit") else ""
-    return f"made by etar-testbench {p.get('version')}{commit} on {p.get('date')}: {p.get('command')}"
+    return f"made by etar-testbench {describe_code(p)} on {p.get('date')}: {p.get('command')}"
 
 
 def render_text(r: dict) -> str:

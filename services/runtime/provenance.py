@@ -55,10 +55,15 @@ def _code(root: Path) -> tuple:
 
 def code_text(root: Path | None = None) -> str:
     """One line: ``0.1.0 (git 1a2b3c4, uncommitted changes)``."""
-    c = code(root)
-    if c["commit"] is None:
-        return c["version"]
-    return f"{c['version']} (git {c['commit'][:7]}{', uncommitted changes' if c['dirty'] else ''})"
+    return describe_code(code(root))
+
+
+def describe_code(c: dict) -> str:
+    """``code()``'s dict (or the part of a report's provenance it made) as one line."""
+    commit = c.get("commit")
+    if not commit:
+        return str(c.get("version"))
+    return f"{c.get('version')} (git {commit[:7]}{', uncommitted changes' if c.get('dirty') else ''})"
 
 
 def provenance(command: str | None = None) -> dict:

@@ -38,14 +38,14 @@ def state(seq: int, sent_ns: int, x: float = 0.5) -> bytes:
                               miss_rate=0.0, safety=0, gravity_compensation=False, episode=0)
 
 
-def write_recording(path: Path, run_id: str, *, cycles: int = 100, sent_offset: int = 0, change: int | None = None,
-                    code: bool = True) -> Path:
+def write_recording(path: Path, run_id: str, *, cycles: int = 100, sent_offset: int = 0,
+                    change: int | None = None) -> Path:
     """A reproduction of ``cycles`` robot cycles (without ``MISSING``): robot_state and
     ft_wrench every cycle, the estimator every tenth, a runner event, a log line, a visual
     status and the episode summary; robot_state of cycle ``change`` with another x."""
     path.parent.mkdir(parents=True, exist_ok=True)
     with EpisodeWriter(path, run_id=run_id, episode_kind="reproduction", episode_index=0, scenario_text=SCENARIO,
-                       metadata=dict(CODE, start="[0.6, -0.06, 0.3]") if code else {"start": "[0.6, -0.06, 0.3]"}) as w:
+                       metadata={"start": "[0.6, -0.06, 0.3]"}) as w:
 
         def key(topic: str) -> str:
             return f"etar/{run_id}/{topic}"
@@ -112,7 +112,7 @@ def test_info_of_a_recording_names_its_episode_topics_rates_gaps_and_result(tmp_
     assert d["size_bytes"] == path.stat().st_size and d["mcap"]["library"].startswith("etar-testbench")
     assert d["run_id"] == "r1" and d["episode"] == {"kind": "reproduction", "index": 0}
     assert d["scenario"]["name"] == "tiny" and d["scenario"]["seed"] == 7
-    assert d["code"] == dict(CODE, **{"from": "metadata"}) and d["metadata"] == {"start": "[0.6, -0.06, 0.3]"}
+    assert d["code"] == code() and d["metadata"] == {"start": "[0.6, -0.06, 0.3]"}  # the writer's own code
     # cycles 1..100: 100 ms of simulated time, whatever the receive times
     assert d["simulated"]["seconds"] == pytest.approx(0.100)
     topics = {t["topic"]: t for t in d["topics"]}
@@ -134,14 +134,14 @@ def test_info_of_a_recording_names_its_episode_topics_rates_gaps_and_result(tmp_
 
     text = info_text(d)
     print(text)
-    assert "run       r1, reproduction 0" in text and "tiny, seed 7" in text and "0.1.0 (git 0123456" in text
+    assert "run       r1, reproduction 0" in text and "tiny, seed 7" in text and f"code      {code_text()}" in text
     assert "uncommitted changes" in text and "goal_reached after 0.100 s simulated" in text
     line = next(x for x in text.splitlines() if x.strip().startswith("/robot/state"))
     assert line.split()[2:6] == ["97", "970.0", "1000", "3"]
 
 
 def test_info_of_a_run_folder_and_its_report_verdict(tmp_path):
-    run_dir = make_run(tmp_path / "run", "r1", code=False)
+    run_dir = make_run(tmp_path / "run", "r1")
     d = describe(run_dir)
     json.dumps(d, allow_nan=False)
     assert d["kind"] == "run" and d["run_id"] == "r1" and d["transport"] == "inproc" and d["clock"] == "lockstep"
@@ -159,15 +159,7 @@ def test_info_of_a_run_folder_and_its_report_verdict(tmp_path):
     rec = describe(run_dir / "recordings" / "reproduction_00.mcap")
     assert rec["result"]["success"] is True and rec["result"]["phase_accuracy"] == 0.95
     assert rec["result"]["source"] == "episode summary + report.json"
-    # without code metadata: the code the writer names in the MCAP header, if it does
-    library = rec["mcap"]["library"]
-    if library.startswith("etar-testbench services.recordings"):
-        assert rec["code"] is None and "code      not recorded" in info_text(rec)
-    else:
-        here = code()
-        assert rec["code"]["from"] == "MCAP library" and rec["code"]["version"] == here["version"]
-        assert rec["code"]["commit"] == (here["commit"][:7] if here["commit"] else None)
-        assert f"code      {code_text()}" in info_text(rec)
+    assert rec["code"] == code() and f"code      {code_text()}" in info_text(rec)
     assert describe(run_dir / "report.json")["kind"] == "run"
 
 
