@@ -200,7 +200,7 @@ def test_export_adds_the_visual_topics_the_recorder_would_have_written(run_dir, 
 
 @pytest.mark.slow
 def test_export_refuses_what_it_cannot_read_and_leaves_it_as_it_was(run_dir, tmp_path, capsys):
-    assert bench_cli.main(["export", str(tmp_path), "--foxglove"]) == 1
+    assert bench_cli.main(["export", str(tmp_path), "--foxglove"]) == 2  # no run folder: a usage error
     assert "no recordings/ folder" in capsys.readouterr().err
     assert bench_cli.main(["export", str(run_dir)]) == 2
     assert "--foxglove" in capsys.readouterr().err

@@ -135,7 +135,7 @@ def test_info_of_a_recording_names_its_episode_topics_rates_gaps_and_result(tmp_
     text = info_text(d)
     print(text)
     assert "run       r1, reproduction 0" in text and "tiny, seed 7" in text and f"code      {code_text()}" in text
-    assert "uncommitted changes" in text and "goal_reached after 0.100 s simulated" in text
+    assert "goal_reached after 0.100 s simulated" in text
     line = next(x for x in text.splitlines() if x.strip().startswith("/robot/state"))
     assert line.split()[2:6] == ["97", "970.0", "1000", "3"]
 
