@@ -20,6 +20,7 @@ import pinocchio as pin
 
 from robot_sim.ati import AtiConfig, AtiSensor, RdtRecord
 from robot_sim.fri import CommandPacket, ControlMode, CycleOutcome, FriConfig, FriLink, LinkFaults, MeasurementPacket
+from robot_sim.fri_wire import MeasurementExtras, jacobian_to_fri
 from robot_sim.kinematics import READY, ArmKinematics
 from robot_sim.krc import ImpedanceCommand, KrcConfig, KrcController
 from robot_sim.physics import Simulation
@@ -101,6 +102,12 @@ class RobotCell:
         self._joint_noise_i = 0
         self._true_wrench = np.zeros(6)
         self._last_measurement: MeasurementPacket | None = None
+        self._extras_data = None  # Pinocchio data of its own for fri_extras
+        # a remote's first command in command mode must continue from the measured state
+        # (FRI over UDP): one that jumps is refused, the reason kept here until read
+        self.check_first_command = False
+        self.first_command_refused = ""
+        self._first_commands = 0  # of this command-mode session, still to check
         self.place(READY)
 
     @property
@@ -162,6 +169,36 @@ class RobotCell:
         np.matmul(J, self._tau_ext, out=self._Jtau)
         return _solve(self._JJt, self._Jtau)
 
+    def fri_extras(self) -> MeasurementExtras:
+        """What an FRI 1.0 measurement datagram carries beyond the packet, for the cycle
+        just opened (call after ``begin_cycle``), from the one kinematic model at the
+        measured joint positions: the Jacobian in the tcp frame (the frame of
+        ``estExtTcpFT``, KUKA's row order), the joint-space inertia, the gravity torques,
+        the estimated external joint torques, the drives' torques of the last cycle as
+        ``msrJntTrq`` (the joint torque sensors' reading, friction aside), and the
+        commanded poses: in command mode the last applied command's, in monitor mode the
+        measured ones (what a KRC holding its pose reports).  Allocates: for the UDP
+        endpoint (``etar-bench serve``), not the lockstep loop."""
+        if self._extras_data is None:
+            self._extras_data = self.kin.model.createData()
+        model, data, q = self.kin.model, self._extras_data, self._q_msr
+        pin.computeFrameJacobian(model, data, q, self.kin.frame_ids["tcp"], pin.ReferenceFrame.LOCAL)
+        jacobian = pin.getFrameJacobian(model, data, self.kin.frame_ids["tcp"], pin.ReferenceFrame.LOCAL)
+        mass = pin.crba(model, data, q)
+        mass = np.triu(mass) + np.triu(mass, 1).T
+        gravity = pin.computeGeneralizedGravity(model, data, q)
+        applied = self.fri.last_applied
+        cmd_cart = cmd_jnt = None
+        if applied is not None:
+            cmd_cart = np.array(applied.cart_pos)
+            if applied.jnt_pos is not None and self.krc.mode != ControlMode.CART_IMP:
+                cmd_jnt = np.array(applied.jnt_pos)
+        return MeasurementExtras(
+            cmd_jnt_pos=cmd_jnt, cmd_cart_pos=cmd_cart if self.krc.mode == ControlMode.CART_IMP else None,
+            msr_jnt_trq=self.krc.last_tau.copy(), est_ext_jnt_trq=self._tau_ext.copy(),
+            jacobian=jacobian_to_fri(jacobian), mass_matrix=mass, gravity=gravity.copy(),
+            miss_counter=self.fri.statistics().missed, error=int(self.krc.safety))
+
     def receive(self, command: CommandPacket, t_arrival_ns: int) -> bool:
         return self.fri.receive(command, t_arrival_ns)
 
@@ -171,12 +208,29 @@ class RobotCell:
         return self.fri.deliver(command, t_sent_ns)
 
     def end_cycle(self, hand_wrench: np.ndarray | None = None) -> CycleResult:
+        before = self.fri.last_applied
         outcome = self.fri.end_cycle(self.t_ns + self.cycle_ns)
         cmd = outcome.command
+        if cmd is not None and before is None:
+            # a command-mode session begins: the answer to the last monitor-mode measurement
+            # and the remote's first answer to one that says CMD are its first commands
+            self._first_commands = 2
+        if self.check_first_command and cmd is not None and self._first_commands and not outcome.bridged:
+            self._first_commands -= 1
+            jump = self._first_command_jump(cmd)
+            if jump:
+                # as a KRC does with a first command far from where the arm is: not applied,
+                # back to monitor mode, the arm held
+                self.first_command_refused = jump
+                self.fri.request_monitor_mode()
+                cmd = None
         impedance = None
         if cmd is not None and not outcome.hold:
-            if self.krc.mode == ControlMode.POSITION and cmd.jnt_pos is not None:
-                self.krc.set_joint_target(cmd.jnt_pos)
+            mode = self.krc.mode
+            if mode == ControlMode.POSITION and cmd.jnt_pos is not None:
+                self.krc.set_joint_target(cmd.jnt_pos, streamed=True)  # a remote streams it every cycle
+            elif mode == ControlMode.JNT_IMP and cmd.jnt_pos is not None:
+                self.krc.set_joint_impedance(cmd.jnt_pos, cmd.jnt_stiffness, cmd.jnt_damping, cmd.add_jnt_trq)
             impedance = ImpedanceCommand(cmd.cart_pos, cmd.cart_stiffness, cmd.cart_damping,
                                          fri_to_standard(cmd.add_tcp_ft))
         force_estimate = None
@@ -189,6 +243,29 @@ class RobotCell:
         self._sense()
         record = self.ati.read(self._true_wrench, self.t_ns) if self.ati is not None else None
         return CycleResult(outcome, record, self._contact_force.copy(), list(self._touching), tau.copy(), self.t_ns)
+
+    def _first_command_jump(self, cmd: CommandPacket) -> str:
+        """Why the first command of a command-mode session jumps too far from the measured
+        state to be applied ('' if it does not): its pose (CART_IMP) or its joints."""
+        m = self._last_measurement
+        if m is None:
+            return ""
+        limits = self.krc.config
+        if self.krc.mode == ControlMode.CART_IMP:
+            cmd_pose, msr = np.asarray(cmd.cart_pos).reshape(3, 4), np.asarray(m.msr_cart_pos).reshape(3, 4)
+            dist = float(np.linalg.norm(cmd_pose[:, 3] - msr[:, 3]))
+            angle = float(np.linalg.norm(pin.log3(msr[:, :3].T @ cmd_pose[:, :3])))
+            if dist > limits.first_command_max_jump_m or angle > limits.first_command_max_jump_rad:
+                return (f"first command {dist * 1e3:.1f} mm and {np.rad2deg(angle):.1f} deg from the measured pose "
+                        f"(limits {limits.first_command_max_jump_m * 1e3:.0f} mm, "
+                        f"{np.rad2deg(limits.first_command_max_jump_rad):.1f} deg)")
+        elif cmd.jnt_pos is not None:
+            step = np.abs(np.asarray(cmd.jnt_pos) - m.msr_jnt_pos)
+            j = int(np.argmax(step))
+            if step[j] > limits.first_command_max_jump_rad:
+                return (f"first command's joint {j + 1} {np.rad2deg(step[j]):.1f} deg from the measured one "
+                        f"(limit {np.rad2deg(limits.first_command_max_jump_rad):.1f} deg)")
+        return ""
 
     def _sense(self) -> None:
         """The physics' truth of the current state, read once per step: the tool

@@ -111,12 +111,14 @@ __all__ = [
     "FriLink",
     "MAX_TRANSLATIONAL_STIFFNESS",
     "MAX_ROTATIONAL_STIFFNESS",
+    "MAX_JOINT_STIFFNESS",
     "ROTATION_TOLERANCE",
 ]
 
 # LWR4+ Cartesian impedance limits from the FRI 1.0 documentation.
 MAX_TRANSLATIONAL_STIFFNESS = 5000.0  # N/m
 MAX_ROTATIONAL_STIFFNESS = 300.0  # Nm/rad
+MAX_JOINT_STIFFNESS = 5000.0  # Nm/rad: an assumption (no document at hand gives the joint limit)
 # A commanded pose's rotation must be a rotation: |R R^T - I| and |det R - 1| below
 # this.  Loose enough for float32 transport and unnormalised interpolation between
 # nearby poses, tight enough to catch zeros, scaling or a reflection.
@@ -189,6 +191,10 @@ class CommandPacket:
     add_tcp_ft: np.ndarray = field(default_factory=lambda: np.zeros(_FT))  # (6,) FRI order like est_ext_tcp_ft
     jnt_pos: np.ndarray | None = None  # (7,) rad
     requested_mode: ControlMode = ControlMode.CART_IMP
+    # joint impedance (FRI's jntStiffness, jntDamping, addJntTrq); None: the KRC's own values
+    jnt_stiffness: np.ndarray | None = None  # (7,) Nm/rad
+    jnt_damping: np.ndarray | None = None  # (7,) normalised 0..1
+    add_jnt_trq: np.ndarray | None = None  # (7,) Nm
 
     @classmethod
     def from_measurement(
@@ -233,6 +239,9 @@ class CommandPacket:
             add_tcp_ft=np.array(self.add_tcp_ft, dtype=np.float64),
             jnt_pos=None if self.jnt_pos is None else np.array(self.jnt_pos, dtype=np.float64),
             requested_mode=ControlMode(self.requested_mode),
+            jnt_stiffness=None if self.jnt_stiffness is None else np.array(self.jnt_stiffness, dtype=np.float64),
+            jnt_damping=None if self.jnt_damping is None else np.array(self.jnt_damping, dtype=np.float64),
+            add_jnt_trq=None if self.add_jnt_trq is None else np.array(self.add_jnt_trq, dtype=np.float64),
         )
 
 
@@ -321,6 +330,18 @@ def _command_problem(p) -> str | None:
         _, why = _vector(p.jnt_pos, _JNT, "jnt_pos")
         if why:
             return why
+    # joint impedance: only what the command carries (None leaves the KRC's own values)
+    for value, name, limit in ((p.jnt_stiffness, "jnt_stiffness", MAX_JOINT_STIFFNESS),
+                               (p.jnt_damping, "jnt_damping", 1.0), (p.add_jnt_trq, "add_jnt_trq", None)):
+        if value is None:
+            continue
+        values, why = _vector(value, _JNT, name)
+        if why:
+            return why
+        if limit is not None:
+            for i, v in enumerate(values):
+                if not 0.0 <= v <= limit:
+                    return f"{name}[{i}] = {v} outside [0, {limit:g}]"
     return None
 
 
@@ -693,6 +714,11 @@ class FriLink:
     def seq(self) -> int:
         """Seq of the last measurement sent (0 before the first)."""
         return self._seq
+
+    @property
+    def last_applied(self) -> CommandPacket | None:
+        """The command the KRC applied last in this CMD session (None in MON)."""
+        return self._last_applied
 
     @property
     def command_requested(self) -> bool:

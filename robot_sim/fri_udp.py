@@ -51,7 +51,7 @@ from robot_sim.fri_wire import (
     write_measurement,
 )
 
-__all__ = ["FriUdpCounters", "FriUdpEndpoint", "hold_measured_pose"]
+__all__ = ["FriUdpCounters", "FriUdpEndpoint", "hold_measured_pose", "host_port"]
 
 _RECV_BYTES = 2048  # larger than any FRI datagram: a longer one arrives cut, and is still the wrong size
 
@@ -71,6 +71,25 @@ class FriUdpCounters:
     unsent: int = 0  # answers to a cycle not sent yet (or before any measurement)
     invalid: int = 0  # well-formed datagrams whose command CommandPacket.is_valid rejects
     receive_errors: int = 0  # errors the socket reported on reading
+
+
+def host_port(text: str, what: str, *, listen: bool = False) -> tuple[str, int]:
+    """``"HOST:PORT"`` as (host, port), a numeric IPv4 address or ``localhost``; ValueError
+    naming ``what`` otherwise.  ``listen``: port 0 (any free one) is allowed."""
+    host, colon, port = str(text).rpartition(":")
+    if not colon or not host:
+        raise ValueError(f"{what} {text!r}: expected HOST:PORT, e.g. 127.0.0.1:{REMOTE_PORT}")
+    if host != "localhost":
+        try:
+            socket.inet_aton(host)
+            if host.count(".") != 3:
+                raise OSError
+        except OSError:
+            raise ValueError(f"{what} {text!r}: {host!r} is not an IPv4 address") from None
+    lowest = 0 if listen else 1
+    if not port.isdigit() or not lowest <= int(port) <= 65535:
+        raise ValueError(f"{what} {text!r}: port {port!r} is not in {lowest}..65535")
+    return ("127.0.0.1" if host == "localhost" else host), int(port)
 
 
 def hold_measured_pose(m: MeasurementPacket) -> CommandPacket:
@@ -98,6 +117,8 @@ class FriUdpEndpoint:
         self.krl_from: KrlChannels | None = None  # $FRI_FRM_* of the newest well-formed command
         self.last_reject_reason = ""
         self.last_source: tuple[str, int] | None = None  # where the newest datagram came from
+        self.last_sent = b""  # the bytes of the last measurement sent
+        self.last_accepted = b""  # the bytes of the last command accepted
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             self._sock.bind(bind)
@@ -166,6 +187,7 @@ class FriUdpEndpoint:
             self.counters.send_errors += 1
             return False
         self.counters.sent += 1
+        self.last_sent = bytes(self._out_buf)
         return True
 
     def poll(self, timeout_s: float = 0.0) -> CommandPacket | None:
@@ -236,5 +258,6 @@ class FriUdpEndpoint:
             return
         self._command = cmd
         self._arrival_ns = self.clock()
+        self.last_accepted = bytes(data)
         c.accepted += 1
         self.last_reject_reason = ""

@@ -55,8 +55,8 @@ own mode when they fit it), and :func:`command_packet` turns a decoded command i
 ``CommandPacket`` whose ``requested_mode`` that is, so the FriLink counts a command
 that does not fit the KRC's mode as a mode mismatch, as it does any other.  Fields
 the flags leave out come from the caller's ``defaults`` (the KRC's own values).
-The testbench's ``CommandPacket`` has no joint stiffness, damping or added joint
-torque: they are decoded (``rec["cmd"]["jntStiffness"]``) but not carried over.
+Joint stiffness, damping and added joint torque are carried when flagged (None
+otherwise: the KRC's own values).
 
 Errors.  :func:`decode_measurement` and :func:`decode_command` raise
 :class:`FriWireError` (a ``ValueError``) for a datagram of the wrong length or
@@ -113,6 +113,7 @@ __all__ = [
     "new_command",
     "new_measurement",
     "read_krl",
+    "record_fields",
     "unwrap",
     "write_command",
     "write_krl",
@@ -244,10 +245,20 @@ MODE_FLAGS = {
 # the flags a CommandPacket is sent with, per requested mode: the fields it has
 _PACKET_FLAGS = {
     ControlMode.POSITION: CommandFlags.JNT_POS,
-    ControlMode.JNT_IMP: CommandFlags.JNT_POS,  # a CommandPacket holds no joint stiffness, damping or torque
+    ControlMode.JNT_IMP: CommandFlags.JNT_POS,  # and the joint fields the packet holds (_packet_flags)
     ControlMode.CART_IMP: CommandFlags.CART_IMP,
     ControlMode.OTHER: CommandFlags.NONE,
 }
+
+
+def _packet_flags(cmd: CommandPacket) -> int:
+    flags = _PACKET_FLAGS[ControlMode(cmd.requested_mode)]
+    if cmd.requested_mode == ControlMode.JNT_IMP:
+        for value, flag in ((cmd.jnt_stiffness, CommandFlags.JNT_STIFF), (cmd.jnt_damping, CommandFlags.JNT_DAMP),
+                            (cmd.add_jnt_trq, CommandFlags.JNT_TRQ)):
+            if value is not None:
+                flags |= flag
+    return int(flags)
 
 
 def mode_for_flags(flags: int, current: ControlMode) -> ControlMode:
@@ -304,6 +315,19 @@ def jacobian_to_fri(jacobian) -> np.ndarray:
     if jacobian.shape != (6, _J):
         raise ValueError(f"jacobian has shape {jacobian.shape}, expected (6, 7)")
     return jacobian[_ABC]
+
+
+def record_fields(rec: np.ndarray) -> dict:
+    """A decoded datagram as nested plain values with FRI's names (``{"head": {...},
+    "data": {"msrJntPos": [...], ...}}``): arrays as (nested) lists, float32 as the
+    float64 of the same value.  For recordings and logs, not the cycle."""
+    def walk(value):
+        fields = value.dtype.fields
+        if fields is None:
+            return value.tolist()
+        return {name: walk(value[name]) for name in fields}
+
+    return walk(rec)
 
 
 def field_offsets(dtype: np.dtype) -> dict[str, tuple[int, np.dtype]]:
@@ -541,7 +565,7 @@ def write_command(rec: np.ndarray, cmd: CommandPacket, *, send_seq: int, krl: Kr
 
     ``reflSeqCount`` is ``cmd.seq``'s counter, ``sendSeqCount`` the remote's own
     ``send_seq``'s.  ``flags`` default to the fields ``cmd`` holds for its
-    ``requested_mode`` (CART_IMP: 0x3500; POSITION and JNT_IMP: jntPos only).
+    ``requested_mode`` (CART_IMP: 0x3500; POSITION: jntPos; JNT_IMP: jntPos and the joint fields it holds).
     """
     head = rec["head"]
     head["sendSeqCount"] = counter16(send_seq)
@@ -550,13 +574,13 @@ def write_command(rec: np.ndarray, cmd: CommandPacket, *, send_seq: int, krl: Kr
     head["datagramId"] = COMMAND_ID
     write_krl(rec, krl)
     c = rec["cmd"]
-    c["cmdFlags"] = int(_PACKET_FLAGS[ControlMode(cmd.requested_mode)] if flags is None else flags)
+    c["cmdFlags"] = _packet_flags(cmd) if flags is None else int(flags)
     c["jntPos"] = 0.0 if cmd.jnt_pos is None else cmd.jnt_pos
     c["cartPos"] = cmd.cart_pos
-    c["addJntTrq"] = 0.0
+    c["addJntTrq"] = 0.0 if cmd.add_jnt_trq is None else cmd.add_jnt_trq
     c["addTcpFT"] = cmd.add_tcp_ft  # FRI order on both sides
-    c["jntStiffness"] = 0.0
-    c["jntDamping"] = 0.0
+    c["jntStiffness"] = 0.0 if cmd.jnt_stiffness is None else cmd.jnt_stiffness
+    c["jntDamping"] = 0.0 if cmd.jnt_damping is None else cmd.jnt_damping
     c["cartStiffness"] = abc_order(cmd.cart_stiffness)
     c["cartDamping"] = abc_order(cmd.cart_damping)
     return rec
@@ -595,4 +619,8 @@ def command_packet(rec: np.ndarray, seq: int, current_mode: ControlMode,
         add_tcp_ft=take(CommandFlags.TCP_FT, np.array(c["addTcpFT"], dtype=np.float64), "add_tcp_ft"),
         jnt_pos=take(CommandFlags.JNT_POS, np.array(c["jntPos"], dtype=np.float64), "jnt_pos"),
         requested_mode=mode_for_flags(flags, current_mode),
+        # unflagged, the KRC's own joint impedance (None): KrcController's defaults
+        jnt_stiffness=(np.array(c["jntStiffness"], dtype=np.float64) if flags & CommandFlags.JNT_STIFF else None),
+        jnt_damping=np.array(c["jntDamping"], dtype=np.float64) if flags & CommandFlags.JNT_DAMP else None,
+        add_jnt_trq=np.array(c["addJntTrq"], dtype=np.float64) if flags & CommandFlags.JNT_TRQ else None,
     )

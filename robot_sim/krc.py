@@ -43,7 +43,7 @@ from robot_sim.fri import FRI_CYCLE_NS, ControlMode
 from robot_sim.kinematics import ArmKinematics
 from robot_sim.physics import address, carray_at, farray_at
 
-POSITION, CART_IMP = ControlMode.POSITION, ControlMode.CART_IMP
+POSITION, CART_IMP, JNT_IMP = ControlMode.POSITION, ControlMode.CART_IMP, ControlMode.JNT_IMP
 
 _JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 _EPS = np.finfo(np.float64).eps
@@ -65,10 +65,17 @@ class KrcConfig:
     torque_saturation_cycles: int = 50
     position_kp: tuple = (1500.0, 1500.0, 800.0, 800.0, 300.0, 150.0, 100.0)  # N m/rad
     position_kd: tuple = (60.0, 60.0, 30.0, 30.0, 12.0, 6.0, 4.0)  # N m s/rad
-    position_speed_fraction: float = 0.3  # of each joint's maximum speed
+    position_speed_fraction: float = 0.3  # of each joint's maximum speed, towards a target set once
+    # JNT_IMP when the remote leaves jntStiffness / jntDamping unflagged (what KRL would have set)
+    joint_stiffness: tuple = (1000.0, 1000.0, 1000.0, 1000.0, 500.0, 300.0, 300.0)  # N m/rad
+    joint_damping: float = 0.7  # normalised
     hold_stiffness: tuple = (2000.0, 2000.0, 2000.0, 150.0, 150.0, 150.0)  # cartesian hold in MON
     hold_damping: float = 0.7
     inertia_period: int = 10  # cycles between refreshes of Lambda
+    # how far a remote's first command in command mode may be from the measured state
+    # (robot_sim.cell's check, FRI over UDP): assumptions, not KUKA's figures
+    first_command_max_jump_m: float = 0.01
+    first_command_max_jump_rad: float = np.deg2rad(3.0)
     cycle_s: float = FRI_CYCLE_NS / 1e9
 
 
@@ -371,7 +378,16 @@ class KrcController:
         self._x_hold, self._holding_pose = np.zeros(12), False  # FRI's 12 numbers
         self._q_target, self._has_target = np.zeros(7), False
         self._q_interp, self._interpolating = np.zeros(7), False
-        self._position_step = config.position_speed_fraction * self.qd_max * config.cycle_s
+        # how far the interpolated position target may move per cycle: towards a target set
+        # once, a fraction of the joint speed limit; following a target streamed every cycle
+        # (FRI's POSITION mode), the limit itself
+        self._ptp_step = config.position_speed_fraction * self.qd_max * config.cycle_s
+        self._stream_step = self.qd_max * config.cycle_s
+        self._position_step = self._ptp_step.copy()
+        # JNT_IMP's command: setpoint, stiffness, damping ratio, added torque
+        self._jnt_cmd, self._jnt_k = np.zeros(7), np.array(config.joint_stiffness, dtype=np.float64)
+        self._jnt_d, self._jnt_trq = np.full(7, config.joint_damping), np.zeros(7)
+        self._has_joint_command = False
         self._hold_stiffness = np.array(config.hold_stiffness, dtype=np.float64)
         self._hold_damping = np.full(6, config.hold_damping)
         self._no_wrench = np.zeros(6)
@@ -402,21 +418,37 @@ class KrcController:
     # ------------------------------------------------------------- commands
 
     def switch_mode(self, mode: int) -> None:
-        if mode not in (POSITION, CART_IMP):
-            raise ValueError(f"control mode {mode} not supported (POSITION=1, CART_IMP=2)")
+        if mode not in (POSITION, CART_IMP, JNT_IMP):
+            raise ValueError(f"control mode {mode} not supported (POSITION=1, CART_IMP=2, JNT_IMP=3)")
         self.mode = ControlMode(mode)
         self._holding_joints = False
         self._holding_pose = False
         self._interpolating = False
+        self._has_target = False
+        self._has_joint_command = False
 
-    def set_joint_target(self, q_target) -> None:
-        """POSITION mode target; the KRC moves there at a limited joint speed."""
+    def set_joint_target(self, q_target, streamed: bool = False) -> None:
+        """POSITION mode target.  Set once (``streamed=False``) the KRC moves there at
+        ``position_speed_fraction`` of the joint speed limit; streamed every cycle (an
+        FRI remote's jntPos) it follows the stream, as fast as the speed limit allows."""
         q_target = np.asarray(q_target, dtype=np.float64)
         if q_target.shape != (7,) or not np.all(np.isfinite(q_target)):
             raise ValueError(f"joint target must be 7 finite angles, got {q_target!r}")
         np.clip(q_target, self.q_min + self.config.joint_limit_margin * 2,
                 self.q_max - self.config.joint_limit_margin * 2, out=self._q_target)
+        self._position_step[...] = self._stream_step if streamed else self._ptp_step
         self._has_target = True
+
+    def set_joint_impedance(self, q_cmd, stiffness=None, damping=None, add_torque=None) -> None:
+        """JNT_IMP's command for this cycle (FRI's jntPos, jntStiffness, jntDamping,
+        addJntTrq); None keeps the KRC's own value (``KrcConfig.joint_stiffness``,
+        ``joint_damping``, no added torque).  The law:
+        tau = k (q_cmd - q) - 2 d sqrt(k M_ii) qd + tau_add + f_dynamics(q, qd)."""
+        self._jnt_cmd[...] = q_cmd
+        self._jnt_k[...] = self.config.joint_stiffness if stiffness is None else stiffness
+        self._jnt_d[...] = self.config.joint_damping if damping is None else damping
+        self._jnt_trq[...] = 0.0 if add_torque is None else add_torque
+        self._has_joint_command = True
 
     def reset_safety(self) -> None:
         self.safety = SafetyReason.NONE
@@ -461,6 +493,11 @@ class KrcController:
             self.last_wrench_tcp.fill(0.0)
         elif self.mode == POSITION:
             self._position()
+        elif self.mode == JNT_IMP:
+            if hold or not self._has_joint_command:
+                self._position()  # monitor mode: held where it is, as in POSITION
+            else:
+                self._joint_impedance()
         elif hold or command is None:
             self._cartesian_hold()
         else:
@@ -504,6 +541,16 @@ class KrcController:
             self._has_target = True
         _rate_limit_at(7, at["q_interp"], at["q_target"], at["step"])
         _joint_spring_at(7, at["q"], at["qd"], at["nle"], at["q_interp"], at["kp"], at["kd"], at["tau"])
+
+    def _joint_impedance(self):
+        # not a kernel: JNT_IMP serves remotes over FRI (etar-bench serve), not the
+        # allocation-free reproduction loop
+        self._interpolating = self._has_target = False  # a later hold holds where it then is
+        M = self.kin.views["M"]
+        damping = 2.0 * self._jnt_d * np.sqrt(self._jnt_k * np.diag(M))
+        self._tau[...] = (self._jnt_k * (self._jnt_cmd - self._q) - damping * self._qd + self._jnt_trq
+                          + self.kin.views["nle"])
+        self.last_wrench_tcp.fill(0.0)
 
     def _joint_hold(self):
         at = self._at

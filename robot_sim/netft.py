@@ -7,8 +7,9 @@ sensor's cycle calls :meth:`NetFtBox.publish` with every :class:`~robot_sim.ati.
 and the box sends it to the clients that asked for a stream.  No sensor model, no physics
 and no wall clock inside.
 
-Channels (one box per loopback address, 127.0.0.1 by default, 127.0.0.x for more boxes;
-ports configurable, 0 picks a free one)
+Channels (one box per address: 127.0.0.1 by default, 127.0.0.x for more boxes on one
+machine, any IPv4 address of the machine to be reached from another; ports configurable,
+0 picks a free one; ``tap(peer, datagram)`` sees every RDT datagram sent, for recording)
 ----------------------------------------------------------------------------------------
 * **RDT, UDP 49152**, big-endian.  Request, 8 bytes: ``u16 0x1234, u16 command, u32
   sample count`` (0 = until stopped, otherwise that many records, then the stream ends).
@@ -188,6 +189,7 @@ class NetFtBox:
         rdt_buffer_size: int = 10,
         status_layout: Literal["netft", "model"] = "netft",
         on_bias: Callable[[], None] | None = None,
+        tap: Callable[[tuple[str, int], bytes], None] | None = None,
         product_name: str = "Net F/T (robot_sim, simulated)",
         calibration_name: str = "SI-290-10",
     ) -> None:
@@ -198,8 +200,6 @@ class NetFtBox:
             ip = ipaddress.IPv4Address(address)
         except ValueError:
             raise ValueError(f"address must be an IPv4 address, got {address!r}") from None
-        if not ip.is_loopback:
-            raise ValueError(f"address must be a loopback address (127.0.0.x), got {address!r}")
         for name, port, optional in (("rdt_port", rdt_port, False), ("http_port", http_port, True),
                                      ("calibration_port", calibration_port, True)):
             if port is None and optional:
@@ -213,6 +213,8 @@ class NetFtBox:
             raise ValueError(f"status_layout must be 'netft' or 'model', got {status_layout!r}")
         if on_bias is not None and not callable(on_bias):
             raise TypeError("on_bias must be callable or None")
+        if tap is not None and not callable(tap):
+            raise TypeError("tap must be callable or None")
         for name, text in (("product_name", product_name), ("calibration_name", calibration_name)):
             if not isinstance(text, str) or not text.strip() or len(text) > 128 or any(c in text for c in "<>&"):
                 raise ValueError(f"{name} must be 1..128 characters without <, > or &, got {text!r}")
@@ -225,6 +227,7 @@ class NetFtBox:
         self.product_name = product_name
         self.calibration_name = calibration_name
         self._on_bias = on_bias
+        self._tap = tap
 
         self._lock = threading.Lock()
         self._streams: dict[tuple[str, int], _Stream] = {}
@@ -358,7 +361,10 @@ class NetFtBox:
                         continue
                     data = b"".join(stream.pending)
                     stream.pending.clear()
-                datagrams += self._send(data, peer)
+                sent = self._send(data, peer)
+                datagrams += sent
+                if sent and self._tap is not None:
+                    self._tap(peer, data)
             for peer in finished:
                 del self._streams[peer]
             stats.records_sent += records

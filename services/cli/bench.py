@@ -2,6 +2,8 @@
 
     etar-bench run SCENARIO [--out DIR] [--clock realtime|lockstep] [--transport zenoh|inproc] [--foxglove [PORT]]
     etar-bench check SCENARIO
+    etar-bench serve SCENARIO --out DIR [--fri-remote HOST:PORT] [--krl frilibrary|lwr_hw] [--netft HOST]
+                     [--start X,Y,Z] [--max-seconds S]
     etar-bench demo [--world valley|hose_coupler] [--side left|right] [--png FILE] [--npz FILE]
     etar-bench sweep SCENARIO --param PATH=V1,V2,... [--repeats N] --out DIR [--cluster ADDRESS]
     etar-bench report RUN_DIR [--json]
@@ -85,6 +87,54 @@ def cmd_run(args) -> int:
     _say(f"report: {out}/report.json, {out}/report.txt; recordings in {out}/recordings")
     # the last line, for a newcomer: what came out and where to read more
     print(summary_line(report, out, page=not args.no_figures), flush=True)
+    return 0 if report["error"] is None else 1
+
+
+def _xyz(text: str) -> tuple:
+    parts = text.split(",")
+    try:
+        values = tuple(float(v) for v in parts)
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(np.isfinite(values)):
+        raise argparse.ArgumentTypeError(f"expected three numbers X,Y,Z in m, e.g. 0.5,0.0,0.3; got {text!r}")
+    return values
+
+
+def cmd_serve(args) -> int:
+    """The simulated cell alone, for a lab's own FRI remote and Net F/T client."""
+    from services.run.options import RunOptions
+    from services.run.runner import Runner
+    from services.run.serve import ServeOptions
+    from services.scenario import ScenarioError, load_scenario
+
+    try:
+        scenario = load_scenario(args.scenario).replace("clock", "realtime")
+        ports = ()
+        for flag, value in (("--netft-rdt-port", args.netft_rdt_port), ("--netft-http-port", args.netft_http_port),
+                            ("--netft-calibration-port", args.netft_calibration_port)):
+            if value is not None:
+                ports += (flag, str(value))
+        serve = ServeOptions(fri_remote=args.fri_remote, fri_bind=args.fri_bind, krl=args.krl,
+                             netft=None if args.netft == "none" else args.netft, netft_ports=ports,
+                             start=args.start, max_seconds=args.max_seconds)
+        options = RunOptions(out=args.out, run_id=args.run_id, realtime_profile=args.realtime_profile,
+                             figures=False, replace=args.replace, command=args.command_line, serve=serve,
+                             robot_args=tuple(args.robot_flag or ()))
+        runner = Runner(scenario, options, progress=_say)
+    except (ScenarioError, ValueError) as exc:
+        _say(f"etar-bench serve: error: {exc}")
+        return 2
+    signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        report = runner.run()
+    except KeyboardInterrupt:
+        written = (Path(args.out) / "report.json").exists()
+        _say("etar-bench serve: interrupted; services stopped; "
+             + (f"report in {args.out}" if written else "no report was written"))
+        return 130
+    print((Path(args.out) / "report.txt").read_text(), flush=True)
+    _say(f"report: {args.out}/report.json, {args.out}/report.txt; recording in {args.out}/recordings")
     return 0 if report["error"] is None else 1
 
 
@@ -403,6 +453,9 @@ def build_parser() -> OneLineErrorParser:
     from services.runtime.roles import FIFO_CHAIN
     from services.transport.cell import TRANSPORTS
 
+    from robot_sim.krl import KRL_CONVENTIONS
+    from services.run.serve import ServeOptions
+
     fifo = ", ".join(f"{role} {priority}" for role, priority in FIFO_CHAIN)
     fifo_ends = " and ".join(f"{role} ({priority})" for role, priority in RunOptions.fifo_priorities)
     parser = OneLineErrorParser(prog="etar-bench", description=__doc__,
@@ -452,6 +505,42 @@ def build_parser() -> OneLineErrorParser:
                         "draws both later)")
     add_zenoh_arguments(p, process_flags=False)  # the services get theirs from the run
     p.set_defaults(func=cmd_run)
+    p = sub.add_parser("serve", help="the simulated cell alone (arm, KRC, sensor, recorder) on the realtime clock, "
+                                     "for a lab's own FRI 1.0 remote over UDP and Net F/T client (docs/fri.md)")
+    p.add_argument("scenario", help="scenario YAML file: its world, seed and cell (and the start of its first "
+                                    "reproduction, where the arm is held)")
+    p.add_argument("--out", metavar="DIR", required=True,
+                   help="the folder for the recording and the report (one that holds a run is refused unless "
+                        "--replace)")
+    p.add_argument("--replace", action="store_true", help="--out holds an earlier run: remove it first")
+    p.add_argument("--fri-remote", default=ServeOptions.fri_remote, metavar="HOST:PORT",
+                   help=f"where the KRC sends its measurement datagrams: the remote's address (default "
+                        f"{ServeOptions.fri_remote}, the port both public FRI 1.0 remote libraries listen on)")
+    p.add_argument("--fri-bind", default=ServeOptions.fri_bind, metavar="HOST:PORT",
+                   help="the KRC's own address (default: loopback, any free port; the remote answers to it)")
+    p.add_argument("--krl", choices=KRL_CONVENTIONS, default=ServeOptions.krl,
+                   help="the KRL program's start/stop convention: frilibrary (the Stanford FRI Library's "
+                        "FRIControl.src, default) or lwr_hw (CentroEPiaggio's ros_control.src)")
+    p.add_argument("--netft", default=ServeOptions.netft, metavar="HOST",
+                   help="the Net F/T box's IPv4 address (default 127.0.0.1; 'none': no box); RDT on UDP 49152, "
+                        "HTTP on 80, calibration on TCP 49151 unless the flags below say otherwise")
+    p.add_argument("--netft-rdt-port", type=int, metavar="PORT", help="the box's RDT UDP port (0: any free one)")
+    p.add_argument("--netft-http-port", type=int, metavar="PORT", help="the box's HTTP port (0: any free one)")
+    p.add_argument("--netft-calibration-port", type=int, metavar="PORT",
+                   help="the box's TCP calibration port (0: any free one)")
+    p.add_argument("--start", type=_xyz, metavar="X,Y,Z",
+                   help="where the tcp is held, m, tool pointing down (default: the scenario's first reproduction "
+                        "start, unperturbed)")
+    p.add_argument("--max-seconds", type=float, default=ServeOptions.max_seconds, metavar="S",
+                   help=f"how long to serve (default {ServeOptions.max_seconds:g} s; Ctrl-C ends it sooner, with "
+                        "the report)")
+    p.add_argument("--run-id", help="run id (default <scenario>-<random>)")
+    p.add_argument("--realtime-profile", default="auto", type=_profile, metavar="auto|none|PARTS",
+                   help="what the run asks of the machine (as etar-bench run)")
+    p.add_argument("--robot-flag", action="append", metavar="FLAG",
+                   help="a further flag for the robot, e.g. --robot-flag=--fri-packet-loss=0.01 (repeatable): the "
+                        "link's faults apply to the UDP link too")
+    p.set_defaults(func=cmd_serve)
     p = sub.add_parser("check", help="validate a scenario without running it (the model file, every start) and "
                                      "print it with every default filled in")
     p.add_argument("scenario", help="scenario YAML file (see docs/scenarios.md)")

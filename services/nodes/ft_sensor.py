@@ -15,11 +15,19 @@ range (the ATI model clips and sets its saturation bits); ``nan``, the gauges
 read NaN (the model repeats the last counts and sets its non-finite-input status
 bit).  The last two go through the sensor model itself, so the status bits are
 the ones a real record would carry.
+
+``--netft HOST`` serves the sensor as an ATI Net F/T box on that address
+(``robot_sim.netft``): RDT over UDP (49152), the HTTP pages (80) and the calibration
+channel (TCP 49151), ports configurable; every record the ATI model makes goes to the
+box's streaming clients, and a client's bias request tares the model (so the box and
+``ft/wrench`` read the same).  Every RDT datagram sent goes out on ``netft/rdt`` too, as
+bytes and decoded.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import ipaddress
 import math
 import threading
 from dataclasses import dataclass
@@ -27,9 +35,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from robot_sim.ati import AtiConfig, AtiSensor
+from robot_sim.netft import CALIBRATION_PORT, HTTP_PORT, RDT_PORT, NetFtBox
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import option
-from services.runtime.messages import FT_WRENCH
+from services.runtime.messages import FT_WRENCH, NETFT_RDT, rdt_fields
 
 SENSOR_FAULTS = ("none", "stop", "saturate", "nan")
 # what a saturating load is: ten times the Mini45's largest range on every axis
@@ -45,6 +54,12 @@ class FtSensorConfig:
                         choices=SENSOR_FAULTS)
     fault_after: float = option(0.0, "fault injection: when --fault starts, seconds of simulated time into each "
                                      "episode", metavar="S")
+    netft: str = option("", "serve the sensor as a Net F/T box on this IPv4 address (e.g. 127.0.0.1; empty: no "
+                            "box): RDT on UDP, netftapi2.xml over HTTP, calibration on TCP", metavar="HOST")
+    netft_rdt_port: int = option(RDT_PORT, "--netft: the RDT UDP port (0: any free one)", metavar="PORT")
+    netft_http_port: int = option(HTTP_PORT, "--netft: the HTTP port (0: any free one)", metavar="PORT")
+    netft_calibration_port: int = option(CALIBRATION_PORT, "--netft: the TCP calibration port (0: any free one)",
+                                         metavar="PORT")
 
     def __post_init__(self):
         if not (math.isfinite(self.noise_scale) and self.noise_scale >= 0):
@@ -53,6 +68,15 @@ class FtSensorConfig:
             raise ValueError(f"fault must be one of {', '.join(SENSOR_FAULTS)}, got {self.fault!r}")
         if not (math.isfinite(self.fault_after) and self.fault_after >= 0):
             raise ValueError(f"fault_after must be a finite number of seconds >= 0, got {self.fault_after!r}")
+        if self.netft:
+            try:
+                ipaddress.IPv4Address(self.netft)
+            except ValueError:
+                raise ValueError(f"netft must be an IPv4 address, got {self.netft!r}") from None
+        for name in ("netft_rdt_port", "netft_http_port", "netft_calibration_port"):
+            port = getattr(self, name)
+            if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
+                raise ValueError(f"{name} must be a port number 0..65535, got {port!r}")
 
     def ati(self) -> AtiConfig:
         base = AtiConfig.mini45()
@@ -77,6 +101,19 @@ class FtSensorNode(Node):
         self._episode, self._episode_t0 = None, 0
         self.faulted = 0  # records the injected fault changed (or, stopped, never sent)
         self.publications = [Publication("ft/wrench")]
+        self.box = None
+        if config.netft:
+            self.publications.append(Publication("netft/rdt", drop_when_congested=True))
+            self.box = NetFtBox(self.ati_config, address=config.netft, rdt_port=config.netft_rdt_port,
+                                http_port=config.netft_http_port, calibration_port=config.netft_calibration_port,
+                                on_bias=self._netft_bias, tap=self._netft_sent)
+            try:
+                self.box.serve()
+            except OSError as exc:
+                raise OSError(exc.errno, f"--netft {config.netft}: cannot serve the Net F/T box (RDT UDP "
+                                         f"{config.netft_rdt_port}, HTTP {config.netft_http_port}, TCP "
+                                         f"{config.netft_calibration_port}): {exc.strerror or exc}") from None
+        self._stamp = (0, 0)  # the cycle of the record the box is sending (seq, stamp_ns)
         # keep_tenth: realtime takes the newest contact but never skips a tenth cycle's,
         # whose wrench the estimator needs (it lost half of them on a crowded CPU)
         self.subscriptions = [Subscription("robot/contact", self.on_contact, latest=True, keep_tenth=True)]
@@ -102,6 +139,10 @@ class FtSensorNode(Node):
                     self._wrench[:] = np.nan
             rec = self.ati.read(self._wrench, msg["stamp_ns"])
             w = rec.wrench(self.ati_config)
+        if self.box is not None:
+            # outside the lock: a client's bias request (the box's thread) takes it
+            self._stamp = (msg["seq"], msg["stamp_ns"])
+            self.box.publish(rec)
         self.bus.publish("ft/wrench", *FT_WRENCH.pack(
             seq=msg["seq"], stamp_ns=msg["stamp_ns"], sent_ns=self.clock.now_ns(),
             rdt_sequence=int(rec.rdt_sequence), ft_sequence=int(rec.ft_sequence), status=int(rec.status),
@@ -112,7 +153,27 @@ class FtSensorNode(Node):
         return {"tare": self.tare}
 
     def status(self) -> dict:
-        return {"fault": self.fault, "faulted": self.faulted}
+        status = {"fault": self.fault, "faulted": self.faulted}
+        if self.box is not None:
+            status["netft"] = dict(dataclasses.asdict(self.box.stats()), address=self.box.address,
+                                   rdt_port=self.box.rdt_port, http_port=self.box.http_port,
+                                   calibration_port=self.box.calibration_port)
+        return status
+
+    def close(self) -> None:
+        if self.box is not None:
+            self.box.close()
+
+    def _netft_bias(self) -> None:
+        """A client asked the box for a software bias: the sensor model is tared on its next
+        sample, so what the box sends and ft/wrench agree."""
+        with self._lock:
+            self.ati.tare(1)
+
+    def _netft_sent(self, peer, data: bytes) -> None:
+        seq, stamp = self._stamp
+        self.bus.publish("netft/rdt", *NETFT_RDT.pack(seq=seq, stamp_ns=stamp, sent_ns=self.clock.now_ns(),
+                                                      client=f"{peer[0]}:{peer[1]}", **rdt_fields(data)))
 
     def tare(self, p: dict) -> None:
         with self._lock:

@@ -13,10 +13,20 @@ realtime at its measured latency (receive time - publish time).
 Control: ``reset`` (start, episode, kind), ``status``; the transports add
 ``settle``, ``run`` and ``stop``, which drive the engine (a request is checked
 before its episode starts).
+
+``--wire udp`` (realtime only): the KRC speaks FRI 1.0 over UDP instead
+(``robot_sim.fri_udp``): every cycle a 916-byte measurement datagram goes to the remote
+at ``--fri-remote``, and the command datagram that answers it before the cycle ends is
+applied; a KRL program (``robot_sim.krl``, ``--krl``) starts and stops command mode as
+the remote asks on the KRL channels.  The node goes on publishing ``robot/state`` and
+``robot/contact``; both datagrams of every cycle also go out on ``fri/datagram``, as
+bytes and decoded.  An episode of kind ``served`` holds the arm at its start in monitor
+mode until the remote starts it (``etar-bench serve``).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
 from dataclasses import dataclass
@@ -24,8 +34,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from robot_sim.cell import RobotCell
-from robot_sim.fri import FRI_RATE_HZ, CommandPacket, ControlMode, FriState, LinkFaults, LinkFaultSpec
+from robot_sim.fri import FRI_RATE_HZ, CommandPacket, ControlMode, FriQuality, FriState, LinkFaults, LinkFaultSpec
+from robot_sim.fri_udp import host_port
+from robot_sim.fri_wire import REMOTE_PORT
 from robot_sim.krc import SafetyReason
+from robot_sim.krc_udp import UdpKrc
+from robot_sim.krl import KRL_CONVENTIONS
 from robot_sim.labels import LABELERS
 from robot_sim.teacher import DOWN
 from robot_sim.worlds import TASK_WORLDS, WORLDS, Valley, valley
@@ -34,7 +48,7 @@ from services.runtime.config import nested, option
 from services.runtime.cycle import EpisodePlan
 from services.runtime.roles import PARTICIPANTS, ROLES
 from services.runtime.loop import Sections
-from services.runtime.messages import EPISODE_SUMMARY, ROBOT_CONTACT, ROBOT_STATE
+from services.runtime.messages import EPISODE_SUMMARY, FRI_DATAGRAM, ROBOT_CONTACT, ROBOT_STATE, datagram_fields
 from services.runtime.timing import Histogram
 
 LOCKSTEP_LATENCY_NS = 100_000
@@ -47,6 +61,8 @@ HOLD_WATCH_CYCLES = int(HOLD_WATCH_S * FRI_RATE_HZ)
 # sensing), measuring (FRI packet, labels), encoding, publishing
 SECTIONS = ("wait", "answers", "step", "measure", "encode", "publish")
 ANSWER_TOPICS = {participant: ROLES[role].answer_topic for participant, role in PARTICIPANTS.items()}
+WIRES = ("zenoh", "udp")
+EPISODE_KINDS = ("demonstration", "reproduction", "served")
 
 
 @dataclass(frozen=True)
@@ -61,6 +77,15 @@ class RobotConfig:
                                    metavar="MU")
     # the FRI link's faults (--fri-packet-loss, ... --fri-faults-until-s): robot_sim.fri.LinkFaultSpec
     fri: LinkFaultSpec = nested(LinkFaultSpec(), "fri_")
+    wire: str = option("zenoh", "how the FRI remote talks to the KRC: zenoh (robot/command: the testbench's "
+                                "commander) or udp (FRI 1.0 datagrams: a lab's remote; realtime only)",
+                       choices=WIRES)
+    fri_remote: str = option(f"127.0.0.1:{REMOTE_PORT}", "udp: the FRI remote's address, where the measurement "
+                                                         "datagrams go", metavar="HOST:PORT")
+    fri_bind: str = option("127.0.0.1:0", "udp: the KRC's own address (port 0: any free port)", metavar="HOST:PORT")
+    krl: str = option("frilibrary", "udp: the KRL program's start/stop convention on the KRL channels "
+                                    "(frilibrary: the Stanford FRI Library's; lwr_hw: CentroEPiaggio's)",
+                      choices=KRL_CONVENTIONS)
 
     def __post_init__(self):
         if self.world not in TASK_WORLDS:
@@ -69,6 +94,12 @@ class RobotConfig:
             raise ValueError(f"answer_timeout must be > 0 s, got {self.answer_timeout!r}")
         if not (math.isfinite(self.plate_friction) and self.plate_friction > 0):
             raise ValueError(f"plate_friction must be a finite number > 0, got {self.plate_friction!r}")
+        if self.wire not in WIRES:
+            raise ValueError(f"wire must be one of {', '.join(WIRES)}, got {self.wire!r}")
+        if self.krl not in KRL_CONVENTIONS:
+            raise ValueError(f"krl must be one of {', '.join(KRL_CONVENTIONS)}, got {self.krl!r}")
+        host_port(self.fri_remote, "fri_remote")
+        host_port(self.fri_bind, "fri_bind", listen=True)
 
     def world_spec(self):
         if self.world == "valley":
@@ -100,6 +131,12 @@ class _Episode:
         self.miss_run = 0
         self.cmd_left = 0  # CMD -> MON (the link's quality fell below OK)
         self.cmd_entered = 0  # MON -> CMD
+        self.cmd_cycles = 0  # cycles that ended in command mode
+        self.states: list = []  # udp: the link's state changes (seq, state, quality)
+        self.refusals: list = []  # udp: first commands the KRC refused (seq, at_s, reason)
+        self.krl_events = 0  # the KRL program's events before this episode
+        self.wire0 = None  # the UDP endpoint's counters when the episode began
+        self.safety_stop = None  # served: the KRC's safety stop (seq, at_s, reason)
         self.fri_state = fri0.state  # the link keeps its state from one episode into the next
         self.k = 0
         self.sections = Sections(*SECTIONS)
@@ -117,8 +154,16 @@ class RobotNode(Node):
         self.mode = mode
         self.lockstep = mode == "lockstep"
         self.fifo = sched_fifo
+        if config.wire == "udp" and self.lockstep:
+            raise ValueError("wire udp needs the realtime clock: the KRC sends its measurements on its own clock, "
+                             "and a remote over UDP answers on the wall clock")
         # the cell's own F/T sampling is the ft_sensor node's job: not done twice
         self.cell = RobotCell(config.world_spec(), seed=config.seed, faults=config.link_faults(), with_sensor=False)
+        self.udp = None
+        if config.wire == "udp":
+            self.udp = UdpKrc(self.cell, host_port(config.fri_remote, "fri_remote"),
+                              host_port(config.fri_bind, "fri_bind", listen=True), krl=config.krl,
+                              clock=clock.now_ns)
         self.labeler = LABELERS[config.world]()
         self.episode = -1
         self.kind = "none"
@@ -135,9 +180,13 @@ class RobotNode(Node):
         self.publications = [Publication("robot/state", drop_when_congested=True),
                              Publication("robot/contact", drop_when_congested=True),
                              Publication("robot/episode", express=False)]
-        # realtime needs only what it applies; lockstep also waits on the sensor and the estimator
+        if self.udp is not None:
+            self.publications.append(Publication("fri/datagram", drop_when_congested=True))
+        # realtime needs only what it applies; lockstep also waits on the sensor and the estimator;
+        # over UDP the commands come on the FRI socket
+        applied = ("teacher",) if self.udp is not None else ("command", "teacher")
         self.subscriptions = [Subscription(topic, self._on_answer(name)) for name, topic in ANSWER_TOPICS.items()
-                              if self.lockstep or name in ("command", "teacher")]
+                              if self.lockstep or name in applied]
 
     # ------------------------------------------------------------- arrivals
 
@@ -157,6 +206,8 @@ class RobotNode(Node):
         return handler
 
     def answered(self, names, seq) -> bool:
+        if self.udp is not None and not self.udp.answered():
+            return False  # the KRC waits for the remote's datagram until the cycle ends
         answers = self._answers
         for n in names:
             if seq not in answers[n]:
@@ -173,8 +224,11 @@ class RobotNode(Node):
         if start.shape != (3,) or not np.all(np.isfinite(start)):
             raise ValueError(f"start must be 3 finite numbers, got {p['start']!r}")
         kind = p.get("kind", "demonstration")
-        if kind not in ("demonstration", "reproduction"):
-            raise ValueError(f"kind must be demonstration or reproduction, got {kind!r}")
+        if kind not in EPISODE_KINDS:
+            raise ValueError(f"kind must be one of {', '.join(EPISODE_KINDS)}, got {kind!r}")
+        if (kind == "served") != (self.udp is not None):
+            raise ValueError("an episode of kind served needs --wire udp, and --wire udp serves only such episodes"
+                             f" (kind {kind!r}, wire {self.config.wire})")
         self.episode = int(p.get("episode", -1))
         self.kind = kind
         cell = self.cell
@@ -184,8 +238,9 @@ class RobotNode(Node):
             cell.start()
         if self.kind == "reproduction":
             cell.fri.request_command_mode()
-        else:
+        elif self.kind == "demonstration":
             cell.fri.request_monitor_mode()
+        # served: the remote asks the KRL program for command mode when it wants it
         self.labeler = LABELERS[self.config.world]()
         with self.arrived:
             for store in self._answers.values():
@@ -207,8 +262,16 @@ class RobotNode(Node):
                            stop_on=p.get("stop_on"))
 
     def status(self) -> dict:
-        return {"episode": self.episode, "seq": self.cell.fri.seq, "fri_state": int(self.cell.fri.state),
-                "safety": int(self.cell.krc.safety), "fifo": self.fifo}
+        status = {"episode": self.episode, "seq": self.cell.fri.seq, "fri_state": int(self.cell.fri.state),
+                  "safety": int(self.cell.krc.safety), "fifo": self.fifo}
+        if self.udp is not None:
+            status["fri_udp"] = {"address": list(self.udp.address), "remote": list(self.udp.remote),
+                                 "krl": self.config.krl}
+        return status
+
+    def close(self) -> None:
+        if self.udp is not None:
+            self.udp.close()
 
     # ------------------------------------------------------------- episodes
 
@@ -221,6 +284,9 @@ class RobotNode(Node):
             self._episode_after, self.episode = self.episode, -1
         self.ep = _Episode(self.cell.fri.seq + 1, self.cell.fri.statistics(), self.clock.now_ns())
         self.sections = self.ep.sections
+        if self.udp is not None:
+            self.ep.krl_events = len(self.udp.krl.events)
+            self.ep.wire0 = dataclasses.replace(self.udp.endpoint.counters)
 
     def end_episode(self, engine) -> dict:
         """After a run of cycles: its summary (what robot/episode carries)."""
@@ -250,7 +316,37 @@ class RobotNode(Node):
             loop=dict(engine.timing.summary(), clock=self.mode, sched_fifo=self.fifo,
                       answer_latency=ep.answer.to_dict(), closed_loop_latency=ep.closed_loop.to_dict(),
                       sections=ep.sections.summary(), wall_start_ns=ep.wall0_ns, wall_end_ns=now),
+            **({"wire": self._wire_summary(engine)} if self.udp is not None else {}),
         )
+
+    # --------------------------------------------------------------- FRI over UDP
+
+    def _send_datagram(self, m) -> None:
+        if self.udp.send(m):
+            self.bus.publish("fri/datagram", *FRI_DATAGRAM.pack(
+                seq=m.seq, stamp_ns=m.stamp_ns, sent_ns=self.udp.sent_ns, direction="measurement",
+                **datagram_fields(self.udp.last_sent, "measurement")))
+
+    def _take_datagram(self, m) -> None:
+        if self.udp.take(m) is not None:
+            self.ep.answer.add(self.udp.latency_ns)
+            self.bus.publish("fri/datagram", *FRI_DATAGRAM.pack(
+                seq=m.seq, stamp_ns=m.stamp_ns, sent_ns=self.udp.sent_ns + self.udp.latency_ns,
+                direction="command", **datagram_fields(self.udp.last_accepted, "command")))
+
+    def _wire_summary(self, engine) -> dict:
+        ep, udp, krl = self.ep, self.udp, self.udp.krl
+        counters = {k: v - getattr(ep.wire0, k) for k, v in dataclasses.asdict(udp.endpoint.counters).items()}
+        return {"address": f"{udp.address[0]}:{udp.address[1]}", "remote": f"{udp.remote[0]}:{udp.remote[1]}",
+                "krl": self.config.krl, "datagrams": counters, "last_reject_reason": udp.endpoint.last_reject_reason,
+                "krl_events": [dict(seq=e.seq, at_s=(e.seq - ep.first_seq + 1) * self.cell.cycle_ns / 1e9,
+                                    kind=e.kind, text=e.text) for e in krl.events[ep.krl_events:]],
+                "refusal": krl.refusal, "first_command_refusals": list(ep.refusals),
+                "safety_stop": ep.safety_stop,
+                "command_mode_s": ep.cmd_cycles * self.cell.cycle_ns / 1e9,
+                "states": [dict(seq=q, at_s=(q - ep.first_seq + 1) * self.cell.cycle_ns / 1e9,
+                                state=FriState(st).name, quality=FriQuality(qu).name) for q, st, qu in ep.states],
+                "control_mode": ControlMode(self.cell.fri.control_mode).name}
 
     def publish_summary(self, summary: dict) -> None:
         self.bus.publish("robot/episode", EPISODE_SUMMARY.encode(**summary))
@@ -262,6 +358,8 @@ class RobotNode(Node):
         cell, ep, sec, now = self.cell, self.ep, self.ep.sections, self.clock.now_ns
         t0 = now()
         m = cell.begin_cycle()
+        if self.udp is not None:
+            self._send_datagram(m)
         sent = now()
         sec.add("measure", sent - t0)
         state = ROBOT_STATE.pack(
@@ -314,6 +412,8 @@ class RobotNode(Node):
         faults = cell.fri.faults
         if faults is not None:
             faults.active = self.config.fri.active(ep.k * cell.cycle_ns / 1e9)
+        if self.udp is not None:
+            self._take_datagram(m)
         goal_reached = teacher_done = False
         cycle_hold = None  # this cycle's command: why it holds ('' it does not); None: no command
         cycle_estimate = -1  # the estimate this cycle's command used
@@ -358,9 +458,16 @@ class RobotNode(Node):
             elif ep.fri_state == FriState.CMD:
                 ep.cmd_left += 1
             ep.fri_state = outcome.state
+        if outcome.state == FriState.CMD:
+            ep.cmd_cycles += 1
+        if self.udp is not None and (not ep.states or ep.states[-1][1:] != (int(outcome.state), int(outcome.quality))):
+            ep.states.append((m.seq, int(outcome.state), int(outcome.quality)))
         ep.run = 0 if outcome.answered else ep.run + 1
         ep.miss_run = max(ep.miss_run, ep.run)
         fri = cell.fri
+        if cell.first_command_refused:
+            ep.refusals.append(dict(seq=m.seq, at_s=ep.k * cell.cycle_ns / 1e9, reason=cell.first_command_refused))
+            cell.first_command_refused = ""
         if self.kind == "reproduction" and fri.state == FriState.MON and not fri.command_requested:
             # as the KRL program of a lab set-up does: after a fall-back to monitor
             # mode, ask for command mode again (entered once the link is PERFECT again)
@@ -387,5 +494,13 @@ class RobotNode(Node):
         elif cycle_hold is not None:
             ep.hold_run = 0
         if cell.krc.safety != 0:
-            return f"safety:{SafetyReason(cell.krc.safety).name.lower()}"
+            reason = SafetyReason(cell.krc.safety).name.lower()
+            if self.kind != "served":
+                return f"safety:{reason}"
+            if ep.safety_stop is None:
+                # a lab's remote is served on: the KRC drops it to monitor mode, holds the arm
+                # and reports the error in the measurement, as a KRC does after a safety stop
+                ep.safety_stop = dict(seq=m.seq, at_s=ep.k * cell.cycle_ns / 1e9, reason=reason)
+            if fri.state == FriState.CMD:
+                fri.request_monitor_mode()
         return None

@@ -78,6 +78,8 @@ class RunRecord:
     demonstrations: list[EpisodeRecord] = field(default_factory=list)
     reproductions: list[EpisodeRecord] = field(default_factory=list)
     learning: LearningRecord = field(default_factory=LearningRecord)
+    # etar-bench serve: the episode a lab's own FRI remote drove over UDP
+    served: list[EpisodeRecord] = field(default_factory=list)
     # filled in at the end of the run
     service_stats: dict = field(default_factory=dict)  # role -> its last status (links, counters)
     realtime_profile: dict | None = None  # what the profile asked for and was granted, when it asked

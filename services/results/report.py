@@ -296,7 +296,7 @@ def write_report(run: RunRecord, exit_codes: dict, error: str | None, wall_secon
     # each reproduction is judged by the phase mapping of the model that drove it
     truth_maps = {r.path: r.phase_to_truth or learning.phase_to_truth for r in run.reproductions}
     jobs = [(e.path, truth_maps.get(e.path), tuple((e.recording or {}).get("parts", ())))
-            for e in run.demonstrations + run.reproductions]
+            for e in run.demonstrations + run.reproductions + run.served]
     # the recordings are independent: read on every CPU the run may use (a sweep's run: in
     # this process), once they are worth a pool's start (~1.4 s of imports per process)
     workers = run.workers
@@ -330,7 +330,8 @@ def write_report(run: RunRecord, exit_codes: dict, error: str | None, wall_secon
                           undecodable_messages=undecodable.get(r.path, 0),
                           **_parts_of(r, out)))
     overall = reproduction_figures(repro)
-    episodes = [d.summary for d in run.demonstrations] + [r.summary for r in run.reproductions]
+    episodes = ([d.summary for d in run.demonstrations] + [r.summary for r in run.reproductions]
+                + [e.summary for e in run.served])
     loops = [e["loop"] for e in episodes if e.get("loop")]
     link_summary = {t: {"p50_us": float(np.median([v["p50_us"] for v in vs])),
                         "p99_us": float(max(v["p99_us"] for v in vs)),
@@ -376,6 +377,15 @@ def write_report(run: RunRecord, exit_codes: dict, error: str | None, wall_secon
                      "demonstrations_read": [dict(path=_in_run(d["path"], out), samples=d["samples"])
                                              for d in learning.learned_from]},
         "reproductions": repro,
+        # etar-bench serve: what the lab's remote did (the KRL program's events, the link's
+        # states, time in command mode, the datagrams, any refusal or safety stop)
+        **({"served": [dict(path=_in_run(e.path, out), start=e.start, reason=e.summary["reason"],
+                            sim_seconds=e.summary["sim_seconds"], wall_seconds=e.summary["wall_seconds"],
+                            peak_contact_force=e.summary["peak_contact_force"], safety=e.summary["safety"],
+                            final_position=e.summary["final_position"], fri=e.summary.get("fri"),
+                            wire=e.summary.get("wire"), fri_quality=timelines.get(e.path, {}),
+                            undecodable_messages=undecodable.get(e.path, 0), **_parts_of(e, out))
+                       for e in run.served]} if run.served else {}),
         "summary": {
             "phases_chosen": (learning.selection or {}).get("best"),
             "reproductions": len(repro),

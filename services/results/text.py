@@ -34,6 +34,34 @@ def provenance_text(p: dict) -> str:
     return f"made by etar-testbench {describe_code(p)} on {p.get('date')}: {p.get('command')}"
 
 
+def served_text(e: dict) -> list[str]:
+    """etar-bench serve's episode: what the lab's FRI remote did."""
+    w = e.get("wire") or {}
+    d = w.get("datagrams") or {}
+    f = e.get("fri") or {}
+    lines = ["", f"served over FRI 1.0/UDP: KRC {w.get('address', '?')} -> remote {w.get('remote', '?')}, "
+                 f"KRL program {w.get('krl', '?')}; {e['sim_seconds']:.1f} s ({e['reason']})",
+             f"  datagrams: {d.get('sent', 0)} measurements sent, {d.get('received', 0)} received, "
+             f"{d.get('accepted', 0)} commands in time, {d.get('late', 0)} late, {d.get('duplicate', 0)} duplicate, "
+             f"{d.get('wrong_size', 0)} wrong size, {d.get('wrong_id', 0)} wrong id, {d.get('invalid', 0)} invalid"
+             + (f" (last: {w['last_reject_reason']})" if w.get("last_reject_reason") else ""),
+             f"  command mode: {w.get('command_mode_s', 0.0):.2f} s, entered {f.get('command_mode_entered', 0)} "
+             f"time(s), left {f.get('command_mode_left', 0)}; FRI missed {f.get('missed', 0)} cycle(s), longest run "
+             f"{f.get('longest_miss_run', 0)}; final control mode {w.get('control_mode', '?')}",
+             f"  peak contact force {e['peak_contact_force']:.1f} N; safety stop: "
+             + (f"{w['safety_stop']['reason']} at {w['safety_stop']['at_s']:.2f} s" if w.get("safety_stop")
+                else "none")]
+    for ref in w.get("first_command_refusals") or []:
+        lines.append(f"  {ref['at_s']:7.2f} s  refused: {ref['reason']}")
+    for ev in w.get("krl_events") or []:
+        lines.append(f"  {ev['at_s']:7.2f} s  KRL {ev['kind']}: {ev['text']}")
+    changes = w.get("states") or []
+    if changes:
+        lines.append("  link: " + ", ".join(f"{c['at_s']:.2f} s {c['state']}/{c['quality']}" for c in changes[:12])
+                     + (f", ... ({len(changes)} changes)" if len(changes) > 12 else ""))
+    return lines
+
+
 def render_text(r: dict) -> str:
     s = r["summary"]
     lines = [f"ETAR testbench run {r['run_id']} - scenario {r['scenario']} ({r['source']})",
@@ -69,6 +97,8 @@ def render_text(r: dict) -> str:
     for i, d in enumerate(r["demonstrations"]):
         lines.append(f"  {i:2d} {d['side']:>5}  {d['reason']:<13} {d['sim_seconds']:6.1f} s sim  "
                      f"{d['wall_seconds']:6.1f} s wall")
+    for e in r.get("served") or []:
+        lines += served_text(e)
     sel = r["learning"]["selection"]
     if sel:
         lines.append("")

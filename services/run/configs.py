@@ -25,8 +25,10 @@ def node_configs(scenario: Scenario, options, roles, recordings: Path, offload_r
         "impedance_commander": CommanderConfig(),
         "foxglove_bridge": FoxgloveBridgeConfig(world=sc.world, port=options.foxglove or 0),
     }
-    configs["robot"] = with_flags(configs["robot"], options.robot_args)
+    serve = options.serve
+    configs["robot"] = with_flags(configs["robot"], (serve.robot_flags() if serve else ()) + tuple(options.robot_args))
     configs["impedance_commander"] = with_flags(configs["impedance_commander"], options.commander_args)
-    configs["ft_sensor"] = with_flags(configs["ft_sensor"], options.sensor_args)
+    configs["ft_sensor"] = with_flags(configs["ft_sensor"],
+                                      (serve.sensor_flags() if serve else ()) + tuple(options.sensor_args))
     configs["recorder"] = with_flags(configs["recorder"], options.recorder_args)
     return {role: configs[role] for role in roles}

@@ -66,6 +66,9 @@ class RunOptions:
     replace: bool = False
     # the command the report names (None: this process's command line)
     command: str | None = None
+    # etar-bench serve: the cell alone for a lab's FRI remote and Net F/T client, instead of
+    # the scenario's stages (services.run.serve.ServeOptions)
+    serve: object | None = None
 
     def __post_init__(self):
         if self.transport not in TRANSPORTS:
@@ -101,8 +104,10 @@ class RunOptions:
 
 
     def roles(self, scenario: Scenario) -> list[str]:
-        """The services this run needs: the scenario's, and the live view's bridge."""
-        return list(scenario.roles) + (["foxglove_bridge"] if self.foxglove is not None else [])
+        """The services this run needs: the scenario's (serving: the cell alone), and the
+        live view's bridge."""
+        roles = ["robot", "ft_sensor", "recorder"] if self.serve is not None else list(scenario.roles)
+        return roles + (["foxglove_bridge"] if self.foxglove is not None else [])
 
     def carrier(self, scenario: Scenario):
         """The transport (``services.transport.cell``), checked against the scenario's clock

@@ -73,21 +73,30 @@ def _starts(scenario: Scenario) -> list:
 def _reachable(scenario: Scenario, starts: list) -> None:
     if not starts:
         return
+    from robot_sim.kinematics import ArmKinematics
+
+    kinematics = ArmKinematics()
+    for i, kind, j, side, xyz in starts:
+        problem = start_problem(xyz, kinematics)
+        if problem:
+            raise ScenarioError(f"{EPISODE_NAMES[kind]} {j + 1} ({side} side) would start at {problem}",
+                                path=f"stages[{i}].{kind}.start", value=[round(v, 4) for v in xyz],
+                                source=scenario.source)
+
+
+def start_problem(xyz, kinematics=None) -> str | None:
+    """Why the tcp cannot start at ``xyz`` (m) with the tool pointing down, or None."""
     import pinocchio as pin
 
     from robot_sim.kinematics import READY, ArmKinematics
     from robot_sim.teacher import DOWN
 
-    kinematics = ArmKinematics()
-    for i, kind, j, side, xyz in starts:
-        where = dict(path=f"stages[{i}].{kind}.start", value=[round(v, 4) for v in xyz], source=scenario.source)
-        episode = f"{EPISODE_NAMES[kind]} {j + 1} ({side} side) would start at"
-        if xyz[2] <= FLOOR_Z:
-            raise ScenarioError(f"{episode} z = {xyz[2]:.3f} m, at or below the floor (z = {FLOOR_Z:g} m): "
-                                "raise the start's z", **where)
-        try:
-            kinematics.inverse_kinematics(pin.SE3(DOWN, np.asarray(xyz, dtype=np.float64)), READY)
-        except ValueError:
-            reach = float(np.linalg.norm(np.asarray(xyz)))
-            raise ScenarioError(f"{episode} a point the arm cannot reach with the tool pointing down "
-                                f"({reach:.2f} m from its base; the LWR4+ reaches about 0.8 m)", **where) from None
+    if xyz[2] <= FLOOR_Z:
+        return f"z = {xyz[2]:.3f} m, at or below the floor (z = {FLOOR_Z:g} m): raise the start's z"
+    try:
+        (kinematics or ArmKinematics()).inverse_kinematics(pin.SE3(DOWN, np.asarray(xyz, dtype=np.float64)), READY)
+    except ValueError:
+        reach = float(np.linalg.norm(np.asarray(xyz)))
+        return (f"a point the arm cannot reach with the tool pointing down ({reach:.2f} m from its base; the "
+                f"LWR4+ reaches about 0.8 m)")
+    return None

@@ -35,8 +35,9 @@ from services.run.configs import node_configs
 from services.run.episode import Episodes, Recording
 from services.run.learn import learn, stored_model
 from services.run.options import RunOptions
-from services.run.preflight import preflight
+from services.run.preflight import preflight, start_problem
 from services.run.realtime_profile import Grant, parse_profile, placement, probe
+from services.run.serve import SERVED_TOPICS, served_start
 from services.scenario import Scenario, demonstration_starts, reproduction_starts
 from services.scenario.starts import teacher_seed
 from services.runtime.provenance import provenance
@@ -53,6 +54,13 @@ class Runner:
         self.transport = options.carrier(scenario)
         # and what the services would find only once they are up: the model file, the starts
         self.preflight = preflight(scenario)
+        if options.serve is not None:
+            if scenario.clock != "realtime":
+                raise ValueError("serving a lab's remote needs the realtime clock (etar-bench serve sets it)")
+            start = served_start(scenario, options.serve)
+            problem = start_problem(start)
+            if problem:
+                raise ValueError(f"--start {','.join(f'{v:g}' for v in start)}: {problem}")
         # resolved once, here: every path handed to a service or written in the report
         # follows from this absolute folder (a relative one, joined again by the
         # recorder, doubled itself: out/valley/recordings/out/valley/recordings/)
@@ -88,14 +96,17 @@ class Runner:
         error = None
         codes = {}
         try:
-            if sc.model is not None:
+            if sc.model is not None and self.options.serve is None:
                 self.record.learning = stored_model(sc, self.preflight.model, self.say)
             self._apply_profile()
             self._start_cell()
             self.say(f"services ready ({', '.join(self.roles)}) after {time.monotonic() - t0:.1f} s")
             self.ready.set()
-            for stage in sc.stages:
-                getattr(self, f"stage_{stage.kind}")(stage)
+            if self.options.serve is not None:
+                self.serve(self.options.serve)
+            else:
+                for stage in sc.stages:
+                    getattr(self, f"stage_{stage.kind}")(stage)
             self.episodes.event("run_end", "", -1, {})
         except BaseException as exc:
             if isinstance(exc, KeyboardInterrupt):
@@ -201,6 +212,31 @@ class Runner:
                      f"{summary['peak_contact_force']:.1f} N, {summary['sim_seconds']:.1f} s simulated / "
                      f"{summary['wall_seconds']:.1f} s wall")
             self.episodes.raise_if_lost()
+
+    def serve(self, serve) -> None:
+        """etar-bench serve: one episode for a lab's FRI remote (services.run.serve)."""
+        start = served_start(self.scenario, serve)
+        path = self.episodes.begin("served", 0, start)
+        status = self.cell.request("robot", "status")["fri_udp"]
+        self.say(f"serving FRI 1.0 over UDP from {status['address'][0]}:{status['address'][1]} to the remote at "
+                 f"{status['remote'][0]}:{status['remote'][1]} (KRL program {status['krl']}), the arm held at "
+                 f"{', '.join(f'{v:.3f}' for v in start)} m in monitor mode"
+                 + (f"; Net F/T box on {self._netft_where()}" if serve.netft else "")
+                 + f"; for {serve.max_seconds:g} s (Ctrl-C ends it sooner)")
+        summary = self.episodes.run([], None, serve.max_seconds, label="served")
+        rec = self.episodes.finish("served", 0, summary, SERVED_TOPICS)
+        self.record.served.append(EpisodeRecord(str(path), "-", list(start), summary, rec))
+        wire = summary.get("wire") or {}
+        d = wire.get("datagrams") or {}
+        self.say(f"served: {summary['reason']} after {summary['sim_seconds']:.1f} s; {d.get('accepted', 0)} commands "
+                 f"in time of {d.get('sent', 0)} measurements; command mode {wire.get('command_mode_s', 0.0):.1f} s; "
+                 f"peak contact {summary['peak_contact_force']:.1f} N")
+        self.episodes.raise_if_lost()
+
+    def _netft_where(self) -> str:
+        box = self.cell.request("ft_sensor", "status").get("netft") or {}
+        return (f"{box.get('address')} (RDT UDP {box.get('rdt_port')}, HTTP {box.get('http_port')}, "
+                f"calibration TCP {box.get('calibration_port')})")
 
     # ------------------------------------------------------------- around the stages
 

@@ -31,14 +31,17 @@ integers beyond 64 bits) is written by ``json``.
 
 from __future__ import annotations
 
+import base64
 import json
 import math
 import re
+import struct
 from dataclasses import dataclass
 
 import orjson
 
 from robot_sim.fri import FRI_CYCLE_NS
+from robot_sim.fri_wire import decode_command, decode_measurement, record_fields
 
 # The estimator's period on simulated time: every tenth FRI cycle, the 100 Hz at which the
 # thesis sampled its demonstrations.  The learner's samples and the estimator's updates are
@@ -436,7 +439,7 @@ EPISODE_SUMMARY = MessageType(
     "Published by the robot when an episode (demonstration or reproduction) ends.",
     (
         ("episode", "int", "episode index"),
-        ("kind", "str", "demonstration | reproduction"),
+        ("kind", "str", "demonstration | reproduction | served (etar-bench serve: a lab's FRI remote)"),
         ("reason", "str", "why it ended: teacher_done | goal_reached | timeout | elapsed (ran its whole time with "
                            "nothing to stop on) | safety:<reason> (e.g. safety:joint_limit) | hold:<reason> "
                            "(the commander held the arm for HOLD_WATCH_S in one) | stopped"),
@@ -457,6 +460,36 @@ EPISODE_SUMMARY = MessageType(
               optional=True),
         ("fri", "object", "FRI link statistics of this episode (counts) and at its end (state, quality)"),
         ("loop", "object", "timing statistics of the robot's 1 kHz loop"),
+        Field("wire", "object", "--wire udp: the KRC's and the remote's addresses, the KRL convention, the "
+                                "datagrams (sent, received, accepted, late, duplicate, wrong_size, wrong_id, "
+                                "invalid, ...), the KRL program's events, the link's state changes, seconds "
+                                "in command mode, first commands refused, the last refusal", optional=True),
+    ),
+)
+
+FRI_DATAGRAM = MessageType(
+    "fri_datagram", "fri/datagram",
+    "An FRI 1.0 datagram that crossed the KRC's UDP socket (`--wire udp`, `etar-bench serve`), the bytes "
+    "as they went and their fields decoded: each cycle's measurement, and the command that answered it "
+    "in time (one the KRC accepted).  `seq` is the cycle (the full count: the header's counters are its "
+    "low 16 bits); `sent_ns`: when the measurement was sent, or the command read.",
+    (
+        ("direction", "str", "measurement (KRC -> remote, 916 bytes) | command (remote -> KRC, 376 bytes)"),
+        ("bytes", "str", "the datagram, base64 (docs/fri.md gives every field's offset)"),
+        ("decoded", "object", "its fields with FRI's names, nested as FRI nests them: head, krl, intf, robot, "
+                              "data (measurement); head, krl, cmd (command); float32 values as float64"),
+    ),
+)
+
+NETFT_RDT = MessageType(
+    "netft_rdt", "netft/rdt",
+    "An RDT datagram the simulated Net F/T box sent to a streaming client (`--netft`), the bytes as they "
+    "went and its records decoded.  `seq`/`stamp_ns`: the robot cycle of the (last) record in it.",
+    (
+        ("client", "str", "HOST:PORT of the client it went to"),
+        ("bytes", "str", "the datagram, base64: one 36-byte record, or several (buffered streaming)"),
+        ("records", "object[]", "each record: rdt_sequence, ft_sequence, status (Net F/T bits), counts "
+                                "[Fx Fy Fz Tx Ty Tz] (big-endian int32 on the wire)"),
     ),
 )
 
@@ -473,11 +506,40 @@ SERVICE_LOG = MessageType(
 )
 
 MESSAGES = {m.name: m for m in (ROBOT_STATE, ROBOT_CONTACT, FT_WRENCH, TEACHER_WRENCH, ESTIMATOR_PHASE,
-                                ROBOT_COMMAND, RUNNER_EVENT, EPISODE_SUMMARY, SERVICE_LOG)}
+                                ROBOT_COMMAND, RUNNER_EVENT, EPISODE_SUMMARY, FRI_DATAGRAM, NETFT_RDT,
+                                SERVICE_LOG)}
 BY_TOPIC = {m.topic: m for m in MESSAGES.values()}
 # topics published every n-th FRI cycle: their seq counts FRI cycles, so it advances by n
 STRIDES = {m.topic: m.period_ns // FRI_CYCLE_NS for m in MESSAGES.values()
            if m.period_ns is not None and m.period_ns > FRI_CYCLE_NS}
+
+
+def datagram_fields(data: bytes, direction: str) -> dict:
+    """FRI_DATAGRAM's ``bytes`` and ``decoded`` for the datagram ``data``."""
+    record = decode_measurement(data) if direction == "measurement" else decode_command(data)
+    return {"bytes": base64.b64encode(data).decode("ascii"), "decoded": _finite_or_none(record_fields(record))}
+
+
+def _finite_or_none(value):
+    """JSON has no NaN: a field a command leaves unflagged may hold any float32, which
+    the bytes keep; decoded, a non-finite one is null."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, list):
+        return [_finite_or_none(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _finite_or_none(v) for k, v in value.items()}
+    return value
+
+
+_RDT_RECORD = struct.Struct(">III6i")
+
+
+def rdt_fields(data: bytes) -> dict:
+    """NETFT_RDT's ``bytes`` and ``records`` for an RDT datagram."""
+    records = [dict(zip(("rdt_sequence", "ft_sequence", "status"), r[:3]), counts=list(r[3:]))
+               for r in _RDT_RECORD.iter_unpack(data[:len(data) - len(data) % _RDT_RECORD.size])]
+    return {"bytes": base64.b64encode(data).decode("ascii"), "records": records}
 
 
 def documentation() -> str:

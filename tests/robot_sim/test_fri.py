@@ -468,6 +468,12 @@ BAD_PACKETS = {
     "unhashable mode": (lambda p: replace(p, requested_mode=[1]), "requested_mode"),
     "position mode without jnt_pos": (
         lambda p: replace(p, jnt_pos=None, requested_mode=ControlMode.POSITION), "jnt_pos is missing"),
+    "joint stiffness 6000": (lambda p: replace(p, jnt_stiffness=np.full(7, 6000.0)),
+                             "jnt_stiffness[0] = 6000.0 outside [0, 5000]"),
+    "joint damping 1.5": (lambda p: replace(p, jnt_damping=np.full(7, 1.5)), "jnt_damping[0] = 1.5 outside [0, 1]"),
+    "joint torque nan": (lambda p: replace(p, add_jnt_trq=np.array([0, 0, np.nan, 0, 0, 0, 0.0])),
+                         "add_jnt_trq[2] is not finite"),
+    "joint stiffness short": (lambda p: replace(p, jnt_stiffness=np.zeros(6)), "jnt_stiffness has shape (6,)"),
 }
 
 

@@ -436,7 +436,10 @@ def test_lifetime_and_arguments():
     with NetFtBox(rdt_port=0, http_port=None, calibration_port=0) as first:
         with pytest.raises(OSError):
             NetFtBox(rdt_port=0, http_port=None, calibration_port=first.calibration_port).serve()
-    for bad in ({"address": "192.168.1.1"}, {"address": "localhost"}, {"rdt_port": 70000},
+    # any IPv4 address may be asked for; one the machine does not have fails to bind
+    with pytest.raises(OSError):
+        NetFtBox(address="192.0.2.1", rdt_port=0, http_port=None, calibration_port=None).serve()
+    for bad in ({"address": "localhost"}, {"address": "::1"}, {"rdt_port": 70000},
                 {"rdt_buffer_size": 0}, {"rdt_buffer_size": 41}, {"status_layout": "axia"},
                 {"product_name": "a<b>"}):
         with pytest.raises(ValueError):

@@ -1,0 +1,69 @@
+"""``etar-bench serve``: the simulated cell alone, for a lab's own FRI remote and Net F/T client.
+
+The world, the arm behind its KRC and the ATI sensor, on the realtime clock, with the
+recorder: the robot speaks FRI 1.0 over UDP (``--wire udp``: measurement datagrams to
+the remote's address every cycle, a KRL program on the KRL channels) and the sensor
+serves a Net F/T box.  The arm is held where the scenario's first reproduction would
+start (without its random perturbation), or at ``--start``, in monitor mode, until the
+remote asks the KRL program for command mode.  One episode of kind ``served`` runs for
+``max_seconds`` (or until Ctrl-C), recorded to ``recordings/served_00.mcap``; the
+report says what the remote did.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+from robot_sim.fri_udp import host_port
+from robot_sim.fri_wire import REMOTE_PORT
+from robot_sim.krl import KRL_CONVENTIONS
+from services.scenario import Scenario
+from services.scenario.starts import reproduction_starts
+
+# what the recorder waits for before it closes the served episode's file
+SERVED_TOPICS = ("robot/state", "robot/contact", "ft/wrench")
+
+
+@dataclass(frozen=True)
+class ServeOptions:
+    fri_remote: str = f"127.0.0.1:{REMOTE_PORT}"  # where the KRC sends its measurements
+    fri_bind: str = "127.0.0.1:0"  # the KRC's own socket
+    krl: str = "frilibrary"
+    netft: str | None = "127.0.0.1"  # the Net F/T box's address (None: no box)
+    netft_ports: tuple = ()  # extra ft_sensor flags for the box's ports
+    start: tuple | None = None  # the tcp's start, m (None: the scenario's reproduction start)
+    max_seconds: float = 60.0
+
+    def __post_init__(self):
+        host_port(self.fri_remote, "--fri-remote")
+        host_port(self.fri_bind, "--fri-bind", listen=True)
+        if self.krl not in KRL_CONVENTIONS:
+            raise ValueError(f"--krl must be one of {', '.join(KRL_CONVENTIONS)}, got {self.krl!r}")
+        if not (isinstance(self.max_seconds, (int, float)) and math.isfinite(self.max_seconds)
+                and self.max_seconds > 0):
+            raise ValueError(f"--max-seconds must be a number of seconds > 0, got {self.max_seconds!r}")
+        if self.start is not None and (len(self.start) != 3 or not all(math.isfinite(v) for v in self.start)):
+            raise ValueError(f"--start must be three finite numbers X,Y,Z in m, got {self.start!r}")
+
+    def robot_flags(self) -> tuple:
+        return ("--wire", "udp", "--fri-remote", self.fri_remote, "--fri-bind", self.fri_bind, "--krl", self.krl)
+
+    def sensor_flags(self) -> tuple:
+        return (("--netft", self.netft) + tuple(self.netft_ports)) if self.netft else ()
+
+
+def served_start(scenario: Scenario, options: ServeOptions) -> tuple[float, float, float]:
+    """Where the arm is held: ``--start``, or the scenario's first reproduction start
+    without its random perturbation."""
+    if options.start is not None:
+        return tuple(float(v) for v in options.start)
+    stages = scenario.reproduce_stages
+    if not stages:
+        raise ValueError(f"{scenario.source}: the scenario has no reproduce stage to take the start from; "
+                         f"give --start X,Y,Z")
+    stage = stages[0]
+    unperturbed = dataclasses.replace(stage, count=1, start_perturbation=0.0, min_distance_from_demonstrations=0.0)
+    (_, start), = reproduction_starts(unperturbed, scenario.world, scenario.seed, [])
+    return tuple(float(v) for v in start)
