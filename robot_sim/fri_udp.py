@@ -22,13 +22,16 @@ the accepted command with ``FriLink.receive``), the clock of a realtime loop, an
 KRL program behind ``$FRI_TO_*`` / ``$FRI_FRM_*`` (:attr:`FriUdpEndpoint.krl_to` is
 sent with every measurement; :attr:`FriUdpEndpoint.krl_from` is the block of the
 newest well-formed command, late ones included).  The endpoint reads no clock except
-to stamp arrivals (``clock``, ``time.monotonic_ns`` by default, injectable).
+to stamp arrivals (``clock``, ``time.monotonic_ns`` by default, injectable; on Linux the
+kernel's receive stamp says how long a datagram waited to be read, which is taken off).
 """
 
 from __future__ import annotations
 
 import select
 import socket
+import struct
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -54,6 +57,9 @@ from robot_sim.fri_wire import (
 __all__ = ["FriUdpCounters", "FriUdpEndpoint", "hold_measured_pose", "host_port"]
 
 _RECV_BYTES = 2048  # larger than any FRI datagram: a longer one arrives cut, and is still the wrong size
+_SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)  # Linux's value; Python 3.11 does not name it
+_TIMESPEC = struct.Struct("@ll")  # struct timespec: tv_sec, tv_nsec
+_ANCILLARY_BYTES = socket.CMSG_SPACE(_TIMESPEC.size) if hasattr(socket, "CMSG_SPACE") else 64
 
 
 @dataclass
@@ -131,6 +137,16 @@ class FriUdpEndpoint:
         self._out = np.ndarray((), dtype=MEASUREMENT_DTYPE, buffer=self._out_buf)
         self._in_buf = bytearray(_RECV_BYTES)
         self._in = memoryview(self._in_buf)
+        self._in_vec = [self._in_buf]
+        # Linux stamps each datagram as it arrives (SO_TIMESTAMPNS): the answer's latency is
+        # then measured to its arrival, not to when the KRC's loop got round to reading it
+        self._kernel_stamps = False
+        if sys.platform == "linux":
+            try:
+                self._sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+                self._kernel_stamps = True
+            except OSError:
+                pass
         self._open_seq: int | None = None
         self._mode = ControlMode.OTHER
         self._measurement: MeasurementPacket | None = None
@@ -209,7 +225,11 @@ class FriUdpEndpoint:
     def _drain(self) -> None:
         while True:
             try:
-                n, source = self._sock.recvfrom_into(self._in_buf)
+                if self._kernel_stamps:
+                    n, ancillary, _, source = self._sock.recvmsg_into(self._in_vec, _ANCILLARY_BYTES)
+                else:
+                    n, source = self._sock.recvfrom_into(self._in_buf)
+                    ancillary = ()
             except BlockingIOError:
                 return
             except OSError:
@@ -217,9 +237,19 @@ class FriUdpEndpoint:
                 return
             self.counters.received += 1
             self.last_source = source
-            self._take(self._in[:n])
+            self._take(self._in[:n], self._arrival(ancillary))
 
-    def _take(self, data: memoryview) -> None:
+    def _arrival(self, ancillary) -> int:
+        """When the datagram arrived, on ``clock``: the kernel's stamp (how long it has
+        waited in the socket's buffer) taken off now, else now."""
+        now = self.clock()
+        for level, kind, data in ancillary:
+            if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(data) >= _TIMESPEC.size:
+                sec, nsec = _TIMESPEC.unpack_from(data)
+                return now - max(0, time.time_ns() - (sec * 1_000_000_000 + nsec))
+        return now
+
+    def _take(self, data: memoryview, arrival_ns: int) -> None:
         c = self.counters
         try:
             rec = decode_command(data)
@@ -257,7 +287,7 @@ class FriUdpEndpoint:
             self.last_reject_reason = reason
             return
         self._command = cmd
-        self._arrival_ns = self.clock()
+        self._arrival_ns = arrival_ns
         self.last_accepted = bytes(data)
         c.accepted += 1
         self.last_reject_reason = ""

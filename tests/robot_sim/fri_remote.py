@@ -9,6 +9,7 @@ Independent of the KRC side's code except for the datagram layouts (robot_sim.fr
 
 from __future__ import annotations
 
+import os
 import socket
 import threading
 
@@ -72,6 +73,13 @@ class Remote:
         return self.to_int(self.conv["state"])
 
     def _run(self):
+        # a lab's remote runs its FRI thread at a realtime priority (the Stanford library asks
+        # for SCHED_FIFO 60): without it, this thread waits behind the test's others now and
+        # then for longer than a cycle, and FRI never sees the 600 clean cycles command mode needs
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(60))
+        except (PermissionError, OSError, AttributeError):
+            pass
         buf = bytearray(2048)
         while not self._stop.is_set():
             try:

@@ -3,6 +3,7 @@ with plain sockets and ``struct`` at WIRE.md's offsets (not with the codec under
 Nothing sleeps: the tests wait on the socket (``poll``'s timeout, ``settimeout``)."""
 
 import socket
+import sys
 import struct
 import time
 
@@ -234,3 +235,17 @@ def test_the_command_is_a_fresh_object_each_cycle(endpoint, remote):
     second = endpoint.poll(WAIT_S)
     assert first is not second and first.add_tcp_ft[0] == 1.0 and second.add_tcp_ft[0] == 2.0
     assert isinstance(second, CommandPacket)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="kernel receive stamps (SO_TIMESTAMPNS) are Linux's")
+def test_an_answer_read_late_is_stamped_when_it_arrived(endpoint, remote):
+    """The KRC's loop may read the socket only at the end of its cycle: the latency FRI
+    counts is to the datagram's arrival (the kernel's stamp), not to that read."""
+    endpoint.send(packet(1))
+    remote.answer(remote.receive())
+    sent = time.monotonic_ns()
+    time.sleep(0.05)  # the answer waits in the socket's buffer
+    cmd = endpoint.poll()
+    read = time.monotonic_ns()
+    assert cmd is not None and cmd.seq == 1
+    assert endpoint.arrival_ns < sent + 20_000_000 < read

@@ -130,16 +130,16 @@ def unpack_records(data: bytes) -> list[tuple]:
 
 @pytest.mark.slow
 def test_pynetft_streams_every_sample_with_the_simulated_counts():
-    """3 s at 1 kHz through pynetft: no record lost (ft_sequence and rdt_sequence
+    """10 s at 1 kHz through pynetft: no record lost (ft_sequence and rdt_sequence
     contiguous, pynetft's own loss count 0), each sample's counts the ones the sensor made
     for that ft_sequence, forces and torques counts / 1e6 in N and N·m."""
     pynetft = client("pynetft")
     with served_box() as box, Feeder(box, AtiConfig.mini45()) as feed:
         with pynetft_client(pynetft, box) as c:
             assert c.wait_for_first_sample(2.0)
-            got = take(c.samples(timeout=1.0), 3.0)
+            got = take(c.samples(timeout=1.0), 10.0)
             health = c.health()
-    assert len(got) >= 2500, len(got)
+    assert len(got) >= 9000, len(got)
     ft = np.array([s.ft_sequence for s in got])
     rdt = np.array([s.rdt_sequence for s in got])
     assert np.all(np.diff(ft) == 1), f"ft_sequence gaps at {np.flatnonzero(np.diff(ft) != 1)}"

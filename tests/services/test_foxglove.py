@@ -83,7 +83,7 @@ def test_every_visual_message_is_valid_against_foxglove_own_json_schemas(run_dir
 @pytest.mark.slow
 def test_the_visual_topics_show_the_arm_where_the_robot_measured_it(run_dir):
     path = run_dir / "recordings" / "reproduction_00.mcap"
-    states, wrenches, phases, commands = {}, [], [], []
+    states, wrenches = {}, []
     for m in read_episode(path).messages:
         if m.topic == "/robot/state":
             d = json.loads(m.payload)

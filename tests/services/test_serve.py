@@ -1,0 +1,133 @@
+"""``etar-bench serve`` as a lab would use it: the command as a process, a FRI 1.0 remote
+(tests/robot_sim/fri_remote.py, written from WIRE.md) driving it over UDP through the
+Stanford library's KRL convention, and the unmodified PyPI client pynetft streaming from
+its Net F/T box; then the report and the MCAP recording, read with the mcap library."""
+
+from __future__ import annotations
+
+import base64
+import json
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from robot_sim.fri import FriState
+from robot_sim.fri_wire import COMMAND_SIZE, MEASUREMENT_SIZE, CommandFlags, decode_command, decode_measurement
+from services.run.episode import SETTLE_CYCLES
+from tests.robot_sim.fri_remote import Remote
+
+ROOT = Path(__file__).resolve().parents[2]
+BOX_LINE = re.compile(r"Net F/T box on ([\d.]+) \(RDT UDP (\d+), HTTP (\d+), calibration TCP (\d+)\)")
+
+
+def wait_for(predicate, seconds: float, what: str):
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        if predicate():
+            return
+        time.sleep(0.01)
+    raise AssertionError(f"timed out after {seconds} s waiting for {what}")
+
+
+def move_x(distance: float, seconds: float):
+    state = {}
+
+    def command(m):
+        if "t0" not in state:
+            state["t0"], state["pose"] = float(m["intf"]["timestamp"]), np.array(m["data"]["msrCartPos"], float)
+        s = min(1.0, (float(m["intf"]["timestamp"]) - state["t0"]) / seconds)
+        target = state["pose"].copy()
+        target[3] += distance * (10 * s**3 - 15 * s**4 + 6 * s**5)
+        return CommandFlags.CART_IMP, {"cartPos": target}
+    return command
+
+
+@pytest.mark.slow
+def test_serve_a_lab_remote_and_a_net_ft_client(tmp_path):
+    pynetft = pytest.importorskip("pynetft", reason="the PyPI Net F/T client 'pynetft' is not installed")
+    out = tmp_path / "served"
+    with Remote("frilibrary", strategy=20) as remote:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "services.cli.bench", "serve", "scenarios/smoke.yaml", "--out", str(out),
+             "--fri-remote", f"127.0.0.1:{remote.port}", "--netft", "127.0.0.1", "--netft-rdt-port", "0",
+             "--netft-http-port", "0", "--netft-calibration-port", "0", "--max-seconds", "14",
+             ],
+            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            box = None
+            for line in proc.stderr:
+                found = BOX_LINE.search(line)
+                if found:
+                    box = found
+                    break
+            assert box is not None, "serve never said where its Net F/T box is"
+            address, rdt, http = box.group(1), int(box.group(2)), int(box.group(3))
+            wait_for(lambda: remote.received > 200, 10, "measurement datagrams")
+            assert int(remote.last["intf"]["state"]) == FriState.MON and remote.krl_state == 10
+            config = pynetft.Config(sensor_host=address, rdt_port=rdt, http_port=http)
+            with pynetft.Client(config, queue_size=100_000) as client:
+                assert client.wait_for_first_sample(3.0)
+                samples = client.samples(timeout=1.0)
+                got = [next(samples) for _ in range(1000)]
+                health = client.health()
+                remote.command = move_x(0.02, 1.0)
+                remote.request = "start"
+                wait_for(lambda: int(remote.last["intf"]["state"]) == FriState.CMD, 8, "command mode")
+                time.sleep(2.0)
+                remote.request = "stop"
+                wait_for(lambda: int(remote.last["intf"]["state"]) == FriState.MON, 3, "monitor mode again")
+                remote.request = "close"
+                wait_for(lambda: int(remote.last["intf"]["state"]) == FriState.OFF, 3, "OFF after the close")
+            stdout, stderr = proc.communicate(timeout=60)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    assert proc.returncode == 0, stderr[-2000:]
+    # the client saw every sample of its second, in order
+    ft = np.array([s.ft_sequence for s in got])
+    assert np.all(np.diff(ft) == 1) and health.lost_count == 0 and health.malformed_count == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["error"] is None
+    served, = report["served"]
+    wire = served["wire"]
+    kinds = [e["kind"] for e in wire["krl_events"]]
+    assert kinds[:4] == ["start", "started", "stop", "close"], kinds
+    assert wire["command_mode_s"] > 1.5 and served["fri"]["command_mode_entered"] == 1
+    assert wire["datagrams"]["accepted"] > 0.9 * wire["datagrams"]["sent"]
+    assert wire["datagrams"]["wrong_size"] == wire["datagrams"]["invalid"] == 0
+    assert served["safety"] == 0 and wire["safety_stop"] is None
+    text = (out / "report.txt").read_text()
+    assert "served over FRI 1.0/UDP" in text and "KRL started: friStart: command mode entered" in text
+    # the recording: each datagram as its bytes and decoded, the RDT records the client got
+    directions, rdt_records = {"measurement": 0, "command": 0}, 0
+    moved = []
+    with open(out / "recordings" / "served_00.mcap", "rb") as f:
+        for _, channel, message in make_reader(f).iter_messages():
+            if channel.topic.endswith("fri/datagram"):
+                msg = json.loads(message.data)
+                data = base64.b64decode(msg["bytes"])
+                directions[msg["direction"]] += 1
+                if msg["direction"] == "measurement":
+                    assert len(data) == MEASUREMENT_SIZE
+                    rec = decode_measurement(data)
+                    assert msg["decoded"]["head"]["sendSeqCount"] == int(rec["head"]["sendSeqCount"])
+                    assert msg["decoded"]["head"]["sendSeqCount"] == msg["seq"] & 0xFFFF
+                    if msg["decoded"]["intf"]["state"] == FriState.CMD:
+                        moved.append(msg["decoded"]["data"]["msrCartPos"][3])
+                else:
+                    assert len(data) == COMMAND_SIZE
+                    assert msg["decoded"]["cmd"]["cmdFlags"] == int(decode_command(data)["cmd"]["cmdFlags"])
+            elif channel.topic.endswith("netft/rdt"):
+                rdt_records += len(json.loads(message.data)["records"])
+    # the settle before the episode (the sensor tared while the arm rests) is recorded too
+    assert directions["measurement"] == wire["datagrams"]["sent"] + SETTLE_CYCLES
+    assert directions["command"] > 0.9 * directions["measurement"]
+    assert max(moved) - min(moved) == pytest.approx(0.02, abs=3e-3)  # the 2 cm the remote commanded
+    assert rdt_records >= len(got)
