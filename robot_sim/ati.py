@@ -468,6 +468,7 @@ class AtiSensor:
         *,
         rdt_sequence_start: int = 1,
         ft_sequence_start: int = 1,
+        clock_origin_ns: int | None = None,
     ) -> None:
         if not isinstance(config, AtiConfig):
             raise TypeError(f"config must be an AtiConfig, got {type(config).__name__}")
@@ -511,8 +512,10 @@ class AtiSensor:
 
         self._next_rdt = int(rdt_sequence_start)
         self._ft_start = int(ft_sequence_start)
-        self._t0_ns: int | None = None
-        self._last_t_ns = 0
+        # the time the internal sample count starts at (None: the first reading's): a cell's
+        # start makes ft_sequence - ft_sequence_start count the cell's cycles
+        self._t0_ns: int | None = None if clock_origin_ns is None else int(clock_origin_ns)
+        self._last_t_ns = self._t0_ns or 0
         self._sample_index = 0
 
     # -- commands -----------------------------------------------------------------

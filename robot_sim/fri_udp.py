@@ -125,6 +125,7 @@ class FriUdpEndpoint:
         self.last_source: tuple[str, int] | None = None  # where the newest datagram came from
         self.last_sent = b""  # the bytes of the last measurement sent
         self.last_accepted = b""  # the bytes of the last command accepted
+        self.krl_accepted: KrlChannels | None = None  # $FRI_FRM_* of the last command accepted
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             self._sock.bind(bind)
@@ -289,5 +290,6 @@ class FriUdpEndpoint:
         self._command = cmd
         self._arrival_ns = arrival_ns
         self.last_accepted = bytes(data)
+        self.krl_accepted = self.krl_from
         c.accepted += 1
         self.last_reject_reason = ""

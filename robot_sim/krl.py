@@ -16,7 +16,13 @@ runs either, a cycle at a time, against the KRC's :class:`~robot_sim.fri.FriLink
   stopped.  It waits for quality PERFECT before ``friStart`` and reports 1 once the
   link is in command mode.
 
-Both use the strategy numbers 10 joint position, 20 Cartesian impedance, 30 joint
+- ``testbench``, the testbench's own runner's: the runner sets the modes (the episode
+  protocol, as over Zenoh) and the program leaves the channels to the run: the KRC
+  reports the episode on ``$FRI_TO_*`` and the remote, the testbench's commander, its
+  goal and holds on ``$FRI_FRM_*`` (``services/nodes/robot.py`` says which index holds
+  what).
+
+The public ones use the strategy numbers 10 joint position, 20 Cartesian impedance, 30 joint
 impedance; anything else (90 joint torque, ...) is refused: the program stays in monitor
 mode and says why in :attr:`KrlProgram.refusal`, in its event list and in
 ``$FRI_TO_INT[14]`` (the testbench's own channel: the refused strategy's number, 0 when
@@ -38,9 +44,10 @@ from dataclasses import dataclass
 from robot_sim.fri import FRI_RATE_HZ, ControlMode, FriLink, FriQuality, FriState
 from robot_sim.fri_wire import KrlChannels
 
-__all__ = ["KRL_CONVENTIONS", "OFF_STREAM_S", "POLL_S", "REFUSAL_INDEX", "STRATEGIES", "KrlEvent", "KrlProgram"]
+__all__ = ["KRL_CONVENTIONS", "LAB_CONVENTIONS", "OFF_STREAM_S", "POLL_S", "REFUSAL_INDEX", "STRATEGIES", "KrlEvent", "KrlProgram"]
 
-KRL_CONVENTIONS = ("frilibrary", "lwr_hw")
+KRL_CONVENTIONS = ("frilibrary", "lwr_hw", "testbench")
+LAB_CONVENTIONS = ("frilibrary", "lwr_hw")  # the public remotes' (etar-bench serve)
 POLL_S = 0.05
 OFF_STREAM_S = 1.0
 REFUSAL_INDEX = 14  # $FRI_TO_INT[14]: the strategy refused (the testbench's own channel)
@@ -134,8 +141,9 @@ class KrlProgram:
             return
         if self.convention == "frilibrary":
             self._poll_frilibrary(seq, krl_from)
-        else:
+        elif self.convention == "lwr_hw":
             self._poll_lwr_hw(seq, krl_from)
+        # testbench: the runner starts and stops command mode itself
 
     # ------------------------------------------------------------ conventions
     def _poll_frilibrary(self, seq: int, frm: KrlChannels) -> None:
@@ -206,13 +214,25 @@ class KrlProgram:
             self._close_value = 30 if self.runs % 2 else 40
             self.krl_to.ints[_FL_CLOSE_VALUE - 1] = self._close_value
             self._report(FL_OPEN)
-        else:
+        elif self.convention == "lwr_hw":
             self._report(LH_INIT)
         self._event(seq, "open", "friOpen: monitor mode")
 
     def _report(self, value: int) -> None:
+        if self.convention == "testbench":
+            return  # the channels are the run's
         index = _FL_STATE if self.convention == "frilibrary" else _LH_STATE
         self.krl_to.ints[index - 1] = value
 
     def _event(self, seq: int, kind: str, text: str) -> None:
         self.events.append(KrlEvent(int(seq), kind, text))
+
+
+# testbench: what the run's KRC and its remote (the testbench's commander) tell each other
+# on the KRL channels, beside the FRI fields (KRL indices, from 1)
+TB_EPISODE, TB_KIND = 1, 2  # $FRI_TO_INT: the episode index (-1: none), its kind (TB_KINDS)
+TB_KINDS = ("none", "demonstration", "reproduction", "served")
+TB_GRAVITY_COMPENSATION = 1  # $FRI_TO_BOOL: the KRC runs gravity compensation (teaching)
+TB_GOAL_REACHED = 1  # $FRI_FRM_BOOL: the remote has reached its goal
+TB_HOLD, TB_ESTIMATE_SEQ = 1, 2  # $FRI_FRM_INT: why it holds (TB_HOLDS), the estimate it used (-1: none)
+TB_HOLDS = ("", "stale_estimate", "wrench_saturated", "wrench_invalid", "other")

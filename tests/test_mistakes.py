@@ -39,6 +39,17 @@ CASES = [
     ("etar-bench run LOW.yaml", 2, "LOW.yaml: stages[0].demonstrate.start: demonstration 1 (left side) would start "
                                    "at z = -0.101 m, at or below the floor"),
     ("etar-bench run scenarios/smoke.yaml --bogus", 2, "--bogus: not a flag of this program"),
+    ("etar-bench run scenarios/smoke.yaml --wire udp", 2, "scenarios/smoke.yaml: clock: --wire udp needs the "
+                                                         "realtime clock (--clock realtime)"),
+    # etar-bench serve
+    ("etar-bench serve scenarios/smoke.yaml --out DIR/served --fri-remote nonsense", 2,
+     "--fri-remote 'nonsense': expected HOST:PORT, e.g. 127.0.0.1:49938"),
+    ("etar-bench serve scenarios/smoke.yaml --out DIR/served --start 2,0,0.3", 2,
+     "--start 2,0,0.3: a point the arm cannot reach with the tool pointing down"),
+    ("etar-bench serve scenarios/smoke.yaml --out DIR/served --netft example.org", 2,
+     "--netft example.org: not an IPv4 address"),
+    ("etar-bench serve scenarios/smoke.yaml --out DIR/served --krl testbench", 2,
+     "--krl testbench: not one of frilibrary, lwr_hw"),
     # etar-bench check
     ("etar-bench check FAR.yaml", 2, "would start at a point the arm cannot reach with the tool pointing down"),
     ("etar-bench check NO_MODEL.yaml", 2, "model: the model file does not exist"),

@@ -67,7 +67,7 @@ def cmd_run(args) -> int:
                              transport=args.transport, attach=args.attach, ready_timeout=args.ready_timeout,
                              sched_fifo=args.sched_fifo_ends, realtime_profile=args.realtime_profile, tls=args.tls,
                              hosts=args.hosts, figures=not args.no_figures, foxglove=args.foxglove,
-                             replace=args.replace, command=args.command_line)
+                             replace=args.replace, command=args.command_line, wire=args.wire)
         runner = Runner(scenario, options, progress=_say)
     except (ScenarioError, TaskError, CredentialsError, HostsError, ValueError) as exc:
         # every option refused before anything started (services.run.options)
@@ -448,12 +448,12 @@ def build_parser() -> OneLineErrorParser:
     from services.results import diff
     from services.run import demonstration, sweep
     from services.scenario.checks import SIDES
-    from services.run.options import RunOptions
+    from services.run.options import WIRES, RunOptions
     from services.runtime.cycle import CLOCKS
     from services.runtime.roles import FIFO_CHAIN
     from services.transport.cell import TRANSPORTS
 
-    from robot_sim.krl import KRL_CONVENTIONS
+    from robot_sim.krl import LAB_CONVENTIONS
     from services.run.serve import ServeOptions
 
     fifo = ", ".join(f"{role} {priority}" for role, priority in FIFO_CHAIN)
@@ -500,6 +500,10 @@ def build_parser() -> OneLineErrorParser:
                         f"over Foxglove's WebSocket protocol on PORT (default {FOXGLOVE_PORT}; 0: any free port, "
                         "printed); "
                         "connect Foxglove to ws://localhost:PORT")
+    p.add_argument("--wire", choices=WIRES, default=RunOptions.wire,
+                   help="zenoh (default): the nodes talk over Zenoh; udp: over the lab's protocols, the KRC and "
+                        "the commander FRI 1.0 over UDP, the estimator reading the sensor's Net F/T box (realtime "
+                        "only; docs/fri.md)")
     p.add_argument("--no-figures", action="store_true",
                    help="skip the thesis' figures and report.html after the report (etar-bench figures RUN_DIR "
                         "draws both later)")
@@ -518,7 +522,7 @@ def build_parser() -> OneLineErrorParser:
                         f"{ServeOptions.fri_remote}, the port both public FRI 1.0 remote libraries listen on)")
     p.add_argument("--fri-bind", default=ServeOptions.fri_bind, metavar="HOST:PORT",
                    help="the KRC's own address (default: loopback, any free port; the remote answers to it)")
-    p.add_argument("--krl", choices=KRL_CONVENTIONS, default=ServeOptions.krl,
+    p.add_argument("--krl", choices=LAB_CONVENTIONS, default=ServeOptions.krl,
                    help="the KRL program's start/stop convention: frilibrary (the Stanford FRI Library's "
                         "FRIControl.src, default) or lwr_hw (CentroEPiaggio's ros_control.src)")
     p.add_argument("--netft", default=ServeOptions.netft, metavar="HOST",

@@ -56,6 +56,8 @@ class FtSensorConfig:
                                      "episode", metavar="S")
     netft: str = option("", "serve the sensor as a Net F/T box on this IPv4 address (e.g. 127.0.0.1; empty: no "
                             "box): RDT on UDP, netftapi2.xml over HTTP, calibration on TCP", metavar="HOST")
+    netft_topic: bool = option(True, "--netft: publish every RDT datagram the box sends on netft/rdt, bytes and "
+                                     "decoded (the recording of the wire)")
     netft_rdt_port: int = option(RDT_PORT, "--netft: the RDT UDP port (0: any free one)", metavar="PORT")
     netft_http_port: int = option(HTTP_PORT, "--netft: the HTTP port (0: any free one)", metavar="PORT")
     netft_calibration_port: int = option(CALIBRATION_PORT, "--netft: the TCP calibration port (0: any free one)",
@@ -91,7 +93,9 @@ class FtSensorNode(Node):
     def __init__(self, config: FtSensorConfig, bus, clock, *, run_id: str = "", mode: str = "lockstep", **_):
         super().__init__(bus, clock)
         self.ati_config = config.ati()
-        self.ati = AtiSensor(self.ati_config, config.seed)
+        # the sensor's samples counted from the cell's start: a record's ft_sequence is then the
+        # robot cycle's seq (both 1 at t = 0), which is how a Net F/T client lines them up
+        self.ati = AtiSensor(self.ati_config, config.seed, clock_origin_ns=0)
         self._cpf = float(self.ati_config.counts_per_force)
         self._cpt = float(self.ati_config.counts_per_torque)
         self._lock = threading.Lock()
@@ -103,10 +107,11 @@ class FtSensorNode(Node):
         self.publications = [Publication("ft/wrench")]
         self.box = None
         if config.netft:
-            self.publications.append(Publication("netft/rdt", drop_when_congested=True))
+            if config.netft_topic:
+                self.publications.append(Publication("netft/rdt", drop_when_congested=True))
             self.box = NetFtBox(self.ati_config, address=config.netft, rdt_port=config.netft_rdt_port,
                                 http_port=config.netft_http_port, calibration_port=config.netft_calibration_port,
-                                on_bias=self._netft_bias, tap=self._netft_sent)
+                                on_bias=self._netft_bias, tap=self._netft_sent if config.netft_topic else None)
             try:
                 self.box.serve()
             except OSError as exc:

@@ -29,6 +29,15 @@ estimate that says its wrench could not be used (``input_fault``: the sensor
 saturated or read non-finite) is a fault of the same kind, acted on at once: the
 hold's reason is the estimate's.
 
+``--fri-listen HOST:PORT`` (``etar-bench run --wire udp``, realtime): the commander is
+the KRC's FRI 1.0 remote over UDP, as a lab's control PC is.  The measurement datagrams
+come to its socket; each is passed on to the rest of the run as ``robot/state`` (as the
+lab's FRI component passed them on to its Orocos graph) and, during its reproduction,
+answered with a command datagram to the address it came from.  What a ``robot/command``
+says beyond FRI (the goal reached, a hold and its reason, the estimate used) goes on the
+KRL channels (``robot_sim.krl``'s testbench layout); ``robot/command`` is still published,
+for the recording.
+
 On the realtime clock only answers that can still count are sent: the commander
 takes the newest measurement that has arrived (``latest``) and leaves unanswered
 one that is already a cycle old (``stale`` in its status): its answer could only
@@ -46,6 +55,8 @@ import numpy as np
 
 from etar.policy import LEAD, ReproductionPolicy
 from etar.task import load_task
+from robot_sim.fri_udp import host_port
+from services.nodes.fri_remote import FriRemoteSocket
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import option
 from services.runtime.loop import Sections
@@ -71,10 +82,15 @@ class CommanderConfig:
     stall_every: float = option(0.0, "fault injection: stall before answering, every S seconds of simulated time "
                                      "(0: never)", metavar="S")
     stall_ms: float = option(0.0, "fault injection: how long each stall lasts, ms", metavar="MS")
+    fri_listen: str = option("", "be the KRC's FRI 1.0 remote over UDP on this address (measurements come here, "
+                                 "commands go back; each measurement is passed on as robot/state); empty: "
+                                 "robot/state and robot/command over the bus", metavar="HOST:PORT")
 
     def __post_init__(self):
         if not self.lead > 0:
             raise ValueError(f"lead must be > 0 m, got {self.lead!r}")
+        if self.fri_listen:
+            host_port(self.fri_listen, "fri_listen", listen=True)
 
 
 class ImpedanceCommanderNode(Node):
@@ -108,8 +124,16 @@ class ImpedanceCommanderNode(Node):
         self._cart_pos = np.empty((3, 4))  # the setpoint pose [R | p], packed into each command
         self.task = load_task(config.model) if config.model else None
         self.publications = [Publication("robot/command", drop_when_congested=True)]
-        self.subscriptions = [Subscription("robot/state", self.on_state, latest=True),
-                              Subscription("estimator/phase", self.on_phase, latest=True)]
+        self.subscriptions = [Subscription("estimator/phase", self.on_phase, latest=True)]
+        self.fri = None
+        if config.fri_listen:
+            if self.lockstep:
+                raise ValueError("fri_listen needs the realtime clock: the KRC sends on its own clock")
+            self.publications.append(Publication("robot/state", drop_when_congested=True))
+            self.fri = FriRemoteSocket(host_port(config.fri_listen, "fri_listen", listen=True), self._on_datagram,
+                                       clock.now_ns)
+        else:
+            self.subscriptions.append(Subscription("robot/state", self.on_state, latest=True))
 
     @property
     def listening(self) -> bool:
@@ -147,6 +171,18 @@ class ImpedanceCommanderNode(Node):
             self._recv_ns = recv_ns
             self._pending[msg["seq"]] = msg
             self._drain()
+
+    def _on_datagram(self, msg: dict, packed, recv_ns: int) -> None:
+        """A measurement datagram (FriRemoteSocket's thread): passed on, and answered during
+        this commander's reproduction."""
+        self.bus.publish("robot/state", *packed)
+        with self._lock:
+            if self.policy is None or msg["episode"] != self.episode:
+                return
+            self.sections.cycles += 1
+            self.sections.add("decode", self.clock.now_ns() - recv_ns)
+            self._recv_ns = recv_ns
+            self._answer(msg)
 
     def _drain(self, give_up: bool = False):
         for seq in sorted(self._pending):
@@ -217,6 +253,11 @@ class ImpedanceCommanderNode(Node):
             goal_reached=bool(self.policy.goal_reached), hold=self.hold["reason"] if self.hold else "",
             episode=state["episode"])
         t2 = now()
+        if self.fri is not None:
+            # the answer to the KRC first; the bus's copy is for the recording
+            self.fri.answer(state, cart.reshape(12), CART_STIFFNESS, CART_DAMPING, add,
+                            goal_reached=bool(self.policy.goal_reached), hold=self.hold["reason"] if self.hold else "",
+                            estimate_seq=self._latest_phase_seq)
         self.bus.publish("robot/command", *packed)
         t3 = now()
         sec = self.sections
@@ -263,6 +304,13 @@ class ImpedanceCommanderNode(Node):
                 self._drain(give_up=True)
 
     def status(self) -> dict:
-        return {"episode": self.episode, "missing_estimates": self.missing_estimates, "stale": self.stale,
-                "hold": self.first_hold, "holds": self.holds,
-                "sections": self.sections.summary(), "receive_to_answer": self.answer_time.summary()}
+        status = {"episode": self.episode, "missing_estimates": self.missing_estimates, "stale": self.stale,
+                  "hold": self.first_hold, "holds": self.holds,
+                  "sections": self.sections.summary(), "receive_to_answer": self.answer_time.summary()}
+        if self.fri is not None:
+            status["fri_udp"] = self.fri.status()
+        return status
+
+    def close(self) -> None:
+        if self.fri is not None:
+            self.fri.close()

@@ -29,6 +29,8 @@ import numpy as np
 
 from etar.task import load_task
 from etar.features import force_vector, pose_of, state_vector
+from robot_sim.fri_udp import host_port
+from services.nodes.netft_client import NetFtStream
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import option
 from robot_sim.ati import AtiStatus
@@ -44,10 +46,18 @@ class EstimatorConfig:
                                metavar="FILE")
     mute_after: float = option(0.0, "fault injection: publish no estimate after S seconds of each "
                                     "reproduction (simulated time; 0: never)", metavar="S")
+    netft: str = option("", "read the wrench from a Net F/T box's RDT stream at this address instead of "
+                            "ft/wrench (realtime)", metavar="HOST:PORT")
+    netft_http_port: int = option(80, "--netft: the box's HTTP port (its calibration, /netftapi2.xml)",
+                                  metavar="PORT")
 
     def __post_init__(self):
         if not (math.isfinite(self.mute_after) and self.mute_after >= 0):
             raise ValueError(f"mute_after must be a finite number of seconds >= 0, got {self.mute_after!r}")
+        if self.netft:
+            host_port(self.netft, "netft")
+        if isinstance(self.netft_http_port, bool) or not 1 <= self.netft_http_port <= 65535:
+            raise ValueError(f"netft_http_port must be a port 1..65535, got {self.netft_http_port!r}")
 
 
 class PhaseEstimatorNode(Node):
@@ -71,8 +81,15 @@ class PhaseEstimatorNode(Node):
         self._states: dict[int, dict] = {}
         self._wrenches: dict[int, dict] = {}
         self.publications = [Publication("estimator/phase")]
-        self.subscriptions = [Subscription("robot/state", self.on_state, every_tenth=True, latest=True),
-                              Subscription("ft/wrench", self.on_wrench, every_tenth=True, latest=True)]
+        self.subscriptions = [Subscription("robot/state", self.on_state, every_tenth=True, latest=True)]
+        self.netft = None
+        if config.netft:
+            if mode == "lockstep":
+                raise ValueError("netft needs the realtime clock: the box streams on the sensor's own clock")
+            self.netft = NetFtStream(host_port(config.netft, "netft"), config.netft_http_port,
+                                     lambda msg, recv_ns: self.on_wrench(msg, recv_ns, None), clock.now_ns)
+        else:
+            self.subscriptions.append(Subscription("ft/wrench", self.on_wrench, every_tenth=True, latest=True))
 
     @property
     def listening(self) -> bool:
@@ -170,5 +187,12 @@ class PhaseEstimatorNode(Node):
         return {"n_phases": task.n_phases}
 
     def status(self) -> dict:
-        return {"episode": self.episode, "updates": self.updates, "skipped": self.skipped,
-                "input_faults": self.input_faults, "muted": self.muted}
+        status = {"episode": self.episode, "updates": self.updates, "skipped": self.skipped,
+                  "input_faults": self.input_faults, "muted": self.muted}
+        if self.netft is not None:
+            status["netft"] = self.netft.status()
+        return status
+
+    def close(self) -> None:
+        if self.netft is not None:
+            self.netft.close()

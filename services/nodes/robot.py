@@ -39,7 +39,8 @@ from robot_sim.fri_udp import host_port
 from robot_sim.fri_wire import REMOTE_PORT
 from robot_sim.krc import SafetyReason
 from robot_sim.krc_udp import UdpKrc
-from robot_sim.krl import KRL_CONVENTIONS
+from robot_sim.krl import (KRL_CONVENTIONS, TB_EPISODE, TB_ESTIMATE_SEQ, TB_GOAL_REACHED, TB_GRAVITY_COMPENSATION,
+                           TB_HOLD, TB_HOLDS, TB_KIND, TB_KINDS)
 from robot_sim.labels import LABELERS
 from robot_sim.teacher import DOWN
 from robot_sim.worlds import TASK_WORLDS, WORLDS, Valley, valley
@@ -83,6 +84,8 @@ class RobotConfig:
     fri_remote: str = option(f"127.0.0.1:{REMOTE_PORT}", "udp: the FRI remote's address, where the measurement "
                                                          "datagrams go", metavar="HOST:PORT")
     fri_bind: str = option("127.0.0.1:0", "udp: the KRC's own address (port 0: any free port)", metavar="HOST:PORT")
+    wire_topic: bool = option(True, "udp: publish every datagram that crosses the KRC's socket on fri/datagram, "
+                                    "bytes and decoded (the recording of the wire: 2 messages and ~6 KB a cycle)")
     krl: str = option("frilibrary", "udp: the KRL program's start/stop convention on the KRL channels "
                                     "(frilibrary: the Stanford FRI Library's; lwr_hw: CentroEPiaggio's)",
                       choices=KRL_CONVENTIONS)
@@ -160,6 +163,9 @@ class RobotNode(Node):
         # the cell's own F/T sampling is the ft_sensor node's job: not done twice
         self.cell = RobotCell(config.world_spec(), seed=config.seed, faults=config.link_faults(), with_sensor=False)
         self.udp = None
+        # --krl testbench: the run's own commander is the remote; it passes each measurement on
+        # as robot/state (as the lab's FRI component did for its graph), so the robot does not
+        self.relayed = config.wire == "udp" and config.krl == "testbench"
         if config.wire == "udp":
             self.udp = UdpKrc(self.cell, host_port(config.fri_remote, "fri_remote"),
                               host_port(config.fri_bind, "fri_bind", listen=True), krl=config.krl,
@@ -180,7 +186,8 @@ class RobotNode(Node):
         self.publications = [Publication("robot/state", drop_when_congested=True),
                              Publication("robot/contact", drop_when_congested=True),
                              Publication("robot/episode", express=False)]
-        if self.udp is not None:
+        self.wire_topic = self.udp is not None and config.wire_topic
+        if self.wire_topic:
             self.publications.append(Publication("fri/datagram", drop_when_congested=True))
         # realtime needs only what it applies; lockstep also waits on the sensor and the estimator;
         # over UDP the commands come on the FRI socket
@@ -226,9 +233,12 @@ class RobotNode(Node):
         kind = p.get("kind", "demonstration")
         if kind not in EPISODE_KINDS:
             raise ValueError(f"kind must be one of {', '.join(EPISODE_KINDS)}, got {kind!r}")
-        if (kind == "served") != (self.udp is not None):
-            raise ValueError("an episode of kind served needs --wire udp, and --wire udp serves only such episodes"
-                             f" (kind {kind!r}, wire {self.config.wire})")
+        if kind == "served" and (self.udp is None or self.relayed):
+            raise ValueError("an episode of kind served needs --wire udp and a lab's KRL convention "
+                             f"(--krl frilibrary or lwr_hw), not wire {self.config.wire}, krl {self.config.krl}")
+        if kind != "served" and self.udp is not None and not self.relayed:
+            raise ValueError(f"--krl {self.config.krl} serves a lab's remote (episodes of kind served); the run's "
+                             f"own episodes over UDP need --krl testbench (kind {kind!r})")
         self.episode = int(p.get("episode", -1))
         self.kind = kind
         cell = self.cell
@@ -322,17 +332,31 @@ class RobotNode(Node):
     # --------------------------------------------------------------- FRI over UDP
 
     def _send_datagram(self, m) -> None:
-        if self.udp.send(m):
+        if self.relayed:
+            krl = self.udp.krl.krl_to
+            krl.ints[TB_EPISODE - 1] = self.episode
+            krl.ints[TB_KIND - 1] = TB_KINDS.index(self.kind) if self.episode >= 0 else 0
+            krl.set_flag(TB_GRAVITY_COMPENSATION, bool(self.cell.krc.gravity_compensation))
+        if self.udp.send(m) and self.wire_topic:
             self.bus.publish("fri/datagram", *FRI_DATAGRAM.pack(
                 seq=m.seq, stamp_ns=m.stamp_ns, sent_ns=self.udp.sent_ns, direction="measurement",
                 **datagram_fields(self.udp.last_sent, "measurement")))
 
-    def _take_datagram(self, m) -> None:
-        if self.udp.take(m) is not None:
-            self.ep.answer.add(self.udp.latency_ns)
+    def _take_datagram(self, m):
+        """The open cycle's command datagram, if it came: (goal reached, hold, estimate seq)
+        from its KRL block (what the testbench's remote says there), else None."""
+        udp = self.udp
+        if udp.take(m) is None:
+            return None
+        self.ep.answer.add(udp.latency_ns)
+        if self.wire_topic:
             self.bus.publish("fri/datagram", *FRI_DATAGRAM.pack(
-                seq=m.seq, stamp_ns=m.stamp_ns, sent_ns=self.udp.sent_ns + self.udp.latency_ns,
-                direction="command", **datagram_fields(self.udp.last_accepted, "command")))
+                seq=m.seq, stamp_ns=m.stamp_ns, sent_ns=udp.sent_ns + udp.latency_ns,
+                direction="command", **datagram_fields(udp.last_accepted, "command")))
+        frm = udp.endpoint.krl_accepted
+        hold = int(frm.ints[TB_HOLD - 1])
+        return (frm.flag(TB_GOAL_REACHED), TB_HOLDS[hold] if 0 <= hold < len(TB_HOLDS) else "other",
+                int(frm.ints[TB_ESTIMATE_SEQ - 1]))
 
     def _wire_summary(self, engine) -> dict:
         ep, udp, krl = self.ep, self.udp, self.udp.krl
@@ -370,7 +394,8 @@ class RobotNode(Node):
             safety=int(cell.krc.safety), gravity_compensation=bool(cell.krc.gravity_compensation),
             episode=self.episode)
         t1 = now()
-        self.bus.publish("robot/state", *state)
+        if not self.relayed:
+            self.bus.publish("robot/state", *state)
         t2 = now()
         sec.add("encode", t1 - sent)
         sec.add("publish", t2 - t1)
@@ -412,11 +437,20 @@ class RobotNode(Node):
         faults = cell.fri.faults
         if faults is not None:
             faults.active = self.config.fri.active(ep.k * cell.cycle_ns / 1e9)
-        if self.udp is not None:
-            self._take_datagram(m)
         goal_reached = teacher_done = False
         cycle_hold = None  # this cycle's command: why it holds ('' it does not); None: no command
         cycle_estimate = -1  # the estimate this cycle's command used
+        if self.udp is not None:
+            taken = self._take_datagram(m)
+            if taken is not None and self.relayed:
+                # the testbench's remote says on the KRL channels what a robot/command says
+                goal_reached, cycle_hold, cycle_estimate = taken
+                if goal_reached and ep.goal_at < 0:
+                    ep.goal_at = ep.k * cell.cycle_ns / 1e9
+                if cycle_estimate > ep.last_estimate and cycle_estimate in ep.sent:
+                    # closed loop: this cycle's measurement -> sensor -> estimator -> commander -> here
+                    ep.closed_loop.add(self.udp.sent_ns + self.udp.latency_ns - ep.sent[cycle_estimate])
+                    ep.last_estimate = cycle_estimate
         for seq, (msg, recv) in cmd_entries:
             sent_at = sent if seq == m.seq else ep.sent.get(seq)
             if sent_at is None:  # an answer to a cycle of no episode of ours

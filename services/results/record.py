@@ -74,6 +74,8 @@ class RunRecord:
     run_id: str
     out: Path  # the run's folder, absolute
     transport: str
+    # zenoh: FRI and the wrench over the bus; udp: over FRI 1.0/UDP and Net F/T (--wire udp, serve)
+    wire: str = "zenoh"
     workers: int | None = None  # processes for reading the recordings (None: one per CPU)
     demonstrations: list[EpisodeRecord] = field(default_factory=list)
     reproductions: list[EpisodeRecord] = field(default_factory=list)

@@ -65,7 +65,8 @@ def served_text(e: dict) -> list[str]:
 def render_text(r: dict) -> str:
     s = r["summary"]
     lines = [f"ETAR testbench run {r['run_id']} - scenario {r['scenario']} ({r['source']})",
-             f"clock {r['environment']['clock']}, transport {r.get('transport', '-')}, SCHED_FIFO "
+             f"clock {r['environment']['clock']}, transport {r.get('transport', '-')}"
+             + (", FRI 1.0 and Net F/T over UDP" if r.get("wire") == "udp" else "") + ", SCHED_FIFO "
              f"{'yes' if r['environment']['sched_fifo'] else 'no'}, kernel {r['environment']['kernel']}, "
              f"{r['environment']['cpus']} CPUs, {r['wall_seconds']:.1f} s wall"]
     if r.get("provenance"):

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from services.nodes import (CommanderConfig, EstimatorConfig, FoxgloveBridgeConfig, FtSensorConfig, RecorderConfig,
                             RobotConfig, TeacherConfig)
+from services.run.wire import udp_wiring
 from services.runtime.config import with_flags
 from services.scenario import Scenario
 
@@ -26,9 +27,14 @@ def node_configs(scenario: Scenario, options, roles, recordings: Path, offload_r
         "foxglove_bridge": FoxgloveBridgeConfig(world=sc.world, port=options.foxglove or 0),
     }
     serve = options.serve
-    configs["robot"] = with_flags(configs["robot"], (serve.robot_flags() if serve else ()) + tuple(options.robot_args))
-    configs["impedance_commander"] = with_flags(configs["impedance_commander"], options.commander_args)
-    configs["ft_sensor"] = with_flags(configs["ft_sensor"],
-                                      (serve.sensor_flags() if serve else ()) + tuple(options.sensor_args))
-    configs["recorder"] = with_flags(configs["recorder"], options.recorder_args)
+    # the lab's protocols: etar-bench serve (a lab's remote) or --wire udp (the run's own nodes)
+    wire = udp_wiring() if options.wire == "udp" else {}
+    if serve:
+        wire = {"robot": serve.robot_flags(), "ft_sensor": serve.sensor_flags()}
+    given = {"robot": options.robot_args, "impedance_commander": options.commander_args,
+             "ft_sensor": options.sensor_args, "recorder": options.recorder_args}
+    for role in ("robot", "impedance_commander", "ft_sensor", "recorder", "phase_estimator"):
+        flags = tuple(wire.get(role, ())) + tuple(given.get(role, ()))
+        if flags:
+            configs[role] = with_flags(configs[role], flags)
     return {role: configs[role] for role in roles}

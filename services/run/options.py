@@ -19,6 +19,9 @@ from services.transport.cell import TRANSPORTS, carrier
 from services.transport.session import ZenohOptions
 
 
+WIRES = ("zenoh", "udp")
+
+
 @dataclass(frozen=True)
 class RunOptions:
     out: str
@@ -69,6 +72,9 @@ class RunOptions:
     # etar-bench serve: the cell alone for a lab's FRI remote and Net F/T client, instead of
     # the scenario's stages (services.run.serve.ServeOptions)
     serve: object | None = None
+    # udp: the KRC and the commander over FRI 1.0/UDP, the estimator reading the Net F/T box
+    # (services.run.wire); realtime over Zenoh on one host only
+    wire: str = "zenoh"
 
     def __post_init__(self):
         if self.transport not in TRANSPORTS:
@@ -97,6 +103,11 @@ class RunOptions:
         if not (isinstance(self.ready_timeout, (int, float)) and math.isfinite(self.ready_timeout)
                 and self.ready_timeout > 0):
             raise ValueError(f"--ready-timeout must be a number of seconds > 0, got {self.ready_timeout!r}")
+        if self.wire not in WIRES:
+            raise ValueError(f"--wire must be one of {', '.join(WIRES)}, got {self.wire!r}")
+        if self.wire == "udp" and (in_process or self.hosts is not None or self.attach or self.tls is not None):
+            raise ValueError("--wire udp puts the robot, the commander, the sensor and the estimator on loopback "
+                             "UDP: it cannot be combined with --transport inproc, --hosts, --attach or --tls")
         for name in ("workers", "learn_threads"):
             value = getattr(self, name)
             if value is not None and not (isinstance(value, int) and value >= 1):
@@ -116,6 +127,10 @@ class RunOptions:
             port_free(self.foxglove)
         chosen = carrier(self.transport, self.roles(scenario), zenoh=self.zenoh, tls=self.tls, hosts=self.hosts,
                          attach=self.attach)
+        if self.wire == "udp" and scenario.clock != "realtime":
+            raise ScenarioError("--wire udp needs the realtime clock (--clock realtime): the KRC sends on its own "
+                                "clock and the remote answers on the wall clock", path="clock",
+                                value=scenario.clock, source=scenario.source)
         if scenario.clock not in chosen.clocks:
             raise ScenarioError(f"the {chosen.describe()} transport runs {' or '.join(chosen.clocks)} only; "
                                 "use --transport zenoh for realtime", path="clock", value=scenario.clock,

@@ -13,12 +13,13 @@ report says what the remote did.
 from __future__ import annotations
 
 import dataclasses
+import ipaddress
 import math
 from dataclasses import dataclass
 
 from robot_sim.fri_udp import host_port
 from robot_sim.fri_wire import REMOTE_PORT
-from robot_sim.krl import KRL_CONVENTIONS
+from robot_sim.krl import LAB_CONVENTIONS
 from services.scenario import Scenario
 from services.scenario.starts import reproduction_starts
 
@@ -39,8 +40,13 @@ class ServeOptions:
     def __post_init__(self):
         host_port(self.fri_remote, "--fri-remote")
         host_port(self.fri_bind, "--fri-bind", listen=True)
-        if self.krl not in KRL_CONVENTIONS:
-            raise ValueError(f"--krl must be one of {', '.join(KRL_CONVENTIONS)}, got {self.krl!r}")
+        if self.krl not in LAB_CONVENTIONS:
+            raise ValueError(f"--krl must be one of {', '.join(LAB_CONVENTIONS)}, got {self.krl!r}")
+        if self.netft is not None:
+            try:
+                ipaddress.IPv4Address(self.netft)
+            except ValueError:
+                raise ValueError(f"--netft {self.netft}: not an IPv4 address (e.g. 127.0.0.1; 'none': no box)") from None
         if not (isinstance(self.max_seconds, (int, float)) and math.isfinite(self.max_seconds)
                 and self.max_seconds > 0):
             raise ValueError(f"--max-seconds must be a number of seconds > 0, got {self.max_seconds!r}")

@@ -1,0 +1,35 @@
+"""``etar-bench run --clock realtime --wire udp``: the run's own nodes over the lab's
+protocols (the KRC and the commander FRI 1.0 over UDP, the estimator reading the Net F/T
+box), the smoke scenario end to end as a user runs it."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.mark.slow
+def test_the_smoke_scenario_reaches_its_goal_over_fri_udp_and_net_ft(tmp_path):
+    out = tmp_path / "udp"
+    proc = subprocess.run([sys.executable, "-m", "services.cli.bench", "run", "scenarios/smoke.yaml", "--clock",
+                           "realtime", "--wire", "udp", "--out", str(out), "--no-figures"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    report = json.loads((out / "report.json").read_text())
+    assert report["wire"] == "udp" and report["error"] is None
+    rp, = report["reproductions"]
+    assert rp["success"] and rp["phases"]["accuracy"] > 0.9
+    # the KRC's commands came over UDP: answered in time on nearly every cycle of the reproduction
+    assert rp["fri"]["answered"] > 0.95 * (rp["fri"]["answered"] + rp["fri"]["missed"])
+    services = report["timing"]["services"]
+    remote = services["impedance_commander"]["fri_udp"]
+    assert remote["answered"] >= rp["fri"]["answered"] and remote["garbage"] == 0
+    netft = services["phase_estimator"]["netft"]
+    assert netft["calibrated"] and netft["records"] > 10_000 and netft["out_of_order"] == 0
+    assert "FRI 1.0 and Net F/T over UDP" in (out / "report.txt").read_text()
