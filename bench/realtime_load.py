@@ -1,6 +1,7 @@
 """The realtime closed loop under the full service set, against a bare 1 kHz loop in the same run.
 
-    python bench/realtime_load.py [--seconds 60] [--sched-fifo-ends] [--isolate-robot] [--out DIR]
+    python bench/realtime_load.py [--seconds 60] [--sched-fifo-ends] [--isolate-robot] [--wire zenoh|udp|both]
+                                  [--out DIR]
 
 Runs scenarios/hold.yaml for ``--seconds``: the robot on absolute 1 ms
 deadlines in FRI command mode (once the link is PERFECT), answered every cycle
@@ -27,6 +28,11 @@ halting: on this VM a halted vCPU takes a few hundred microseconds to wake for
 a message; the bare loop in the same run gets it too).  The table also gives the CPU share of each
 process and of everything else on the machine ("other": someone else's jobs
 make the numbers worthless, so look at it).
+
+--wire: the nodes over Zenoh (default), over the lab's protocols (udp: the KRC and the
+commander FRI 1.0 over UDP, the estimator reading the Net F/T box; ``etar-bench run
+--wire udp``), or both, one after the other in the same invocation with the same bare
+loop running throughout, and a table of the two side by side.
 
 Targets (issue "Timing you can trust"): FRI answered in time >= 99.99 % of the
 cycles, or no more missed cycles than the bare loop misses in the same run;
@@ -91,7 +97,11 @@ def main():
                         help="the recorder's visual topics, Hz (0: none; default 50, as a run has them)")
     parser.add_argument("--foxglove", action="store_true",
                         help="with the live view (etar-bench run --foxglove) and a viewer subscribed to it")
-    parser.add_argument("--out", help="run directory (default: a temporary one)")
+    parser.add_argument("--wire", choices=("zenoh", "udp", "both"), default="zenoh",
+                        help="how FRI and the wrench travel: zenoh, udp (FRI 1.0 and Net F/T), or both one after "
+                             "the other (default zenoh)")
+    parser.add_argument("--out", help="run directory (default: a temporary one; with --wire both, one per wire "
+                                      "inside it)")
     args = parser.parse_args()
 
     from cpuwatch import CpuWatch
@@ -118,26 +128,33 @@ def main():
     bare.start()
     watch = CpuWatch(run_id).start()
     watch.add(bare.pid, "bare loop")
-    t = time.monotonic()
+    wires = ("zenoh", "udp") if args.wire == "both" else (args.wire,)
+    priorities = (("robot", 60), ("impedance_commander", 55))
+    if args.fifo_chain:
+        priorities += (("ft_sensor", 50), ("phase_estimator", 45))
+    runs = []
     viewers = []
     try:
-        priorities = (("robot", 60), ("impedance_commander", 55))
-        if args.fifo_chain:
-            priorities += (("ft_sensor", 50), ("phase_estimator", 45))
-        def progress(line):
-            print(line, file=sys.stderr)
-            if args.foxglove and "connect Foxglove to ws://" in line and not viewers:
-                from foxglove_client import Viewer
+        for wire in wires:
+            folder = out / wire if len(wires) > 1 else out
+            t = time.monotonic()
 
-                viewers.append(Viewer(int(line.rsplit(":", 1)[1].split()[0])))
-                viewers[0].start()
+            def progress(line):
+                print(line, file=sys.stderr)
+                if args.foxglove and "connect Foxglove to ws://" in line and not viewers:
+                    from foxglove_client import Viewer
 
-        report = run(scenario, RunOptions(out=str(out), run_id=run_id, sched_fifo=args.sched_fifo_ends,
-                                isolate_robot=args.isolate_robot, fifo_priorities=priorities,
-                                realtime_profile=args.profile, foxglove=0 if args.foxglove else None,
-                                recorder_args=("--visual-rate-hz", str(args.visual_rate_hz)),
-                                figures=False),
-                     progress=progress)
+                    viewers.append(Viewer(int(line.rsplit(":", 1)[1].split()[0])))
+                    viewers[0].start()
+
+            report = run(scenario, RunOptions(out=str(folder), run_id=f"{run_id}-{wire}",
+                                              sched_fifo=args.sched_fifo_ends, isolate_robot=args.isolate_robot,
+                                              fifo_priorities=priorities, realtime_profile=args.profile,
+                                              foxglove=0 if args.foxglove else None, wire=wire,
+                                              recorder_args=("--visual-rate-hz", str(args.visual_rate_hz)),
+                                              figures=False),
+                         progress=progress)
+            runs.append((wire, folder, report, time.monotonic() - t))
     finally:
         for v in viewers:
             v.stop.set()
@@ -146,11 +163,33 @@ def main():
         stop.set()
         fifo_bare, wakes, late = queue.get(timeout=60)
         bare.join(10)
-    wall = time.monotonic() - t
+    summaries = []
+    for wire, folder, report, wall in runs:
+        if len(runs) > 1:
+            print(f"\n== FRI and the wrench over {wire}")
+        summary = table(args, wire, folder, report, wall, priorities, qos, watch, wakes, late, fifo_bare, viewers)
+        if summary is None:
+            return 1
+        summaries.append(summary)
+    if len(summaries) > 1:
+        print("\n== side by side (the same bare loop ran throughout)")
+        cols = ("wire", "FRI in time", "missed", "longest miss run", "answer p50/p99 us", "closed loop p50/p99 us",
+                "robot loop misses", "bare loop misses")
+        rows = [cols] + [tuple(str(x[c]) for c in cols) for x in summaries]
+        widths = [max(len(r[i]) for r in rows) for i in range(len(cols))]
+        for r in rows:
+            print("  ".join(v.ljust(w) for v, w in zip(r, widths)))
+        (out / "realtime_load_wires.json").write_text(json.dumps(summaries, indent=1) + "\n")
+    return 0
+
+
+def table(args, wire, out, report, wall, priorities, qos, watch, wakes, late, fifo_bare, viewers) -> dict | None:
+    """The table of one run; a summary line's values (None: the run failed for another
+    reason than the clock)."""
     if report["error"]:
         print(f"run failed: {report['error']}")
         if not report["error"].startswith("the realtime clock was not held"):
-            return 1  # a clock not held is what this bench measures: its table follows
+            return None  # a clock not held is what this bench measures: its table follows
     (rp,) = report["reproductions"]
     loop = report["timing"]["robot_loop"]["per_episode"][-1]
     t0, t1 = loop["wall_start_ns"], loop["wall_end_ns"]
@@ -165,7 +204,7 @@ def main():
         return f"{d[k]:.0f}" if d.get(k) is not None else "-"
 
     rows = [
-        ("run", f"{args.seconds:g} s held, SCHED_FIFO "
+        ("run", f"{args.seconds:g} s held over {wire}, SCHED_FIFO "
                 f"{(', '.join(f'{r} {p}' for r, p in priorities)) if args.sched_fifo_ends else 'no'}"
                 f"{' (robot: ' + str(loop['sched_fifo']) + ')' if args.sched_fifo_ends else ''}, "
                 f"robot {'alone on the last CPU' if args.isolate_robot else 'on any CPU'}"
@@ -228,7 +267,12 @@ def main():
           f"closed-loop p99 < 1 ms: "
           f"{'met' if loop['closed_loop_latency'].get('p99_us', 1e9) < 1000 else 'NOT met'}")
     (out / "realtime_load.json").write_text(json.dumps({"rows": dict(rows), "cpu": cpu}, indent=1) + "\n")
-    return 0
+    answer, closed = loop["answer_latency"], loop["closed_loop_latency"]
+    return {"wire": wire, "FRI in time": f"{100 * in_time:.3f} %", "missed": fri["missed"],
+            "longest miss run": fri["longest_miss_run"],
+            "answer p50/p99 us": f"{pct(answer, 'p50_us')} / {pct(answer, 'p99_us')}",
+            "closed loop p50/p99 us": f"{pct(closed, 'p50_us')} / {pct(closed, 'p99_us')}",
+            "robot loop misses": loop["misses"], "bare loop misses": int(bare_miss.sum())}
 
 
 if __name__ == "__main__":
