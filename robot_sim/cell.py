@@ -19,7 +19,8 @@ import numpy as np
 import pinocchio as pin
 
 from robot_sim.ati import AtiConfig, AtiSensor, RdtRecord
-from robot_sim.fri import CommandPacket, ControlMode, CycleOutcome, FriConfig, FriLink, LinkFaults, MeasurementPacket
+from robot_sim.fri import (CommandPacket, ControlMode, CycleOutcome, FriConfig, FriLink, FriState, LinkFaults,
+                           MeasurementPacket)
 from robot_sim.fri_wire import MeasurementExtras, jacobian_to_fri
 from robot_sim.kinematics import READY, ArmKinematics
 from robot_sim.krc import ImpedanceCommand, KrcConfig, KrcController
@@ -103,9 +104,10 @@ class RobotCell:
         self._true_wrench = np.zeros(6)
         self._last_measurement: MeasurementPacket | None = None
         self._extras_data = None  # Pinocchio data of its own for fri_extras
-        # a remote's first command in command mode must continue from the measured state
-        # (FRI over UDP): one that jumps is refused, the reason kept here until read
-        self.check_first_command = False
+        # the KRC's checks on a lab's remote (FRI over UDP): its first command in command mode
+        # must continue from the measured state (one that jumps is refused, the reason kept
+        # here until read), and a safety stop drops the link to monitor mode
+        self.remote_checks = False
         self.first_command_refused = ""
         self._first_commands = 0  # of this command-mode session, still to check
         self.place(READY)
@@ -215,7 +217,7 @@ class RobotCell:
             # a command-mode session begins: the answer to the last monitor-mode measurement
             # and the remote's first answer to one that says CMD are its first commands
             self._first_commands = 2
-        if self.check_first_command and cmd is not None and self._first_commands and not outcome.bridged:
+        if self.remote_checks and cmd is not None and self._first_commands and not outcome.bridged:
             self._first_commands -= 1
             jump = self._first_command_jump(cmd)
             if jump:
@@ -237,6 +239,8 @@ class RobotCell:
         if self._last_measurement is not None:
             force_estimate = fri_to_standard(self._last_measurement.est_ext_tcp_ft)[:3]
         tau = self.krc.compute(self._q, self._qd, impedance, hold=impedance is None, external_force=force_estimate)
+        if self.remote_checks and self.krc.safety and self.fri.state == FriState.CMD:
+            self.fri.request_monitor_mode()  # the arm is held where it stopped: the remote is told so
         self.sim.apply(tau, hand_wrench)
         self.sim.step()
         self.cycle += 1

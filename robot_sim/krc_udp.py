@@ -41,8 +41,8 @@ class UdpKrc:
         except BaseException:
             self.endpoint.close()
             raise
-        # a remote's first command must continue from where the arm is (RobotCell's check)
-        cell.check_first_command = True
+        # the KRC's checks on a remote's commands (RobotCell.remote_checks)
+        cell.remote_checks = True
         self.sent_ns = 0  # clock() when the open cycle's measurement went out (0: it did not)
         self.latency_ns = 0  # of the last command taken
 

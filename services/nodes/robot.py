@@ -532,9 +532,7 @@ class RobotNode(Node):
             if self.kind != "served":
                 return f"safety:{reason}"
             if ep.safety_stop is None:
-                # a lab's remote is served on: the KRC drops it to monitor mode, holds the arm
-                # and reports the error in the measurement, as a KRC does after a safety stop
+                # a lab's remote is served on: the KRC has dropped it to monitor mode, holds the
+                # arm and reports the error in the measurement (RobotCell.remote_checks)
                 ep.safety_stop = dict(seq=m.seq, at_s=ep.k * cell.cycle_ns / 1e9, reason=reason)
-            if fri.state == FriState.CMD:
-                fri.request_monitor_mode()
         return None

@@ -261,7 +261,8 @@ def _report_entry(path: Path) -> dict | None:
         return None
     if not isinstance(report, dict):
         return None
-    for entry in (report.get("demonstrations") or []) + (report.get("reproductions") or []):
+    for entry in ((report.get("demonstrations") or []) + (report.get("reproductions") or [])
+                  + (report.get("served") or [])):
         if not isinstance(entry, dict) or not entry.get("path"):
             continue
         paths = [entry["path"], *(entry.get("recording_parts") or [])]
@@ -288,7 +289,7 @@ def describe_run(path) -> dict:
     report = read_report(run_dir, required=False)
 
     episodes, listed = [], set()
-    for kind, key in (("demonstration", "demonstrations"), ("reproduction", "reproductions")):
+    for kind, key in (("demonstration", "demonstrations"), ("reproduction", "reproductions"), ("served", "served")):
         for i, entry in enumerate(report.get(key) or []):
             if not isinstance(entry, dict):
                 continue

@@ -12,7 +12,7 @@ import pinocchio as pin
 import pytest
 
 from robot_sim.cell import RobotCell
-from robot_sim.fri import ControlMode, FriState
+from robot_sim.fri import ControlMode, FriQuality, FriState, LinkFaults
 from robot_sim.fri_wire import CommandFlags
 from robot_sim.krc_udp import UdpKrc
 from robot_sim.krl import OFF_STREAM_S, REFUSAL_INDEX
@@ -209,3 +209,42 @@ def test_rotational_stiffness_goes_in_a_b_c_order(cell):
         rot = pin.log3(R0.T @ cell.sim.tcp_rotation())  # in the tool's axes
         assert rot[2] == pytest.approx(1.0 / 20.0, rel=0.2)
         assert abs(rot[0]) < 1.0 / 300.0 * 2
+
+
+def test_a_safety_stop_drops_the_remote_to_monitor_mode_and_shows_in_the_measurement(cell):
+    """A pose far off in command mode (not the first command, which would be refused):
+    the torques saturate, the KRC stops the arm, drops the link to monitor mode and sets
+    robot.error, which the remote reads."""
+    with Remote("frilibrary", strategy=20) as remote, UdpKrc(cell, ("127.0.0.1", remote.port)) as krc:
+        run(krc, 300)
+        state = {}
+
+        def far(m):
+            state["n"] = state.get("n", 0) + 1
+            pose = np.array(m["data"]["msrCartPos"], dtype=np.float64)
+            if state["n"] > 10:
+                pose[3] += 0.5
+            return CommandFlags.CART_IMP, {"cartPos": pose, "cartStiffness": np.full(6, 300.0)}
+        remote.command = far
+        remote.request = "start"
+        run(krc, 2000, until=lambda: cell.fri.state == FriState.CMD)
+        run(krc, 3000, until=lambda: cell.krc.safety != 0)
+        assert cell.krc.safety != 0 and not cell.first_command_refused
+        run(krc, 3)
+        assert cell.fri.state == FriState.MON
+        assert int(remote.last["robot"]["error"]) == int(cell.krc.safety)
+        assert int(remote.last["intf"]["state"]) == FriState.MON
+
+
+def test_the_link_faults_act_on_the_udp_link_too():
+    """Commands that crossed the socket still go through the link's fault model: with a
+    fifth of them dropped, FRI misses about a fifth of the cycles the remote answered."""
+    cell = RobotCell(free_space(), seed=3, with_sensor=False, faults=LinkFaults(seed=1, drop_probability=0.2))
+    cell.place_tcp(START, DOWN)
+    cell.start()
+    with Remote("frilibrary") as remote, UdpKrc(cell, ("127.0.0.1", remote.port)) as krc:
+        run(krc, 1000)
+        stats = cell.fri.statistics()
+        assert krc.endpoint.counters.accepted == 1000  # every answer arrived on the socket
+        assert 120 < stats.missed < 280 and stats.answered == 1000 - stats.missed
+        assert cell.fri.quality < FriQuality.OK
