@@ -79,9 +79,13 @@ class RobotCell:
         self.kin = ArmKinematics()
         self.krc = KrcController(self.kin, krc_config or KrcConfig())
         self.fri = FriLink(fri_config, faults)
-        if self.fri.config.cycle_ns != round(TIMESTEP * 1e9):
-            raise ValueError(f"FRI cycle {self.fri.config.cycle_ns} ns must equal the physics step "
-                             f"{TIMESTEP * 1e9:.0f} ns (one physics step per cycle)")
+        step_ns = round(TIMESTEP * 1e9)
+        if self.fri.config.cycle_ns % step_ns or self.fri.config.cycle_ns < step_ns:
+            raise ValueError(f"FRI cycle {self.fri.config.cycle_ns} ns must be a whole number of physics steps "
+                             f"({step_ns} ns)")
+        # friOpen(ms) with more than 1 ms: the KRC's own control still runs every physics
+        # step, with the cycle's command; FRI measures and takes commands every cycle
+        self.steps_per_cycle = self.fri.config.cycle_ns // step_ns
         self.ati_config = ati_config or AtiConfig.mini45()
         # without_sensor: whoever runs the cell samples the tool wrench with its own
         # sensor model (the ft_sensor node); end_cycle's ``ft`` is then None
@@ -199,7 +203,7 @@ class RobotCell:
             cmd_jnt_pos=cmd_jnt, cmd_cart_pos=cmd_cart if self.krc.mode == ControlMode.CART_IMP else None,
             msr_jnt_trq=self.krc.last_tau.copy(), est_ext_jnt_trq=self._tau_ext.copy(),
             jacobian=jacobian_to_fri(jacobian), mass_matrix=mass, gravity=gravity.copy(),
-            miss_counter=self.fri.statistics().missed, error=int(self.krc.safety))
+            miss_counter=self.fri.statistics().missed, error=int(self.krc.safety), sample_time_s=self.cycle_ns * 1e-9)
 
     def receive(self, command: CommandPacket, t_arrival_ns: int) -> bool:
         return self.fri.receive(command, t_arrival_ns)
@@ -238,11 +242,16 @@ class RobotCell:
         force_estimate = None
         if self._last_measurement is not None:
             force_estimate = fri_to_standard(self._last_measurement.est_ext_tcp_ft)[:3]
-        tau = self.krc.compute(self._q, self._qd, impedance, hold=impedance is None, external_force=force_estimate)
-        if self.remote_checks and self.krc.safety and self.fri.state == FriState.CMD:
-            self.fri.request_monitor_mode()  # the arm is held where it stopped: the remote is told so
-        self.sim.apply(tau, hand_wrench)
-        self.sim.step()
+        for step in range(self.steps_per_cycle):
+            if step:
+                self.sim.joint_positions(self._q)
+                self.sim.joint_velocities(self._qd)
+            tau = self.krc.compute(self._q, self._qd, impedance, hold=impedance is None,
+                                   external_force=force_estimate)
+            if self.remote_checks and self.krc.safety and self.fri.state == FriState.CMD:
+                self.fri.request_monitor_mode()  # the arm is held where it stopped: the remote is told so
+            self.sim.apply(tau, hand_wrench)
+            self.sim.step()
         self.cycle += 1
         self._sense()
         record = self.ati.read(self._true_wrench, self.t_ns) if self.ati is not None else None

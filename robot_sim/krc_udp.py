@@ -37,7 +37,7 @@ class UdpKrc:
         self.clock = clock
         self.endpoint = FriUdpEndpoint(remote, bind, clock=clock)
         try:
-            self.krl = KrlProgram(krl, cell.fri, cell.switch_control_mode)
+            self.krl = KrlProgram(krl, cell.fri, cell.switch_control_mode, cycle_hz=1e9 / cell.cycle_ns)
         except BaseException:
             self.endpoint.close()
             raise

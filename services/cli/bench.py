@@ -117,7 +117,7 @@ def cmd_serve(args) -> int:
                 ports += (flag, str(value))
         serve = ServeOptions(fri_remote=args.fri_remote, fri_bind=args.fri_bind, krl=args.krl,
                              netft=None if args.netft == "none" else args.netft, netft_ports=ports,
-                             start=args.start, max_seconds=args.max_seconds)
+                             start=args.start, max_seconds=args.max_seconds, fri_cycle_ms=args.fri_cycle_ms)
         options = RunOptions(out=args.out, run_id=args.run_id, realtime_profile=args.realtime_profile,
                              figures=False, replace=args.replace, command=args.command_line, serve=serve,
                              robot_args=tuple(args.robot_flag or ()))
@@ -525,6 +525,9 @@ def build_parser() -> OneLineErrorParser:
     p.add_argument("--krl", choices=LAB_CONVENTIONS, default=ServeOptions.krl,
                    help="the KRL program's start/stop convention: frilibrary (the Stanford FRI Library's "
                         "FRIControl.src, default) or lwr_hw (CentroEPiaggio's ros_control.src)")
+    p.add_argument("--fri-cycle-ms", type=int, default=ServeOptions.fri_cycle_ms, metavar="MS",
+                   help="the FRI cycle, as KRL's friOpen(MS) sets it: 1..100 ms (default 1); the KRC's control "
+                        "runs every 1 ms physics step all the same")
     p.add_argument("--netft", default=ServeOptions.netft, metavar="HOST",
                    help="the Net F/T box's IPv4 address (default 127.0.0.1; 'none': no box); RDT on UDP 49152, "
                         "HTTP on 80, calibration on TCP 49151 unless the flags below say otherwise")

@@ -34,7 +34,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from robot_sim.cell import RobotCell
-from robot_sim.fri import FRI_RATE_HZ, CommandPacket, ControlMode, FriQuality, FriState, LinkFaults, LinkFaultSpec
+from robot_sim.fri import (FRI_CYCLE_NS, FRI_RATE_HZ, CommandPacket, ControlMode, FriConfig, FriQuality, FriState,
+                           LinkFaults, LinkFaultSpec)
 from robot_sim.fri_udp import host_port
 from robot_sim.fri_wire import REMOTE_PORT
 from robot_sim.krc import SafetyReason
@@ -84,6 +85,8 @@ class RobotConfig:
     fri_remote: str = option(f"127.0.0.1:{REMOTE_PORT}", "udp: the FRI remote's address, where the measurement "
                                                          "datagrams go", metavar="HOST:PORT")
     fri_bind: str = option("127.0.0.1:0", "udp: the KRC's own address (port 0: any free port)", metavar="HOST:PORT")
+    fri_cycle_ms: int = option(1, "udp with a lab's KRL convention: the FRI cycle friOpen asks for, ms (1..100; the "
+                                  "KRC's control runs every 1 ms physics step all the same)", metavar="MS")
     wire_topic: bool = option(True, "udp: publish every datagram that crosses the KRC's socket on fri/datagram, "
                                     "bytes and decoded (the recording of the wire: 2 messages and ~6 KB a cycle)")
     krl: str = option("frilibrary", "udp: the KRL program's start/stop convention on the KRL channels "
@@ -101,6 +104,12 @@ class RobotConfig:
             raise ValueError(f"wire must be one of {', '.join(WIRES)}, got {self.wire!r}")
         if self.krl not in KRL_CONVENTIONS:
             raise ValueError(f"krl must be one of {', '.join(KRL_CONVENTIONS)}, got {self.krl!r}")
+        if isinstance(self.fri_cycle_ms, bool) or not isinstance(self.fri_cycle_ms, int) \
+                or not 1 <= self.fri_cycle_ms <= 100:
+            raise ValueError(f"fri_cycle_ms must be an integer 1..100, got {self.fri_cycle_ms!r}")
+        if self.fri_cycle_ms != 1 and (self.wire != "udp" or self.krl == "testbench"):
+            raise ValueError(f"fri_cycle_ms {self.fri_cycle_ms}: a cycle other than 1 ms is for a lab's remote over "
+                             "UDP (--wire udp --krl frilibrary|lwr_hw): the run's own nodes count 1 ms cycles")
         host_port(self.fri_remote, "fri_remote")
         host_port(self.fri_bind, "fri_bind", listen=True)
 
@@ -161,7 +170,9 @@ class RobotNode(Node):
             raise ValueError("wire udp needs the realtime clock: the KRC sends its measurements on its own clock, "
                              "and a remote over UDP answers on the wall clock")
         # the cell's own F/T sampling is the ft_sensor node's job: not done twice
-        self.cell = RobotCell(config.world_spec(), seed=config.seed, faults=config.link_faults(), with_sensor=False)
+        self.cell = RobotCell(config.world_spec(), seed=config.seed, faults=config.link_faults(), with_sensor=False,
+                              fri_config=FriConfig(cycle_ns=config.fri_cycle_ms * FRI_CYCLE_NS)
+                              if config.fri_cycle_ms != 1 else None)
         self.udp = None
         # --krl testbench: the run's own commander is the remote; it passes each measurement on
         # as robot/state (as the lab's FRI component did for its graph), so the robot does not
@@ -268,7 +279,7 @@ class RobotNode(Node):
         seconds = float(p.get("max_seconds", 40.0))
         if not (np.isfinite(seconds) and seconds > 0):
             raise ValueError(f"max_seconds must be > 0, got {p.get('max_seconds')!r}")
-        return EpisodePlan(max_cycles=max(1, int(seconds * FRI_RATE_HZ)), answers_from=answers,
+        return EpisodePlan(max_cycles=max(1, round(seconds * 1e9 / self.cell.cycle_ns)), answers_from=answers,
                            stop_on=p.get("stop_on"))
 
     def status(self) -> dict:

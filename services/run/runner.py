@@ -220,7 +220,8 @@ class Runner:
         path = self.episodes.begin("served", 0, start)
         status = self.cell.request("robot", "status")["fri_udp"]
         self.say(f"serving FRI 1.0 over UDP from {status['address'][0]}:{status['address'][1]} to the remote at "
-                 f"{status['remote'][0]}:{status['remote'][1]} (KRL program {status['krl']}), the arm held at "
+                 f"{status['remote'][0]}:{status['remote'][1]} (KRL program {status['krl']}, cycle "
+                 f"{serve.fri_cycle_ms} ms), the arm held at "
                  f"{', '.join(f'{v:.3f}' for v in start)} m in monitor mode"
                  + (f"; Net F/T box on {self._netft_where()}" if serve.netft else "")
                  + f"; for {serve.max_seconds:g} s (Ctrl-C ends it sooner)")

@@ -35,6 +35,7 @@ class ServeOptions:
     netft: str | None = "127.0.0.1"  # the Net F/T box's address (None: no box)
     netft_ports: tuple = ()  # extra ft_sensor flags for the box's ports
     start: tuple | None = None  # the tcp's start, m (None: the scenario's reproduction start)
+    fri_cycle_ms: int = 1  # friOpen's cycle
     max_seconds: float = 60.0
 
     def __post_init__(self):
@@ -50,11 +51,15 @@ class ServeOptions:
         if not (isinstance(self.max_seconds, (int, float)) and math.isfinite(self.max_seconds)
                 and self.max_seconds > 0):
             raise ValueError(f"--max-seconds must be a number of seconds > 0, got {self.max_seconds!r}")
+        if isinstance(self.fri_cycle_ms, bool) or not isinstance(self.fri_cycle_ms, int) \
+                or not 1 <= self.fri_cycle_ms <= 100:
+            raise ValueError(f"--fri-cycle-ms must be an integer 1..100 (friOpen's range), got {self.fri_cycle_ms!r}")
         if self.start is not None and (len(self.start) != 3 or not all(math.isfinite(v) for v in self.start)):
             raise ValueError(f"--start must be three finite numbers X,Y,Z in m, got {self.start!r}")
 
     def robot_flags(self) -> tuple:
-        return ("--wire", "udp", "--fri-remote", self.fri_remote, "--fri-bind", self.fri_bind, "--krl", self.krl)
+        return ("--wire", "udp", "--fri-remote", self.fri_remote, "--fri-bind", self.fri_bind, "--krl", self.krl,
+                "--fri-cycle-ms", str(self.fri_cycle_ms))
 
     def sensor_flags(self) -> tuple:
         return (("--netft", self.netft) + tuple(self.netft_ports)) if self.netft else ()

@@ -12,7 +12,7 @@ import pinocchio as pin
 import pytest
 
 from robot_sim.cell import RobotCell
-from robot_sim.fri import ControlMode, FriQuality, FriState, LinkFaults
+from robot_sim.fri import ControlMode, FriConfig, FriQuality, FriState, LinkFaults
 from robot_sim.fri_wire import CommandFlags
 from robot_sim.krc_udp import UdpKrc
 from robot_sim.krl import OFF_STREAM_S, REFUSAL_INDEX
@@ -248,3 +248,24 @@ def test_the_link_faults_act_on_the_udp_link_too():
         assert krc.endpoint.counters.accepted == 1000  # every answer arrived on the socket
         assert 120 < stats.missed < 280 and stats.answered == 1000 - stats.missed
         assert cell.fri.quality < FriQuality.OK
+
+
+def test_a_four_millisecond_cycle_as_fri_open_4_sets_it():
+    """friOpen(4): a measurement every 4 ms, saying so in desiredMsrSampleTime; the KRC's
+    own control still runs every 1 ms physics step, and the remote's move is followed."""
+    cell = RobotCell(free_space(), seed=3, with_sensor=False, fri_config=FriConfig(cycle_ns=4_000_000))
+    cell.place_tcp(START, DOWN)
+    cell.start()
+    with Remote("frilibrary", strategy=20) as remote, UdpKrc(cell, ("127.0.0.1", remote.port)) as krc:
+        run(krc, 100)
+        assert float(remote.last["intf"]["desiredMsrSampleTime"]) == pytest.approx(0.004)
+        assert float(remote.last["intf"]["timestamp"]) == pytest.approx(99 * 0.004, abs=1e-6)
+        x0 = tcp(cell).copy()
+        remote.command = move_x(0.02, 1.0)
+        remote.request = "start"
+        run(krc, 600, until=lambda: cell.fri.state == FriState.CMD)
+        assert cell.fri.state == FriState.CMD
+        run(krc, 400)  # 1.6 s
+        assert (tcp(cell) - x0)[0] == pytest.approx(0.02, abs=2e-3)
+    with pytest.raises(ValueError, match="whole number of physics steps"):
+        RobotCell(free_space(), fri_config=FriConfig(cycle_ns=1_500_000))
