@@ -115,9 +115,10 @@ class FtSensorNode(Node):
             try:
                 self.box.serve()
             except OSError as exc:
-                raise OSError(exc.errno, f"--netft {config.netft}: cannot serve the Net F/T box (RDT UDP "
-                                         f"{config.netft_rdt_port}, HTTP {config.netft_http_port}, TCP "
-                                         f"{config.netft_calibration_port}): {exc.strerror or exc}") from None
+                raise OSError(f"--netft {config.netft}: cannot serve the Net F/T box (RDT UDP {config.netft_rdt_port}, "
+                              f"HTTP {config.netft_http_port}, TCP {config.netft_calibration_port}): "
+                              f"{exc.strerror or exc}; another box on that address? give another (127.0.0.2, ...) "
+                              f"or other ports") from None
         self._stamp = (0, 0)  # the cycle of the record the box is sending (seq, stamp_ns)
         # keep_tenth: realtime takes the newest contact but never skips a tenth cycle's,
         # whose wrench the estimator needs (it lost half of them on a crowded CPU)
