@@ -82,9 +82,12 @@ class UdpKrc:
         self.sent_ns = 0
         if self.cell.fri.deliver_measurement(m) is None:
             return False
-        if not ep.send(wire, extras=self.cell.fri_extras()):
+        extras = self.cell.fri_extras()
+        # stamped before it goes: a remote on this host can answer before sendto returns
+        sent = self.clock()
+        if not ep.send(wire, extras=extras):
             return False
-        self.sent_ns = self.clock()
+        self.sent_ns = sent
         return True
 
     def answered(self) -> bool:
@@ -100,6 +103,8 @@ class UdpKrc:
         cmd = self.endpoint.poll(timeout_s)
         if cmd is None or not self.sent_ns:
             return None
-        self.latency_ns = self.endpoint.arrival_ns - self.sent_ns
+        # never negative: the kernel's arrival stamp is carried over to ``clock`` by reading
+        # both clocks, which can put an answer a few microseconds before its measurement
+        self.latency_ns = max(0, self.endpoint.arrival_ns - self.sent_ns)
         self.cell.deliver(cmd, m.stamp_ns + (self.latency_ns if latency_ns is None else latency_ns))
         return cmd

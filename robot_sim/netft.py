@@ -21,7 +21,9 @@ machine, any IPv4 address of the machine to be reached from another; ports confi
   description does not ask for) is counted in :attr:`NetFtStats.ignored` and ignored.
   Replies go from the box's UDP port to the request's source address and port (clients
   ``connect()`` their socket and drop anything else).  Each requester has its own stream;
-  a new start from the same requester replaces it.
+  a new start from the same requester replaces it.  Four streams at most: a start from a
+  fifth requester ends the oldest stream (:attr:`NetFtStats.evicted`), so clients that
+  died without a stop request cannot lock a new one out.
 * **HTTP, TCP 80**: ``GET /netftapi2.xml`` (``prodname``, ``cfgcpf``, ``cfgcpt``,
   ``scfgfu``, ``scfgtu``, each exactly once, no DOCTYPE: what pynetft 2.1.3 parses, plus
   ``comrdtrate`` and ``comrdtbsiz``) and ``GET /netftcalapi.xml`` (root
@@ -128,7 +130,10 @@ _FORCE_UNIT_N = 2
 _TORQUE_UNIT_NM = 3
 _UINT32 = 0xFFFFFFFF
 _INT32_MIN, _INT32_MAX = -(2**31), 2**31 - 1
-_MAX_STREAMS = 16
+# streams at once; a start request beyond that ends the oldest stream (a client that died
+# without a stop request leaves its stream behind: without this, a few crashed clients
+# would lock every new one out, silently)
+_MAX_STREAMS = 4
 _SATURATION_CAUSES = int(AtiStatus.FT_OUT_OF_RANGE | AtiStatus.INPUT_NONFINITE) | sum(int(b) for b in SATURATION_BITS)
 
 
@@ -155,7 +160,9 @@ class NetFtStats:
     requests: int = 0
     """Well-formed RDT requests received."""
     ignored: int = 0
-    """RDT datagrams ignored: malformed, unknown command, or too many streams."""
+    """RDT datagrams ignored: malformed or an unknown command."""
+    evicted: int = 0
+    """Streams ended because a new client asked for one and the box had no room."""
     biases: int = 0
     streams: int = 0
     """Streams running now."""
@@ -409,11 +416,13 @@ class NetFtBox:
             header, command, count = _REQUEST.unpack(data)
             known = (RdtCommand.STOP, RdtCommand.REALTIME, RdtCommand.BUFFERED,
                      RdtCommand.RESET_THRESHOLD_LATCH, RdtCommand.SET_SOFTWARE_BIAS)
-            full = peer not in self._streams and len(self._streams) >= _MAX_STREAMS
-            if header != RDT_HEADER or command not in known or (
-                    full and command in (RdtCommand.REALTIME, RdtCommand.BUFFERED)):
+            if header != RDT_HEADER or command not in known:
                 stats.ignored += 1
                 return
+            if (command in (RdtCommand.REALTIME, RdtCommand.BUFFERED) and peer not in self._streams
+                    and len(self._streams) >= _MAX_STREAMS):
+                del self._streams[next(iter(self._streams))]  # the oldest (dicts keep their order)
+                stats.evicted += 1
             stats.requests += 1
             if command == RdtCommand.STOP:
                 self._streams.pop(peer, None)

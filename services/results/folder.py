@@ -28,15 +28,23 @@ def holds_a_run(folder: Path) -> bool:
     return any((folder / name).exists() for name in RUN_MARKERS)
 
 
-def prepare_run_folder(folder: Path, flag_value, *, replace: bool) -> None:
-    """Make sure ``folder`` can take a new run, or raise a ValueError naming ``--out``."""
+def check_run_folder(folder: Path, flag_value, *, replace: bool) -> bool:
+    """Whether ``folder`` holds a run that ``prepare_run_folder`` would remove (``replace``);
+    a ValueError naming ``--out`` if it cannot take a new run.  Changes nothing."""
     if folder.exists() and not folder.is_dir():
         raise ValueError(f"--out {flag_value}: {folder} is a file; --out names the run's folder")
     if not folder.exists() or not holds_a_run(folder):
-        return
+        return False
     if not replace:
         raise ValueError(f"--out {flag_value}: {folder} already holds a run; choose another folder, or "
                          "--replace to remove that run first")
+    return True
+
+
+def prepare_run_folder(folder: Path, flag_value, *, replace: bool) -> None:
+    """Make sure ``folder`` can take a new run, or raise a ValueError naming ``--out``."""
+    if not check_run_folder(folder, flag_value, replace=replace):
+        return
     for name in RUN_PRODUCTS:
         path = folder / name
         try:

@@ -51,6 +51,7 @@ def served_text(e: dict) -> list[str]:
              f"  peak contact force {e['peak_contact_force']:.1f} N; safety stop: "
              + (f"{w['safety_stop']['reason']} at {w['safety_stop']['at_s']:.2f} s" if w.get("safety_stop")
                 else "none")]
+    lines.append("  times from the served episode's first cycle (its recording begins with the settle before it)")
     for ref in w.get("first_command_refusals") or []:
         lines.append(f"  {ref['at_s']:7.2f} s  refused: {ref['reason']}")
     for ev in w.get("krl_events") or []:

@@ -28,7 +28,7 @@ import time
 import uuid
 from pathlib import Path
 
-from services.results.folder import SCENARIO_FILE, prepare_run_folder
+from services.results.folder import SCENARIO_FILE, check_run_folder, prepare_run_folder
 from services.results.record import EpisodeRecord, RunRecord
 from services.results.report import write_report
 from services.run.configs import node_configs
@@ -76,6 +76,10 @@ class Runner:
         self.ready = threading.Event()  # set once every service is up (tests and benches wait on it)
         self.profile = Grant(parse_profile(options.realtime_profile) if scenario.clock == "realtime"
                              else frozenset())
+        check_run_folder(self.out, options.out, replace=options.replace)
+        # every service's config, its flags checked: a bad one is refused before anything starts
+        self.configs = node_configs(scenario, options, self.roles, self.recordings,
+                                    self.transport.offloads_recording)
         # the last check before anything starts: where the run goes (a folder, not holding a
         # run unless asked to replace it: nothing of another run may be mistaken for this one's)
         prepare_run_folder(self.out, options.out, replace=options.replace)
@@ -145,7 +149,6 @@ class Runner:
 
     def _start_cell(self) -> None:
         o = self.options
-        configs = node_configs(self.scenario, o, self.roles, self.recordings, self.transport.offloads_recording)
         restartable = {role for role, policy in self.scenario.restart if policy == "on_failure"}
         if o.foxglove is not None:
             restartable.add("foxglove_bridge")  # a view of the run: losing it must not cost the run
@@ -154,7 +157,7 @@ class Runner:
                       placement=lambda role: placement(role, self.profile, sched_fifo=o.sched_fifo,
                                                        fifo_priorities=o.fifo_priorities,
                                                        isolate_robot=o.isolate_robot))
-        self.cell = self.transport.open(self.run_id, configs, start)
+        self.cell = self.transport.open(self.run_id, self.configs, start)
         self.episodes = Episodes(self.cell, clock=self.scenario.clock, roles=self.roles, recording=Recording(
             self.recordings, self.scenario.to_yaml(), self.scenario.name, attached=o.attach))
         self.cell.start()
@@ -225,7 +228,16 @@ class Runner:
                  f"{', '.join(f'{v:.3f}' for v in start)} m in monitor mode"
                  + (f"; Net F/T box on {self._netft_where()}" if serve.netft else "")
                  + f"; for {serve.max_seconds:g} s (Ctrl-C ends it sooner)")
-        summary = self.episodes.run([], None, serve.max_seconds, label="served")
+        try:
+            summary = self.episodes.run([], None, serve.max_seconds, label="served")
+        except KeyboardInterrupt:
+            # Ctrl-C (or SIGTERM) is how serving ends sooner: the episode ends there, with
+            # its summary and the report; a second one aborts (_escalate_on_next_interrupt)
+            self._escalate_on_next_interrupt()
+            self.say("interrupted: ending the served episode (again to abort)")
+            summary = self.cell.stop_episode()
+            if summary is None:
+                raise
         rec = self.episodes.finish("served", 0, summary, SERVED_TOPICS)
         self.record.served.append(EpisodeRecord(str(path), "-", list(start), summary, rec))
         wire = summary.get("wire") or {}

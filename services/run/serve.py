@@ -51,11 +51,20 @@ class ServeOptions:
         if not (isinstance(self.max_seconds, (int, float)) and math.isfinite(self.max_seconds)
                 and self.max_seconds > 0):
             raise ValueError(f"--max-seconds must be a number of seconds > 0, got {self.max_seconds!r}")
+        self._check_ports()
         if isinstance(self.fri_cycle_ms, bool) or not isinstance(self.fri_cycle_ms, int) \
                 or not 1 <= self.fri_cycle_ms <= 100:
             raise ValueError(f"--fri-cycle-ms must be an integer 1..100 (friOpen's range), got {self.fri_cycle_ms!r}")
         if self.start is not None and (len(self.start) != 3 or not all(math.isfinite(v) for v in self.start)):
             raise ValueError(f"--start must be three finite numbers X,Y,Z in m, got {self.start!r}")
+
+    def _check_ports(self) -> None:
+        flags = dict(zip(self.netft_ports[::2], self.netft_ports[1::2]))
+        if flags and self.netft is None:
+            raise ValueError(f"{' '.join(flags)}: the ports of a Net F/T box, but --netft none serves no box")
+        for flag, value in flags.items():
+            if not (value.isdigit() and 0 <= int(value) <= 65535):
+                raise ValueError(f"{flag} {value}: not a port number 0..65535 (0: any free one)")
 
     def robot_flags(self) -> tuple:
         return ("--wire", "udp", "--fri-remote", self.fri_remote, "--fri-bind", self.fri_bind, "--krl", self.krl,

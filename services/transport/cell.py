@@ -51,6 +51,10 @@ class Cell(Protocol):
     def run_episode(self, answers_from, stop_on, max_seconds: float, progress=None) -> dict:
         """One episode of FRI cycles (the robot's 'run'), driven to its end: its summary."""
 
+    def stop_episode(self, timeout: float = 30.0) -> dict | None:
+        """End the episode in progress now (``run_episode`` was interrupted): the robot
+        closes its open cycle and sends its summary, returned here (None if none came)."""
+
     def unresponsive(self, roles) -> list[str]:
         """The roles among ``roles`` that are alive but do not answer (lost from now on)."""
 

@@ -215,6 +215,11 @@ class InProcessCell:
         reply.pop("ok", None)
         return reply
 
+    def stop_episode(self, timeout: float = 30.0) -> dict | None:
+        """None: an in-process episode runs in the runner's own thread, so whatever
+        interrupted ``run_episode`` has already ended it, before its summary."""
+        return None
+
     def start(self) -> None:
         """The nodes were built with the cell: nothing to wait for."""
 

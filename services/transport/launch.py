@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from services.runtime import topics
-from services.transport.service import alive_services
+from services.transport.service import RUNNER_PID_ENV, alive_services
 
 # every service process runs this module with its role as the first argument
 PROGRAM_MODULE = "services.cli.roles"
@@ -70,6 +70,8 @@ def spawn(name: str, args: list[str], log_dir: Path, env: dict | None = None, pr
     log_dir.mkdir(parents=True, exist_ok=True)
     log_path = log_dir / f"{name}.log"
     log = open(log_path, "ab")
+    # the service stops when this process is gone (killed with -9: nothing else would tell it)
+    env = dict(os.environ if env is None else env, **{RUNNER_PID_ENV: str(os.getpid())})
     popen = subprocess.Popen([*prefix, sys.executable, "-m", PROGRAM_MODULE, name, *args], stdout=log, stderr=subprocess.STDOUT,
                              stdin=subprocess.DEVNULL, start_new_session=True, env=env)
     log.close()

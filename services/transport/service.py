@@ -11,6 +11,7 @@ Control requests are JSON objects ``{"cmd": ..., ...}`` sent with a Zenoh
 from __future__ import annotations
 
 import json
+import os
 import queue
 import signal
 import sys
@@ -23,6 +24,10 @@ from services.runtime import topics
 from services.transport.profiling import ProcessProfile
 from services.transport.session import ZenohOptions, open_session
 from services.transport.subscriptions import LinkCounters, subscribe, subscribe_all
+
+# set by the runner that spawns a service (services.transport.launch): its pid
+RUNNER_PID_ENV = "ETAR_RUNNER_PID"
+RUNNER_WATCH_S = 0.5
 
 
 def _plain(value):
@@ -99,8 +104,6 @@ class Service:
             self.sched_fifo = priority if try_sched_fifo(priority) else False
             set_timer_slack(1)
         if self.cpus:
-            import os
-
             # before the session, like the policy: Zenoh's threads inherit the affinity
             os.sched_setaffinity(0, self.cpus)
         self.profile.start()
@@ -110,7 +113,19 @@ class Service:
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
                 signal.signal(sig, self._on_signal)
+        runner = os.environ.get(RUNNER_PID_ENV)
+        if runner and runner.isdigit():
+            threading.Thread(target=self._watch_runner, args=(int(runner),), name="runner-watch", daemon=True).start()
         return self
+
+    def _watch_runner(self, runner: int) -> None:
+        """A runner that started this service and then vanished (killed with -9, which it
+        cannot pass on) leaves it its orphan: the service stops as on a signal."""
+        while not self.stop.wait(RUNNER_WATCH_S):
+            if os.getppid() != runner:
+                self.log(f"the runner that started this service (pid {runner}) is gone: stopping")
+                self.stop.set()
+                return
 
     def __exit__(self, *exc) -> None:
         self.stop.set()

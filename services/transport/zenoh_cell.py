@@ -172,6 +172,13 @@ class ZenohCell:
                 progress(max(0, seq - first) * FRI_CYCLE_NS / 1e9)
         return summary
 
+    def stop_episode(self, timeout: float = 30.0) -> dict | None:
+        try:
+            self.request("robot", "stop", timeout=min(10.0, timeout))
+        except (ServiceLost, TimeoutError, RuntimeError):
+            return None
+        return self._episode_summary(timeout)
+
     def _lost_during_episode(self, started: float) -> None:
         """A service disappeared during the episode: the robot (if it is not the one lost)
         stops the episode, which closes its open cycle and holds the arm where it is,

@@ -454,3 +454,29 @@ def _wait(condition, timeout: float = 2.0):
     while not condition():
         assert time.monotonic() < deadline, "the box did not handle the request in time"
         time.sleep(0.001)
+
+
+def test_clients_that_died_without_a_stop_cannot_lock_a_new_one_out():
+    """Sixteen requesters start a stream and vanish; a seventeenth still gets its records
+    (the oldest streams make room), and the box keeps at most four."""
+    with NetFtBox(rdt_port=0, http_port=None, calibration_port=None) as box:
+        dead = []
+        for _ in range(16):
+            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            s.connect((box.address, box.rdt_port))
+            s.send(struct.pack(">HHI", 0x1234, 0x0002, 0))
+            dead.append(s)
+        live = raw_socket(box)
+        live.send(struct.pack(">HHI", 0x1234, 0x0002, 0))
+        sensor = AtiSensor(AtiConfig.mini45(), 1)
+        deadline = time.monotonic() + 2.0
+        while box.stats().requests < 17 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        for k in range(5):
+            box.publish(sensor.read(WRENCH, k * 1_000_000))
+        records = unpack_records(live.recv(2048))
+        assert records and records[0][0] == 1
+        stats = box.stats()
+        assert stats.streams == 4 and stats.evicted == 13
+        for s in dead + [live]:
+            s.close()

@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import base64
 import json
+import os
 import re
+import signal
 import subprocess
 import sys
 import time
@@ -131,3 +133,68 @@ def test_serve_a_lab_remote_and_a_net_ft_client(tmp_path):
     assert directions["command"] > 0.9 * directions["measurement"]
     assert max(moved) - min(moved) == pytest.approx(0.02, abs=3e-3)  # the 2 cm the remote commanded
     assert rdt_records >= len(got)
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        text = (task / "children").read_text().split()
+        out += [int(c) for c in text]
+    return out
+
+
+def _start_serve(out: Path, remote_port: int, seconds: int) -> subprocess.Popen:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.cli.bench", "serve", "scenarios/smoke.yaml", "--out", str(out),
+         "--fri-remote", f"127.0.0.1:{remote_port}", "--netft", "none", "--max-seconds", str(seconds)],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    for line in proc.stderr:
+        if "serving FRI 1.0 over UDP" in line:
+            return proc
+    proc.kill()
+    raise AssertionError(f"serve did not start: {proc.communicate()}")
+
+
+@pytest.mark.slow
+def test_ctrl_c_ends_serving_with_the_report_of_what_was_served(tmp_path):
+    """The documented way to end serving sooner: the episode ends there, the report says
+    what the remote did (reason stopped), exit 0."""
+    out = tmp_path / "served"
+    with Remote("frilibrary", strategy=20) as remote:
+        proc = _start_serve(out, remote.port, 60)
+        try:
+            remote.request = "start"
+            wait_for(lambda: remote.last is not None and int(remote.last["intf"]["state"]) == FriState.CMD, 10,
+                     "command mode")
+            time.sleep(1.0)
+            sent = time.monotonic()
+            proc.send_signal(signal.SIGINT)
+            stdout, stderr = proc.communicate(timeout=30)
+            took = time.monotonic() - sent
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    assert proc.returncode == 0, stderr[-2000:]
+    assert took < 20 and "ending the served episode" in stderr
+    served, = json.loads((out / "report.json").read_text())["served"]
+    assert served["reason"] == "stopped" and served["wire"]["command_mode_s"] > 0.5
+    assert served["wire"]["datagrams"]["accepted"] > 1000
+
+
+@pytest.mark.slow
+def test_services_stop_when_their_runner_is_killed_outright(tmp_path):
+    """kill -9 cannot be passed on: each service notices its runner is gone and stops."""
+    with Remote("frilibrary") as remote:
+        proc = _start_serve(tmp_path / "served", remote.port, 60)
+        children = _children(proc.pid)
+        assert len(children) >= 3, children  # robot, ft_sensor, recorder
+        proc.kill()
+        proc.communicate()
+        deadline = time.monotonic() + 15
+        while any(Path(f"/proc/{c}").exists() for c in children) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        left = [c for c in children if Path(f"/proc/{c}").exists()]
+        for c in left:
+            os.kill(c, signal.SIGKILL)
+        assert not left, f"services outlived their runner: {left}"
