@@ -9,7 +9,7 @@ STAMP := $(VENV)/.installed-stamp
 SCENARIO ?= scenarios/valley.yaml
 OUT ?= out/$(basename $(notdir $(SCENARIO)))
 
-.PHONY: run test test-fast bench venv clean browser foxglove-schemas
+.PHONY: run test test-fast bench venv clean browser foxglove-schemas foxglove-studio
 
 $(STAMP): pyproject.toml setup.py robot_sim/native/pinocchio_inplace.cpp
 	$(PYTHON) -m venv $(VENV)
@@ -25,7 +25,7 @@ venv: $(STAMP)
 run: $(STAMP)
 	$(BIN)/etar-bench run $(SCENARIO) --out $(OUT) --replace
 
-test: $(STAMP) browser foxglove-schemas
+test: $(STAMP) browser foxglove-schemas foxglove-studio
 	$(BIN)/python -m pytest -q
 
 # the fast lane: every test but the slow ones (whole scenarios, runs over Zenoh, compose)
@@ -52,6 +52,19 @@ foxglove-schemas:
 	  npm install --silent --no-audit --no-fund --prefix $(FOXGLOVE_SCHEMAS) @foxglove/schemas@2.1.0 >/dev/null 2>&1 && \
 	  node tests/foxglove/dump_schemas.js $(FOXGLOVE_SCHEMAS)/jsonschema; } || \
 	  echo "note: @foxglove/schemas could not be installed from npm; the test that validates the visual messages against it is skipped"
+
+# Foxglove Studio 1.48, the last open-source release, as the app @foxglove/studio-base ships
+# prebuilt, with React 17 and playwright-core, for the test that opens a recording in it
+# (tests/services/test_foxglove_studio.py; chromium from `browser`); elsewhere it is skipped
+FOXGLOVE_STUDIO := .cache/foxglove-studio
+foxglove-studio: foxglove-schemas
+	@test -f $(FOXGLOVE_STUDIO)/READY || { \
+	  command -v npm >/dev/null 2>&1 && mkdir -p $(FOXGLOVE_STUDIO)/studio-base && \
+	  (cd $(FOXGLOVE_STUDIO) && npm pack --silent @foxglove/studio-base@1.48.0 >/dev/null 2>&1 && \
+	   tar xzf foxglove-studio-base-1.48.0.tgz -C studio-base && rm foxglove-studio-base-1.48.0.tgz) && \
+	  npm install --silent --no-audit --no-fund --prefix $(FOXGLOVE_STUDIO) react@17.0.2 react-dom@17.0.2 \
+	    playwright-core@1.65.1 >/dev/null 2>&1 && touch $(FOXGLOVE_STUDIO)/READY; } || \
+	  echo "note: Foxglove Studio 1.48 could not be installed from npm; the test that opens a recording in it is skipped"
 
 bench: $(STAMP)
 	$(BIN)/python bench/etar_fit.py

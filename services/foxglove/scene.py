@@ -7,10 +7,14 @@ rate (50 Hz by default: one in every 20 FRI cycles):
 - ``/viz/tf`` (``foxglove.FrameTransforms``): every link frame and the tcp in
   ``base``, from the measured joint positions through the KRC's kinematic model
   (Pinocchio, ``robot_sim.kinematics``: the one URDF both simulator and KRC use);
-- ``/viz/scene`` (``foxglove.SceneUpdate``): the arm's links and the task world
+- ``/viz/geometry`` (``foxglove.SceneUpdate``): the arm's links and the task world
   (plates and groove, or coupler) as the MuJoCo model the physics runs has them,
-  each arm geom attached to its link's frame, sent at the first cycle and once a
-  second (so a player that seeks finds them); and the overlays at the visual rate:
+  each arm geom attached to its link's frame, sent at the first visual frame and
+  once a second, on a topic of their own: a player that seeks restores the last
+  message of each topic before that time, which on this topic always holds them
+  (mixed into the overlays' topic, they were in one message of fifty, and a seek
+  lost the arm and the world);
+- ``/viz/scene`` (``foxglove.SceneUpdate``): the overlays at the visual rate:
   the measured force as an arrow at the sensor, the translational stiffness the
   commander applies as an ellipsoid at the tcp (its axes the stiffness' principal
   axes, in proportion: the learned K = R V R^T of the phase whose law the command
@@ -36,8 +40,8 @@ from functools import lru_cache
 import numpy as np
 
 from robot_sim.fri import FRI_RATE_HZ
-from services.runtime.visual_topics import (TOPIC_LOG, TOPIC_SCENE, TOPIC_STATUS, TOPIC_TF, VISUAL_RATE_HZ,
-                                            check_visual_rate)
+from services.runtime.visual_topics import (TOPIC_GEOMETRY, TOPIC_LOG, TOPIC_SCENE, TOPIC_STATUS, TOPIC_TF,
+                                            VISUAL_RATE_HZ, check_visual_rate)
 
 FRAMES = ("link1", "link2", "link3", "link4", "link5", "link6", "link7", "flange", "ati_sensor", "tool", "tcp")
 ARROW_M_PER_N = 0.005  # the force arrow: 5 mm per newton, at most MAX_ARROW_M
@@ -233,12 +237,11 @@ class VisualScene:
         out = [(TOPIC_TF, {"transforms": transforms})]
         tcp = kin.data.oMf[self._frame_ids[-1]].translation
         principal = self._principal_stiffness()
-        entities = self._overlay(stamp, tcp, principal)
         seq = state["seq"]
         if self._static_at is None or seq - self._static_at >= FRI_RATE_HZ or seq < self._static_at:
             self._static_at = seq
-            entities = self._static(stamp) + entities
-        out.append((TOPIC_SCENE, {"deletions": [], "entities": entities}))
+            out.append((TOPIC_GEOMETRY, {"deletions": [], "entities": self._static(stamp)}))
+        out.append((TOPIC_SCENE, {"deletions": [], "entities": self._overlay(stamp, tcp, principal)}))
         out.append((TOPIC_STATUS, self._status(state, tcp, principal)))
         return out
 

@@ -10,7 +10,9 @@ only loses visual messages (the SDK drops the oldest of a client's queue).
 
 The channels carry JSON with Foxglove's JSON Schemas (the recording's encoding);
 the SDK's server speaks ``foxglove.sdk.v1``, the wire format of
-``foxglove.websocket.v1`` under a new name, and a client offering either works.
+``foxglove.websocket.v1`` under a new name, and accepts only a client that offers that
+name: today's Foxglove does; Foxglove Studio 1.48 (the last open-source release), which
+offers only ``foxglove.websocket.v1``, is refused (HTTP 400) and can open recordings only.
 """
 
 from __future__ import annotations

@@ -192,5 +192,5 @@ def _check_time(name: str, value) -> int:
 def _generic_schema() -> dict:
     return {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": _GENERIC_SCHEMA_NAME,
             "description": "a topic without a message definition in services.runtime.messages: any JSON object",
-            "type": "object"}
+            "type": "object", "properties": {}}
 

@@ -125,7 +125,9 @@ class Field:
 
     def schema(self) -> dict:
         scalar = {"int": {"type": "integer"}, "float": {"type": "number"}, "bool": {"type": "boolean"},
-                  "str": {"type": "string"}, "object": {"type": "object"}}
+                  # an object says its properties, if only that there are none in particular:
+                  # Foxglove Studio 1.48's schema reader fails on an object without them
+                  "str": {"type": "string"}, "object": {"type": "object", "properties": {}}}
         if "[" in self.type:
             out = {"type": "array", "items": scalar[self.base], "description": self.doc}
             if self.length is not None:

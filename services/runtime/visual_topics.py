@@ -18,10 +18,12 @@ MAX_VISUAL_RATE_HZ = float(FRI_RATE_HZ)  # a frame every FRI cycle at most
 FOXGLOVE_PORT = 8765  # Foxglove's own default for a live view's WebSocket
 TOPIC_TF = "/viz/tf"
 TOPIC_SCENE = "/viz/scene"
+TOPIC_GEOMETRY = "/viz/geometry"
 TOPIC_STATUS = "/viz/status"
 TOPIC_LOG = "/viz/log"
 # topic -> schema name; a foxglove.* name is what makes Foxglove recognise the schema
-SCHEMA_NAMES = {TOPIC_TF: "foxglove.FrameTransforms", TOPIC_SCENE: "foxglove.SceneUpdate",
+SCHEMA_NAMES = {TOPIC_TF: "foxglove.FrameTransforms", TOPIC_GEOMETRY: "foxglove.SceneUpdate",
+                TOPIC_SCENE: "foxglove.SceneUpdate",
                 TOPIC_STATUS: "etar.VisualStatus", TOPIC_LOG: "foxglove.Log"}
 
 

@@ -191,7 +191,7 @@ def test_pynetft_bias_zeroes_the_reading_in_the_box():
             samples = c.samples(timeout=1.0)
             before = take(samples, 0.2)
             c.bias()
-            after = take(samples, 0.4)
+            after = take(samples, 0.8)  # the bias takes effect after a few records (more on a busy machine)
             health = c.health()
     assert all(s.raw_wrench == tuple(feed.log[s.ft_sequence].counts.tolist()) for s in before)
     _, biased = _post_bias(after, feed.log)

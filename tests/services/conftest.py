@@ -2,6 +2,8 @@ import signal
 import time
 from contextlib import contextmanager
 
+import pytest
+
 from services.transport.launch import free_port
 from services.transport.service import Service
 from services.transport.session import ZenohOptions, open_session
@@ -25,3 +27,16 @@ def service_with_peer(name: str, run_prefix: str):
         svc.__exit__(None, None, None)
         for sig, h in handlers.items():
             signal.signal(sig, h)
+
+
+@pytest.fixture(scope="session")
+def foxglove_run_dir(tmp_path_factory):
+    """A demonstration and a reproduction of the smoke task, in one process: what the
+    Foxglove tests (the visual topics, the viewer) look at, made once per session."""
+    from tests import support
+
+    out = tmp_path_factory.mktemp("foxglove")
+    scenario = support.scenario("smoke", {"demonstrate.count": 1, "learn.phases": 2})
+    report = support.run(scenario, out / "run", transport="inproc", run_id="foxglove")
+    assert report["error"] is None, report["error"]
+    return out / "run"

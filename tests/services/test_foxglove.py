@@ -17,20 +17,14 @@ from services.recordings.recovery import write_copy
 from services.foxglove.scene import ARROW_M_PER_N, ELLIPSOID_M_PER_N_M, FRAMES, VisualScene, world_geometry
 from services.runtime.visual_topics import SCHEMA_DIR, SCHEMA_NAMES, schema_bytes
 from services.foxglove.tap import VisualTap
-from tests import support
 
 ROOT = Path(__file__).resolve().parents[2]
 NPM_SCHEMAS = ROOT / ".cache" / "foxglove-schemas" / "jsonschema"  # `make foxglove-schemas`
 
 
-@pytest.fixture(scope="module")
-def run_dir(tmp_path_factory):
-    """A demonstration and a reproduction of the smoke task, in one process."""
-    out = tmp_path_factory.mktemp("foxglove")
-    scenario = support.scenario("smoke", {"demonstrate.count": 1, "learn.phases": 2})
-    report = support.run(scenario, out / "run", transport="inproc", run_id="foxglove")
-    assert report["error"] is None, report["error"]
-    return out / "run"
+@pytest.fixture
+def run_dir(foxglove_run_dir):
+    return foxglove_run_dir
 
 
 def visual_messages(path):
@@ -73,7 +67,9 @@ def test_every_visual_message_is_valid_against_foxglove_own_json_schemas(run_dir
                 errors = [f"{e.json_path}: {e.message}" for e in validators[topic].iter_errors(msg)]
                 assert not errors, (path.name, topic, errors[:3])
             counts[topic] = counts.get(topic, 0) + len(messages)
-    assert set(counts) == set(SCHEMA_NAMES) and all(n > 50 for t, n in counts.items() if t != "/viz/log"), counts
+    # every frame's topics at the visual rate; the geometry once a second; the log on events
+    assert set(counts) == set(SCHEMA_NAMES), counts
+    assert all(n > 50 for t, n in counts.items() if t not in ("/viz/log", "/viz/geometry")), counts
     # and the validator does reject what Foxglove would not read
     bad = visual_messages(run_dir / "recordings" / "reproduction_00.mcap")["/viz/scene"][0][1]
     bad["entities"][0]["frame_id"] = 7
@@ -110,8 +106,11 @@ def test_the_visual_topics_show_the_arm_where_the_robot_measured_it(run_dir):
                       [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
         np.testing.assert_allclose(R, pose[:, :3], atol=1e-9)
     scenes = [msg for _, msg in visual["/viz/scene"]]
-    static = [s for s in scenes if any(e["id"] == "geometry/base" for e in s["entities"])]
-    assert 1 <= len(static) <= len(scenes) // 40 + 2  # the first frame, then once a second
+    static = [msg for _, msg in visual["/viz/geometry"]]
+    # the first frame, then once a second, each with the whole geometry: a seek finds it
+    assert 1 <= len(static) <= len(scenes) // 40 + 2
+    assert all({e["id"] for e in g["entities"]} == {e["id"] for e in static[0]["entities"]} for g in static)
+    assert not any(e["id"].startswith("geometry/") for s in scenes for e in s["entities"])
     world = next(e for e in static[0]["entities"] if e["id"] == "geometry/base")
     assert world["frame_id"] == "base" and len(world["cubes"]) == 3  # two plates and the stand
     arm = {e["frame_id"] for e in static[0]["entities"] if e["id"].startswith("geometry/")} - {"base"}
@@ -148,6 +147,24 @@ def test_the_visual_topics_show_the_arm_where_the_robot_measured_it(run_dir):
     logs = [msg["message"] for _, msg in visual["/viz/log"]]
     assert any(line.startswith("episode_begin reproduction") for line in logs)
     assert any(line.startswith("reproduction 0 ended: goal_reached") for line in logs)
+
+
+@pytest.mark.slow
+def test_every_episode_has_its_picture_from_its_first_visual_frame(run_dir):
+    """The first frame of every episode, the first of each stage included, is drawn: the
+    transforms and the geometry at the first visual cycle after the first measurement."""
+    for path in sorted((run_dir / "recordings").glob("*.mcap")):
+        messages = read_episode(path).messages
+        first_state = min(json.loads(m.payload)["stamp_ns"] for m in messages if m.topic == "/robot/state")
+        visual = visual_messages(path)
+        for topic in ("/viz/tf", "/viz/geometry", "/viz/scene"):
+            stamps = [support_stamp(msg, topic) for _, msg in visual[topic]]
+            assert min(stamps) - first_state < 20_000_000, (path.name, topic)  # within a visual period (20 ms)
+
+
+def support_stamp(msg: dict, topic: str) -> int:
+    t = msg["transforms"][0]["timestamp"] if topic == "/viz/tf" else msg["entities"][0]["timestamp"]
+    return t["sec"] * 1_000_000_000 + t["nsec"]
 
 
 def test_a_visual_tap_skips_garbage_and_counts_it():
@@ -275,5 +292,8 @@ def test_the_layout_refers_only_to_panels_it_configures_and_fields_the_visual_to
         topic, _, field = path.partition(".")
         assert topic == "/viz/status", path
         assert field.split("[")[0] in status, path
-    assert set(layout["configById"]["3D!arm"]["topics"]) == {"/viz/scene", "/viz/tf"}
+    assert set(layout["configById"]["3D!arm"]["topics"]) == {"/viz/geometry", "/viz/scene", "/viz/tf"}
+    # frame labels and axes in proportion to a 1 m arm, not the viewer's 0.2 m labels
+    transforms = layout["configById"]["3D!arm"]["scene"]["transforms"]
+    assert transforms["labelSize"] <= 0.05 and transforms["axisScale"] <= 0.5
     assert layout["configById"]["RosOut!log"]["topicToRender"] == "/viz/log"

@@ -9,7 +9,6 @@ import threading
 import time
 
 import numpy as np
-import pytest
 
 from robot_sim.ati import AtiConfig, AtiSensor
 from robot_sim.fri import ControlMode, FriQuality, FriState, MeasurementPacket

@@ -1,0 +1,76 @@
+// Drives Foxglove Studio 1.48 (tests/foxglove/studio/index.html, served by the test) in
+// headless chromium and says what the app shows: its topics with their schemas, the
+// problems it reports, and screenshots of its panels paused at a time, after a seek while
+// paused, and while playing.  node drive.mjs '{"url": ..., "seek": "...", "out": DIR}'
+// playwright-core comes from make foxglove-studio's node_modules (STUDIO_NODE_MODULES).
+import { createRequire } from "module";
+import fs from "fs";
+
+const require = createRequire(`${process.env.STUDIO_NODE_MODULES}/`);
+const { chromium } = require("playwright-core");
+const args = JSON.parse(process.argv[2]);
+fs.mkdirSync(args.out, { recursive: true });
+const log = [];
+const browser = await chromium.launch({
+  executablePath: process.env.CHROMIUM || "/usr/bin/chromium", headless: true,
+  // software WebGL: the machines this runs on have no GPU
+  args: ["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"],
+});
+const result = { topics: [], problems: [], shots: {}, seek: null };
+try {
+  const page = await browser.newPage({ viewport: { width: 1600, height: 1000 } });
+  page.on("console", (m) => log.push(`[${m.type()}] ${m.text()}`));
+  page.on("pageerror", (e) => log.push(`[pageerror] ${e}`));
+  await page.goto(args.url, { waitUntil: "load" });
+  await page.waitForSelector('[data-topic-stat="count"]', { timeout: 90000 });
+  await page.waitForSelector('[data-testid="panel-mouseenter-container 3D!arm"] canvas', { timeout: 90000 });
+  await page.waitForTimeout(4000);  // the panels draw what the time they opened at has
+
+  const tab = async (name) => {
+    if (!(await page.locator('button[data-sidebar-key="connection"][aria-selected="true"]').count()))
+      await page.click('button[data-sidebar-key="connection"]');
+    await page.locator('[role="tablist"] button[role="tab"]', { hasText: name }).first().click();
+    await page.waitForTimeout(300);
+  };
+  await tab("Topics");
+  result.topics = await page.$$eval("li.MuiListItem-root", (lis) => lis
+    .filter((li) => li.querySelector("[data-topic]"))
+    .map((li) => ({ topic: li.querySelector(".MuiListItemText-primary")?.textContent,
+                    schema: li.querySelector(".MuiListItemText-secondary")?.textContent })));
+  await tab("Problems");
+  result.problemBadge = await page.locator('button[data-sidebar-key="connection"] .MuiBadge-badge')
+    .textContent({ timeout: 1000 }).catch(() => "");
+  result.problems = await page.$$eval("li .MuiListItemText-primary", (es) => es.map((e) => e.textContent));
+  await tab("Topics");
+
+  const panel = (id) => page.locator(`[data-testid="panel-mouseenter-container ${id}"]`);
+  const shots = async (tag) => {
+    for (const [name, id] of [["3d", "3D!arm"], ["plot", "Plot!wrench"], ["phase", "StateTransitions!phase"]]) {
+      const file = `${args.out}/${tag}-${name}.png`;
+      await panel(id).screenshot({ path: file });
+      result.shots[`${tag}-${name}`] = file;
+    }
+  };
+  result.paused = (await page.locator('button[title="Play"]').count()) > 0;
+  await shots("paused");
+  await page.screenshot({ path: `${args.out}/paused-page.png` });
+  // a seek while paused: the time field pauses playback when focused, Enter moves there
+  const time = page.locator('[data-testid="PlaybackTime-text"] input');
+  await time.click();
+  await time.fill(String(args.seek));
+  await time.press("Enter");
+  await page.mouse.click(5, 995);
+  await page.waitForTimeout(4000);
+  result.seek = { requested: String(args.seek), shown: await time.inputValue(),
+                  paused: (await page.locator('button[title="Play"]').count()) > 0 };
+  await shots("seeked");
+  await page.click('button[title="Play"]');
+  await page.waitForTimeout(1500);
+  await shots("playing");
+  await page.click('button[title="Pause"]').catch(() => {});
+} finally {
+  fs.writeFileSync(`${args.out}/console.log`, log.join("\n"));
+  fs.writeFileSync(`${args.out}/result.json`, JSON.stringify(result, null, 1));
+  await browser.close();
+}
+console.log(JSON.stringify(result));

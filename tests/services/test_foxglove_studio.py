@@ -1,0 +1,184 @@
+"""A recording opened in a real Foxglove: the open-source Foxglove Studio 1.48 (the app
+``@foxglove/studio-base`` 1.48.0 ships prebuilt, ``make foxglove-studio``) in headless
+chromium, with the committed layout, opened paused in the middle of a smoke
+reproduction served with HTTP range requests; then a seek while paused, then playing.
+Checked from what the app says and shows: every topic of the recording listed, the
+visual ones with their Foxglove schemas; no problem reported; the arm and the world drawn
+in the 3D panel paused, after the seek and playing, its frame labels small (from the
+panel's pixels); the force plot and the phase rows with data.  The screenshots stay in
+``out/foxglove-studio/``.  Against a recording and the layout of fc0d2b4 (before issue 26)
+the same checks fail: two problems (the schemas of /runner/event and /robot/episode), the
+arm and the world gone when paused (orange 0.03 % and grey 0.5 % of the panel, against
+15 % and 4.5 % now), labels' boxes over 28 % of it.
+"""
+
+from __future__ import annotations
+
+import datetime
+import http.server
+import json
+import os
+import re
+import shutil
+import subprocess
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from services.recordings.reader import read_episode
+from services.runtime.visual_topics import SCHEMA_NAMES
+
+ROOT = Path(__file__).resolve().parents[2]
+STUDIO = ROOT / ".cache" / "foxglove-studio"
+PAGE = ROOT / "tests" / "foxglove" / "studio"
+ARTIFACTS = ROOT / "out" / "foxglove-studio"
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+
+
+def _files() -> dict:
+    assets = STUDIO / "studio-base" / "package" / "assets"
+    umd = STUDIO / "node_modules"
+    return {"/": PAGE / "index.html", "/index.html": PAGE / "index.html", "/loader.js": PAGE / "loader.js",
+            "/layout.json": ROOT / "docs" / "foxglove" / "etar.layout.json",
+            "/react.production.min.js": umd / "react" / "umd" / "react.production.min.js",
+            "/react-dom.production.min.js": umd / "react-dom" / "umd" / "react-dom.production.min.js",
+            "assets": assets}
+
+
+class _Handler(http.server.BaseHTTPRequestHandler):
+    """The page, the app's files and the recording, with HTTP range requests (the app
+    reads an MCAP file by ranges, and refuses a server that does not offer them)."""
+
+    files: dict = {}
+
+    def do_GET(self):  # the name http.server calls
+        path = self.path.split("?", 1)[0]
+        if path.startswith("/studio/"):
+            file = self.files["assets"] / path[len("/studio/"):]
+        else:
+            file = self.files.get(path)
+        if file is None or not Path(file).is_file() or ".." in path:
+            self.send_error(404)
+            return
+        data = Path(file).read_bytes()
+        types = {".html": "text/html", ".js": "text/javascript", ".json": "application/json",
+                 ".wasm": "application/wasm", ".mcap": "application/octet-stream"}
+        start, end, status = 0, len(data) - 1, 200
+        found = re.fullmatch(r"bytes=(\d*)-(\d*)", self.headers.get("Range", ""))
+        if found:
+            first, last = found.groups()
+            start, end = (int(first), min(int(last or end), end)) if first else (len(data) - int(last), end)
+            status = 206
+        self.send_response(status)
+        self.send_header("Content-Type", types.get(Path(file).suffix, "application/octet-stream"))
+        self.send_header("Accept-Ranges", "bytes")
+        self.send_header("Content-Length", str(end - start + 1))
+        if status == 206:
+            self.send_header("Content-Range", f"bytes {start}-{end}/{len(data)}")
+        self.end_headers()
+        try:
+            self.wfile.write(data[start:end + 1])
+        except (BrokenPipeError, ConnectionResetError):
+            pass  # the app cancels range reads it no longer needs (a seek, the page closing)
+
+    def log_message(self, format, *args):  # the signature http.server calls
+        pass
+
+
+def orange_share(png: Path) -> float:
+    """The share of orange pixels, however the viewer's light shades the arm's colour."""
+    from PIL import Image
+
+    pixels = np.asarray(Image.open(png).convert("RGB"), dtype=np.float64)
+    r, g, b = pixels[..., 0], pixels[..., 1], pixels[..., 2]
+    ratio = g / np.maximum(r, 1.0)
+    return float(np.mean((r > 120) & (r - b > 90) & (ratio > 0.3) & (ratio < 0.7)))
+
+
+def grey_share(png: Path) -> float:
+    """The share of lit grey pixels (the plates, shaded by the viewer's light), neither the
+    dark background nor a coloured line."""
+    from PIL import Image
+
+    pixels = np.asarray(Image.open(png).convert("RGB"), dtype=np.int32)
+    grey = pixels.max(axis=-1) - pixels.min(axis=-1) < 20
+    return float(np.mean(grey & (pixels.mean(axis=-1) > 110) & (pixels.mean(axis=-1) < 235)))
+
+
+def label_share(png: Path) -> float:
+    """The share of the frame labels' black boxes (the viewer draws a label white on black):
+    at its default 0.2 m they covered a quarter of the panel."""
+    from PIL import Image
+
+    pixels = np.asarray(Image.open(png).convert("RGB"), dtype=np.int32)
+    return float(np.mean(np.all(pixels < 8, axis=-1)))
+
+
+def coloured_share(png: Path) -> float:
+    """The share of saturated pixels: a plot's lines, a state row's bars (the background
+    and the text are grey)."""
+    from PIL import Image
+
+    pixels = np.asarray(Image.open(png).convert("RGB"), dtype=np.int32)
+    return float(np.mean(pixels.max(axis=-1) - pixels.min(axis=-1) > 80))
+
+
+def rfc3339(ns: int) -> str:
+    t = datetime.datetime.fromtimestamp(ns // 1_000_000_000, tz=datetime.timezone.utc)
+    return t.strftime("%Y-%m-%dT%H:%M:%S") + f".{ns % 1_000_000_000:09d}Z"
+
+
+@pytest.fixture
+def reproduction(foxglove_run_dir):
+    return foxglove_run_dir / "recordings" / "reproduction_00.mcap"
+
+
+@pytest.mark.slow
+def test_foxglove_studio_shows_a_reproduction_paused_after_a_seek_and_playing(reproduction):
+    if not (STUDIO / "READY").exists():
+        pytest.skip(f"{STUDIO} is missing: `make foxglove-studio` (part of `make test`) installs Foxglove "
+                    "Studio 1.48 from npm")
+    if not Path(CHROMIUM).exists() or shutil.which("node") is None:
+        pytest.skip("chromium or node is missing (`make browser` installs chromium as root)")
+    episode = read_episode(reproduction)
+    times = sorted(m.log_time_ns for m in episode.messages if m.topic == "/robot/state")
+    middle, later = times[len(times) // 2], times[len(times) * 3 // 4]
+    recorded = {m.topic for m in episode.messages}
+    files = _files()
+    files["/data/reproduction_00.mcap"] = reproduction
+    handler = type("Handler", (_Handler,), {"files": files})
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    base = f"http://127.0.0.1:{server.server_address[1]}"
+    shutil.rmtree(ARTIFACTS, ignore_errors=True)
+    args = {"url": f"{base}/?ds=remote-file&ds.url={base}/data/reproduction_00.mcap&layoutId=etar"
+                   f"&time={rfc3339(middle)}",
+            "seek": f"{later / 1e9:.3f}", "out": str(ARTIFACTS)}
+    try:
+        proc = subprocess.run(["node", str(PAGE / "drive.mjs"), json.dumps(args)], capture_output=True, text=True,
+                              timeout=300, env=dict(os.environ, STUDIO_NODE_MODULES=str(STUDIO / "node_modules"),
+                                                    CHROMIUM=CHROMIUM))
+    finally:
+        server.shutdown()
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    shown = json.loads(proc.stdout.strip().splitlines()[-1])
+    listed = {t["topic"]: t["schema"] for t in shown["topics"]}
+    # every topic recorded is listed, the visual ones with the schema Foxglove draws them by
+    assert recorded <= set(listed), recorded - set(listed)
+    for topic, schema in SCHEMA_NAMES.items():
+        assert listed[topic] == schema, topic
+    assert shown["problems"] == [] and shown["problemBadge"] in ("", "0"), shown["problems"]
+    assert shown["paused"] and shown["seek"]["paused"]
+    assert abs(float(shown["seek"]["shown"]) - later / 1e9) < 0.05, shown["seek"]
+    # the arm (orange) and the world (grey plates) drawn paused, after the seek and playing
+    for tag in ("paused", "seeked", "playing"):
+        image = Path(shown["shots"][f"{tag}-3d"])
+        # the arm is orange in the MuJoCo model (robot_sim.worlds), the world light grey
+        assert orange_share(image) > 0.05, f"no arm in the 3D panel {tag}: {image}"
+        assert grey_share(image) > 0.02, f"no world in the 3D panel {tag}: {image}"
+        assert label_share(image) < 0.05, f"frame labels swamp the 3D panel {tag}: {image}"
+    # the force plot and the phase rows have data
+    assert coloured_share(Path(shown["shots"]["paused-plot"])) > 0.002
+    assert coloured_share(Path(shown["shots"]["paused-phase"])) > 0.01
