@@ -92,9 +92,12 @@ def test_serve_a_lab_remote_and_a_net_ft_client(tmp_path):
                 proc.kill()
                 proc.communicate()
     assert proc.returncode == 0, stderr[-2000:]
-    # the client saw every sample of its second, in order
+    # the client lost nothing of its second, in order (ft_sequence counts the cell's cycles: on
+    # the realtime clock the sensor skips a cycle's contact now and then, and says so by a gap)
     ft = np.array([s.ft_sequence for s in got])
-    assert np.all(np.diff(ft) == 1) and health.lost_count == 0 and health.malformed_count == 0
+    rdt = np.array([s.rdt_sequence for s in got])
+    assert np.all(np.diff(ft) >= 1) and np.all(np.diff(rdt) == 1)
+    assert health.lost_count == 0 and health.malformed_count == 0
     report = json.loads((out / "report.json").read_text())
     assert report["error"] is None
     served, = report["served"]
