@@ -94,6 +94,8 @@ __all__ = [
     "NETFT_ERROR",
     "NETFT_SATURATION",
     "RDT_HEADER",
+    "RDT_RECORD",
+    "RDT_REQUEST",
     "NetFtBox",
     "NetFtStats",
     "RdtCommand",
@@ -121,7 +123,8 @@ NETFT_ERROR = 0x80000000
 NETFT_SATURATION = 0x00020000
 """Net F/T status bit 17, "transducer saturation or A/D error"."""
 
-_REQUEST = struct.Struct(">HHI")
+RDT_REQUEST = struct.Struct(">HHI")  # header 0x1234, command, sample count
+RDT_RECORD = RdtRecord._WIRE  # one 36-byte record: rdt_sequence, ft_sequence, status, counts
 _RECORD_TAIL = struct.Struct(">2I6i")  # ft_sequence, status, counts: the same for every stream
 _RDT_SEQUENCE = struct.Struct(">I")
 _CALINFO_REQUEST_SIZE = 20
@@ -410,10 +413,10 @@ class NetFtBox:
         bias = False
         with self._lock:
             stats = self._stats
-            if len(data) != _REQUEST.size:
+            if len(data) != RDT_REQUEST.size:
                 stats.ignored += 1
                 return
-            header, command, count = _REQUEST.unpack(data)
+            header, command, count = RDT_REQUEST.unpack(data)
             known = (RdtCommand.STOP, RdtCommand.REALTIME, RdtCommand.BUFFERED,
                      RdtCommand.RESET_THRESHOLD_LATCH, RdtCommand.SET_SOFTWARE_BIAS)
             if header != RDT_HEADER or command not in known:

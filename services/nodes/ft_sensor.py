@@ -26,6 +26,7 @@ bytes and decoded.
 
 from __future__ import annotations
 
+import base64
 import dataclasses
 import ipaddress
 import math
@@ -35,14 +36,21 @@ from dataclasses import dataclass
 import numpy as np
 
 from robot_sim.ati import AtiConfig, AtiSensor
-from robot_sim.netft import CALIBRATION_PORT, HTTP_PORT, RDT_PORT, NetFtBox
+from robot_sim.netft import CALIBRATION_PORT, HTTP_PORT, RDT_PORT, RDT_RECORD, NetFtBox
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import option
-from services.runtime.messages import FT_WRENCH, NETFT_RDT, rdt_fields
+from services.runtime.messages import FT_WRENCH, NETFT_RDT
 
 SENSOR_FAULTS = ("none", "stop", "saturate", "nan")
 # what a saturating load is: ten times the Mini45's largest range on every axis
 SATURATING_LOAD = 10.0
+
+
+def rdt_fields(data: bytes) -> dict:
+    """NETFT_RDT's ``bytes`` and ``records`` for an RDT datagram the box sent."""
+    records = [dict(zip(("rdt_sequence", "ft_sequence", "status"), r[:3]), counts=list(r[3:]))
+               for r in RDT_RECORD.iter_unpack(data[:len(data) - len(data) % RDT_RECORD.size])]
+    return {"bytes": base64.b64encode(data).decode("ascii"), "records": records}
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import select
 import socket
-import struct
 import threading
 import time
 import urllib.request
@@ -25,11 +24,9 @@ from collections.abc import Callable
 
 from robot_sim.ati import AtiStatus
 from robot_sim.fri import FRI_CYCLE_NS
-from robot_sim.netft import NETFT_SATURATION, RDT_HEADER, RdtCommand
+from robot_sim.netft import NETFT_SATURATION, RDT_HEADER, RDT_RECORD, RDT_REQUEST, RdtCommand
 from services.runtime.messages import FT_WRENCH
 
-_REQUEST = struct.Struct(">HHI")
-_RECORD = struct.Struct(">3I6i")
 # the Net F/T word tells saturation (bit 17, which the box also sets for a non-finite
 # gauge reading) from any other error: the ATI model's bits the estimator reads for each
 _SATURATED = int(AtiStatus.ERROR | AtiStatus.FT_OUT_OF_RANGE)
@@ -82,7 +79,7 @@ class NetFtStream:
         self._stop.set()
         self._thread.join(timeout=5.0)
         try:
-            self._sock.send(_REQUEST.pack(RDT_HEADER, RdtCommand.STOP, 0))
+            self._sock.send(RDT_REQUEST.pack(RDT_HEADER, RdtCommand.STOP, 0))
         except OSError:
             pass
         self._sock.close()
@@ -100,7 +97,7 @@ class NetFtStream:
             now = time.monotonic()
             if now - heard > self.RESTART_S:
                 try:
-                    self._sock.send(_REQUEST.pack(RDT_HEADER, RdtCommand.REALTIME, 0))
+                    self._sock.send(RDT_REQUEST.pack(RDT_HEADER, RdtCommand.REALTIME, 0))
                     self.requests += 1
                     self._last_rdt = None  # a new stream numbers its records from 1 again
                 except OSError as exc:
@@ -116,10 +113,10 @@ class NetFtStream:
                 continue
             recv_ns = self.clock()
             heard = time.monotonic()
-            if not data or len(data) % _RECORD.size:
+            if not data or len(data) % RDT_RECORD.size:
                 self.garbage += 1
                 continue
-            for record in _RECORD.iter_unpack(data):
+            for record in RDT_RECORD.iter_unpack(data):
                 self._take(record, recv_ns)
 
     def _take(self, record, recv_ns: int) -> None:

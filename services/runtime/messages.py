@@ -35,7 +35,6 @@ import base64
 import json
 import math
 import re
-import struct
 from dataclasses import dataclass
 
 import orjson
@@ -532,16 +531,6 @@ def _finite_or_none(value):
     if isinstance(value, dict):
         return {k: _finite_or_none(v) for k, v in value.items()}
     return value
-
-
-_RDT_RECORD = struct.Struct(">III6i")
-
-
-def rdt_fields(data: bytes) -> dict:
-    """NETFT_RDT's ``bytes`` and ``records`` for an RDT datagram."""
-    records = [dict(zip(("rdt_sequence", "ft_sequence", "status"), r[:3]), counts=list(r[3:]))
-               for r in _RDT_RECORD.iter_unpack(data[:len(data) - len(data) % _RDT_RECORD.size])]
-    return {"bytes": base64.b64encode(data).decode("ascii"), "records": records}
 
 
 def documentation() -> str:
