@@ -15,11 +15,12 @@ rate (50 Hz by default: one in every 20 FRI cycles):
   (mixed into the overlays' topic, they were in one message of fifty, and a seek
   lost the arm and the world);
 - ``/viz/scene`` (``foxglove.SceneUpdate``): the overlays at the visual rate:
-  the measured force as an arrow at the sensor, the translational stiffness the
-  commander applies as an ellipsoid at the tcp (its axes the stiffness' principal
+  the measured force as an arrow from the tcp (the contact), the translational
+  stiffness the commander applies as an ellipsoid at the tcp (its axes the stiffness' principal
   axes, in proportion: the learned K = R V R^T of the phase whose law the command
   names, from the episode's model, or the hold stiffness while it holds), the
-  estimated and the true phase as the ellipsoid's colour and a text;
+  estimated and the true phase as the ellipsoid's colour and a text over the tcp;
+  the arm drawn see-through, so that the wrist hides none of them;
 - ``/viz/status`` (``etar.VisualStatus``, a JSON Schema of our own): the same
   figures as plain numbers for Foxglove's plots and state-transition panels;
 - ``/viz/log`` (``foxglove.Log``): the services' log lines (``service/log``), the
@@ -44,12 +45,18 @@ from services.runtime.visual_topics import (TOPIC_GEOMETRY, TOPIC_LOG, TOPIC_SCE
                                             VISUAL_RATE_HZ, check_visual_rate)
 
 FRAMES = ("link1", "link2", "link3", "link4", "link5", "link6", "link7", "flange", "ati_sensor", "tool", "tcp")
-ARROW_M_PER_N = 0.005  # the force arrow: 5 mm per newton, at most MAX_ARROW_M
+ARROW_M_PER_N = 0.01  # the force arrow: 1 cm per newton, at most MAX_ARROW_M
 MAX_ARROW_M = 0.4
 ELLIPSOID_M_PER_N_M = 0.06 / 2000.0  # the stiffness ellipsoid: 6 cm across at the hold stiffness 2000 N/m
 MIN_ELLIPSOID_M = 0.004
-PHASE_COLOURS = ((0.2, 0.6, 1.0), (1.0, 0.55, 0.1), (0.2, 0.8, 0.3), (0.85, 0.25, 0.8), (0.9, 0.85, 0.1),
+# the force arrow is yellow, which no phase and none of a frame's red-green-blue axes is
+FORCE_COLOUR = (1.0, 0.9, 0.0)
+PHASE_COLOURS = ((0.2, 0.6, 1.0), (1.0, 0.55, 0.1), (0.2, 0.8, 0.3), (0.85, 0.25, 0.8), (0.6, 0.45, 1.0),
                  (0.3, 0.9, 0.9))
+# the arm see-through: the force arrow and the ellipsoid are inside the sensor and the
+# tool, and from most views the wrist stands between the viewer and the text
+ARM_ALPHA = 0.6
+PHASE_TEXT_ABOVE_TCP_M = 0.2  # over the plates: the viewer hides a text behind what stands in front
 NO_PHASE = (0.6, 0.6, 0.6)
 LOG_INFO, LOG_WARNING = 2, 3
 
@@ -236,12 +243,14 @@ class VisualScene:
                                "rotation": _quat_of_matrix(placement.rotation)})
         out = [(TOPIC_TF, {"transforms": transforms})]
         tcp = kin.data.oMf[self._frame_ids[-1]].translation
+        sensor_rotation = kin.data.oMf[self._frame_ids[FRAMES.index("ati_sensor")]].rotation
         principal = self._principal_stiffness()
         seq = state["seq"]
         if self._static_at is None or seq - self._static_at >= FRI_RATE_HZ or seq < self._static_at:
             self._static_at = seq
             out.append((TOPIC_GEOMETRY, {"deletions": [], "entities": self._static(stamp)}))
-        out.append((TOPIC_SCENE, {"deletions": [], "entities": self._overlay(stamp, tcp, principal)}))
+        out.append((TOPIC_SCENE, {"deletions": [], "entities": self._overlay(stamp, tcp, principal,
+                                                                              sensor_rotation)}))
         out.append((TOPIC_STATUS, self._status(state, tcp, principal)))
         return out
 
@@ -249,8 +258,9 @@ class VisualScene:
         by_frame: dict[str, dict] = {}
         for frame, prim, pose, dims, rgba in self.geometry:
             e = by_frame.setdefault(frame, _entity(stamp, frame, f"geometry/{frame}"))
+            alpha = rgba[3] if frame == "base" else min(rgba[3], ARM_ALPHA)
             e[prim].append({"pose": pose, "size": {"x": dims[0], "y": dims[1], "z": dims[2]},
-                            "color": _colour(rgba[:3], rgba[3]),
+                            "color": _colour(rgba[:3], alpha),
                             **({"bottom_scale": 1.0, "top_scale": 1.0} if prim == "cylinders" else {})})
         return list(by_frame.values())
 
@@ -278,18 +288,19 @@ class VisualScene:
             V[:, 2] = -V[:, 2]
         return w, V
 
-    def _overlay(self, stamp: int, tcp, principal) -> list[dict]:
+    def _overlay(self, stamp: int, tcp, principal, sensor_rotation) -> list[dict]:
         """The wrench arrow, the stiffness ellipsoid and the phase text, on the tcp side."""
         phase = None if self._estimate is None else int(self._estimate["phase"])
         colour = phase_colour(phase)
         prims = {"arrows": [], "texts": []}
         if self._wrench is not None:
-            f = np.asarray(self._wrench[:3], dtype=np.float64)
+            # measured in the sensor's axes, drawn in base's from the contact (the tcp)
+            f = sensor_rotation @ np.asarray(self._wrench[:3], dtype=np.float64)
             length = min(float(np.linalg.norm(f)) * ARROW_M_PER_N, MAX_ARROW_M)
             if length > 1e-4:
-                prims["arrows"].append({"pose": _pose((0, 0, 0), _x_onto(f)), "shaft_length": length * 0.8,
-                                        "shaft_diameter": 0.006, "head_length": length * 0.2,
-                                        "head_diameter": 0.016, "color": _colour((0.9, 0.1, 0.1))})
+                prims["arrows"].append({"pose": _pose(tcp, _x_onto(f)), "shaft_length": length * 0.75,
+                                        "shaft_diameter": 0.012, "head_length": length * 0.25,
+                                        "head_diameter": 0.032, "color": _colour(FORCE_COLOUR)})
         ellipsoid = []
         if principal is not None:
             # the principal axes as the ellipsoid's axes, in base axes at the tcp
@@ -300,11 +311,12 @@ class VisualScene:
                               "color": _colour(colour, 0.35)})
         label = "phase -" if phase is None else f"phase {phase}"
         label += f" (true {self._true_phase})" + (f" HOLD {self._hold}" if self._hold else "")
-        prims["texts"].append({"pose": _pose((0, 0, 0.05), _quaternion(1, 0, 0, 0)), "billboard": True,
-                               "font_size": 14.0, "scale_invariant": True, "color": _colour(colour), "text": label})
-        # the arrow sits at the sensor, the rest at the tcp: two entities
-        return [_entity(stamp, "ati_sensor", "overlay/wrench", arrows=prims["arrows"]),
-                _entity(stamp, "tcp", "overlay/tcp", texts=prims["texts"]),
+        above = np.asarray(tcp, dtype=np.float64) + (0.0, 0.0, PHASE_TEXT_ABOVE_TCP_M)  # up in base, not along the tool
+        prims["texts"].append({"pose": _pose(above, _quaternion(1, 0, 0, 0)),
+                               "billboard": True, "font_size": 18.0, "scale_invariant": True, "color": _colour(colour), "text": label})
+        # in base: the arrow and the ellipsoid at the tcp, the text above it
+        return [_entity(stamp, "base", "overlay/wrench", arrows=prims["arrows"]),
+                _entity(stamp, "base", "overlay/tcp", texts=prims["texts"]),
                 _entity(stamp, "base", "overlay/stiffness", spheres=ellipsoid)]
 
     def _status(self, state: dict, tcp, principal) -> dict:

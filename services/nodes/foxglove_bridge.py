@@ -8,11 +8,11 @@ Foxglove SDK server (``foxglove-sdk``): connect Foxglove to ``ws://HOST:PORT``
 cycle, so it cannot change what is recorded or what the cell does; a slow viewer
 only loses visual messages (the SDK drops the oldest of a client's queue).
 
-The channels carry JSON with Foxglove's JSON Schemas (the recording's encoding);
-the SDK's server speaks ``foxglove.sdk.v1``, the wire format of
-``foxglove.websocket.v1`` under a new name, and accepts only a client that offers that
-name: today's Foxglove does; Foxglove Studio 1.48 (the last open-source release), which
-offers only ``foxglove.websocket.v1``, is refused (HTTP 400) and can open recordings only.
+The channels carry JSON with Foxglove's JSON Schemas (the recording's encoding).
+The SDK's server listens on loopback behind ``services.foxglove.door``: it speaks
+``foxglove.sdk.v1`` only, and the door lets in, under that name, a viewer that offers
+only ``foxglove.websocket.v1`` (Foxglove Studio 1.48, the last open-source release;
+Lichtblick until December 2025) -- the same wire format under its older name.
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ from services.runtime import topics
 from services.runtime.bus import Node, Subscription
 from services.runtime.config import option
 from services.runtime.visual_topics import FOXGLOVE_PORT, SCHEMA_NAMES, VISUAL_RATE_HZ, check_visual_rate, schema_bytes
+from services.foxglove.door import SubprotocolDoor
 from services.foxglove.scene import VisualScene
 from services.foxglove.tap import VisualTap, encode
 
@@ -59,11 +60,18 @@ class FoxgloveBridgeNode(Node):
         self.sent = 0
         self.errors = 0
         try:
-            self.server = foxglove.start_server(name=f"etar {run_id}", host=config.host, port=config.port)
-        except RuntimeError as exc:  # the SDK's FoxgloveError, e.g. the port is taken
-            raise OSError(f"the live view cannot listen on {config.host}:{config.port}: {exc} (--foxglove PORT: "
-                          "another port, or 0 for any free one)") from None
-        self.port = self.server.port
+            self.door = SubprotocolDoor(config.host, config.port, upstream_port=0)
+        except OSError as exc:
+            raise OSError(f"the live view cannot listen on {config.host}:{config.port}: {exc.strerror or exc} "
+                          "(--foxglove PORT: another port, or 0 for any free one)") from None
+        try:
+            # the SDK's server, reached through the door only
+            self.server = foxglove.start_server(name=f"etar {run_id}", host="127.0.0.1", port=0)
+        except RuntimeError as exc:  # the SDK's FoxgloveError
+            self.door.close()
+            raise OSError(f"the live view's server did not start: {exc}") from None
+        self.door.upstream_port = self.server.port
+        self.port = self.door.port
         self.channels = {topic: foxglove.Channel(topic, schema=json.loads(schema_bytes(topic)),
                                                  message_encoding="json")
                          for topic in SCHEMA_NAMES}
@@ -80,7 +88,9 @@ class FoxgloveBridgeNode(Node):
             self.errors += 1
 
     def status(self) -> dict:
-        return {"port": self.port, "sent": self.sent, "errors": self.errors, "undecodable": self.tap.undecodable}
+        return {"port": self.port, "sent": self.sent, "errors": self.errors, "undecodable": self.tap.undecodable,
+                "viewers_by_old_name": self.door.renamed}
 
     def close(self) -> None:
+        self.door.close()
         self.server.stop()

@@ -19,9 +19,9 @@ from tests import support
 
 # a whole run (or the service processes) over Zenoh: the slow lane
 pytestmark = [pytest.mark.slow, pytest.mark.zenoh]
-# foxglove-sdk's server names the protocol foxglove.sdk.v1, the wire format of
-# foxglove.websocket.v1; it refuses a client that offers only the old name (HTTP 400)
-SUBPROTOCOLS = ["foxglove.websocket.v1", "foxglove.sdk.v1"]
+# the one wire format under its two names: the SDK's, and the only one Foxglove Studio
+# 1.48 and the ws-protocol clients offer (let in by the bridge's door)
+NAMES = ("foxglove.sdk.v1", "foxglove.websocket.v1")
 
 
 def reproduction_scenario():
@@ -29,9 +29,10 @@ def reproduction_scenario():
     return support.hold(15, {"clock": "lockstep", "reproduce.stop_at_goal": True})
 
 
-async def watch(port: int, until: threading.Event) -> dict:
-    """Connect, subscribe to every advertised channel, count what arrives until ``until``."""
-    ws = await websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS, max_size=None,
+async def watch(port: int, until: threading.Event, name: str) -> dict:
+    """Connect offering only the protocol name ``name``, subscribe to every advertised
+    channel, count what arrives until ``until``."""
+    ws = await websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[name], max_size=None,
                                   open_timeout=20)
     seen = {"subprotocol": ws.subprotocol, "ops": [], "channels": {}, "messages": {}, "first": {}}
     async with ws:
@@ -84,19 +85,26 @@ def test_a_foxglove_client_watches_a_live_run_which_records_what_it_would_have_w
             port = int(m.group(1)) if m else None
             time.sleep(0.05)
         assert port, lines
-        seen = asyncio.run(watch(port, done))
+
+
+        async def both():
+            return await asyncio.gather(*(watch(port, done, name) for name in NAMES))
+        views = dict(zip(NAMES, asyncio.run(both())))
     finally:
         thread.join(120)
     report = result["report"]
     assert report["error"] is None, report["error"]
-    assert seen["subprotocol"] in SUBPROTOCOLS and seen["ops"][0] == "serverInfo"
-    advertised = {ch["topic"]: (ch["schemaName"], ch["encoding"], ch["schemaEncoding"])
-                  for ch in seen["channels"].values()}
-    assert advertised == {t: (name, "json", "jsonschema") for t, name in SCHEMA_NAMES.items()}
-    assert all(seen["messages"].get(t, 0) >= 20 for t in ("/viz/tf", "/viz/scene", "/viz/status")), seen["messages"]
-    assert [t["child_frame_id"] for t in seen["first"]["/viz/tf"]["transforms"]] == list(FRAMES)
-    assert report["timing"]["services"]["foxglove_bridge"]["sent"] > 0
-    assert report["timing"]["services"]["foxglove_bridge"]["errors"] == 0
+    for name, seen in views.items():
+        assert seen["subprotocol"] == name and seen["ops"][0] == "serverInfo", (name, seen["ops"][:3])
+        advertised = {ch["topic"]: (ch["schemaName"], ch["encoding"], ch["schemaEncoding"])
+                      for ch in seen["channels"].values()}
+        assert advertised == {t: (schema, "json", "jsonschema") for t, schema in SCHEMA_NAMES.items()}, name
+        assert all(seen["messages"].get(t, 0) >= 20 for t in ("/viz/tf", "/viz/scene", "/viz/status")), \
+            (name, seen["messages"])
+        assert [t["child_frame_id"] for t in seen["first"]["/viz/tf"]["transforms"]] == list(FRAMES)
+    bridge = report["timing"]["services"]["foxglove_bridge"]
+    assert bridge["sent"] > 0 and bridge["errors"] == 0
+    assert bridge["viewers_by_old_name"] == 1, bridge
 
     # the same run without the live view, in one process: the same recording, the same result
     plain = support.run(scenario, tmp_path / "plain", transport="inproc", run_id="fg-plain")

@@ -14,7 +14,7 @@ from services.foxglove.export import add_visual_topics, export_foxglove
 from services.recordings.format import RecordingError
 from services.recordings.reader import read_episode
 from services.recordings.recovery import write_copy
-from services.foxglove.scene import ARROW_M_PER_N, ELLIPSOID_M_PER_N_M, FRAMES, VisualScene, world_geometry
+from services.foxglove.scene import ARM_ALPHA, ARROW_M_PER_N, ELLIPSOID_M_PER_N_M, FRAMES, VisualScene, world_geometry
 from services.runtime.visual_topics import SCHEMA_DIR, SCHEMA_NAMES, schema_bytes
 from services.foxglove.tap import VisualTap
 
@@ -117,6 +117,10 @@ def test_the_visual_topics_show_the_arm_where_the_robot_measured_it(run_dir):
     # every body of the MuJoCo arm with a geom (links 2, 4 and 6 have zero length in the DH model)
     assert arm == {frame for frame, *_ in world_geometry("valley")} - {"base"}
     assert {"link1", "link3", "link5", "link7", "ati_sensor", "tool"} <= arm
+    # the arm see-through, the world not
+    alphas = {e["frame_id"]: {p["color"]["a"] for kind in ("cubes", "cylinders", "spheres") for p in e[kind]}
+              for e in static[0]["entities"]}
+    assert alphas["base"] == {1.0} and all(a <= {ARM_ALPHA} for f, a in alphas.items() if f != "base")
     # the overlays: the arrow is the newest measured force, the ellipsoid the commanded stiffness
     statuses = [msg for _, msg in visual["/viz/status"]]
     moved, stiffnesses = 0, []
@@ -128,6 +132,9 @@ def test_the_visual_topics_show_the_arm_where_the_robot_measured_it(run_dir):
         if wrench["arrows"]:
             a = wrench["arrows"][0]
             assert a["shaft_length"] + a["head_length"] == pytest.approx(min(force * ARROW_M_PER_N, 0.4))
+            # from the contact, in base: not inside the sensor, where the viewer cannot show it
+            p = a["pose"]["position"]
+            assert wrench["frame_id"] == "base" and [p["x"], p["y"], p["z"]] == pytest.approx(status["tcp"])
             moved += 1
         stiffness = next(e for e in scene["entities"] if e["id"] == "overlay/stiffness")
         if status["stiffness"]:

@@ -5,8 +5,8 @@ reproduction served with HTTP range requests; then a seek while paused, then pla
 Checked from what the app says and shows: every topic of the recording listed, the
 visual ones with their Foxglove schemas; no problem reported; the arm and the world drawn
 in the 3D panel paused, after the seek and playing, its frame labels small (from the
-panel's pixels); the force plot and the phase rows with data.  The screenshots stay in
-``out/foxglove-studio/``.  Against a recording and the layout of fc0d2b4 (before issue 26)
+panel's pixels); the force plot and the phase rows with data.  And the same app watching a
+run live through the bridge.  The screenshots stay in ``out/foxglove-studio/``.  Against a recording and the layout of fc0d2b4 (before issue 26)
 the same checks fail: two problems (the schemas of /runner/event and /robot/episode), the
 arm and the world gone when paused (orange 0.03 % and grey 0.5 % of the panel, against
 15 % and 4.5 % now), labels' boxes over 28 % of it.
@@ -22,6 +22,7 @@ import re
 import shutil
 import subprocess
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -135,35 +136,48 @@ def reproduction(foxglove_run_dir):
     return foxglove_run_dir / "recordings" / "reproduction_00.mcap"
 
 
-@pytest.mark.slow
-def test_foxglove_studio_shows_a_reproduction_paused_after_a_seek_and_playing(reproduction):
+def need_studio():
     if not (STUDIO / "READY").exists():
         pytest.skip(f"{STUDIO} is missing: `make foxglove-studio` (part of `make test`) installs Foxglove "
                     "Studio 1.48 from npm")
     if not Path(CHROMIUM).exists() or shutil.which("node") is None:
         pytest.skip("chromium or node is missing (`make browser` installs chromium as root)")
+
+
+def serve(files: dict) -> tuple[http.server.ThreadingHTTPServer, str]:
+    handler = type("Handler", (_Handler,), {"files": files})
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    return server, f"http://127.0.0.1:{server.server_address[1]}"
+
+
+def drive(args: dict) -> subprocess.Popen:
+    return subprocess.Popen(["node", str(PAGE / "drive.mjs"), json.dumps(args)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True,
+                            env=dict(os.environ, STUDIO_NODE_MODULES=str(STUDIO / "node_modules"), CHROMIUM=CHROMIUM))
+
+
+@pytest.mark.slow
+def test_foxglove_studio_shows_a_reproduction_paused_after_a_seek_and_playing(reproduction):
+    need_studio()
     episode = read_episode(reproduction)
     times = sorted(m.log_time_ns for m in episode.messages if m.topic == "/robot/state")
     middle, later = times[len(times) // 2], times[len(times) * 3 // 4]
     recorded = {m.topic for m in episode.messages}
     files = _files()
     files["/data/reproduction_00.mcap"] = reproduction
-    handler = type("Handler", (_Handler,), {"files": files})
-    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    base = f"http://127.0.0.1:{server.server_address[1]}"
-    shutil.rmtree(ARTIFACTS, ignore_errors=True)
+    server, base = serve(files)
+    shutil.rmtree(ARTIFACTS / "recording", ignore_errors=True)
     args = {"url": f"{base}/?ds=remote-file&ds.url={base}/data/reproduction_00.mcap&layoutId=etar"
                    f"&time={rfc3339(middle)}",
-            "seek": f"{later / 1e9:.3f}", "out": str(ARTIFACTS)}
+            "seek": f"{later / 1e9:.3f}", "out": str(ARTIFACTS / "recording")}
     try:
-        proc = subprocess.run(["node", str(PAGE / "drive.mjs"), json.dumps(args)], capture_output=True, text=True,
-                              timeout=300, env=dict(os.environ, STUDIO_NODE_MODULES=str(STUDIO / "node_modules"),
-                                                    CHROMIUM=CHROMIUM))
+        proc = drive(args)
+        stdout, stderr = proc.communicate(timeout=300)
     finally:
         server.shutdown()
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    shown = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert proc.returncode == 0, stderr[-3000:]
+    shown = json.loads(stdout.strip().splitlines()[-1])
     listed = {t["topic"]: t["schema"] for t in shown["topics"]}
     # every topic recorded is listed, the visual ones with the schema Foxglove draws them by
     assert recorded <= set(listed), recorded - set(listed)
@@ -182,3 +196,44 @@ def test_foxglove_studio_shows_a_reproduction_paused_after_a_seek_and_playing(re
     # the force plot and the phase rows have data
     assert coloured_share(Path(shown["shots"]["paused-plot"])) > 0.002
     assert coloured_share(Path(shown["shots"]["paused-phase"])) > 0.01
+
+
+@pytest.mark.slow
+@pytest.mark.zenoh
+def test_foxglove_studio_watches_a_live_run_through_the_bridge(tmp_path):
+    """Studio 1.48's live connection offers only ``foxglove.websocket.v1``; the bridge's door
+    lets it in.  The app is opened first, at the port the run will serve (it retries a
+    connection), then a lockstep run with the live view starts (lockstep: the browser's
+    software WebGL takes a core, which a realtime run on two cores cannot spare)."""
+    from services.transport.launch import free_port
+    from tests import support
+
+    need_studio()
+    port = free_port()
+    server, base = serve(_files())
+    out = ARTIFACTS / "live"
+    shutil.rmtree(out, ignore_errors=True)
+    proc = drive({"url": f"{base}/?ds=foxglove-websocket&ds.url=ws://127.0.0.1:{port}&layoutId=etar",
+                  "out": str(out), "live": {"timeout_ms": 60000, "topics": len(SCHEMA_NAMES), "draw_ms": 2000}})
+    try:
+        t0 = time.monotonic()
+        assert proc.stdout.readline().strip() == "LOADED", proc.stderr.read()[-3000:] if proc.poll() else ""
+        print(f"app loaded after {time.monotonic() - t0:.1f} s")
+        report = support.run(support.hold(10, {"clock": "lockstep"}), tmp_path / "run", foxglove=port,
+                             run_id=f"studio-live-{int(time.time() * 1000)}")
+        print(f"run over after {time.monotonic() - t0:.1f} s")
+        stdout, stderr = proc.communicate(timeout=120)
+        print(f"app closed after {time.monotonic() - t0:.1f} s")
+    finally:
+        proc.kill()
+        server.shutdown()
+    assert report["error"] is None, report["error"]
+    assert proc.returncode == 0, stderr[-3000:]
+    shown = json.loads(stdout.strip().splitlines()[-1])
+    # the app got in under the old name and lists every visual topic with its schema
+    assert report["timing"]["services"]["foxglove_bridge"]["viewers_by_old_name"] >= 1
+    assert {t["topic"]: t["schema"] for t in shown["topics"]} == SCHEMA_NAMES
+    assert shown["problems"] == [], shown["problems"]
+    image = Path(shown["shots"]["live-3d"])
+    assert orange_share(image) > 0.05, f"no arm in the live 3D panel: {image}"
+    assert grey_share(image) > 0.02, f"no world in the live 3D panel: {image}"

@@ -22,52 +22,71 @@ try {
   page.on("console", (m) => log.push(`[${m.type()}] ${m.text()}`));
   page.on("pageerror", (e) => log.push(`[pageerror] ${e}`));
   await page.goto(args.url, { waitUntil: "load" });
-  await page.waitForSelector('[data-topic-stat="count"]', { timeout: 90000 });
-  await page.waitForSelector('[data-testid="panel-mouseenter-container 3D!arm"] canvas', { timeout: 90000 });
-  await page.waitForTimeout(4000);  // the panels draw what the time they opened at has
-
+  const panel = (id) => page.locator(`[data-testid="panel-mouseenter-container ${id}"]`);
+  const shots = async (tag, panels = [["3d", "3D!arm"], ["plot", "Plot!wrench"], ["phase", "StateTransitions!phase"]]) => {
+    for (const [name, id] of panels) {
+      const file = `${args.out}/${tag}-${name}.png`;
+      await panel(id).screenshot({ path: file });
+      result.shots[`${tag}-${name}`] = file;
+    }
+  };
   const tab = async (name) => {
     if (!(await page.locator('button[data-sidebar-key="connection"][aria-selected="true"]').count()))
       await page.click('button[data-sidebar-key="connection"]');
     await page.locator('[role="tablist"] button[role="tab"]', { hasText: name }).first().click();
     await page.waitForTimeout(300);
   };
-  await tab("Topics");
-  result.topics = await page.$$eval("li.MuiListItem-root", (lis) => lis
+  const topics = () => page.$$eval("li.MuiListItem-root", (lis) => lis
     .filter((li) => li.querySelector("[data-topic]"))
     .map((li) => ({ topic: li.querySelector(".MuiListItemText-primary")?.textContent,
                     schema: li.querySelector(".MuiListItemText-secondary")?.textContent })));
-  await tab("Problems");
-  result.problemBadge = await page.locator('button[data-sidebar-key="connection"] .MuiBadge-badge')
-    .textContent({ timeout: 1000 }).catch(() => "");
-  result.problems = await page.$$eval("li .MuiListItemText-primary", (es) => es.map((e) => e.textContent));
-  await tab("Topics");
-
-  const panel = (id) => page.locator(`[data-testid="panel-mouseenter-container ${id}"]`);
-  const shots = async (tag) => {
-    for (const [name, id] of [["3d", "3D!arm"], ["plot", "Plot!wrench"], ["phase", "StateTransitions!phase"]]) {
-      const file = `${args.out}/${tag}-${name}.png`;
-      await panel(id).screenshot({ path: file });
-      result.shots[`${tag}-${name}`] = file;
-    }
+  const problems = async () => {
+    await tab("Problems");
+    result.problemBadge = await page.locator('button[data-sidebar-key="connection"] .MuiBadge-badge')
+      .textContent({ timeout: 1000 }).catch(() => "");
+    result.problems = await page.$$eval("li .MuiListItemText-primary", (es) => es.map((e) => e.textContent));
+    await tab("Topics");
   };
-  result.paused = (await page.locator('button[title="Play"]').count()) > 0;
-  await shots("paused");
-  await page.screenshot({ path: `${args.out}/paused-page.png` });
-  // a seek while paused: the time field pauses playback when focused, Enter moves there
-  const time = page.locator('[data-testid="PlaybackTime-text"] input');
-  await time.click();
-  await time.fill(String(args.seek));
-  await time.press("Enter");
-  await page.mouse.click(5, 995);
-  await page.waitForTimeout(4000);
-  result.seek = { requested: String(args.seek), shown: await time.inputValue(),
-                  paused: (await page.locator('button[title="Play"]').count()) > 0 };
-  await shots("seeked");
-  await page.click('button[title="Play"]');
-  await page.waitForTimeout(1500);
-  await shots("playing");
-  await page.click('button[title="Pause"]').catch(() => {});
+
+  if (args.live) {
+    // a live connection (retried by the app until the run's bridge listens): wait for the
+    // visual topics, let the 3D panel draw what arrives, and look while the run goes on
+    await page.waitForSelector('[data-testid="panel-mouseenter-container 3D!arm"] canvas', { timeout: 90000 });
+    await tab("Topics");
+    console.log("LOADED");  // the test starts the run now: the app is up, retrying its connection
+    const deadline = Date.now() + args.live.timeout_ms;
+    while (Date.now() < deadline && (result.topics = await topics()).length < args.live.topics)
+      await page.waitForTimeout(500);
+    await page.waitForTimeout(args.live.draw_ms);
+    await shots("live", [["3d", "3D!arm"]]);
+    await page.screenshot({ path: `${args.out}/live-page.png` });
+    await problems();
+  } else {
+    await page.waitForSelector('[data-topic-stat="count"]', { timeout: 90000 });
+    await page.waitForSelector('[data-testid="panel-mouseenter-container 3D!arm"] canvas', { timeout: 90000 });
+    await page.waitForTimeout(4000);  // the panels draw what the time they opened at has
+
+    await tab("Topics");
+    result.topics = await topics();
+    await problems();
+    result.paused = (await page.locator('button[title="Play"]').count()) > 0;
+    await shots("paused");
+    await page.screenshot({ path: `${args.out}/paused-page.png` });
+    // a seek while paused: the time field pauses playback when focused, Enter moves there
+    const time = page.locator('[data-testid="PlaybackTime-text"] input');
+    await time.click();
+    await time.fill(String(args.seek));
+    await time.press("Enter");
+    await page.mouse.click(5, 995);
+    await page.waitForTimeout(4000);
+    result.seek = { requested: String(args.seek), shown: await time.inputValue(),
+                    paused: (await page.locator('button[title="Play"]').count()) > 0 };
+    await shots("seeked");
+    await page.click('button[title="Play"]');
+    await page.waitForTimeout(1500);
+    await shots("playing");
+    await page.click('button[title="Pause"]').catch(() => {});
+  }
 } finally {
   fs.writeFileSync(`${args.out}/console.log`, log.join("\n"));
   fs.writeFileSync(`${args.out}/result.json`, JSON.stringify(result, null, 1));
