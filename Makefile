@@ -25,8 +25,16 @@ venv: $(STAMP)
 run: $(STAMP)
 	$(BIN)/etar-bench run $(SCENARIO) --out $(OUT) --replace
 
+# Two lanes, to fit CI's two cores: the tests that can share the machine two at a time
+# (numba's and OpenBLAS' threads at one each: two workers' threads spinning against each
+# other made EM 20 times slower), then the `serial` ones (the realtime clock, 1 kHz over
+# UDP, the browser) one at a time.  Both always run; either failing (or finding no test)
+# fails the target.
 test: $(STAMP) browser foxglove-schemas foxglove-studio
-	$(BIN)/python -m pytest -q
+	@NUMBA_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n 2 --dist loadscope -m "not serial"; \
+	  shared=$$?; $(BIN)/python -m pytest -q -m serial; serial=$$?; \
+	  echo "make test: exit $$shared for the tests run two at a time, $$serial for the serial ones"; \
+	  [ $$shared = 0 ] && [ $$serial = 0 ]
 
 # the fast lane: every test but the slow ones (whole scenarios, runs over Zenoh, compose)
 test-fast: $(STAMP)

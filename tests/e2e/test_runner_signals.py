@@ -13,7 +13,8 @@ import uuid
 from pathlib import Path
 
 # a whole run (or the service processes) over Zenoh: the slow lane
-pytestmark = [pytest.mark.slow, pytest.mark.zenoh]
+# signals timed against the run: with the machine to itself
+pytestmark = [pytest.mark.slow, pytest.mark.zenoh, pytest.mark.serial]
 
 ROOT = Path(__file__).resolve().parents[2]
 

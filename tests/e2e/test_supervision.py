@@ -20,10 +20,10 @@ from tests.support import run, service_pid
 pytestmark = [pytest.mark.slow, pytest.mark.zenoh]
 
 
-
 # a lost liveliness token is seen the same way on either clock (the lockstep SIGKILL case,
 # run by hand: noticed within 11 cycles, the run over 5.7 s after the kill); the suite
 # keeps one of each mechanism to stay within its 10 minutes
+@pytest.mark.serial  # how soon the run ends is timed
 @pytest.mark.parametrize("role,clock,sig", [("ft_sensor", "realtime", signal.SIGKILL),
                                             ("phase_estimator", "lockstep", signal.SIGSTOP),
                                             ("recorder", "lockstep", signal.SIGKILL)])
@@ -154,6 +154,7 @@ def test_a_stale_episode_summary_from_a_foreign_peer_does_not_end_the_episode_in
         cell.stop(["robot"], before_report=False)
 
 
+@pytest.mark.serial  # the realtime clock
 def test_a_saturating_sensor_over_zenoh_holds_the_arm_and_fails_the_run(tmp_path):
     """The ATI sensor process saturates 2 s into a realtime reproduction (its --fault flag):
     the estimator flags its estimate, the commander holds the arm stiffly at once, the

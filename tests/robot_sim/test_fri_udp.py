@@ -20,6 +20,9 @@ from robot_sim.fri import (
 )
 from robot_sim.fri_udp import FriUdpEndpoint
 
+# FRI datagrams with answer deadlines: serial (make test runs these after the rest)
+pytestmark = [pytest.mark.serial]
+
 WAIT_S = 2.0  # the longest any datagram may take on loopback before a test fails
 POSE = np.array([1.0, 0.0, 0.0, 0.5, 0.0, 1.0, 0.0, 0.125, 0.0, 0.0, 1.0, 0.25])
 Q = np.linspace(-0.5, 0.5, 7)

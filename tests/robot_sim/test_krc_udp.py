@@ -20,6 +20,9 @@ from robot_sim.teacher import DOWN
 from robot_sim.worlds import free_space
 from tests.robot_sim.fri_remote import Remote
 
+# the KRC answering at 1 kHz over UDP: serial (make test runs these after the rest)
+pytestmark = [pytest.mark.serial]
+
 START = np.array([0.5, 0.0, 0.45])
 LATENCY_NS = 200_000  # each answer taken to arrive 0.2 ms into its cycle
 

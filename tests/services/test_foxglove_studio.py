@@ -31,6 +31,9 @@ import pytest
 from services.recordings.reader import read_episode
 from services.runtime.visual_topics import SCHEMA_NAMES
 
+# a browser with software WebGL and fixed waits: serial (make test runs these after the rest)
+pytestmark = [pytest.mark.serial]
+
 ROOT = Path(__file__).resolve().parents[2]
 STUDIO = ROOT / ".cache" / "foxglove-studio"
 PAGE = ROOT / "tests" / "foxglove" / "studio"

@@ -13,6 +13,9 @@ from services.runtime.bus import MonotonicClock
 from services.transport.process import NodeInputs, ZenohBus
 from tests.services.conftest import service_with_peer
 
+# SCHED_FIFO, CPU isolation and /dev/cpu_dma_latency of this machine: serial (make test runs these after the rest)
+pytestmark = [pytest.mark.serial]
+
 
 def test_profile_parts_parse_and_a_bad_part_is_named():
     assert parse_profile("auto") == frozenset(PARTS)

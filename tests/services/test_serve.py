@@ -24,6 +24,9 @@ from robot_sim.fri_wire import COMMAND_SIZE, MEASUREMENT_SIZE, CommandFlags, dec
 from services.run.episode import SETTLE_CYCLES
 from tests.robot_sim.fri_remote import Remote
 
+# the served cell on the realtime clock, at 1 kHz over UDP: serial (make test runs these after the rest)
+pytestmark = [pytest.mark.serial]
+
 ROOT = Path(__file__).resolve().parents[2]
 BOX_LINE = re.compile(r"Net F/T box on ([\d.]+) \(RDT UDP (\d+), HTTP (\d+), calibration TCP (\d+)\)")
 

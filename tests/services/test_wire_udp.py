@@ -11,6 +11,9 @@ from pathlib import Path
 
 import pytest
 
+# a realtime run over FRI/UDP: serial (make test runs these after the rest)
+pytestmark = [pytest.mark.serial]
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
