@@ -47,14 +47,9 @@ def per_step(fn, cycles):
     return (time.perf_counter() - t) / cycles * 1e6
 
 
-# -------------------------------------------------------------------- main
-
-
-def main():
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--cycles", type=int, default=5000)
-    parser.add_argument("--no-malloc-count", action="store_true", help="skip the C-level allocation count")
-    args = parser.parse_args()
+def pressed_cell():
+    """A valley cell with the tool 2 mm over the left plate, and a Cartesian impedance
+    command 1 cm into it: (cell, q0, command, stiffness)."""
     g = Valley()
     cell = RobotCell(valley(g), seed=0)
     n = g.plate_normal(-1)
@@ -64,22 +59,49 @@ def main():
     setpoint = pin.SE3(DOWN, contact - 0.01 * n)
     stiffness = np.array([1000.0] * 3 + [150.0] * 3)
     cmd = ImpedanceCommand(pose_to_cart_pos(setpoint), stiffness, np.full(6, 0.7), np.zeros(6))
+    return cell, q0, cmd, stiffness
+
+
+def law_and_physics(cell, cmd):
+    """The bare loop of the cell's physics: k times (q, qd -> the KRC's law -> MuJoCo's step)."""
     sim, krc = cell.sim, cell.krc
     q, qd = np.empty(7), np.empty(7)
 
-    def physics_only(k):
-        for _ in range(k):
-            sim.apply(np.zeros(7))
-            sim.step()
-
-    def with_law(k):
+    def steps(k):
         for _ in range(k):
             sim.joint_positions(q)
             sim.joint_velocities(qd)
             tau = krc.compute(q, qd, cmd, hold=False)
             sim.apply(tau)
             sim.step()
+    return steps
 
+
+def physical_floor_us(cycles: int = 5000) -> float:
+    """us per 1 ms cycle of the bare loop (law and physics, arm pressed on a plate): the
+    floor a whole cycle is measured against (bench/lockstep_rtf.py)."""
+    cell, q0, cmd, _ = pressed_cell()
+    cell.place(q0)
+    return per_step(law_and_physics(cell, cmd), cycles)
+
+
+# -------------------------------------------------------------------- main
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--cycles", type=int, default=5000)
+    parser.add_argument("--no-malloc-count", action="store_true", help="skip the C-level allocation count")
+    args = parser.parse_args()
+    cell, q0, cmd, stiffness = pressed_cell()
+    sim = cell.sim
+
+    def physics_only(k):
+        for _ in range(k):
+            sim.apply(np.zeros(7))
+            sim.step()
+
+    with_law = law_and_physics(cell, cmd)
     cell.start()
 
     def whole_cycle(k):

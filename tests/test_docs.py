@@ -53,3 +53,19 @@ def test_the_scenario_reference_documents_every_key():
     for kind, cls in STAGE_TYPES.items():
         for name in cls.__dataclass_fields__:
             assert f"| `{name}` |" in text, (kind, name)
+
+
+def test_the_lockstep_bench_guard_holds_to_the_ratio_the_benchmarks_page_states():
+    import sys
+
+    sys.path.insert(0, str(ROOT / "bench"))
+    try:
+        import lockstep_rtf
+    finally:
+        sys.path.remove(str(ROOT / "bench"))
+    stated = lockstep_rtf.stated_ratio()
+    assert 1.0 < stated < 100.0, stated
+    assert lockstep_rtf.guard_failure(stated, stated) is None
+    assert lockstep_rtf.guard_failure(1.5 * stated, stated) is None
+    failure = lockstep_rtf.guard_failure(1.51 * stated, stated)
+    assert failure.startswith("GUARD FAILED") and "docs/benchmarks.md" in failure
