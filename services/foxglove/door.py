@@ -37,23 +37,23 @@ def read_head(sock: socket.socket) -> tuple[bytes, bytes]:
     return data[:end], data[end:]
 
 
+def _protocol_lines(lines: list[bytes]):
+    """(index, header name, protocol names) of each Sec-WebSocket-Protocol line of a head's lines."""
+    for i, line in enumerate(lines[1:], start=1):
+        name, sep, value = line.partition(b":")
+        if sep and name.strip().lower() == PROTOCOL_HEADER:
+            yield i, name, [p.strip().decode("latin-1") for p in value.split(b",") if p.strip()]
+
+
 def offered_protocols(head: bytes) -> list[str]:
-    names = []
-    for line in head.split(b"\r\n")[1:]:
-        name, _, value = line.partition(b":")
-        if name.strip().lower() == PROTOCOL_HEADER:
-            names += [p.strip().decode("latin-1") for p in value.split(b",") if p.strip()]
-    return names
+    return [p for _, _, names in _protocol_lines(head.split(b"\r\n")) for p in names]
 
 
 def rename_protocol(head: bytes, old: str, new: str) -> bytes:
     """The head with ``old`` replaced by ``new`` in its Sec-WebSocket-Protocol lines only."""
     lines = head.split(b"\r\n")
-    for i, line in enumerate(lines[1:], start=1):
-        name, sep, value = line.partition(b":")
-        if sep and name.strip().lower() == PROTOCOL_HEADER:
-            names = [p.strip().decode("latin-1") for p in value.split(b",") if p.strip()]
-            lines[i] = name + b": " + ", ".join(new if p == old else p for p in names).encode("latin-1")
+    for i, name, names in list(_protocol_lines(lines)):
+        lines[i] = name + b": " + ", ".join(new if p == old else p for p in names).encode("latin-1")
     return b"\r\n".join(lines)
 
 

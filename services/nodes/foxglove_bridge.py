@@ -60,17 +60,16 @@ class FoxgloveBridgeNode(Node):
         self.sent = 0
         self.errors = 0
         try:
-            self.door = SubprotocolDoor(config.host, config.port, upstream_port=0)
-        except OSError as exc:
-            raise OSError(f"the live view cannot listen on {config.host}:{config.port}: {exc.strerror or exc} "
-                          "(--foxglove PORT: another port, or 0 for any free one)") from None
-        try:
             # the SDK's server, reached through the door only
             self.server = foxglove.start_server(name=f"etar {run_id}", host="127.0.0.1", port=0)
         except RuntimeError as exc:  # the SDK's FoxgloveError
-            self.door.close()
             raise OSError(f"the live view's server did not start: {exc}") from None
-        self.door.upstream_port = self.server.port
+        try:
+            self.door = SubprotocolDoor(config.host, config.port, self.server.port)
+        except OSError as exc:
+            self.server.stop()
+            raise OSError(f"the live view cannot listen on {config.host}:{config.port}: {exc.strerror or exc} "
+                          "(--foxglove PORT: another port, or 0 for any free one)") from None
         self.port = self.door.port
         self.channels = {topic: foxglove.Channel(topic, schema=json.loads(schema_bytes(topic)),
                                                  message_encoding="json")
