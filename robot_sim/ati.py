@@ -121,6 +121,8 @@ from numba import njit
 from filterpy.kalman import KalmanFilter
 from scipy.linalg import block_diag, solve_discrete_are
 
+from robot_sim.kernels import JIT, address, addresses, carray_at, entry
+
 __all__ = [
     "AXES",
     "AtiConfig",
@@ -406,19 +408,28 @@ _BIAS, _NOISE_STD, _RANGE, _FULL_SCALE, _CPU, _STEP, _DRIFT_STD, _SAT_BIT = rang
 _DRIFT, _TARE, _TARE_ACC = range(3)
 
 
-@njit(cache=True, nogil=True)
-def _sample_kernel(x, const, state, tare_state, noise, ni, drift_noise, di, drift_scale, clip,
-                   counts):  # pragma: no cover - compiled
+@njit(**JIT)
+def _sample_at(x_at, const_at, state_at, tare_at, noise_at, ni, drift_at, di, drift_scale, clip,
+               out_at):  # pragma: no cover - compiled
     """One sample: the offset's drift (a step of ``drift_scale`` = sqrt(dt) when time
-    advanced), raw = x + bias + drift + noise * std, saturation, tare, quantisation into
-    ``counts``; the same operations in the same order as the numpy version had.
-    ``tare_state`` = [samples still to average, samples in the average].  Returns the
-    status word."""
+    advanced), raw = x + bias + drift + noise * std, saturation, tare, quantisation; the
+    same operations in the same order as the numpy version had.  ``tare`` = [samples
+    still to average, samples in the average].  Writes ``out`` = [counts (whole numbers,
+    as float64); the wrench, counts / counts-per-unit] and returns the status word, or
+    -1 for a non-finite ``x`` (then only the drift has stepped: the noise is not drawn).
+    By address (robot_sim.kernels): with arrays it cost more than the sample."""
+    const, state, tare = carray_at(const_at, (8, 6)), carray_at(state_at, (3, 6)), carray_at(tare_at, (2,))
+    x, out = carray_at(x_at, (6,)), carray_at(out_at, (2, 6))
     if drift_scale > 0.0:
+        drift_noise = carray_at(drift_at, (di + 1, 6))
         for i in range(6):
             d = drift_noise[di, i] * const[_DRIFT_STD, i]
             d *= drift_scale
             state[_DRIFT, i] += d
+    for i in range(6):
+        if not np.isfinite(x[i]):
+            return -1
+    noise = carray_at(noise_at, (ni + 1, 6))
     raw = np.empty(6)
     status = 0
     saturated = False
@@ -435,13 +446,13 @@ def _sample_kernel(x, const, state, tare_state, noise, ni, drift_noise, di, drif
         if clip:
             for i in range(6):
                 raw[i] = min(max(raw[i], -const[_FULL_SCALE, i]), const[_FULL_SCALE, i])
-    if tare_state[0] > 0:
+    if tare[0] > 0:
         for i in range(6):
             state[_TARE_ACC, i] += raw[i]
-        tare_state[0] -= 1
-        if tare_state[0] == 0:
+        tare[0] -= 1
+        if tare[0] == 0:
             for i in range(6):
-                state[_TARE, i] = state[_TARE_ACC, i] / tare_state[1]
+                state[_TARE, i] = state[_TARE_ACC, i] / tare[1]
     for i in range(6):
         v = raw[i] - state[_TARE, i]
         v *= const[_CPU, i]
@@ -449,8 +460,15 @@ def _sample_kernel(x, const, state, tare_state, noise, ni, drift_noise, di, drif
         v = np.rint(v)
         v *= const[_STEP, i]
         v = min(max(v, -_INT32_MAX_F), _INT32_MAX_F)
-        counts[i] = np.int32(v)
+        if v == 0.0:
+            v = 0.0  # -0.0 rounded: an int32 count has no sign of zero, nor has its wrench
+        out[0, i] = v
+        # int32 counts to float64 and divided: what counts / counts_per_unit gives
+        out[1, i] = v / const[_CPU, i]
     return status
+
+
+_sample = entry(_sample_at, f"{addresses(8)}, float64, boolean, int64")
 
 
 class AtiSensor:
@@ -502,13 +520,19 @@ class AtiSensor:
                                 self._drift_std, _SAT_BITS_ARRAY.astype(np.float64)])
         self._state = np.zeros((3, 6))  # drift, tare, the tare's running sum
         self._drift, self._tare, self._tare_acc = self._state  # views
-        self._tare_state = np.zeros(2, dtype=np.int64)  # [samples still to average, samples in the average]
+        # [samples still to average, samples in the average], whole numbers in float64 for the kernel
+        self._tare_state = np.zeros(2)
         self._last_counts = np.zeros(6, dtype=np.int32)
+        self._out = np.zeros((2, 6))  # a sample's counts and wrench
+        self._const_at, self._state_at = address(self._const), address(self._state)
+        self._tare_at, self._out_at = address(self._tare_state), address(self._out)
         # normals drawn a block at a time (exactly the numbers 6 per sample would give)
         self._noise_block = np.empty((0, 6))
         self._noise_i = 0
         self._drift_block = np.empty((0, 6))
         self._drift_i = 0
+        self._x = np.zeros(6)  # the true wrench of the sample, where the kernel reads it
+        self._x_at, self._noise_at, self._drift_at = address(self._x), 0, 0
 
         self._next_rdt = int(rdt_sequence_start)
         self._ft_start = int(ft_sequence_start)
@@ -554,9 +578,15 @@ class AtiSensor:
 
     def read(self, true_wrench: np.ndarray, t_ns: int) -> RdtRecord:
         """One RDT record for the true wrench at sim time ``t_ns`` (integer ns)."""
-        x = np.asarray(true_wrench, dtype=np.float64)
-        if x.shape != (6,):
-            raise ValueError(f"true_wrench must have shape (6,), got {x.shape}")
+        return self.sample(true_wrench, t_ns)[0]
+
+    def sample(self, true_wrench: np.ndarray, t_ns: int) -> tuple[RdtRecord, np.ndarray]:
+        """``read``, with the record's wrench in N / Nm (``RdtRecord.wrench``'s values, a
+        view of a buffer the next call overwrites: copy it to keep it)."""
+        x = self._x
+        if np.shape(true_wrench) != (6,):
+            raise ValueError(f"true_wrench must have shape (6,), got {np.shape(true_wrench)}")
+        x[:] = true_wrench
         drift_scale = self._advance_time(int(t_ns))
         rdt = self._next_rdt
         self._next_rdt = (rdt + 1) & _UINT32_MASK
@@ -566,24 +596,25 @@ class AtiSensor:
             di = self._drift_i
             if di >= len(self._drift_block):
                 self._drift_block = self._drift_rng.standard_normal((_BLOCK, 6))
+                self._drift_at = address(self._drift_block)
                 di = 0
             self._drift_i = di + 1
-
-        if not np.isfinite(x).all():
-            if drift_scale > 0.0:  # time advanced all the same: the offset drifted
-                self._drift += self._drift_block[di] * self._drift_std * drift_scale
-            return RdtRecord(rdt, ft, _STATUS_NONFINITE, self._last_counts.copy())
-
+        # the noise stream serves nothing else: a block drawn before a non-finite sample
+        # holds the numbers the next finite one would have drawn
         ni = self._noise_i
         if ni >= len(self._noise_block):
             self._noise_block = self._noise_rng.standard_normal((_BLOCK, 6))
-            ni = 0
+            self._noise_at = address(self._noise_block)
+            ni = self._noise_i = 0
+        status = _sample(self._x_at, self._const_at, self._state_at, self._tare_at, self._noise_at, ni,
+                         self._drift_at, di, drift_scale, self._clip, self._out_at)
+        if status < 0:
+            return RdtRecord(rdt, ft, _STATUS_NONFINITE, self._last_counts.copy()), self._last_counts / self._cpu
         self._noise_i = ni + 1
-        counts = np.empty(6, dtype=np.int32)
-        status = _sample_kernel(x, self._const, self._state, self._tare_state, self._noise_block, ni,
-                                self._drift_block, di, drift_scale, self._clip, counts)
+        out = self._out
+        counts = out[0].astype(np.int32)
         self._last_counts[:] = counts
-        return RdtRecord.trusted(rdt, ft, int(status), counts)
+        return RdtRecord.trusted(rdt, ft, int(status), counts), out[1]
 
     def _advance_time(self, t_ns: int) -> float:
         """Advance the sensor's clock to ``t_ns``; the drift step's sqrt(dt) (0: no drift step)."""

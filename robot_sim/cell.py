@@ -22,6 +22,7 @@ from robot_sim.ati import AtiConfig, AtiSensor, RdtRecord
 from robot_sim.fri import (CommandPacket, ControlMode, CycleOutcome, FriConfig, FriLink, FriState, LinkFaults,
                            MeasurementPacket)
 from robot_sim.fri_wire import MeasurementExtras, jacobian_to_fri
+from robot_sim.kernels import address
 from robot_sim.kinematics import READY, ArmKinematics
 from robot_sim.krc import ImpedanceCommand, KrcConfig, KrcController
 from robot_sim.physics import Simulation
@@ -106,6 +107,7 @@ class RobotCell:
         self._joint_noise_block = np.empty((0, 7))
         self._joint_noise_i = 0
         self._true_wrench = np.zeros(6)
+        self._true_wrench_at, self._tau_ext_at = address(self._true_wrench), address(self._tau_ext)
         self._last_measurement: MeasurementPacket | None = None
         self._extras_data = None  # Pinocchio data of its own for fri_extras
         # the KRC's checks on a lab's remote (FRI over UDP): its first command in command mode
@@ -165,8 +167,8 @@ class RobotCell:
 
     def external_wrench_tcp(self) -> np.ndarray:
         """The KRC's estimate of the external wrench at the tcp, tcp axes,
-        [F; T] (from joint torques: F = (J^T)^+ tau_ext)."""
-        self.sim.external_joint_torques(self._tau_ext)
+        [F; T] (from joint torques: F = (J^T)^+ tau_ext, the torques read with the rest
+        of the state after the last step)."""
         J = self.kin.jacobian("tcp", pin.ReferenceFrame.LOCAL)
         # least squares J^T F = tau through the normal equations: J has full row
         # rank away from singularities, and this is 6x cheaper than lstsq
@@ -282,8 +284,9 @@ class RobotCell:
 
     def _sense(self) -> None:
         """The physics' truth of the current state, read once per step: the tool
-        wrench on the sensor, the contact force on the tip, what it touches."""
-        self.sim.sensor_wrench(self._true_wrench)
+        wrench on the sensor, the external joint torques, the contact force on the tip,
+        what it touches."""
+        self.sim.sense_at(self._true_wrench_at, self._tau_ext_at)
         self._contact_force, _, self._touching = self.sim.contacts()
 
     @property

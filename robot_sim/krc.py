@@ -26,7 +26,7 @@ until ``reset_safety()``; a non-finite measurement commands zero torque.
 ``compute`` is the 1 kHz step and allocates nothing
 (tests/robot_sim/test_allocation.py): Pinocchio fills its ``data`` in place
 (``ArmKinematics.update_dynamics``) and the laws are numba kernels over
-preallocated buffers, passed by address (see robot_sim.physics.address).
+preallocated buffers, passed by address (robot_sim.kernels).
 """
 
 from __future__ import annotations
@@ -40,12 +40,11 @@ import pinocchio as pin
 from numba import njit
 
 from robot_sim.fri import FRI_CYCLE_NS, ControlMode
+from robot_sim.kernels import JIT, address, addresses, carray_at, entry, farray_at
 from robot_sim.kinematics import ArmKinematics
-from robot_sim.physics import address, carray_at, farray_at
 
 POSITION, CART_IMP, JNT_IMP = ControlMode.POSITION, ControlMode.CART_IMP, ControlMode.JNT_IMP
 
-_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 _EPS = np.finfo(np.float64).eps
 _PREC2 = _EPS ** (1.0 / 3.0)  # Pinocchio's TaylorSeriesExpansion<double>::precision<2>()
 
@@ -100,7 +99,7 @@ def pose_to_cart_pos(oMtcp: pin.SE3) -> np.ndarray:
 # --------------------------------------------------------------------------
 
 
-@njit(**_JIT)
+@njit(**JIT)
 def frame_jacobian(J_world, rotation, translation, support, local, out):
     """A frame's (6, nv) Jacobian [linear; angular] from Pinocchio's joint
     Jacobians (``data.J``: world frame, about the world origin), the frame's
@@ -122,7 +121,7 @@ def frame_jacobian(J_world, rotation, translation, support, local, out):
             out[3, j], out[4, j], out[5, j] = wx, wy, wz
 
 
-@njit(**_JIT)
+@njit(**JIT)
 def _theta_axis(i0, val, R, axis):
     """Pinocchio's internal::compute_theta_axis: log3 near theta = pi."""
     i1, i2 = (i0 + 1) % 3, (i0 + 2) % 3
@@ -138,7 +137,7 @@ def _theta_axis(i0, val, R, axis):
     return 2.0 * math.atan2(norm, w)
 
 
-@njit(**_JIT)
+@njit(**JIT)
 def log3(R, work, out):
     """out = pin.log3(R) without the allocations, Pinocchio's algorithm
     (log3_impl) including its renormalisation of R.  ``work``: (4, 3) scratch."""
@@ -175,7 +174,7 @@ def log3(R, work, out):
     out[0], out[1], out[2] = t * a0, t * a1, t * a2
 
 
-@njit(**_JIT)
+@njit(**JIT)
 def _cholesky(A, L, upper):
     """L lower triangular with L L^T = A, from A's upper (or lower) triangle."""
     n = A.shape[0]
@@ -189,7 +188,7 @@ def _cholesky(A, L, upper):
             L[i, j] = math.sqrt(acc) if i == j else acc / L[j, j]
 
 
-@njit(**_JIT)
+@njit(**JIT)
 def lambda_diagonal(M, J, L, X, A, La, y, out):
     """out = max(diag(Lambda), 1e-3) with Lambda = (J M^-1 J^T + 1e-9 I)^-1
     the operational-space inertia in J's axes, through Cholesky factors
@@ -234,7 +233,7 @@ def _impedance_work_size(nv: int) -> int:
     return 6 * nv + 6 + 9 + 12 + nv * nv + 6 * nv + 36 + 36 + 6
 
 
-@njit(**_JIT)
+@njit(**JIT)
 def _impedance_at(nv, jw_at, rot_at, pos_at, support_at, nle_at, mass_at, qd_at, pose_at, k_at, d_at, ft_at,
                   refresh, lambda_at, work_at, wrench_at, tau_at):
     """Eq. 79 in the tcp frame: the wrench F (into wrench) and tau = J^T F + nle."""
@@ -282,7 +281,7 @@ def _impedance_at(nv, jw_at, rot_at, pos_at, support_at, nle_at, mass_at, qd_at,
         tau[j] = acc + nle[j]
 
 
-@njit(**_JIT)
+@njit(**JIT)
 def _pose_at(rot_at, pos_at, out_at):
     """out = the FRI 12 numbers (3x4 row-major) of the pose (R, p)."""
     R, p, out = farray_at(rot_at, (3, 3)), carray_at(pos_at, (3,)), carray_at(out_at, (12,))
@@ -290,7 +289,7 @@ def _pose_at(rot_at, pos_at, out_at):
         out[4 * i], out[4 * i + 1], out[4 * i + 2], out[4 * i + 3] = R[i, 0], R[i, 1], R[i, 2], p[i]
 
 
-@njit(**_JIT)
+@njit(**JIT)
 def _joint_spring_at(nv, q_at, qd_at, nle_at, goal_at, kp_at, kd_at, tau_at):
     q, qd, nle = carray_at(q_at, (nv,)), carray_at(qd_at, (nv,)), carray_at(nle_at, (nv,))
     goal, tau = carray_at(goal_at, (nv,)), carray_at(tau_at, (nv,))
@@ -299,14 +298,14 @@ def _joint_spring_at(nv, q_at, qd_at, nle_at, goal_at, kp_at, kd_at, tau_at):
         tau[i] = kp[i] * (goal[i] - q[i]) - kd[i] * qd[i] + nle[i]
 
 
-@njit(**_JIT)
+@njit(**JIT)
 def _rate_limit_at(nv, interp_at, target_at, step_at):
     interp, target, step = carray_at(interp_at, (nv,)), carray_at(target_at, (nv,)), carray_at(step_at, (nv,))
     for i in range(nv):
         interp[i] += min(max(target[i] - interp[i], -step[i]), step[i])
 
 
-@njit(**_JIT)
+@njit(**JIT)
 def _saturate_at(nv, tau_at, max_at, last_at):
     """Clip tau to +-max (into tau and last); True if any joint is at its limit."""
     tau, tau_max, last = carray_at(tau_at, (nv,)), carray_at(max_at, (nv,)), carray_at(last_at, (nv,))
@@ -318,7 +317,7 @@ def _saturate_at(nv, tau_at, max_at, last_at):
     return saturated
 
 
-@njit(**_JIT)
+@njit(**JIT)
 def _state_problem_at(nv, q_at, qd_at, low_at, high_at, check_limits, force_at, has_force, force_limit):
     """The SafetyReason the measured state calls for (NONE = 0)."""
     q, qd = carray_at(q_at, (nv,)), carray_at(qd_at, (nv,))
@@ -337,6 +336,14 @@ def _state_problem_at(nv, q_at, qd_at, low_at, high_at, check_limits, force_at, 
             return 2  # CARTESIAN_FORCE
     return 0
 
+
+# the step's kernels, called as machine code (robot_sim.kernels.entry)
+_state_problem = entry(_state_problem_at, f"{addresses(5)}, boolean, int64, boolean, float64")
+_impedance_law = entry(_impedance_at, f"{addresses(12)}, boolean, {addresses(4)}")
+_pose = entry(_pose_at, addresses(3))
+_joint_spring = entry(_joint_spring_at, addresses(8))
+_rate_limit = entry(_rate_limit_at, addresses(4))
+_saturate = entry(_saturate_at, addresses(4))
 
 _STOP_REASONS = tuple(SafetyReason)  # indexed by _state_problem_at's result
 # for the step: in Python 3.11 looking a member up on its Enum class allocates
@@ -474,8 +481,8 @@ class KrcController:
         has_force = external_force is not None
         if has_force:
             self._force[...] = external_force
-        problem = _state_problem_at(7, at["q"], at["qd"], at["low"], at["high"], self.safety == _SAFE,
-                                    at["force"], has_force, self.config.cartesian_force_limit)
+        problem = _state_problem(7, at["q"], at["qd"], at["low"], at["high"], self.safety == _SAFE,
+                                 at["force"], has_force, self.config.cartesian_force_limit)
         if problem == _NON_FINITE:
             # nothing can be computed from a broken measurement: drives off,
             # brakes on (the physics keeps the arm; no torque is commanded)
@@ -507,7 +514,7 @@ class KrcController:
             self._damping[...] = command.cart_damping
             self._wrench[...] = command.add_tcp_ft
             self._impedance(at["pose"], at["k"], at["d"], at["ft"])
-        saturated = _saturate_at(7, at["tau"], at["tau_max"], at["last_tau"])
+        saturated = _saturate(7, at["tau"], at["tau_max"], at["last_tau"])
         if saturated:
             self._saturated_cycles = min(self._saturated_cycles + 1, self.config.torque_saturation_cycles)
         else:
@@ -520,14 +527,14 @@ class KrcController:
 
     def _impedance(self, pose_at, stiffness_at, damping_at, wrench_at):
         at = self._at
-        _impedance_at(7, at["J"], at["R"], at["p"], at["support"], at["nle"], at["M"], at["qd"], pose_at,
-                      stiffness_at, damping_at, wrench_at, self._phase == self._refresh_phase, at["lam"], at["work"],
-                      at["wrench_tcp"], at["tau"])
+        _impedance_law(7, at["J"], at["R"], at["p"], at["support"], at["nle"], at["M"], at["qd"], pose_at,
+                       stiffness_at, damping_at, wrench_at, self._phase == self._refresh_phase, at["lam"], at["work"],
+                       at["wrench_tcp"], at["tau"])
 
     def _cartesian_hold(self):
         at = self._at
         if not self._holding_pose:
-            _pose_at(at["R"], at["p"], at["hold_pose"])
+            _pose(at["R"], at["p"], at["hold_pose"])
             self._holding_pose = True
         self._impedance(at["hold_pose"], at["hold_k"], at["hold_d"], at["no_wrench"])
 
@@ -539,8 +546,8 @@ class KrcController:
         if not self._has_target:
             self._q_target[...] = self._q
             self._has_target = True
-        _rate_limit_at(7, at["q_interp"], at["q_target"], at["step"])
-        _joint_spring_at(7, at["q"], at["qd"], at["nle"], at["q_interp"], at["kp"], at["kd"], at["tau"])
+        _rate_limit(7, at["q_interp"], at["q_target"], at["step"])
+        _joint_spring(7, at["q"], at["qd"], at["nle"], at["q_interp"], at["kp"], at["kd"], at["tau"])
 
     def _joint_impedance(self):
         # not a kernel: JNT_IMP serves remotes over FRI (etar-bench serve), not the
@@ -557,7 +564,7 @@ class KrcController:
         if not self._holding_joints:
             self._q_hold[...] = self._q
             self._holding_joints = True
-        _joint_spring_at(7, at["q"], at["qd"], at["nle"], at["q_hold"], at["kp"], at["kd"], at["tau"])
+        _joint_spring(7, at["q"], at["qd"], at["nle"], at["q_hold"], at["kp"], at["kd"], at["tau"])
 
     # --------------------------------------------------------------- safety
 

@@ -10,77 +10,22 @@ carrying garbage on.
 ``joint_positions(out)``, ``joint_velocities(out)``, ``apply`` and ``step``
 allocate nothing (tests/robot_sim/test_allocation.py): the MjData arrays are
 viewed once (MjData never moves them), and the little arithmetic is done by
-numba kernels that reach the buffers through their addresses (see ``address``).
+numba kernels that reach the buffers through their addresses (``robot_sim.kernels``).
 """
 
 from __future__ import annotations
 
 import mujoco
 import numpy as np
-from numba import carray, farray, njit, types
-from numba.extending import intrinsic
+from numba import njit
 
+from robot_sim.kernels import JIT, address, addresses, all_finite, carray_at, entry
 from robot_sim.worlds import TIMESTEP, WorldSpec
 
 JOINTS = tuple(f"joint{i}" for i in range(1, 8))
 
-_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 
-
-# --------------------------------------------------------------------------
-# allocation-free kernels
-#
-# numba wraps every ndarray argument of a call in a freshly allocated MemInfo
-# (48 B through PyMem_RawMalloc, freed on return), so a per-step kernel called
-# with arrays allocates however little it computes.  Plain ints cost nothing to
-# pass: the per-step kernels here and in robot_sim.krc take the addresses of
-# preallocated float64 buffers and view them with ``carray_at``/``farray_at``.
-# Whoever takes an address keeps the array alive and never resizes it.
-# (numba's cache only tracks the file a kernel is defined in: after changing
-# these helpers, clear robot_sim/__pycache__/*.nb[ic].)
-# --------------------------------------------------------------------------
-
-
-def address(a: np.ndarray) -> int:
-    """Where the float64 data of ``a`` starts, for ``carray_at``/``farray_at``."""
-    if a.dtype != np.float64 or not (a.flags.c_contiguous or a.flags.f_contiguous):
-        raise ValueError(f"need a contiguous float64 array, got {a.dtype} with strides {a.strides}")
-    return a.ctypes.data
-
-
-@intrinsic
-def _float64_pointer(typingctx, addr):
-    if not isinstance(addr, types.Integer):
-        return None
-
-    def codegen(context, builder, signature, args):
-        return builder.inttoptr(args[0], context.get_value_type(signature.return_type))
-
-    return types.CPointer(types.float64)(addr), codegen
-
-
-@njit(**_JIT, inline="always")
-def carray_at(addr, shape):
-    """The row-major float64 array of ``shape`` at ``addr`` (a view, in a kernel)."""
-    return carray(_float64_pointer(addr), shape)
-
-
-@njit(**_JIT, inline="always")
-def farray_at(addr, shape):
-    """The column-major (Eigen's default) float64 array of ``shape`` at ``addr``."""
-    return farray(_float64_pointer(addr), shape)
-
-
-@njit(**_JIT)
-def all_finite_at(addr, n):
-    a = carray_at(addr, (n,))
-    for i in range(n):
-        if not np.isfinite(a[i]):
-            return False
-    return True
-
-
-@njit(**_JIT)
+@njit(**JIT)
 def _applied_forces(nv, cdof_at, com_at, point_at, chain_at, wrench_at, hand, tau_at, arm_dof, hand_at, out_at):
     """qfrc_applied = the hand's wrench at the point (mj_applyFT) + tau on the arm's dofs.
 
@@ -110,6 +55,24 @@ def _applied_forces(nv, cdof_at, com_at, point_at, chain_at, wrench_at, hand, ta
         out[arm_dof + i] += tau[i]
 
 
+@njit(**JIT)
+def _sensed_at(sensordata_at, force_adr, torque_adr, constraint_at, hand_at, nv, arm_dof, wrench_at, torques_at):
+    """The F/T sensor's wrench (MuJoCo's reading negated) and the arm's external joint
+    torques (constraint forces + the hand's), as the numpy expressions had them."""
+    sensordata = carray_at(sensordata_at, (max(force_adr, torque_adr) + 3,))
+    constraint, hand = carray_at(constraint_at, (nv,)), carray_at(hand_at, (nv,))
+    wrench, torques = carray_at(wrench_at, (6,)), carray_at(torques_at, (7,))
+    for i in range(3):
+        wrench[i] = -sensordata[force_adr + i]
+        wrench[3 + i] = -sensordata[torque_adr + i]
+    for i in range(7):
+        torques[i] = constraint[arm_dof + i] + hand[arm_dof + i]
+
+
+_apply_forces = entry(_applied_forces, f"{addresses(6)}, boolean, {addresses(4)}")
+_sensed = entry(_sensed_at, addresses(9))
+
+
 class PhysicsError(RuntimeError):
     """The simulation diverged or MuJoCo reported a problem."""
 
@@ -130,8 +93,8 @@ class Simulation:
         self._ft_site = m.site("ft_site").id
         self._flange_site = m.site("flange").id
         self._tip_geom = m.geom("tool_tip").id
-        self._force_adr = m.sensor_adr[m.sensor("ft_force").id]
-        self._torque_adr = m.sensor_adr[m.sensor("ft_torque").id]
+        self._force_adr = int(m.sensor_adr[m.sensor("ft_force").id])
+        self._torque_adr = int(m.sensor_adr[m.sensor("ft_torque").id])
         self._role_of_geom = {m.geom(name).id: role for name, role in world.contact_geoms.items()}
         self._geom_names = [m.geom(i).name for i in range(m.ngeom)]
         self._hand_qfrc = np.zeros(m.nv)
@@ -161,7 +124,8 @@ class Simulation:
         self._at = {"cdof": address(d.cdof), "com": address(d.subtree_com[m.body_rootid[self._flange_body]]),
                     "flange": address(d.site_xpos[self._flange_site]), "chain": address(chain),
                     "wrench": address(self._hand_wrench), "tau": address(self._tau), "hand": address(self._hand_qfrc),
-                    "applied": address(d.qfrc_applied), "qacc": address(d.qacc)}
+                    "applied": address(d.qfrc_applied), "qacc": address(d.qacc),
+                    "sensordata": address(d.sensordata), "constraint": address(d.qfrc_constraint)}
 
     @property
     def time(self) -> float:
@@ -210,12 +174,12 @@ class Simulation:
         if hand:
             self._hand_wrench[...] = hand_wrench
         at = self._at
-        _applied_forces(self._nv, at["cdof"], at["com"], at["flange"], at["chain"], at["wrench"], hand,
-                        at["tau"], self._arm_dof, at["hand"], at["applied"])
+        _apply_forces(self._nv, at["cdof"], at["com"], at["flange"], at["chain"], at["wrench"], hand,
+                      at["tau"], self._arm_dof, at["hand"], at["applied"])
 
     def step(self) -> None:
         mujoco.mj_step(self.model, self.data)
-        if not all_finite_at(self._at["qacc"], self._nv) or self._bad_qacc.number:
+        if not all_finite(self._at["qacc"], self._nv) or self._bad_qacc.number:
             raise PhysicsError(f"simulation diverged at t={self.data.time:.3f} s (bad acceleration)")
 
     # ------------------------------------------------------------- sensing
@@ -225,8 +189,7 @@ class Simulation:
         joint-limit constraints) and the hand, as the LWR's joint torque
         sensors see them after its dynamic model is subtracted."""
         out = np.empty(7) if out is None else out
-        np.copyto(out, self.data.qfrc_constraint[self._dof])
-        out += self._hand_qfrc[self._dof]
+        self.sense(np.empty(6), out)
         return out
 
     def sensor_wrench(self, out: np.ndarray | None = None) -> np.ndarray:
@@ -238,10 +201,20 @@ class Simulation:
         exerts... with the opposite sign (the parent's reaction); negated here.
         """
         out = np.empty(6) if out is None else out
-        out[:3] = self.data.sensordata[self._force_adr:self._force_adr + 3]
-        out[3:] = self.data.sensordata[self._torque_adr:self._torque_adr + 3]
-        np.negative(out, out=out)
+        self.sense(out, np.empty(7))
         return out
+
+    def sense(self, wrench: np.ndarray, torques: np.ndarray) -> None:
+        """``sensor_wrench`` into ``wrench`` (6,) and ``external_joint_torques`` into
+        ``torques`` (7,) in one kernel call (contiguous float64 buffers)."""
+        self.sense_at(address(wrench), address(torques))
+
+    def sense_at(self, wrench_at: int, torques_at: int) -> None:
+        """``sense`` into the buffers at these addresses (robot_sim.kernels): the cell's,
+        every cycle."""
+        at = self._at
+        _sensed(at["sensordata"], self._force_adr, self._torque_adr, at["constraint"], at["hand"], self._nv,
+                self._arm_dof, wrench_at, torques_at)
 
     def contacts(self) -> tuple[np.ndarray, set, list[str]]:
         """What the tool tip touches, read once: the total force the environment

@@ -151,8 +151,8 @@ class FtSensorNode(Node):
                     self._wrench[:] = SATURATING_LOAD * float(np.max(self.ati_config.ranges))
                 else:
                     self._wrench[:] = np.nan
-            rec = self.ati.read(self._wrench, msg["stamp_ns"])
-            w = rec.wrench(self.ati_config)
+            rec, w = self.ati.sample(self._wrench, msg["stamp_ns"])
+            w = w.tolist()
         if self.box is not None:
             # outside the lock: a client's bias request (the box's thread) takes it
             self._stamp = (msg["seq"], msg["stamp_ns"])

@@ -1,6 +1,6 @@
 """The compiled ATI sample against the model written out in numpy, one draw per sample:
 the same records bit for bit (noise and drift drawn in blocks, saturation, tare, NaN input,
-time that goes backwards)."""
+time that goes backwards), and ``sample``'s wrench the record's ``wrench``, bit for bit."""
 
 import math
 
@@ -72,9 +72,12 @@ def test_the_compiled_sample_is_the_numpy_model_bit_for_bit(saturation):
             ref.tare_n = 50
             ref.remaining = ref.n = 50
             ref.acc[:] = 0.0
-        rec = sensor.read(x, t)
+        rec, wrench = sensor.sample(x, t) if k % 2 else (sensor.read(x, t), None)
         status, counts = ref.read(x, t)
         assert rec.status == status and np.array_equal(rec.counts, counts) and rec.counts.dtype == np.int32, k
+        if wrench is not None:  # the kernel's wrench is the record's, bit for bit, and no zero has a sign
+            expected = counts / np.asarray(config.counts_per_unit)
+            assert np.array_equal(wrench.view(np.int64), expected.view(np.int64)), k
         saturated += bool(status & _STATUS_SATURATED) and status != _STATUS_NONFINITE
         nonfinite += status == _STATUS_NONFINITE
     assert saturated > 20 and nonfinite == 10  # both paths were exercised

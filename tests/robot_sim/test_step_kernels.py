@@ -103,6 +103,13 @@ def test_apply_is_mj_applyFT_plus_the_drive_torques(world):
                           sim._flange_body, expected)
         np.testing.assert_allclose(sim.external_joint_torques() - sim.data.qfrc_constraint[sim._dof],
                                    expected[sim._dof], atol=1e-12)
+        # the kernel's reading is the numpy expressions', bit for bit
+        wrench, torques = np.empty(6), np.empty(7)
+        sim.sense(wrench, torques)
+        assert np.array_equal(torques, sim.data.qfrc_constraint[sim._dof] + sim._hand_qfrc[sim._dof])
+        ft = np.concatenate([sim.data.sensordata[sim._force_adr:sim._force_adr + 3],
+                             sim.data.sensordata[sim._torque_adr:sim._torque_adr + 3]])
+        assert np.array_equal(wrench, -ft) and np.array_equal(sim.sensor_wrench(), -ft)
         expected[sim._dof] += tau
         np.testing.assert_allclose(sim.data.qfrc_applied, expected, atol=1e-12)
         sim.apply(tau)

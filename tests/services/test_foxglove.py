@@ -3,6 +3,7 @@ Schemas (@foxglove/schemas from npm, installed by `make test`), showing the arm 
 robot measured it, and added to older recordings by `etar-bench export --foxglove`."""
 
 import json
+import math
 import shutil
 from pathlib import Path
 
@@ -16,7 +17,7 @@ from services.recordings.reader import read_episode
 from services.recordings.recovery import write_copy
 from services.foxglove.scene import ARM_ALPHA, ARROW_M_PER_N, ELLIPSOID_M_PER_N_M, FRAMES, VisualScene, world_geometry
 from services.runtime.visual_topics import SCHEMA_DIR, SCHEMA_NAMES, schema_bytes
-from services.foxglove.tap import VisualTap
+from services.foxglove.tap import VisualTap, encode
 
 ROOT = Path(__file__).resolve().parents[2]
 NPM_SCHEMAS = ROOT / ".cache" / "foxglove-schemas" / "jsonschema"  # `make foxglove-schemas`
@@ -172,6 +173,23 @@ def test_every_episode_has_its_picture_from_its_first_visual_frame(run_dir):
 def support_stamp(msg: dict, topic: str) -> int:
     t = msg["transforms"][0]["timestamp"] if topic == "/viz/tf" else msg["entities"][0]["timestamp"]
     return t["sec"] * 1_000_000_000 + t["nsec"]
+
+
+def test_visual_messages_are_written_for_any_json_parser_and_refuse_nan(run_dir):
+    """encode (orjson) writes what the standard library reads back as its own encoding's
+    values, exponents and all; a NaN, which a viewer's parser refuses, is an error."""
+    seen = 0
+    for path in sorted((run_dir / "recordings").glob("*.mcap"))[:1]:
+        for topic, messages in visual_messages(path).items():
+            for _, message in messages:
+                assert json.loads(encode(message)) == json.loads(json.dumps(message)), topic
+                seen += 1
+    assert seen > 100
+    values = [1e-7, -0.0, 1e22, 0.1, 5e-324]
+    back = json.loads(encode({"x": values}))["x"]
+    assert back == values and [math.copysign(1.0, v) for v in back] == [math.copysign(1.0, v) for v in values]
+    with pytest.raises(ValueError):
+        encode({"pose": {"x": float("nan")}})
 
 
 def test_a_visual_tap_skips_garbage_and_counts_it():
