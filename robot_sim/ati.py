@@ -121,7 +121,7 @@ from numba import njit
 from filterpy.kalman import KalmanFilter
 from scipy.linalg import block_diag, solve_discrete_are
 
-from robot_sim.kernels import JIT, address, addresses, carray_at, entry
+from robot_sim.kernels import JIT, HoldsAddresses, address, addresses, carray_at, entry
 
 __all__ = [
     "AXES",
@@ -471,7 +471,7 @@ def _sample_at(x_at, const_at, state_at, tare_at, noise_at, ni, drift_at, di, dr
 _sample = entry(_sample_at, f"{addresses(8)}, float64, boolean, int64")
 
 
-class AtiSensor:
+class AtiSensor(HoldsAddresses):
     """The sensor + Net F/T box: true wrench in, :class:`RdtRecord` out.
 
     ``seed`` drives two independent streams (noise, drift), so switching drift off

@@ -22,7 +22,7 @@ from robot_sim.ati import AtiConfig, AtiSensor, RdtRecord
 from robot_sim.fri import (CommandPacket, ControlMode, CycleOutcome, FriConfig, FriLink, FriState, LinkFaults,
                            MeasurementPacket)
 from robot_sim.fri_wire import MeasurementExtras, jacobian_to_fri
-from robot_sim.kernels import address
+from robot_sim.kernels import HoldsAddresses, address
 from robot_sim.kinematics import READY, ArmKinematics
 from robot_sim.krc import ImpedanceCommand, KrcConfig, KrcController
 from robot_sim.physics import Simulation
@@ -70,7 +70,7 @@ class CycleResult:
     t_ns: int  # simulation time after the step
 
 
-class RobotCell:
+class RobotCell(HoldsAddresses):
     def __init__(self, world: WorldSpec, *, seed: int = 0, fri_config: FriConfig | None = None,
                  ati_config: AtiConfig | None = None, krc_config: KrcConfig | None = None,
                  faults: LinkFaults | None = None, joint_noise: float = JOINT_POSITION_NOISE,

@@ -34,6 +34,16 @@ def address(a: np.ndarray) -> int:
     return a.ctypes.data
 
 
+class HoldsAddresses:
+    """A class whose objects keep the addresses of their own buffers for the kernels: a
+    copy (copy, deepcopy, pickle) would keep the original's addresses, and its kernels
+    would read and write the original's memory, or freed memory.  So it cannot be copied."""
+
+    def __reduce_ex__(self, protocol):
+        raise TypeError(f"{type(self).__name__} holds the addresses of its own buffers for its kernels and "
+                        f"cannot be copied or pickled: make a new one")
+
+
 def entry(kernel, signature: str):
     """``kernel``'s machine code for the argument types ``signature`` (numba's names:
     "int64, float64, boolean"), compiled now or loaded from numba's cache, to be called

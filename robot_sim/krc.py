@@ -40,7 +40,7 @@ import pinocchio as pin
 from numba import njit
 
 from robot_sim.fri import FRI_CYCLE_NS, ControlMode
-from robot_sim.kernels import JIT, address, addresses, carray_at, entry, farray_at
+from robot_sim.kernels import JIT, HoldsAddresses, address, addresses, carray_at, entry, farray_at
 from robot_sim.kinematics import ArmKinematics
 
 POSITION, CART_IMP, JNT_IMP = ControlMode.POSITION, ControlMode.CART_IMP, ControlMode.JNT_IMP
@@ -350,7 +350,7 @@ _STOP_REASONS = tuple(SafetyReason)  # indexed by _state_problem_at's result
 _SAFE, _NON_FINITE, _TORQUE_SATURATION = SafetyReason.NONE, SafetyReason.NON_FINITE, SafetyReason.TORQUE_SATURATION
 
 
-class KrcController:
+class KrcController(HoldsAddresses):
     """Computes joint torques each cycle from the measured state and the FRI outcome.
 
     The kernels read ``kp``, ``kd``, ``tau_max`` and write ``last_tau``,

@@ -19,7 +19,7 @@ import mujoco
 import numpy as np
 from numba import njit
 
-from robot_sim.kernels import JIT, address, addresses, all_finite, carray_at, entry
+from robot_sim.kernels import JIT, HoldsAddresses, address, addresses, all_finite, carray_at, entry
 from robot_sim.worlds import TIMESTEP, WorldSpec
 
 JOINTS = tuple(f"joint{i}" for i in range(1, 8))
@@ -77,7 +77,7 @@ class PhysicsError(RuntimeError):
     """The simulation diverged or MuJoCo reported a problem."""
 
 
-class Simulation:
+class Simulation(HoldsAddresses):
     def __init__(self, world: WorldSpec):
         self.world = world
         self.model = mujoco.MjModel.from_xml_string(world.xml)

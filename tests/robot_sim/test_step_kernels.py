@@ -152,3 +152,19 @@ def test_compute_returns_its_buffer_and_the_cell_copies_it(kin):
     krc = KrcController(kin)
     first = krc.compute(READY, np.zeros(7))
     assert krc.compute(READY, np.zeros(7)) is first  # documented: copy to keep
+
+
+def test_what_holds_its_buffers_addresses_refuses_to_be_copied():
+    """A copy would keep the original's addresses: its kernels would write the original's
+    memory (or freed memory).  Copying, deep-copying and pickling each say so instead."""
+    import copy
+    import pickle
+
+    from robot_sim.ati import AtiConfig, AtiSensor
+    from robot_sim.cell import RobotCell
+
+    cell = RobotCell(valley())
+    for thing in (cell, cell.sim, cell.krc, cell.ati, AtiSensor(AtiConfig.mini45(), 1)):
+        for how in (copy.copy, copy.deepcopy, pickle.dumps):
+            with pytest.raises(TypeError, match=f"{type(thing).__name__} holds the addresses of its own buffers"):
+                how(thing)
