@@ -514,7 +514,7 @@ class AtiSensor(HoldsAddresses):
         self._clip = config.saturation == "clip"
         self._period_ns = config.sample_period_ns
 
-        # Scratch buffers: read() allocates only the record's own counts.
+        # Scratch buffers: a sample allocates only the record's own counts (and the record).
 
         self._const = np.stack([self._bias, self._noise_std, self._range, self._full_scale, self._cpu, self._step,
                                 self._drift_std, _SAT_BITS_ARRAY.astype(np.float64)])
@@ -581,8 +581,8 @@ class AtiSensor(HoldsAddresses):
         return self.sample(true_wrench, t_ns)[0]
 
     def sample(self, true_wrench: np.ndarray, t_ns: int) -> tuple[RdtRecord, np.ndarray]:
-        """``read``, with the record's wrench in N / Nm (``RdtRecord.wrench``'s values, a
-        view of a buffer the next call overwrites: copy it to keep it)."""
+        """``read``, with the record's wrench in N / Nm (``RdtRecord.wrench``'s values; may
+        be a view of a buffer the next call overwrites: copy it to keep it)."""
         x = self._x
         if np.shape(true_wrench) != (6,):
             raise ValueError(f"true_wrench must have shape (6,), got {np.shape(true_wrench)}")

@@ -206,7 +206,10 @@ class Simulation(HoldsAddresses):
 
     def sense(self, wrench: np.ndarray, torques: np.ndarray) -> None:
         """``sensor_wrench`` into ``wrench`` (6,) and ``external_joint_torques`` into
-        ``torques`` (7,) in one kernel call (contiguous float64 buffers)."""
+        ``torques`` (7,) in one kernel call (contiguous float64 buffers; the kernel writes
+        by address, so the shapes are checked here)."""
+        if np.shape(wrench) != (6,) or np.shape(torques) != (7,):
+            raise ValueError(f"sense: wrench (6,) and torques (7,), got {np.shape(wrench)} and {np.shape(torques)}")
         self.sense_at(address(wrench), address(torques))
 
     def sense_at(self, wrench_at: int, torques_at: int) -> None:

@@ -60,14 +60,20 @@ def add_visual_topics(path, rate_hz: float = VISUAL_RATE_HZ, scenes: dict | None
     tap = VisualTap(scenes[world, rate_hz], default_model=model)
     tap.reset()
     extra = []
+    unencodable = 0
     for m in episode.messages:
         for topic, visual in tap.take(m.topic.lstrip("/"), m.payload):
-            extra.append((topic, SCHEMA_NAMES[topic], schema_bytes(topic), m.log_time_ns, encode(visual)))
+            try:
+                extra.append((topic, SCHEMA_NAMES[topic], schema_bytes(topic), m.log_time_ns, encode(visual)))
+            except ValueError:  # a NaN, which no viewer's JSON parser reads: left out, counted
+                unencodable += 1
     write_copy(episode, path, library=f"{episode.library}; visual topics by etar-bench export",
                metadata=dict(episode.metadata, visual_topics_added_by="etar-bench export --foxglove"),
                extra=extra, what="exported")
-    undecodable = f", {tap.undecodable} undecodable message(s) skipped" if tap.undecodable else ""
-    return Exported(path, len(extra), f"added {len(extra)} visual messages ({world}, {rate_hz:g} Hz){undecodable}")
+    notes = f", {tap.undecodable} undecodable message(s) skipped" if tap.undecodable else ""
+    if unencodable:
+        notes += f", {unencodable} visual message(s) with a non-finite value left out"
+    return Exported(path, len(extra), f"added {len(extra)} visual messages ({world}, {rate_hz:g} Hz){notes}")
 
 
 def export_foxglove(run_dir, rate_hz: float = VISUAL_RATE_HZ, progress=None) -> list[Exported]:

@@ -131,10 +131,17 @@ class RecorderNode(Node):
         """The visual messages this sample brings, recorded at its reception time.  They are
         a view of the run: whatever goes wrong drawing them must cost nothing recorded."""
         try:
-            for visual_topic, visual in self.tap.take(topic, raw, message):
-                self.writer.add(visual_topic, encode(visual), recv_ns, recv_ns)
+            visuals = self.tap.take(topic, raw, message)
         except Exception:  # noqa: BLE001 - counted in status(); the run's own messages go on
             self.visual_errors += 1
+            return
+        for visual_topic, visual in visuals:
+            try:  # one that will not encode (a NaN) costs only itself
+                payload = encode(visual)
+            except ValueError:
+                self.visual_errors += 1
+                continue
+            self.writer.add(visual_topic, payload, recv_ns, recv_ns)
 
     def _tap_for(self, scenario_text: str | None) -> VisualTap | None:
         """The visual tap of the episode's world (named by the scenario it records); none

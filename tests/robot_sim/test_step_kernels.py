@@ -110,6 +110,8 @@ def test_apply_is_mj_applyFT_plus_the_drive_torques(world):
         ft = np.concatenate([sim.data.sensordata[sim._force_adr:sim._force_adr + 3],
                              sim.data.sensordata[sim._torque_adr:sim._torque_adr + 3]])
         assert np.array_equal(wrench, -ft) and np.array_equal(sim.sensor_wrench(), -ft)
+    with pytest.raises(ValueError, match=r"wrench \(6,\) and torques \(7,\), got \(6,\) and \(6,\)"):
+        sim.sense(np.empty(6), np.empty(6))  # the kernel writes by address: a short buffer is refused first
         expected[sim._dof] += tau
         np.testing.assert_allclose(sim.data.qfrc_applied, expected, atol=1e-12)
         sim.apply(tau)
