@@ -30,6 +30,7 @@ import robot_sim.ati as ati  # noqa: E402
 import robot_sim.kernels as kernels  # noqa: E402
 import robot_sim.krc as krc  # noqa: E402
 import robot_sim.physics as physics  # noqa: E402
+from node_costs import timed  # noqa: E402  (bench/, beside this script)
 
 # (module, the name the cell calls, the dispatcher it is the machine code of)
 KERNELS = (
@@ -46,19 +47,6 @@ KERNELS = (
 )
 
 
-def timed(f, name, totals: Counter, calls: Counter):
-    clock = time.perf_counter_ns
-
-    def call(*args):
-        t = clock()
-        result = f(*args)
-        totals[name] += clock() - t
-        calls[name] += 1
-        return result
-
-    return call
-
-
 def run(scenario: str, way: str, out: Path) -> tuple[Counter, Counter, int, float]:
     from services.cli import bench as bench_cli
     from services.runtime import cycle
@@ -68,14 +56,9 @@ def run(scenario: str, way: str, out: Path) -> tuple[Counter, Counter, int, floa
     for module, name, dispatcher in KERNELS:
         originals[module, name] = getattr(module, name)
         setattr(module, name, timed(dispatcher if way == "dispatcher" else getattr(module, name), name, totals, calls))
-    opened = [0]
     open_cycle = cycle.CycleEngine._open
-
-    def counting_open(self):
-        opened[0] += 1
-        open_cycle(self)
-
-    cycle.CycleEngine._open = counting_open
+    opened = Counter()
+    cycle.CycleEngine._open = timed(open_cycle, "cycles", Counter(), opened)
     t = time.perf_counter()
     try:
         code = bench_cli.main(["run", scenario, "--transport", "inproc", "--out", str(out), "--no-figures"])
@@ -85,7 +68,7 @@ def run(scenario: str, way: str, out: Path) -> tuple[Counter, Counter, int, floa
             setattr(module, name, f)
     if code:
         raise SystemExit(f"the {way} run failed (exit {code})")
-    return totals, calls, opened[0], time.perf_counter() - t
+    return totals, calls, opened["cycles"], time.perf_counter() - t
 
 
 def main(argv=None) -> int:
