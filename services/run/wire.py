@@ -10,18 +10,14 @@ from __future__ import annotations
 
 import socket
 
-
-def _free_port(kind: int) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from services.transport.launch import free_port
 
 
 def udp_wiring() -> dict[str, tuple]:
     """role -> the flags that put it on the lab's protocols (free loopback ports: a port
     taken between here and the service's start makes that service fail to start, saying so)."""
-    fri = _free_port(socket.SOCK_DGRAM)
-    rdt, http = _free_port(socket.SOCK_DGRAM), _free_port(socket.SOCK_STREAM)
+    fri = free_port(socket.SOCK_DGRAM)
+    rdt, http = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_STREAM)
     return {
         # the wire itself is not recorded: recorded and reported as over Zenoh (serve records it)
         "robot": ("--wire", "udp", "--krl", "testbench", "--fri-remote", f"127.0.0.1:{fri}", "--no-wire-topic"),

@@ -12,6 +12,7 @@ a role with a restart policy is started again.  Stopping escalates SIGINT -> SIG
 from __future__ import annotations
 
 import os
+import random
 import signal
 import socket
 import subprocess
@@ -31,21 +32,41 @@ PROGRAM_MODULE = "services.cli.roles"
 MAX_RESTARTS = 3  # per role and run: a service that keeps dying is lost
 
 
-_HANDED_OUT: set[int] = set()
+_HANDED_OUT: set[tuple[int, int]] = set()
 _HANDED_OUT_LOCK = threading.Lock()
+_PICK = random.Random()  # which free port a run listens on is no part of what it records
 
 
-def free_port() -> int:
-    """A loopback port free now and not handed out before by this process: two runs
-    started at once in one process were both given the same one by the kernel."""
+def _ephemeral_range() -> tuple[int, int] | None:
+    try:
+        low, high = map(int, Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split())
+    except (OSError, ValueError):
+        return None
+    return low, high
+
+
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    """A loopback port (TCP, or UDP with ``socket.SOCK_DGRAM``) free now and not handed
+    out before by this process: two runs started at once in one process were both given
+    the same one by the kernel.  It is taken below the kernel's ephemeral range, where
+    no outgoing connection and no bind to port 0 can be given it between now and its
+    user's bind: on CI a run's router lost its port that way to the peers of a run
+    started beside it ("Address already in use")."""
+    ephemeral = _ephemeral_range()
+    below = (max(1024, ephemeral[0] - 16384), ephemeral[0]) if ephemeral and ephemeral[0] > 2048 else None
     with _HANDED_OUT_LOCK:
-        while True:
-            with socket.socket() as s:
-                s.bind(("127.0.0.1", 0))
+        for attempt in range(1000):
+            wanted = _PICK.randrange(*below) if below and attempt < 500 else 0
+            with socket.socket(socket.AF_INET, kind) as s:
+                try:
+                    s.bind(("127.0.0.1", wanted))
+                except OSError:
+                    continue
                 port = s.getsockname()[1]
-            if port not in _HANDED_OUT:
-                _HANDED_OUT.add(port)
+            if (kind, port) not in _HANDED_OUT:
+                _HANDED_OUT.add((kind, port))
                 return port
+    raise OSError("no free loopback port found in 1000 attempts")
 
 
 @dataclass

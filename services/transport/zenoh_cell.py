@@ -44,17 +44,9 @@ class ZenohCell:
             address, hosts_cfg = ROUTER_ADDRESS, HOSTS_CFG
         if zenoh is not None:
             self.zenoh, self.endpoint = zenoh, ""
-        elif tls is not None:
-            self.endpoint = f"tls/{address}:{free_port()}"
-            options = router_options(tls, run_id, self.endpoint)
-            self.zenoh = replace(options, cfg=options.cfg + hosts_cfg)
-        elif hosts is not None:
-            self.endpoint = f"tcp/{address}:{free_port()}"
-            self.zenoh = ZenohOptions(mode="router", connect=(), listen=(self.endpoint,), cfg=hosts_cfg)
+            self.session = open_session(self.zenoh)
         else:
-            self.endpoint = f"tcp/127.0.0.1:{free_port()}"
-            self.zenoh = ZenohOptions(listen=(self.endpoint,))
-        self.session = open_session(self.zenoh)
+            self.session = self._listen(address, hosts_cfg)
         self._publishers = {}
         # robot/episode summaries by the first cycle of their episode: the runner takes the
         # one of the episode it started, never a duplicate or a stale one (a foreign peer's
@@ -73,6 +65,26 @@ class ZenohCell:
             self.session.close()
             raise
         self.lost = self.supervisor.lost  # role -> monotonic time it was lost
+
+    def _listen(self, address: str, hosts_cfg: tuple):
+        """The runner's session, listening on a free port it picked; a port another
+        program took in between costs one more pick, not the run."""
+        for attempt in range(3):
+            if self.tls is not None:
+                self.endpoint = f"tls/{address}:{free_port()}"
+                options = router_options(self.tls, self.run_id, self.endpoint)
+                self.zenoh = replace(options, cfg=options.cfg + hosts_cfg)
+            elif self.hosts is not None:
+                self.endpoint = f"tcp/{address}:{free_port()}"
+                self.zenoh = ZenohOptions(mode="router", connect=(), listen=(self.endpoint,), cfg=hosts_cfg)
+            else:
+                self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+                self.zenoh = ZenohOptions(listen=(self.endpoint,))
+            try:
+                return open_session(self.zenoh)
+            except Exception as e:
+                if "Address already in use" not in str(e) or attempt == 2:
+                    raise
 
     def start(self) -> None:
         """Spawn each role's process (none with ``attach``) and wait until every one is alive."""

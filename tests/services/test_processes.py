@@ -116,3 +116,41 @@ def test_garbage_is_dropped_and_counted_valid_messages_are_answered(ft_sensor):
     links = request(session, run_id, "ft_sensor", "status")["links"]["robot/contact"]
     assert links["resyncs"] == 1 and links["dropped"] == 3 + RESYNC_AFTER - 1, links
     sub.undeclare()
+
+
+def test_free_ports_are_below_the_ephemeral_range_distinct_and_bindable():
+    """A port handed out is one no outgoing connection can be given before its user binds
+    it (the kernel picks those from the ephemeral range), of the kind asked for."""
+    import socket
+
+    low = launch._ephemeral_range()[0]
+    ports = {kind: [launch.free_port(kind) for _ in range(40)] for kind in (socket.SOCK_STREAM, socket.SOCK_DGRAM)}
+    for kind, picked in ports.items():
+        assert len(set(picked)) == len(picked)
+        assert all(1024 <= p < low for p in picked), picked
+        with socket.socket(socket.AF_INET, kind) as s:
+            s.bind(("127.0.0.1", picked[-1]))
+
+
+def test_the_runner_picks_another_port_when_its_first_is_taken(tmp_path, monkeypatch):
+    """The runner's router port taken between its pick and its bind (CI: another run's
+    peers took it) costs a second pick, not the run."""
+    import socket
+
+    from services.transport import zenoh_cell
+    from services.transport.cell import Start
+
+    taken = socket.socket()
+    taken.bind(("127.0.0.1", 0))
+    taken.listen()
+    picks = iter([taken.getsockname()[1], launch.free_port()])
+    monkeypatch.setattr(zenoh_cell, "free_port", lambda: next(picks))
+    try:
+        cell = zenoh_cell.ZenohCell(f"port-{time.time_ns()}", Start("lockstep", tmp_path, lambda role: (None, ())), {})
+        try:
+            assert cell.endpoint != f"tcp/127.0.0.1:{taken.getsockname()[1]}"
+            assert next(picks, None) is None  # it took the second pick
+        finally:
+            cell.stop([], before_report=False)
+    finally:
+        taken.close()
