@@ -40,6 +40,8 @@ sys.path.insert(0, str(ROOT / "bench"))
 BENCHMARKS = ROOT / "docs" / "benchmarks.md"
 STATED = re.compile(r"cycle-to-floor ratio (\d+(?:\.\d+)?)")
 GUARD_MARGIN = 1.5
+# how the runner says an episode ended: "... 4.1 s simulated / 5.6 s wall ..."
+EPISODE_ENDED = re.compile(r"(\d+(?:\.\d+)?) s simulated / (\d+(?:\.\d+)?) s wall")
 
 
 def stated_ratio() -> float:
@@ -67,19 +69,45 @@ def one(transport: str, scenario: str, out: Path) -> dict:
 
     run_id = f"rtf-{transport}-{uuid.uuid4().hex[:6]}"
     watch = CpuWatch(run_id).start() if transport == "zenoh" else None
+    ended = []  # (monotonic ns, simulated s, wall s) of each episode, as the runner says it ends
+
+    def progress(m: str) -> None:
+        print(f"[{transport}] {m}", file=sys.stderr)
+        said = EPISODE_ENDED.search(m)
+        if said:
+            ended.append((time.monotonic_ns(), float(said.group(1)), float(said.group(2))))
+
     t = time.monotonic()
     report = run(load_scenario(scenario).replace("clock", "lockstep"),
-                 RunOptions(out=str(out), run_id=run_id, transport=transport),
-                 progress=lambda m: print(f"[{transport}] {m}", file=sys.stderr))
+                 RunOptions(out=str(out), run_id=run_id, transport=transport), progress=progress)
     wall = time.monotonic() - t
-    cpu = None
+    cpu = episode_cpu = None
     if watch is not None:
         watch.stop()
         # up to the last sample with the services alive: one taken after they ended would
         # put their time under "other"
         alive = [sample for sample in watch.samples if len(sample[2]) > 1] or watch.samples
         cpu = watch.usage(alive[0][0], alive[-1][0])
-    return dict(report=report, wall=wall, cpu=cpu, out=out)
+        episode_cpu = cpu_within_episodes(watch, ended)
+    return dict(report=report, wall=wall, cpu=cpu, episode_cpu=episode_cpu, out=out)
+
+
+def cpu_within_episodes(watch, ended) -> dict:
+    """Each service's CPU per FRI cycle inside the episodes alone (us): its share of a CPU
+    over each episode's wall window (the once-a-second samples inside it) times the
+    episode's wall time per cycle, averaged over the episodes by their cycles.  What a
+    cycle's messages cost a service, without its start-up or the learning between."""
+    spent: dict = {}
+    cycles = 0.0
+    for end_ns, sim_s, wall_s in ended:
+        share = watch.usage(end_ns - int(wall_s * 1e9), end_ns)
+        if not share or sim_s <= 0:
+            continue  # shorter than two samples
+        cycles += sim_s * 1000  # 1 ms FRI cycles
+        for name, pct in share.items():
+            if name != "seconds":
+                spent[name] = spent.get(name, 0.0) + pct / 100 * wall_s * 1e6
+    return {name: us / cycles for name, us in spent.items()} if cycles else {}
 
 
 def episodes_table(name: str, r: dict) -> dict:
@@ -115,6 +143,13 @@ def episodes_table(name: str, r: dict) -> dict:
         # what each of them costs it (an upper bound: the span includes start-up and learning)
         print("CPU per FRI cycle over the run (us): " + ", ".join(
             f"{k} {v / 100 * r['cpu']['seconds'] / max(cycles_all, 1) * 1e6:.0f}" for k, v in cpu.items()))
+    if r["cpu"] and not r.get("episode_cpu"):
+        print("CPU per FRI cycle within the episodes: not measured (no episode of 2 s wall or more, or the "
+              "runner's words for an episode's end no longer match EPISODE_ENDED)")
+    if r.get("episode_cpu"):
+        inside = sorted(r["episode_cpu"].items(), key=lambda kv: -kv[1])
+        print("CPU per FRI cycle within the episodes (us): " + ", ".join(f"{k} {v:.0f}" for k, v in inside)
+              + f"; the run's processes {sum(v for k, v in inside if k != 'other'):.0f}")
     return dict(sim=total_sim, episode_wall=total_wall, rtf=total_sim / total_wall, per_cycle_us=per_cycle,
                 own_us=sum(v for k, v in mean.items() if k != "wait"), wait_us=mean.get("wait", 0.0),
                 wall=r["wall"], learn=report["learning"].get("seconds"),
