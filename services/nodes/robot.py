@@ -186,7 +186,11 @@ class RobotNode(Node):
         self.kind = "none"
         # answers arrive on transport threads (Zenoh) while the engine's thread closes cycles
         self.arrived = threading.Condition()
-        self.arrivals = 0  # bumped with every answer: a transport waits for it to change
+        self.arrivals = 0  # bumped with every awaited answer: a transport waits for it to change
+        # the participants the episode in progress waits for: another's answer is stored
+        # but wakes nobody (over Zenoh the sensor's answer to every cycle of a
+        # demonstration woke the engine's thread for nothing, a context switch a cycle)
+        self.awaited: frozenset = frozenset(ANSWER_TOPICS)
         self._answers: dict[str, dict] = {name: {} for name in ANSWER_TOPICS}
         self._latest_teacher = None
         self.ep = _Episode(0, self.cell.fri.statistics(), 0)
@@ -219,8 +223,9 @@ class RobotNode(Node):
                         del store[k]
                 if name == "teacher":
                     self._latest_teacher = msg
-                self.arrivals += 1
-                self.arrived.notify_all()
+                if name in self.awaited:
+                    self.arrivals += 1
+                    self.arrived.notify_all()
         return handler
 
     def answered(self, names, seq) -> bool:

@@ -27,6 +27,12 @@ class Role:
     # estimator (its filter re-synchronised); the others hold state a restart would lose
     # (the robot's FRI session, the sensor's tare, the commander's and the teacher's episode)
     restartable: bool = False
+    # over Zenoh its subscriptions are declared only while it listens, in lockstep too:
+    # every input it has comes from the robot, which waits for its listening token
+    # (topics.listening) before an episode's first cycle.  Idle, its messages cost a
+    # lockstep run's CPU ~10 % (docs/benchmarks.md); a role fed by another (the commander
+    # by the estimator) would need that one to wait as well
+    subscribes_when_listening: bool = False
 
     @property
     def program(self) -> str:
@@ -38,7 +44,7 @@ ROLES: dict[str, Role] = {r.name: r for r in (
     Role("robot", "the LWR4+ behind its KRC: physics, FRI, the 1 kHz cycle", fifo_priority=60),
     Role("ft_sensor", "the ATI force/torque sensor", answers="ft", answer_topic="ft/wrench", fifo_priority=50),
     Role("teacher", "the simulated teacher's hand (demonstrations)", answers="teacher",
-         answer_topic="teacher/wrench", fifo_priority=55),
+         answer_topic="teacher/wrench", fifo_priority=55, subscribes_when_listening=True),
     Role("phase_estimator", "the online ETAR filter (100 Hz)", answers="phase", answer_topic="estimator/phase",
          fifo_priority=45, restartable=True),
     Role("impedance_commander", "the per-phase Cartesian impedance command (1 kHz)", answers="command",

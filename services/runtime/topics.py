@@ -27,3 +27,9 @@ def control(run_id: str, service: str) -> str:
 
 def alive(run_id: str, service: str) -> str:
     return key(run_id, f"alive/{service}")
+
+
+def listening(run_id: str, service: str, episode: int | str) -> str:
+    """The liveliness token a service declares once its subscriptions for ``episode`` are
+    (services.transport.process.NodeInputs); ``"*"`` for any."""
+    return key(run_id, f"listening/{service}/{episode}")

@@ -186,3 +186,23 @@ def test_a_plan_that_makes_no_sense_is_refused():
         EpisodePlan(max_cycles=10, stop_on="goal")
     with pytest.raises(ValueError, match="max_cycles"):
         EpisodePlan(max_cycles=0)
+
+
+def test_the_robot_is_woken_only_by_the_answers_its_episode_waits_for():
+    """Every answer is kept (the FRI link and the report read them), but only an awaited
+    one wakes the engine's thread: over Zenoh the sensor's answer to each cycle of a
+    demonstration, which waits for the teacher alone, woke it for nothing."""
+    from services.nodes.robot import RobotConfig, RobotNode
+
+    class Bus:
+        def publish(self, *a, **k):
+            pass
+
+    node = RobotNode(RobotConfig(), Bus(), FakeClock())
+    on = {s.topic: s.handler for s in node.subscriptions}
+    node.awaited = frozenset({"teacher"})
+    before = node.arrivals
+    on["ft/wrench"]({"seq": 7}, 1, b"")
+    assert node.arrivals == before and node.answered(["ft"], 7)
+    on["teacher/wrench"]({"seq": 7}, 2, b"")
+    assert node.arrivals == before + 1 and node.answered(["ft", "teacher"], 7)

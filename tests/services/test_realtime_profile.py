@@ -86,28 +86,31 @@ def matched_within(publisher, want: bool, timeout: float = 10.0) -> bool:
 
 @pytest.mark.parametrize("clock", ["realtime", "lockstep"])
 @pytest.mark.zenoh
-def test_an_idle_teacher_takes_no_messages_in_realtime_and_every_one_in_lockstep(teacher_service, clock):
+def test_an_idle_teacher_takes_no_messages_and_says_when_it_listens(teacher_service, clock):
+    """Idle, the teacher has no subscriber at all, on either clock; reset for a
+    demonstration it subscribes, then declares its listening token for that episode (what
+    the robot waits for in lockstep before the first cycle: services.transport.process)."""
+    from services.transport.process import Listeners
+
     svc, run_id, robot = teacher_service
     node = TeacherNode(TeacherConfig(), ZenohBus(svc, clock == "realtime"), MonotonicClock(), mode=clock)
     inputs = NodeInputs(node, svc, realtime=clock == "realtime")
     inputs.sync()
     reset, idle = inputs.after(node.handlers()["reset"]), inputs.after(node.handlers()["idle"])
     state = robot.declare_publisher(topics.key(run_id, "robot/state"))
+    listeners = Listeners(svc)
+    token = topics.listening(run_id, "teacher", 4)
     try:
-        if clock == "realtime":
-            # before its first demonstration the teacher has nothing to answer: no subscriber at all
-            assert not node.listening and inputs.declared == []
-            assert matched_within(state, False)
-            reset({"start": [0.6, 0.0, 0.3], "episode": 0})
-            assert node.listening and len(inputs.declared) == 2
-            assert matched_within(state, True)
-            idle({})
-            assert inputs.declared == []
-            assert matched_within(state, False)
-        else:
-            # lockstep: a declaration takes a moment to reach the robot, and every cycle counts
-            assert len(inputs.declared) == 2 and matched_within(state, True)
-            idle({})
-            assert len(inputs.declared) == 2 and matched_within(state, True)
+        # before its first demonstration the teacher has nothing to answer: no subscriber at all
+        assert not node.listening and inputs.declared == []
+        assert matched_within(state, False)
+        reset({"start": [0.6, 0.0, 0.3], "episode": 4})
+        assert node.listening and len(inputs.declared) == 2
+        assert matched_within(state, True)
+        assert listeners.wait([token], 10.0) == []
+        idle({})
+        assert inputs.declared == []
+        assert matched_within(state, False)
+        assert listeners.wait([token], 0.5) == [token]  # gone with the subscriptions
     finally:
         state.undeclare()

@@ -55,8 +55,10 @@ try {
     await tab("Topics");
     console.log("LOADED");  // the test starts the run now: the app is up, retrying its connection
     const deadline = Date.now() + args.live.timeout_ms;
+    const loaded = Date.now();
     while (Date.now() < deadline && (result.topics = await topics()).length < args.live.topics)
       await page.waitForTimeout(500);
+    result.listedAfterMs = Date.now() - loaded;  // how long the app took to connect and list them
     await page.waitForTimeout(args.live.draw_ms);
     await shots("live", [["3d", "3D!arm"]]);
     await page.screenshot({ path: `${args.out}/live-page.png` });
