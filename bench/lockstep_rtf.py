@@ -40,8 +40,6 @@ sys.path.insert(0, str(ROOT / "bench"))
 BENCHMARKS = ROOT / "docs" / "benchmarks.md"
 STATED = re.compile(r"cycle-to-floor ratio (\d+(?:\.\d+)?)")
 GUARD_MARGIN = 1.5
-# how the runner says an episode ended: "... 4.1 s simulated / 5.6 s wall ..."
-EPISODE_ENDED = re.compile(r"(\d+(?:\.\d+)?) s simulated / (\d+(?:\.\d+)?) s wall")
 
 
 def stated_ratio() -> float:
@@ -69,17 +67,10 @@ def one(transport: str, scenario: str, out: Path) -> dict:
 
     run_id = f"rtf-{transport}-{uuid.uuid4().hex[:6]}"
     watch = CpuWatch(run_id).start() if transport == "zenoh" else None
-    ended = []  # (monotonic ns, simulated s, wall s) of each episode, as the runner says it ends
-
-    def progress(m: str) -> None:
-        print(f"[{transport}] {m}", file=sys.stderr)
-        said = EPISODE_ENDED.search(m)
-        if said:
-            ended.append((time.monotonic_ns(), float(said.group(1)), float(said.group(2))))
-
     t = time.monotonic()
     report = run(load_scenario(scenario).replace("clock", "lockstep"),
-                 RunOptions(out=str(out), run_id=run_id, transport=transport), progress=progress)
+                 RunOptions(out=str(out), run_id=run_id, transport=transport),
+                 progress=lambda m: print(f"[{transport}] {m}", file=sys.stderr))
     wall = time.monotonic() - t
     cpu = episode_cpu = None
     if watch is not None:
@@ -88,25 +79,29 @@ def one(transport: str, scenario: str, out: Path) -> dict:
         # put their time under "other"
         alive = [sample for sample in watch.samples if len(sample[2]) > 1] or watch.samples
         cpu = watch.usage(alive[0][0], alive[-1][0])
-        episode_cpu = cpu_within_episodes(watch, ended)
+        episodes = len(report["demonstrations"]) + len(report["reproductions"])
+        loops = report["timing"]["robot_loop"]["per_episode"]
+        episode_cpu = cpu_within_episodes(watch, loops[len(loops) - episodes:])  # not the settles before them
     return dict(report=report, wall=wall, cpu=cpu, episode_cpu=episode_cpu, out=out)
 
 
-def cpu_within_episodes(watch, ended) -> dict:
+def cpu_within_episodes(watch, loops) -> dict:
     """Each service's CPU per FRI cycle inside the episodes alone (us): its share of a CPU
-    over each episode's wall window (the once-a-second samples inside it) times the
-    episode's wall time per cycle, averaged over the episodes by their cycles.  What a
-    cycle's messages cost a service, without its start-up or the learning between."""
+    between the robot's own first and last cycle of each episode (its loop's
+    ``wall_start_ns``/``wall_end_ns``, CLOCK_MONOTONIC as the samples are) times that
+    span per cycle, averaged over the episodes by their cycles.  What a cycle's messages
+    cost a service, without its start-up, the learning or the recordings' closing."""
     spent: dict = {}
-    cycles = 0.0
-    for end_ns, sim_s, wall_s in ended:
-        share = watch.usage(end_ns - int(wall_s * 1e9), end_ns)
-        if not share or sim_s <= 0:
-            continue  # shorter than two samples
-        cycles += sim_s * 1000  # 1 ms FRI cycles
+    cycles = 0
+    for lp in loops:
+        t0, t1, n = lp.get("wall_start_ns"), lp.get("wall_end_ns"), lp["cycles"]
+        share = watch.usage(t0, t1) if t0 and t1 and n else {}
+        if not share:
+            continue  # shorter than two samples (a settle)
+        cycles += n
         for name, pct in share.items():
             if name != "seconds":
-                spent[name] = spent.get(name, 0.0) + pct / 100 * wall_s * 1e6
+                spent[name] = spent.get(name, 0.0) + pct / 100 * (t1 - t0) / 1e3
     return {name: us / cycles for name, us in spent.items()} if cycles else {}
 
 
@@ -144,8 +139,7 @@ def episodes_table(name: str, r: dict) -> dict:
         print("CPU per FRI cycle over the run (us): " + ", ".join(
             f"{k} {v / 100 * r['cpu']['seconds'] / max(cycles_all, 1) * 1e6:.0f}" for k, v in cpu.items()))
     if r["cpu"] and not r.get("episode_cpu"):
-        print("CPU per FRI cycle within the episodes: not measured (no episode of 2 s wall or more, or the "
-              "runner's words for an episode's end no longer match EPISODE_ENDED)")
+        print("CPU per FRI cycle within the episodes: not measured (no episode of 2 s wall or more)")
     if r.get("episode_cpu"):
         inside = sorted(r["episode_cpu"].items(), key=lambda kv: -kv[1])
         print("CPU per FRI cycle within the episodes (us): " + ", ".join(f"{k} {v:.0f}" for k, v in inside)

@@ -12,9 +12,10 @@ the messages alone cost: no run over Zenoh on this machine can go faster with th
     python bench/zenoh_floor.py --idle none           # the roles not in the episode unsubscribed
 
 ``--idle subscribed`` (the default) keeps the roles an episode does not need subscribed,
-as a lockstep run does today (the estimator and the commander in a demonstration, the
-teacher in a reproduction); ``--idle none`` leaves them out, which is what dropping idle
-subscriptions could give at most.  Prints cycles per second (real-time factor at 1 kHz)
+as a lockstep run did before 07f18be (the estimator and the commander in a demonstration,
+the teacher in a reproduction; since then the teacher leaves, the other two stay);
+``--idle none`` leaves them out, which is what dropping idle subscriptions could give at
+most.  Prints cycles per second (real-time factor at 1 kHz)
 and each process's CPU per cycle, from /proc.
 """
 
@@ -131,8 +132,9 @@ def role_main(role: str, endpoint: str, run: str, episode: str, subscribed: bool
     if role == "robot":
         go = threading.Event()
         subs.append(session.declare_subscriber(key("bench/go"), lambda s: go.set()))
-        session.declare_publisher(key("bench/ready")).put(b"robot")
-        go.wait()
+        ready = session.declare_publisher(key("bench/ready"))
+        while not go.wait(0.2):
+            ready.put(b"robot")  # again until the bench answers: one put may precede its subscriber
         cycles = int(os.environ["FLOOR_CYCLES"])
         done = session.declare_publisher(key("bench/done"))
         for k in range(cycles + 1):
@@ -180,6 +182,9 @@ def measure(episode: str, subscribed: bool, cycles: int, express: bool) -> dict:
         deadline = time.monotonic() + 60
         while (len(alive) < len(procs) or not ready.is_set()) and time.monotonic() < deadline:
             time.sleep(0.05)
+        if len(alive) < len(procs) or not ready.is_set():
+            raise SystemExit(f"zenoh_floor: after 60 s, {len(alive)} of {len(procs)} roles alive, the robot "
+                             f"{'ready' if ready.is_set() else 'not ready'}")
         time.sleep(1.0)  # declarations settle before the first cycle (a lockstep run waits likewise)
         session.put(f"{run}/bench/go", b"go")
         with cond:
@@ -205,7 +210,7 @@ def main() -> int:
         role_main(sys.argv[2], sys.argv[3], sys.argv[4], sys.argv[5], sys.argv[6] == "1")
         return 0
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--cycles", type=int, default=5000, help="FRI cycles per episode (default 5000)")
+    ap.add_argument("--cycles", type=int, default=5000, help="FRI cycles per episode (default 5000, at least 1000)")
     ap.add_argument("--idle", choices=("subscribed", "none"), default="subscribed",
                     help="the roles an episode does not need: subscribed as today, or not running")
     ap.add_argument("--publishers", choices=("express", "batched"), default="express",
@@ -214,15 +219,17 @@ def main() -> int:
     ap.add_argument("--episodes", default="demonstration,reproduction",
                     help="which episode graphs to run (default both)")
     args = ap.parse_args()
-    if args.cycles < 100:
-        ap.error(f"--cycles {args.cycles}: at least 100")
+    if args.cycles < 1000:
+        # CPU time comes from /proc in 10 ms ticks: fewer cycles would blur it past use
+        ap.error(f"--cycles {args.cycles}: at least 1000")
     episodes = [e.strip() for e in args.episodes.split(",") if e.strip()]
     for e in episodes:
         if e not in WORKING:
             ap.error(f"--episodes: unknown episode {e!r} (known: {', '.join(WORKING)})")
     print(f"the run's message graph over Zenoh lockstep, no work in the handlers; idle roles {args.idle}; "
           f"publishers {args.publishers}; "
-          f"{args.cycles} cycles; {os.cpu_count()} CPUs")
+          f"{args.cycles} cycles; {os.cpu_count()} CPUs; CPU time in /proc ticks, "
+          f"+-{1e6 / os.sysconf('SC_CLK_TCK') / args.cycles:.0f} us per cycle per process")
     for episode in episodes:
         r = measure(episode, args.idle == "subscribed", args.cycles, args.publishers == "express")
         cpu = r["cpu_us_per_cycle"]

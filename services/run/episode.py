@@ -71,8 +71,9 @@ class Episodes:
         reset = dict(start=list(start), episode=index, seed=seed)
         if goal_x is not None:
             reset["goal_x"] = goal_x
-        self.request("teacher", "reset", **reset)
-        summary = self.run(["teacher"], "teacher_done", max_seconds, label=label)
+        said = self.request("teacher", "reset", **reset)
+        summary = self.run(["teacher"], "teacher_done", max_seconds, label=label,
+                           listening=[said["listening"]] if said.get("listening") else [])
         if self.lost is None:
             self.request("teacher", "idle")
         return summary, self.finish("demonstration", index, summary, DEMONSTRATION_TOPICS), path
@@ -125,7 +126,7 @@ class Episodes:
                                  f"(the same folder, e.g. a shared volume)")
         return path
 
-    def run(self, answers_from, stop_on, max_seconds: float, label: str = "episode") -> dict:
+    def run(self, answers_from, stop_on, max_seconds: float, label: str = "episode", listening=()) -> dict:
         """One episode of cycles (the robot's 'run'); returns the robot's summary.  In
         lockstep each cycle waits for ``answers_from``; in realtime a cycle closes as soon
         as they have answered, or at its deadline.  On a terminal a bar shows its simulated
@@ -133,7 +134,7 @@ class Episodes:
         bar = EpisodeProgress(label, max_seconds)
         try:
             summary = self.cell.run_episode(answers_from, stop_on, max_seconds,
-                                            progress=bar.update if bar.enabled else None)
+                                            progress=bar.update if bar.enabled else None, listening=listening)
             if summary["reason"].startswith("unanswered:"):
                 # lockstep: alive but silent (stopped, hung, cut off); the robot gave up on it.
                 # The one that went silent may be further up the chain (the commander waits

@@ -48,8 +48,10 @@ class Cell(Protocol):
     def publish(self, topic: str, payload: bytes) -> None:
         """A message of the runner's own (``runner/event``)."""
 
-    def run_episode(self, answers_from, stop_on, max_seconds: float, progress=None) -> dict:
-        """One episode of FRI cycles (the robot's 'run'), driven to its end: its summary."""
+    def run_episode(self, answers_from, stop_on, max_seconds: float, progress=None, listening=()) -> dict:
+        """One episode of FRI cycles (the robot's 'run'), driven to its end: its summary.
+        ``listening``: the tokens the robot waits for before the first cycle (what the
+        resets of roles that subscribe on demand replied; services.transport.process)."""
 
     def stop_episode(self, timeout: float = 30.0) -> dict | None:
         """End the episode in progress now (``run_episode`` was interrupted): the robot

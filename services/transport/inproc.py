@@ -203,7 +203,7 @@ class InProcessCell:
         # what a runner over Zenoh gets: the summary as it crosses the wire
         return EPISODE_SUMMARY.decode(EPISODE_SUMMARY.encode(**summary))
 
-    def run_episode(self, answers_from, stop_on, max_seconds, progress=None) -> dict:
+    def run_episode(self, answers_from, stop_on, max_seconds, progress=None, listening=()) -> dict:
         """One episode (the robot's 'run'), driven to its end; its summary.
         ``progress(simulated seconds)`` is called every PROGRESS_CYCLES cycles."""
         self._progress = progress

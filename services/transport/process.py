@@ -148,7 +148,8 @@ class NodeInputs:
         self.collector = collector
         self.declared = []
         self.on_demand = node.name in ROLES and ROLES[node.name].subscribes_when_listening
-        self._token = self._token_key = None
+        self._token = self._token_key = self._token_for = None
+        self._tokens = 0
 
     def sync(self) -> None:
         want = self.node.listening or not (self.realtime or self.on_demand)
@@ -161,23 +162,38 @@ class NodeInputs:
                 self.svc.unsubscribe(s)
             self.declared = []
         if self.on_demand:
-            # after the subscriptions: the token must not reach anyone before they do
-            key = topics.listening(self.svc.run_id, self.node.name, self.node.episode) if want else None
-            if key != self._token_key:
+            episode = self.node.episode if want else None
+            if episode != self._token_for:
                 if self._token is not None:
                     self._token.undeclare()
-                self._token = self.svc.session.liveliness().declare_token(key) if key else None
-                self._token_key = key
+                self._token = self._token_key = None
+                if episode is not None:
+                    # after the subscriptions: the token must not reach anyone before they do;
+                    # a fresh key each time, so that one from before an idle (the same episode
+                    # reset again) never passes for this one while its end is still in transit
+                    self._tokens += 1
+                    self._token_key = topics.listening(self.svc.run_id, self.node.name, f"{episode}.{self._tokens}")
+                    self._token = self.svc.session.liveliness().declare_token(self._token_key)
+                self._token_for = episode
+
+    @property
+    def listening_key(self) -> str | None:
+        """The token this node's subscriptions are behind now (None: not on demand, or idle)."""
+        return self._token_key
 
     def after(self, handler):
-        """``handler``, followed by ``sync``."""
+        """``handler``, followed by ``sync``; its reply also carries ``listening``, the token
+        to wait for, when the node subscribes on demand and now listens."""
         def handled(*args):
             try:
-                return handler(*args)
+                reply = handler(*args)
             finally:
                 self.sync()
                 if self.collector is not None:
                     self.collector.between_episodes()  # a control request: between episodes
+            if self._token_key is not None and not handled.replies_itself:
+                reply = dict(reply or {}, listening=self._token_key)
+            return reply
         handled.replies_itself = getattr(handler, "replies_itself", False)
         return handled
 
@@ -203,11 +219,17 @@ class Listeners:
                 self._live.discard(str(sample.key_expr))
             self._changed.notify_all()
 
+    def _has(self, key: str) -> bool:
+        if key.endswith("*"):  # any token under this prefix
+            return any(live.startswith(key[:-1]) for live in self._live)
+        return key in self._live
+
     def wait(self, keys, timeout: float) -> list:
-        """Until every token in ``keys`` is live, ``timeout`` at most; the ones still missing."""
+        """Until every token in ``keys`` is live (one ending in ``*``: any token so
+        beginning), ``timeout`` at most; the ones still missing."""
         with self._changed:
-            self._changed.wait_for(lambda: self._live.issuperset(keys), timeout)
-            return [k for k in keys if k not in self._live]
+            self._changed.wait_for(lambda: all(self._has(k) for k in keys), timeout)
+            return [k for k in keys if not self._has(k)]
 
 
 LISTENING_TIMEOUT_S = 10.0  # a role reset for an episode says it listens within milliseconds
@@ -224,11 +246,16 @@ def _robot_handlers(node, svc: Service, config, mode: str, clock, collector: Pau
 
     def run(p, reply):
         plan = node.plan("run", p)  # a bad request fails before the episode starts
+        keys = p.get("listening") or []
+        if not (isinstance(keys, list) and all(isinstance(k, str) for k in keys)):
+            raise ValueError(f"listening must be a list of token keys, got {keys!r}")
         if listeners is not None:
-            # the episode's first messages must reach the roles that subscribe only when they listen
+            # the episode's first messages must reach the roles that subscribe only when they
+            # listen: the tokens their resets replied (a runner that does not pass them: any
+            # token of theirs for this episode)
             roles = [r for r in (PARTICIPANTS[a] for a in plan.answers_from) if ROLES[r].subscribes_when_listening]
-            missing = listeners.wait([topics.listening(svc.run_id, r, node.episode) for r in roles],
-                                     LISTENING_TIMEOUT_S)
+            keys = keys or [topics.listening(svc.run_id, r, f"{node.episode}.*") for r in roles]
+            missing = listeners.wait(keys, LISTENING_TIMEOUT_S)
             if missing:
                 raise ValueError(f"not listening for episode {node.episode} after {LISTENING_TIMEOUT_S:.0f} s "
                                  f"(no token {', '.join(missing)}): was it reset for this episode?")

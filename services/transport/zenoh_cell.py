@@ -149,14 +149,14 @@ class ZenohCell:
             raise ServiceLost(role, self.supervisor.lost_message(role) + f"; '{cmd}' not sent")
         return request(self.session, self.run_id, role, cmd, timeout=timeout, **args)
 
-    def run_episode(self, answers_from, stop_on, max_seconds, progress=None) -> dict:
+    def run_episode(self, answers_from, stop_on, max_seconds, progress=None, listening=()) -> dict:
         """One episode (the robot's 'run'); its summary from ``robot/episode``.
         ``progress(simulated seconds)``, when given, is called about once a second
         from the robot's status (which it serves every 100 cycles during an episode)."""
         self._wake.clear()
         self._summaries.clear()
         first = self.request("robot", "run", wait_for=list(answers_from), stop_on=stop_on,
-                             max_seconds=max_seconds)["seq"]
+                             max_seconds=max_seconds, **({"listening": list(listening)} if listening else {}))["seq"]
         self._episode_first = int(first)
         started = time.monotonic()
         # lockstep runs at the pace of the slowest participant: allow a generous wall-clock budget

@@ -186,9 +186,12 @@ def test_a_teacher_subscribes_only_while_it_listens_and_the_robot_sees_its_token
                 c = teacher_svc.links.get("robot/state")
                 return 0 if c is None else c.received
 
-            for episode in range(40):
-                inputs.after(teacher.reset)({"start": [0.5, 0.1, 0.3], "episode": episode})
-                assert listeners.wait([topics.listening(run_id, "teacher", episode)], 10.0) == []
+            keys = []
+            for episode in [e // 2 for e in range(40)]:  # each episode twice: a reset after an idle
+                key = inputs.after(teacher.reset)({"start": [0.5, 0.1, 0.3], "episode": episode})["listening"]
+                assert key not in keys  # never one from before: its end may still be in transit
+                keys.append(key)
+                assert listeners.wait([key], 10.0) == []
                 before = received()
                 state.put(payload)
                 deadline = time.monotonic() + 5.0
@@ -202,7 +205,42 @@ def test_a_teacher_subscribes_only_while_it_listens_and_the_robot_sees_its_token
             state.put(payload)
             time.sleep(0.3)
             assert received() == before
-            assert listeners.wait([topics.listening(run_id, "teacher", 39)], 0.5) == \
-                [topics.listening(run_id, "teacher", 39)]
+            assert listeners.wait([keys[-1]], 0.5) == [keys[-1]]
+    finally:
+        runner.close()
+
+
+def test_the_robot_starts_an_episode_only_once_the_tokens_it_was_given_are_live(monkeypatch):
+    """The robot's 'run' in lockstep over Zenoh waits for the listening tokens the runner
+    passes on; without them it refuses, naming the token, and never starts."""
+    from services.nodes.robot import RobotConfig, RobotNode
+    from services.runtime.bus import MonotonicClock
+    from services.transport import process
+    from services.transport.collector import PausedCollector
+    from services.transport.service import Service
+
+    monkeypatch.setattr(process, "LISTENING_TIMEOUT_S", 0.5)
+    endpoint = f"tcp/127.0.0.1:{launch.free_port()}"
+    run_id = f"tokens-{time.time_ns()}"
+    runner = open_session(ZenohOptions(listen=(endpoint,)))
+    try:
+        with Service("robot", run_id, ZenohOptions(connect=(endpoint,))) as svc:
+            bus = process.ZenohBus(svc, realtime=False)
+            node = RobotNode(RobotConfig(), bus, MonotonicClock())
+            bus.declare(node.publications)
+            node.reset({"start": [0.6, 0.0, 0.3], "episode": 0, "kind": "reproduction"})
+            run = process._robot_handlers(node, svc, RobotConfig(), "lockstep", MonotonicClock(),
+                                          PausedCollector())["run"]
+            key = topics.listening(run_id, "teacher", "0.1")
+            replies = []
+            with pytest.raises(ValueError, match=f"no token {key}"):
+                run({"max_seconds": 0.005, "listening": [key]}, lambda **r: replies.append(r))
+            assert replies == []
+            with pytest.raises(ValueError, match="listening must be a list"):
+                run({"max_seconds": 0.005, "listening": key}, lambda **r: replies.append(r))
+            token = runner.liveliness().declare_token(key)
+            run({"max_seconds": 0.005, "listening": [key]}, lambda **r: replies.append(r))
+            assert len(replies) == 1 and replies[0]["started"]
+            token.undeclare()
     finally:
         runner.close()

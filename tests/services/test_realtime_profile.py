@@ -99,12 +99,12 @@ def test_an_idle_teacher_takes_no_messages_and_says_when_it_listens(teacher_serv
     reset, idle = inputs.after(node.handlers()["reset"]), inputs.after(node.handlers()["idle"])
     state = robot.declare_publisher(topics.key(run_id, "robot/state"))
     listeners = Listeners(svc)
-    token = topics.listening(run_id, "teacher", 4)
     try:
         # before its first demonstration the teacher has nothing to answer: no subscriber at all
         assert not node.listening and inputs.declared == []
         assert matched_within(state, False)
-        reset({"start": [0.6, 0.0, 0.3], "episode": 4})
+        token = reset({"start": [0.6, 0.0, 0.3], "episode": 4})["listening"]
+        assert token.startswith(topics.listening(run_id, "teacher", "4."))
         assert node.listening and len(inputs.declared) == 2
         assert matched_within(state, True)
         assert listeners.wait([token], 10.0) == []
