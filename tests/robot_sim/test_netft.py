@@ -138,7 +138,10 @@ def test_pynetft_streams_every_sample_with_the_simulated_counts():
     (a loaded 2-core machine), which it counts: each ft_sequence gap is a gap of the same
     size in rdt_sequence, and pynetft counts them, under 1 %.  Each sample's
     counts the ones the sensor made for that ft_sequence, forces and torques counts / 1e6
-    in N and N·m."""
+    in N and N·m.  A stall of the machine past pynetft's receive timeout (0.1 s) makes it
+    ask for the stream again, and the box starts a new one at rdt_sequence 1, as a Net F/T
+    numbers records within one output stream (CI saw one such stall of 0.35 s): each new
+    stream is one pynetft counted as a timeout, and the rules above hold within each."""
     pynetft = client("pynetft")
     with served_box() as box, Feeder(box, AtiConfig.mini45()) as feed:
         with pynetft_client(pynetft, box) as c:
@@ -149,10 +152,15 @@ def test_pynetft_streams_every_sample_with_the_simulated_counts():
     assert len(got) >= 9000, len(got)
     ft = np.array([s.ft_sequence for s in got])
     rdt = np.array([s.rdt_sequence for s in got])
-    odd = np.flatnonzero(np.diff(ft) != np.diff(rdt))
-    assert rdt[0] == 1 and not len(odd), f"a record the box did not send: {[(ft[i:i + 2], rdt[i:i + 2]) for i in odd[:5]]}"
+    restarts = np.flatnonzero(np.diff(rdt) <= 0) + 1
+    streams = np.split(np.arange(len(got)), restarts)
+    assert all(rdt[s[0]] == 1 for s in streams), [int(rdt[s[0]]) for s in streams]
+    assert len(restarts) <= min(health.timeout_count, 3), (len(restarts), health.timeout_count)
+    for s in streams:
+        odd = np.flatnonzero(np.diff(ft[s]) != np.diff(rdt[s]))
+        assert not len(odd), f"a record the box did not send: {[(ft[s][i:i + 2], rdt[s][i:i + 2]) for i in odd[:5]]}"
     assert np.all(np.diff(ft) >= 1)
-    missing = int(np.sum(np.diff(rdt) - 1))
+    missing = sum(int(np.sum(np.diff(rdt[s]) - 1)) for s in streams)
     # (health is read a little after the last sample taken: it may count a loss after it)
     assert missing <= health.lost_count < len(got) // 100, (missing, health.lost_count)
     assert sent >= rdt[-1]  # the box sent what the client saw, and the records after
