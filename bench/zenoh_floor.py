@@ -33,8 +33,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import zenoh  # noqa: E402
 
+from robot_sim.fri import FRI_CYCLE_NS  # noqa: E402
+from services.runtime.messages import estimator_instant  # noqa: E402
 from services.transport.launch import free_port  # noqa: E402
 from services.transport.session import ZenohOptions, open_session  # noqa: E402
+from services.transport.subscriptions import tenth_cycle  # noqa: E402
 
 # bytes per message of a smoke run's recordings (demonstration_00, reproduction_00)
 SIZES = {"robot/state": 800, "robot/contact": 307, "ft/wrench": 270, "teacher/wrench": 231,
@@ -47,16 +50,12 @@ ANSWER = {"demonstration": "teacher/wrench", "reproduction": "robot/command"}
 
 
 def payload(topic: str, seq: int) -> bytes:
-    head = b'{"seq":%d,"stamp_ns":%d' % (seq, seq * 1_000_000)
+    head = b'{"seq":%d,"stamp_ns":%d' % (seq, seq * FRI_CYCLE_NS)
     return head + b" " * max(0, SIZES[topic] - len(head) - 1) + b"}"
 
 
 def seq_of(raw: bytes) -> int:
     return int(raw[7:raw.index(b",")])
-
-
-def instant(seq: int) -> bool:
-    return seq % 10 == 0
 
 
 def role_main(role: str, endpoint: str, run: str, episode: str, subscribed: bool) -> None:
@@ -107,10 +106,11 @@ def role_main(role: str, endpoint: str, run: str, episode: str, subscribed: bool
         elif role == "phase_estimator":
             for t in ("robot/state", "ft/wrench"):
                 # the real estimator skips the nine of ten from the raw bytes, in the callback
-                sub(t, (lambda f: lambda raw: instant(seq_of(raw)) and f(raw))(
+                sub(t, (lambda f: lambda raw: tenth_cycle(raw) and f(raw))(
                     pair(t, "estimator/phase", lambda s: {"robot/state", "ft/wrench"})))
         elif role == "impedance_commander":
-            need = lambda s: {"robot/state", "estimator/phase"} if instant(s) else {"robot/state"}  # noqa: E731
+            need = lambda s: ({"robot/state", "estimator/phase"} if estimator_instant(s * FRI_CYCLE_NS)  # noqa: E731
+                              else {"robot/state"})
             for t in ("robot/state", "estimator/phase"):
                 sub(t, pair(t, "robot/command", need))
         elif role == "recorder":

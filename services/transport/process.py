@@ -21,11 +21,11 @@ import zenoh
 
 from robot_sim.fri import FRI_RATE_HZ
 from services.nodes import NODES
-from services.runtime.bus import MonotonicClock
-from services.transport.collector import PausedCollector
 from services.runtime import topics
+from services.runtime.bus import MonotonicClock
 from services.runtime.cycle import CLOCKS, CycleEngine
 from services.runtime.roles import PARTICIPANTS, ROLES
+from services.transport.collector import PausedCollector
 from services.transport.service import Service
 from services.transport.session import ZenohOptions
 
@@ -175,11 +175,6 @@ class NodeInputs:
                     self._token_key = topics.listening(self.svc.run_id, self.node.name, f"{episode}.{self._tokens}")
                     self._token = self.svc.session.liveliness().declare_token(self._token_key)
                 self._token_for = episode
-
-    @property
-    def listening_key(self) -> str | None:
-        """The token this node's subscriptions are behind now (None: not on demand, or idle)."""
-        return self._token_key
 
     def after(self, handler):
         """``handler``, followed by ``sync``; its reply also carries ``listening``, the token
