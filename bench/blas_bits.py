@@ -1,21 +1,28 @@
-"""How often a written-out loop (numba, no fastmath: what a compiled cell would run) gives
-other bits than numpy's small products, which go through OpenBLAS (fused multiply-adds,
-its own summation order, kernels chosen by CPU).
+"""How often a compiled product gives other bits than numpy's small products, which go
+through OpenBLAS (fused multiply-adds, its own summation order, kernels chosen by CPU):
+written out as a loop (numba, no fastmath), and called from numba in numpy's own library
+(robot_sim.blas, what the cell's kernels do).
 
     python bench/blas_bits.py [--trials 20000] [--seed 1]
 
 The cell's recorded values pass through such products (the external-wrench estimate's
 J J^T and J tau, the commander's matvecs, the teacher's rotations), so compiling them
-changes recordings unless these counts are zero.  Issue 27's measurement (2026-12-03,
+changes recordings unless the counts are zero.  Issue 27's measurements (2026-12-03,
 this VM, OpenBLAS 0.3.31 DYNAMIC_ARCH): docs/benchmarks.md.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
 import numpy as np
 from numba import njit
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from robot_sim import blas  # noqa: E402
 
 
 @njit(cache=False)
@@ -39,6 +46,22 @@ def _matmul(A, B, out):
             out[i, j] = s
 
 
+@njit(cache=False)
+def _gemv(a, x, y, m, n, trans):
+    blas.call_gemv(blas.GEMV, np.int32(blas.ROW_MAJOR), np.int32(blas.TRANS if trans else blas.NO_TRANS),
+                   m, n, 1.0, a.ctypes.data, n, x.ctypes.data, 1, 0.0, y.ctypes.data, 1)
+
+
+@njit(cache=False)
+def _syrk(a, c):
+    n, k = a.shape
+    blas.call_syrk(blas.SYRK, np.int32(blas.ROW_MAJOR), np.int32(blas.UPPER), np.int32(blas.NO_TRANS),
+                   n, k, 1.0, a.ctypes.data, k, 0.0, c.ctypes.data, n)
+    for i in range(n):
+        for j in range(i):
+            c[i, j] = c[j, i]
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
@@ -48,7 +71,9 @@ def main(argv=None) -> int:
     if args.trials < 1:
         ap.error("--trials must be >= 1")
     rng = np.random.default_rng(args.seed)
-    differ = dict.fromkeys(("3x3 @ 3", "3x3^T @ 3", "3x3 @ 3x3", "6x7 @ 7", "6x7 @ 6x7^T", "v . v (3)"), 0)
+    kinds = ("3x3 @ 3", "3x3^T @ 3", "3x3 @ 3x3", "6x7 @ 7", "6x7 @ 6x7^T", "v . v (3)")
+    differ = dict.fromkeys(kinds, 0)
+    called = dict.fromkeys(("3x3 @ 3", "3x3^T @ 3", "6x7 @ 7", "6x7 @ 6x7^T"), 0)
     o3, o6, o33, o66 = np.empty(3), np.empty(6), np.empty((3, 3)), np.empty((6, 6))
     for _ in range(args.trials):
         A, B, b = rng.standard_normal((3, 3)), rng.standard_normal((3, 3)), rng.standard_normal(3)
@@ -64,10 +89,25 @@ def main(argv=None) -> int:
         _matmul(J, np.ascontiguousarray(J.T), o66)
         differ["6x7 @ 6x7^T"] += not np.array_equal(o66, J @ J.T)
         differ["v . v (3)"] += not (b[0] * b[0] + b[1] * b[1] + b[2] * b[2]) == b @ b
-    print(f"numpy {np.__version__}; products whose bits differ from a written-out loop, of {args.trials} each:")
-    for what, n in differ.items():
-        print(f"  {what:12s} {n:6d}  ({100 * n / args.trials:.1f} %)")
-    return 0
+        if blas.AVAILABLE:
+            _gemv(A, b, o3, 3, 3, False)
+            called["3x3 @ 3"] += not np.array_equal(o3, A @ b)
+            _gemv(A, b, o3, 3, 3, True)
+            called["3x3^T @ 3"] += not np.array_equal(o3, A.T @ b)
+            _gemv(J, t, o6, 6, 7, False)
+            called["6x7 @ 7"] += not np.array_equal(o6, J @ t)
+            _syrk(J, o66)
+            called["6x7 @ 6x7^T"] += not np.array_equal(o66, J @ J.T)
+    print(f"numpy {np.__version__}; products whose bits differ from numpy's, of {args.trials} each:")
+    print(f"  {'':12s} {'loop':>16s}   {'numpy BLAS from numba':>22s}")
+    for what in kinds:
+        n = differ[what]
+        via = (f"{called[what]:6d}  ({100 * called[what] / args.trials:.1f} %)" if blas.AVAILABLE and what in called
+               else "-" if blas.AVAILABLE else "n/a")
+        print(f"  {what:12s} {n:6d}  ({100 * n / args.trials:5.1f} %)   {via:>22s}")
+    if not blas.AVAILABLE:
+        print(f"numpy's library from numba: not available here ({blas.WHY})")
+    return 0 if not blas.AVAILABLE or not any(called.values()) else 1
 
 
 if __name__ == "__main__":

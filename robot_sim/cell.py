@@ -17,12 +17,14 @@ from dataclasses import dataclass
 
 import numpy as np
 import pinocchio as pin
+from numba import njit
 
 from robot_sim.ati import AtiConfig, AtiSensor, RdtRecord
 from robot_sim.fri import (CommandPacket, ControlMode, CycleOutcome, FriConfig, FriLink, FriState, LinkFaults,
                            MeasurementPacket)
 from robot_sim.fri_wire import MeasurementExtras, jacobian_to_fri
-from robot_sim.kernels import HoldsAddresses, address
+from robot_sim import blas
+from robot_sim.kernels import JIT, HoldsAddresses, address, addresses, carray_at, entry
 from robot_sim.kinematics import READY, ArmKinematics
 from robot_sim.krc import ImpedanceCommand, KrcConfig, KrcController
 from robot_sim.physics import Simulation
@@ -58,6 +60,78 @@ try:
         return _solve1(a, b, signature="dd->d")
 except ImportError:  # a numpy without it: the public function, same result
     _solve = np.linalg.solve
+
+
+def _external_wrench_numpy(J, tau, JJt, Jtau):
+    """The estimate F = (J J^T + 1e-9 I)^-1 J tau through numpy (the reference)."""
+    np.matmul(J, J.T, out=JJt)
+    JJt += _REGULARISATION
+    np.matmul(J, tau, out=Jtau)
+    return _solve(JJt, Jtau)
+
+
+@njit(**JIT)
+def _external_wrench_at(syrk, gemv, gesv, j, tau, reg, jjt, jtau, lu, ints, ipiv, out):
+    """``_external_wrench_numpy`` in one call, through the functions numpy calls
+    (robot_sim.blas): J J^T by dsyrk (numpy's matmul of an array with its own transpose),
+    mirrored; J tau by dgemv; the solve by dgesv on a column-major copy, as numpy's solve
+    does.  ``ints``: int64 [n, nrhs, lda, ldb, info]; returns LAPACK's info."""
+    row, upper, no_trans = np.int32(blas.ROW_MAJOR), np.int32(blas.UPPER), np.int32(blas.NO_TRANS)
+    blas.call_syrk(syrk, row, upper, no_trans, 6, 7, 1.0, j, 7, 0.0, jjt, 6)
+    a, r, f = carray_at(jjt, (6, 6)), carray_at(reg, (6, 6)), carray_at(lu, (6, 6))
+    for i in range(6):
+        for k in range(i):
+            a[i, k] = a[k, i]
+    for i in range(6):
+        for k in range(6):
+            a[i, k] += r[i, k]
+            f[k, i] = a[i, k]
+    blas.call_gemv(gemv, row, no_trans, 6, 7, 1.0, j, 7, tau, 1, 0.0, jtau, 1)
+    b, x = carray_at(jtau, (6,)), carray_at(out, (6,))
+    for i in range(6):
+        x[i] = b[i]
+    blas.call_gesv(gesv, ints, ints + 8, lu, ints + 16, ipiv, out, ints + 24, ints + 32)
+    return carray_at(ints, (5,))[4]
+
+
+def _external_wrench_kernel():
+    """The compiled estimate, or None where it would not give numpy's bits: where numpy's
+    library was not found, or where random Jacobians and torques of the cycle's shapes
+    give any other bit (checked once, at import)."""
+    if not blas.AVAILABLE:
+        return None
+    kernel = entry(_external_wrench_at, addresses(12))
+    rng = np.random.default_rng(27)
+    JJt, Jtau, scratch = np.empty((6, 6)), np.empty(6), ExternalWrenchScratch()
+    for _ in range(64):
+        scratch.jacobian[:], scratch.tau[:] = rng.standard_normal((6, 7)), rng.standard_normal(7)
+        if not np.array_equal(scratch.solve(kernel), _external_wrench_numpy(scratch.jacobian, scratch.tau, JJt, Jtau)):
+            return None
+    return kernel
+
+
+class ExternalWrenchScratch(HoldsAddresses):
+    """The compiled estimate's inputs and outputs, preallocated and passed by address:
+    ``jacobian`` (6, 7) and ``tau`` (7,) in, ``out`` (6,) the estimate."""
+
+    def __init__(self, tau: np.ndarray | None = None):
+        self.jacobian = np.empty((6, 7))
+        self.tau = np.empty(7) if tau is None else tau
+        self.jjt, self.jtau, self.lu, self.out = np.empty((6, 6)), np.empty(6), np.empty((6, 6)), np.empty(6)
+        self.ints = np.array([6, 1, 6, 6, 0], dtype=np.int64)
+        self.ipiv = np.zeros(6, dtype=np.int64)
+        self.args = (blas.SYRK, blas.GEMV, blas.GESV, address(self.jacobian), address(self.tau),
+                     address(_REGULARISATION), address(self.jjt), address(self.jtau), address(self.lu),
+                     self.ints.ctypes.data, self.ipiv.ctypes.data, address(self.out))
+
+    def solve(self, kernel) -> np.ndarray:
+        """The estimate for ``jacobian`` and ``tau`` as they are now, into ``out``."""
+        if kernel(*self.args):
+            raise np.linalg.LinAlgError("Singular matrix")  # as numpy's solve says it
+        return self.out
+
+
+_EXTERNAL_WRENCH = _external_wrench_kernel()
 
 
 @dataclass
@@ -108,6 +182,7 @@ class RobotCell(HoldsAddresses):
         self._joint_noise_i = 0
         self._true_wrench = np.zeros(6)
         self._true_wrench_at, self._tau_ext_at = address(self._true_wrench), address(self._tau_ext)
+        self._wrench_scratch = ExternalWrenchScratch(self._tau_ext)
         self._last_measurement: MeasurementPacket | None = None
         self._extras_data = None  # Pinocchio data of its own for fri_extras
         # the KRC's checks on a lab's remote (FRI over UDP): its first command in command mode
@@ -161,7 +236,7 @@ class RobotCell(HoldsAddresses):
         cart[:, :3] = R
         cart[:, 3] = p
         m = self.fri.measurement(self.t_ns, self._q_msr, cart.reshape(12),
-                                 standard_to_fri(self.external_wrench_tcp()))
+                                 standard_to_fri(self._external_wrench_tcp()))
         self._last_measurement = m
         return m
 
@@ -169,13 +244,20 @@ class RobotCell(HoldsAddresses):
         """The KRC's estimate of the external wrench at the tcp, tcp axes,
         [F; T] (from joint torques: F = (J^T)^+ tau_ext, the torques read with the rest
         of the state after the last step)."""
-        J = self.kin.jacobian("tcp", pin.ReferenceFrame.LOCAL)
+        return self._external_wrench_tcp().copy()
+
+    def _external_wrench_tcp(self) -> np.ndarray:
+        """``external_wrench_tcp``, in a buffer the next call overwrites."""
+        kin = self.kin
         # least squares J^T F = tau through the normal equations: J has full row
         # rank away from singularities, and this is 6x cheaper than lstsq
-        np.matmul(J, J.T, out=self._JJt)
-        self._JJt += _REGULARISATION
-        np.matmul(J, self._tau_ext, out=self._Jtau)
-        return _solve(self._JJt, self._Jtau)
+        if _EXTERNAL_WRENCH is not None:
+            scratch = self._wrench_scratch
+            np.copyto(scratch.jacobian, pin.getFrameJacobian(kin.model, kin.data, kin.frame_ids["tcp"],
+                                                             pin.ReferenceFrame.LOCAL))
+            return scratch.solve(_EXTERNAL_WRENCH)
+        return _external_wrench_numpy(kin.jacobian("tcp", pin.ReferenceFrame.LOCAL), self._tau_ext,
+                                      self._JJt, self._Jtau)
 
     def fri_extras(self) -> MeasurementExtras:
         """What an FRI 1.0 measurement datagram carries beyond the packet, for the cycle

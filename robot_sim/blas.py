@@ -1,0 +1,90 @@
+"""numpy's own BLAS and LAPACK, called from the per-cycle numba kernels.
+
+numpy computes a cycle's small products (``J @ J.T``, ``J @ tau``, a 3x3 rotation times a
+vector) and its solves through the OpenBLAS it bundles, whose kernels use fused
+multiply-adds, their own summation order and a choice of kernel by CPU: a product
+written out as a loop in numba gives other bits for 70-100 % of them
+(``python bench/blas_bits.py``), so a compiled cycle that wrote them out would record
+other numbers.  A kernel that calls the very functions numpy calls, in numpy's library,
+with the arguments numpy passes, gets numpy's bits on any CPU (the library picks its
+kernel for the CPU the same way for both callers).
+
+The functions are reached by address: ``fn`` below is an int taken once from the loaded
+library, and ``call_*`` are numba intrinsics that call a C function at such an address.
+An address is an argument, not a constant compiled in, so the kernels stay in numba's
+cache across processes.
+
+``AVAILABLE`` says whether this numpy's library was found (the wheels' scipy-openblas,
+64-bit integers) and, checked at import on random products of the cycle's shapes, gives
+numpy's bits; where it is False (``WHY`` says why) the callers keep their numpy path,
+which records the same numbers more slowly.
+
+(numba's cache tracks only the file a kernel is defined in: after changing the
+intrinsics here, clear robot_sim/__pycache__/*.nb[ic], as for robot_sim.kernels.)
+"""
+
+from __future__ import annotations
+
+import ctypes
+from pathlib import Path
+
+import numpy as np
+from llvmlite import ir
+from numba import types
+from numba.extending import intrinsic
+
+ROW_MAJOR, NO_TRANS, TRANS, UPPER = 101, 111, 112, 121
+
+_NATIVE = {types.int32: ir.IntType(32), types.int64: ir.IntType(64), types.float64: ir.DoubleType(),
+           types.void: ir.VoidType()}
+
+
+def _foreign(ret, *argtypes):
+    """A numba intrinsic ``call(address, *args)`` of a C function of these types (numba's
+    int32, int64, float64; pointers as int64 addresses)."""
+
+    def codegen(context, builder, signature, llargs):
+        fnty = ir.FunctionType(_NATIVE[ret], [_NATIVE[t] for t in argtypes])
+        return builder.call(builder.inttoptr(llargs[0], fnty.as_pointer()), llargs[1:])
+
+    names = ", ".join(f"a{i}" for i in range(len(argtypes)))
+    scope = {"sig": ret(types.int64, *argtypes), "codegen": codegen}
+    # an intrinsic's arity is its definition's: numba folds *args into one tuple argument
+    exec(f"def call(typingctx, fn, {names}):\n    return sig, codegen\n", scope)  # noqa: S102
+    return intrinsic(scope["call"])
+
+
+_I32, _I64, _F64 = types.int32, types.int64, types.float64
+# cblas_dgemv(order, trans, m, n, alpha, a, lda, x, incx, beta, y, incy)
+call_gemv = _foreign(types.void, _I32, _I32, _I64, _I64, _F64, _I64, _I64, _I64, _I64, _F64, _I64, _I64)
+# cblas_dsyrk(order, uplo, trans, n, k, alpha, a, lda, beta, c, ldc)
+call_syrk = _foreign(types.void, _I32, _I32, _I32, _I64, _I64, _F64, _I64, _I64, _F64, _I64, _I64)
+# dgesv_(&n, &nrhs, a, &lda, ipiv, b, &ldb, &info): every argument by address
+call_gesv = _foreign(types.void, _I64, _I64, _I64, _I64, _I64, _I64, _I64, _I64)
+
+
+def _library() -> tuple[ctypes.CDLL | None, str]:
+    """numpy's BLAS library as loaded in this process, or None and why not."""
+    blas = np.show_config(mode="dicts")["Build Dependencies"]["blas"]
+    if blas.get("name") != "scipy-openblas" or "USE64BITINT" not in blas.get("openblas configuration", ""):
+        return None, f"numpy's BLAS is {blas.get('name')!r} ({blas.get('openblas configuration', '')}), not the wheels' scipy-openblas64"
+    # the file numpy loaded: found in this process's map, so it is the one numpy calls
+    for line in Path("/proc/self/maps").read_text().splitlines():
+        path = line.split(maxsplit=5)[-1]
+        if "openblas64_" in Path(path).name:
+            return ctypes.CDLL(path), ""
+    return None, "numpy's scipy-openblas64 library is not mapped in this process"
+
+
+def _address(lib: ctypes.CDLL, name: str) -> int:
+    return ctypes.cast(getattr(lib, name), ctypes.c_void_p).value
+
+
+_LIB, WHY = _library()
+GEMV = SYRK = GESV = 0
+if _LIB is not None:
+    try:
+        GEMV, SYRK, GESV = (_address(_LIB, n) for n in ("scipy_cblas_dgemv64_", "scipy_cblas_dsyrk64_", "scipy_dgesv_64_"))
+    except AttributeError as e:
+        WHY = f"numpy's OpenBLAS lacks a function: {e}"
+AVAILABLE = bool(GEMV and SYRK and GESV)
