@@ -69,7 +69,11 @@ def _library() -> tuple[ctypes.CDLL | None, str]:
     if blas.get("name") != "scipy-openblas" or "USE64BITINT" not in blas.get("openblas configuration", ""):
         return None, f"numpy's BLAS is {blas.get('name')!r} ({blas.get('openblas configuration', '')}), not the wheels' scipy-openblas64"
     # the file numpy loaded: found in this process's map, so it is the one numpy calls
-    for line in Path("/proc/self/maps").read_text().splitlines():
+    try:
+        maps = Path("/proc/self/maps").read_text()
+    except OSError as e:  # not Linux
+        return None, f"cannot see which libraries this process loaded ({e})"
+    for line in maps.splitlines():
         path = line.split(maxsplit=5)[-1]
         if "openblas64_" in Path(path).name:
             return ctypes.CDLL(path), ""

@@ -73,3 +73,20 @@ def test_a_nan_jacobian_gives_nan_as_through_numpy():
     scratch.jacobian[:], scratch.tau[:] = np.nan, 1.0
     expected = cell._external_wrench_numpy(scratch.jacobian, scratch.tau, np.empty((6, 6)), np.empty(6))
     assert np.isnan(expected).all() and np.isnan(scratch.solve(cell._EXTERNAL_WRENCH)).all()
+
+
+def test_a_cell_without_the_kernel_measures_the_same(monkeypatch):
+    # where numpy's library is not reachable the cell takes the numpy path: the same packets
+    def measurements():
+        c = cell.RobotCell(valley(), seed=3)
+        c.start()
+        out = []
+        for _ in range(30):
+            out.append(c.begin_cycle().est_ext_tcp_ft.copy())
+            c.end_cycle(np.array([1.0, -2.0, -5.0, 0.0, 0.1, 0.0]))
+        return np.array(out)
+
+    compiled = measurements()
+    monkeypatch.setattr(cell, "_EXTERNAL_WRENCH", None)
+    assert np.array_equal(measurements(), compiled)
+    assert np.abs(compiled[-1, :3]).max() > 1.0
