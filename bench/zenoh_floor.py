@@ -22,6 +22,7 @@ and each process's CPU per cycle, from /proc.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import subprocess
 import sys
@@ -58,8 +59,14 @@ def seq_of(raw: bytes) -> int:
     return int(raw[7:raw.index(b",")])
 
 
+def _cfg() -> tuple:
+    """The ``--cfg`` pairs every session of the measurement takes (passed to the roles in the
+    environment)."""
+    return tuple(tuple(pair) for pair in json.loads(os.environ.get("FLOOR_CFG", "[]")))
+
+
 def role_main(role: str, endpoint: str, run: str, episode: str, subscribed: bool) -> None:
-    session = open_session(ZenohOptions(connect=(endpoint,)))
+    session = open_session(ZenohOptions(connect=(endpoint,), cfg=_cfg()))
     key = lambda topic: f"{run}/{topic}"  # noqa: E731
     # as services.transport.service.Service.publisher declares them
     express = {"express": True, "priority": zenoh.Priority.REAL_TIME} if os.environ["FLOOR_EXPRESS"] == "1" else {}
@@ -160,7 +167,7 @@ def ticks(pid: int) -> int:
 def measure(episode: str, subscribed: bool, cycles: int, express: bool) -> dict:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     run = f"floor-{os.getpid()}-{time.time_ns()}"
-    session = open_session(ZenohOptions(listen=(endpoint,)))
+    session = open_session(ZenohOptions(listen=(endpoint,), cfg=_cfg()))
     events: list = []
     cond = threading.Condition()
 
@@ -216,18 +223,32 @@ def main() -> int:
     ap.add_argument("--publishers", choices=("express", "batched"), default="express",
                     help="the 1 kHz publishers: express at REAL_TIME priority as the services declare "
                          "them (default), or Zenoh's defaults (batched, DATA priority)")
+    ap.add_argument("--cfg", action="append", default=[], metavar="KEY:VALUE",
+                    help="a Zenoh configuration key with a JSON5 value for every session, as the services' "
+                         "--cfg (repeatable), e.g. transport/unicast/lowlatency:true")
     ap.add_argument("--episodes", default="demonstration,reproduction",
                     help="which episode graphs to run (default both)")
     args = ap.parse_args()
     if args.cycles < 1000:
         # CPU time comes from /proc in 10 ms ticks: fewer cycles would blur it past use
         ap.error(f"--cycles {args.cycles}: at least 1000")
+    pairs = []
+    for item in args.cfg:
+        key, sep, value = item.partition(":")
+        if not sep or not key or not value:
+            ap.error(f"--cfg {item!r}: expected KEY:VALUE")
+        pairs.append((key, value))
+    os.environ["FLOOR_CFG"] = json.dumps(pairs)
+    try:
+        open_session(ZenohOptions(listen=("tcp/127.0.0.1:0",), cfg=_cfg())).close()
+    except ValueError as e:
+        ap.error(str(e))
     episodes = [e.strip() for e in args.episodes.split(",") if e.strip()]
     for e in episodes:
         if e not in WORKING:
             ap.error(f"--episodes: unknown episode {e!r} (known: {', '.join(WORKING)})")
     print(f"the run's message graph over Zenoh lockstep, no work in the handlers; idle roles {args.idle}; "
-          f"publishers {args.publishers}; "
+          f"publishers {args.publishers}; cfg {' '.join(args.cfg) or 'none'}; "
           f"{args.cycles} cycles; {os.cpu_count()} CPUs; CPU time in /proc ticks, "
           f"+-{1e6 / os.sysconf('SC_CLK_TCK') / args.cycles:.0f} us per cycle per process")
     for episode in episodes:
