@@ -85,6 +85,30 @@ def physical_floor_us(cycles: int = 5000) -> float:
     return per_step(law_and_physics(cell, cmd), cycles)
 
 
+def commanded_cycles(cell, cmd, stiffness):
+    """k whole cell cycles (FRI measurement, the remote's command, the KRC's law, MuJoCo's
+    step, the ATI sample), the command answered 0.1 ms into each."""
+
+    def cycles(k):
+        for _ in range(k):
+            m = cell.begin_cycle()
+            cell.receive(CommandPacket(m.seq, cmd.cart_pos, stiffness, np.full(6, 0.7)), m.stamp_ns + 100_000)
+            cell.end_cycle()
+    return cycles
+
+
+def whole_cell_cycle(cycles: int = 5000):
+    """(us per whole cell cycle in command mode with the arm pressed on a plate, the cell)."""
+    cell, q0, cmd, stiffness = pressed_cell()
+    cell.start()
+    cell.place(q0)
+    cell.fri.request_command_mode()
+    whole_cycle = commanded_cycles(cell, cmd, stiffness)
+    whole_cycle(700)  # quality PERFECT for 500 cycles, then CMD: the arm presses on the plate
+    assert cell.fri.state == 2, cell.fri.state
+    return per_step(whole_cycle, cycles), cell
+
+
 # -------------------------------------------------------------------- main
 
 
@@ -103,23 +127,12 @@ def main():
 
     with_law = law_and_physics(cell, cmd)
     cell.start()
-
-    def whole_cycle(k):
-        for _ in range(k):
-            m = cell.begin_cycle()
-            cell.receive(CommandPacket(m.seq, cmd.cart_pos, stiffness, np.full(6, 0.7)), m.stamp_ns + 100_000)
-            cell.end_cycle()
-
     cell.place(q0)
     t_phys = per_step(physics_only, args.cycles)
     cell.place(q0)
     t_law = per_step(with_law, args.cycles)
-    cell.place(q0)
-    cell.fri.request_command_mode()
-    whole_cycle(700)  # quality PERFECT for 500 cycles, then CMD: the arm presses on the plate
-    assert cell.fri.state == 2, cell.fri.state
-    t_cell = per_step(whole_cycle, args.cycles)
-    touching = cell.sim.touching()
+    t_cell, pressing = whole_cell_cycle(args.cycles)
+    touching = pressing.sim.touching()
     print(f"{'what':<52} {'us/step':>8} {'x real time':>12}")
     for name, t in (("MuJoCo step alone (arm + contact)", t_phys),
                     ("+ KRC Cartesian impedance law (Pinocchio)", t_law),

@@ -23,6 +23,7 @@ from robot_sim.fri import FriState
 from robot_sim.fri_wire import COMMAND_SIZE, MEASUREMENT_SIZE, CommandFlags, decode_command, decode_measurement
 from services.run.episode import SETTLE_CYCLES
 from tests.robot_sim.fri_remote import Remote
+from tests.support import require_realtime_machine
 
 # the served cell on the realtime clock, at 1 kHz over UDP: serial (make test runs these after the rest)
 pytestmark = [pytest.mark.serial]
@@ -56,6 +57,7 @@ def move_x(distance: float, seconds: float):
 @pytest.mark.slow
 def test_serve_a_lab_remote_and_a_net_ft_client(tmp_path):
     pynetft = pytest.importorskip("pynetft", reason="the PyPI Net F/T client 'pynetft' is not installed")
+    require_realtime_machine()
     out = tmp_path / "served"
     with Remote("frilibrary", strategy=20) as remote:
         proc = subprocess.Popen(
@@ -167,6 +169,7 @@ def _start_serve(out: Path, remote_port: int, seconds: int) -> subprocess.Popen:
 def test_ctrl_c_ends_serving_with_the_report_of_what_was_served(tmp_path):
     """The documented way to end serving sooner: the episode ends there, the report says
     what the remote did (reason stopped), exit 0."""
+    require_realtime_machine()
     out = tmp_path / "served"
     with Remote("frilibrary", strategy=20) as remote:
         proc = _start_serve(out, remote.port, 60)

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.support import require_realtime_machine
+
 # a realtime run over FRI/UDP: serial (make test runs these after the rest)
 pytestmark = [pytest.mark.serial]
 
@@ -19,6 +21,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 @pytest.mark.slow
 def test_the_smoke_scenario_reaches_its_goal_over_fri_udp_and_net_ft(tmp_path):
+    require_realtime_machine()
     out = tmp_path / "udp"
     proc = subprocess.run([sys.executable, "-m", "services.cli.bench", "run", "scenarios/smoke.yaml", "--clock",
                            "realtime", "--wire", "udp", "--out", str(out), "--no-figures"],
