@@ -19,11 +19,11 @@ import numpy as np
 import pinocchio as pin
 from numba import njit
 
+from robot_sim import blas
 from robot_sim.ati import AtiConfig, AtiSensor, RdtRecord
 from robot_sim.fri import (CommandPacket, ControlMode, CycleOutcome, FriConfig, FriLink, FriState, LinkFaults,
                            MeasurementPacket)
 from robot_sim.fri_wire import MeasurementExtras, jacobian_to_fri
-from robot_sim import blas
 from robot_sim.kernels import JIT, HoldsAddresses, address, addresses, carray_at, entry
 from robot_sim.kinematics import READY, ArmKinematics
 from robot_sim.krc import ImpedanceCommand, KrcConfig, KrcController
