@@ -39,7 +39,7 @@ def main(argv=None) -> int:
     if args.calls < 1 or args.rounds < 1:
         ap.error("--calls and --rounds must be >= 1")
     if cell_module._EXTERNAL_WRENCH is None:
-        print(f"the compiled estimate is not in use here: {cell_module.blas.WHY or 'its import check failed'}")
+        print(f"the compiled estimate is not in use here: {cell_module.EXTERNAL_WRENCH_WHY}")
         return 1
     cell = cell_module.RobotCell(valley(), seed=0)
     cell.start()

@@ -63,6 +63,18 @@ call_syrk = _foreign(types.void, _I32, _I32, _I32, _I64, _I64, _F64, _I64, _I64,
 call_gesv = _foreign(types.void, _I64, _I64, _I64, _I64, _I64, _I64, _I64, _I64)
 
 
+@intrinsic
+def int64_at(typingctx, addr):
+    """The int64 stored at the address ``addr`` (a LAPACK ``info``, in a kernel)."""
+    if not isinstance(addr, types.Integer):
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.load(builder.inttoptr(args[0], ir.IntType(64).as_pointer()))
+
+    return types.int64(addr), codegen
+
+
 def _library() -> tuple[ctypes.CDLL | None, str]:
     """numpy's BLAS library as loaded in this process, or None and why not."""
     blas = np.show_config(mode="dicts")["Build Dependencies"]["blas"]
@@ -73,11 +85,16 @@ def _library() -> tuple[ctypes.CDLL | None, str]:
         maps = Path("/proc/self/maps").read_text()
     except OSError as e:  # not Linux
         return None, f"cannot see which libraries this process loaded ({e})"
+    # numpy's own copy, beside its package (a scipy-openblas64 installed apart is another file)
+    bundled = Path(np.__file__).resolve().parent.parent / "numpy.libs"
     for line in maps.splitlines():
-        path = line.split(maxsplit=5)[-1]
-        if "openblas64_" in Path(path).name:
-            return ctypes.CDLL(path), ""
-    return None, "numpy's scipy-openblas64 library is not mapped in this process"
+        path = Path(line.split(maxsplit=5)[-1])
+        if path.parent == bundled and "openblas64_" in path.name:
+            try:
+                return ctypes.CDLL(str(path)), ""
+            except OSError as e:
+                return None, f"numpy's OpenBLAS cannot be opened again ({e})"
+    return None, f"numpy's scipy-openblas64 library is not mapped from {bundled} in this process"
 
 
 def _address(lib: ctypes.CDLL, name: str) -> int:

@@ -91,23 +91,26 @@ def _external_wrench_at(syrk, gemv, gesv, j, tau, reg, jjt, jtau, lu, ints, ipiv
     for i in range(6):
         x[i] = b[i]
     blas.call_gesv(gesv, ints, ints + 8, lu, ints + 16, ipiv, out, ints + 24, ints + 32)
-    return carray_at(ints, (5,))[4]
+    return blas.int64_at(ints + 32)
 
 
 def _external_wrench_kernel():
-    """The compiled estimate, or None where it would not give numpy's bits: where numpy's
-    library was not found, or where random Jacobians and torques of the cycle's shapes
-    give any other bit (checked once, at import)."""
+    """(the compiled estimate, '') or (None, why not): where numpy's library was not found,
+    the kernel would not compile, or random Jacobians and torques of the cycle's shapes give
+    any other bit than the numpy path (checked once, at import)."""
     if not blas.AVAILABLE:
-        return None
-    kernel = entry(_external_wrench_at, addresses(12))
+        return None, blas.WHY
+    try:
+        kernel = entry(_external_wrench_at, addresses(12))
+    except Exception as e:  # noqa: BLE001 - the numpy path records the same numbers
+        return None, f"the kernel did not compile: {e}"
     rng = np.random.default_rng(27)
     JJt, Jtau, scratch = np.empty((6, 6)), np.empty(6), ExternalWrenchScratch()
-    for _ in range(64):
+    for k in range(64):
         scratch.jacobian[:], scratch.tau[:] = rng.standard_normal((6, 7)), rng.standard_normal(7)
         if not np.array_equal(scratch.solve(kernel), _external_wrench_numpy(scratch.jacobian, scratch.tau, JJt, Jtau)):
-            return None
-    return kernel
+            return None, f"its result differs from numpy's for random input {k}"
+    return kernel, ""
 
 
 class ExternalWrenchScratch(HoldsAddresses):
@@ -127,11 +130,11 @@ class ExternalWrenchScratch(HoldsAddresses):
     def solve(self, kernel) -> np.ndarray:
         """The estimate for ``jacobian`` and ``tau`` as they are now, into ``out``."""
         if kernel(*self.args):
-            raise np.linalg.LinAlgError("Singular matrix")  # as numpy's solve says it
+            self.out.fill(np.nan)  # a singular system: NaN, as numpy's solve kernel (_solve) gives
         return self.out
 
 
-_EXTERNAL_WRENCH = _external_wrench_kernel()
+_EXTERNAL_WRENCH, EXTERNAL_WRENCH_WHY = _external_wrench_kernel()
 
 
 @dataclass

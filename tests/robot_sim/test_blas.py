@@ -90,3 +90,14 @@ def test_a_cell_without_the_kernel_measures_the_same(monkeypatch):
     monkeypatch.setattr(cell, "_EXTERNAL_WRENCH", None)
     assert np.array_equal(measurements(), compiled)
     assert np.abs(compiled[-1, :3]).max() > 1.0
+
+
+def test_a_singular_system_gives_nan_as_numpys_solve_kernel_does():
+    # two equal rows of 1e8: J J^T + 1e-9 I keeps them equal in float64, exactly singular
+    scratch = cell.ExternalWrenchScratch()
+    scratch.jacobian[:], scratch.tau[:] = 0.0, 1.0
+    scratch.jacobian[0, 0] = scratch.jacobian[1, 0] = 1e8
+    with np.errstate(invalid="ignore"):
+        expected = cell._external_wrench_numpy(scratch.jacobian, scratch.tau, np.empty((6, 6)), np.empty(6))
+    assert np.isnan(expected).all()
+    assert np.isnan(scratch.solve(cell._EXTERNAL_WRENCH)).all() and scratch.ints[4] > 0
