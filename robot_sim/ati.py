@@ -116,10 +116,7 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
 import numpy as np
-from filterpy.common import Q_discrete_white_noise
 from numba import njit
-from filterpy.kalman import KalmanFilter
-from scipy.linalg import block_diag, solve_discrete_are
 
 from robot_sim.kernels import JIT, HoldsAddresses, address, addresses, carray_at, entry
 
@@ -672,6 +669,12 @@ class WrenchKalmanFilter:
             raise ValueError(f"dt must be a finite time > 0, got {dt!r}")
         if model not in ("constant", "rate"):
             raise ValueError(f"model must be 'constant' or 'rate', got {model!r}")
+        # here, not at the top: filterpy imports scipy.stats, 0.5-1.5 s that every service
+        # process importing the sensor model paid at start-up for a smoother no run uses
+        from filterpy.common import Q_discrete_white_noise
+        from filterpy.kalman import KalmanFilter
+        from scipy.linalg import block_diag, solve_discrete_are
+
         self.model = model
         self.dt = float(dt)
         self.measurement_std = r
