@@ -142,6 +142,34 @@ def mujoco_step_us() -> float:
     return best
 
 
+# A shared virtual machine stalls now and then for several milliseconds (DESIGN.md; the bare loop of
+# bench/realtime_load.py misses deadlines in the same runs), and a stall of a few cycles inside
+# FRI's 100-cycle window drops command mode, as a real KRC does.  A realtime test is therefore run
+# again once when its run fell short of 1 kHz by the run's own verdict, and skipped, with both
+# verdicts, when the second attempt falls short too; anything else fails at once.  Holding the
+# clock is bench/realtime_load.py's figure, measured against a bare loop on the same machine.
+REALTIME_ATTEMPTS = 2
+
+
+def realtime_attempts(attempt) -> None:
+    """Run ``attempt(n)`` for n = 0, 1, ...: it returns None when its run held 1 kHz and every
+    check passed, or the run's own line on how it fell short of the clock (its checks of what
+    does not depend on timing made first).  Skips after ``REALTIME_ATTEMPTS`` shortfalls; with
+    ETAR_REALTIME_TESTS=force it fails instead."""
+    shortfalls = []
+    for n in range(REALTIME_ATTEMPTS):
+        why = attempt(n)
+        if why is None:
+            return
+        shortfalls.append(why)
+        print(f"attempt {n + 1} of {REALTIME_ATTEMPTS} fell short of the 1 kHz clock: {why}")
+    lines = "; ".join(f"attempt {i + 1}: {w}" for i, w in enumerate(shortfalls))
+    if os.environ.get("ETAR_REALTIME_TESTS") == "force":
+        pytest.fail(f"this machine did not hold 1 kHz in {len(shortfalls)} attempts: {lines}")
+    pytest.skip(f"this machine did not hold 1 kHz in {len(shortfalls)} attempts ({lines}); "
+                f"bench/realtime_load.py measures it against a bare loop (ETAR_REALTIME_TESTS=force fails instead)")
+
+
 def require_realtime_machine() -> None:
     """Skip, saying why, where this machine is too slow to run the cell at 1 kHz realtime
     over UDP (``REALTIME_MUJOCO_STEP_US``), unless ETAR_REALTIME_TESTS=force."""

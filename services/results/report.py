@@ -154,6 +154,7 @@ def environment(clock: str, fifo: bool, profile: dict | None = None, services: d
 # a realtime run that misses more than this share of its cycles did not hold its clock:
 # it is failed, not reported as a result (the lab's own runs aim at none at all)
 REALTIME_MISS_LIMIT = 0.01
+CLOCK_NOT_HELD = "the realtime clock was not held"  # how clock_not_held's line begins
 FRI_CHAIN_LINKS = ("robot/state -> impedance_commander", "robot/command -> robot", "robot/contact -> ft_sensor",
                    "ft/wrench -> phase_estimator", "estimator/phase -> impedance_commander",
                    "robot/state -> teacher", "teacher/wrench -> robot")
@@ -187,7 +188,7 @@ def clock_not_held(demonstrations, reproductions, loops, received) -> str | None
              if name in FRI_CHAIN_LINKS and (v.get("latency") or {}).get("count")]
     late = f"; latest link {max(chain)[1]} (p99 {max(chain)[0]:.0f} us)" if chain else ""
     more = f" (and {len(problems) - 2} more)" if len(problems) > 2 else ""
-    return (f"the realtime clock was not held (limit {REALTIME_MISS_LIMIT:.0%} of cycles): "
+    return (f"{CLOCK_NOT_HELD} (limit {REALTIME_MISS_LIMIT:.0%} of cycles): "
             + "; ".join(problems[:2]) + more + late)
 
 

@@ -11,7 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from tests.support import require_realtime_machine
+from services.results.report import CLOCK_NOT_HELD
+from tests.support import realtime_attempts, require_realtime_machine
 
 # a realtime run over FRI/UDP: serial (make test runs these after the rest)
 pytestmark = [pytest.mark.serial]
@@ -22,20 +23,32 @@ ROOT = Path(__file__).resolve().parents[2]
 @pytest.mark.slow
 def test_the_smoke_scenario_reaches_its_goal_over_fri_udp_and_net_ft(tmp_path):
     require_realtime_machine()
-    out = tmp_path / "udp"
-    proc = subprocess.run([sys.executable, "-m", "services.cli.bench", "run", "scenarios/smoke.yaml", "--clock",
-                           "realtime", "--wire", "udp", "--out", str(out), "--no-figures"],
-                          cwd=ROOT, capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    report = json.loads((out / "report.json").read_text())
-    assert report["wire"] == "udp" and report["error"] is None
-    rp, = report["reproductions"]
-    assert rp["success"] and rp["phases"]["accuracy"] > 0.8  # realtime: the machine's load shows in it
-    # the KRC's commands came over UDP: answered in time on nearly every cycle of the reproduction
-    assert rp["fri"]["answered"] > 0.95 * (rp["fri"]["answered"] + rp["fri"]["missed"])
-    services = report["timing"]["services"]
-    remote = services["impedance_commander"]["fri_udp"]
-    assert remote["answered"] >= rp["fri"]["answered"] and remote["garbage"] == 0
-    netft = services["phase_estimator"]["netft"]
-    assert netft["calibrated"] and netft["records"] > 10_000 and netft["out_of_order"] == 0
-    assert "FRI 1.0 and Net F/T over UDP" in (out / "report.txt").read_text()
+
+    def attempt(n: int) -> str | None:
+        out = tmp_path / f"udp{n}"
+        proc = subprocess.run([sys.executable, "-m", "services.cli.bench", "run", "scenarios/smoke.yaml", "--clock",
+                               "realtime", "--wire", "udp", "--out", str(out), "--no-figures"],
+                              cwd=ROOT, capture_output=True, text=True, timeout=300)
+        assert (out / "report.json").exists(), proc.stderr[-3000:]
+        report = json.loads((out / "report.json").read_text())
+        # what holds whatever the machine's timing: the wire, the remote and the box
+        assert report["wire"] == "udp" and "FRI 1.0 and Net F/T over UDP" in (out / "report.txt").read_text()
+        assert len(report["demonstrations"]) == 2 and all(rc == 0 for rc in report["exit_codes"].values())
+        services = report["timing"]["services"]
+        remote = services["impedance_commander"]["fri_udp"]
+        assert remote["garbage"] == 0
+        netft = services["phase_estimator"]["netft"]
+        assert netft["calibrated"] and netft["records"] > 10_000 and netft["out_of_order"] == 0
+        if (report["error"] or "").startswith(CLOCK_NOT_HELD):
+            assert proc.returncode == 1, "a run that did not hold its clock must fail"
+            return report["error"]
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        assert report["error"] is None
+        rp, = report["reproductions"]
+        assert rp["success"] and rp["phases"]["accuracy"] > 0.8  # realtime: the machine's load shows in it
+        # the KRC's commands came over UDP: answered in time on nearly every cycle of the reproduction
+        assert rp["fri"]["answered"] > 0.95 * (rp["fri"]["answered"] + rp["fri"]["missed"])
+        assert remote["answered"] >= rp["fri"]["answered"]
+        return None
+
+    realtime_attempts(attempt)
