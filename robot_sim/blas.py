@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 from llvmlite import ir
-from numba import types
+from numba import njit, types
 from numba.extending import intrinsic
 
 ROW_MAJOR, NO_TRANS, TRANS, UPPER = 101, 111, 112, 121
@@ -61,6 +61,15 @@ call_gemv = _foreign(types.void, _I32, _I32, _I64, _I64, _F64, _I64, _I64, _I64,
 call_syrk = _foreign(types.void, _I32, _I32, _I32, _I64, _I64, _F64, _I64, _I64, _F64, _I64, _I64)
 # dgesv_(&n, &nrhs, a, &lda, ipiv, b, &ldb, &info): every argument by address
 call_gesv = _foreign(types.void, _I64, _I64, _I64, _I64, _I64, _I64, _I64, _I64)
+
+
+@njit(cache=True)
+def gemv(fn, a, x, y, trans):
+    """``y = a @ x`` (``a.T @ x`` with ``trans``) for a C-contiguous float64 (m, n) ``a``, as
+    numpy computes it: dgemv at ``fn`` (``GEMV``), row-major, unit strides."""
+    m, n = a.shape
+    call_gemv(fn, np.int32(ROW_MAJOR), np.int32(TRANS if trans else NO_TRANS), m, n, 1.0, a.ctypes.data, n,
+              x.ctypes.data, 1, 0.0, y.ctypes.data, 1)
 
 
 @intrinsic
