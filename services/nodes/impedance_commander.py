@@ -175,14 +175,14 @@ class ImpedanceCommanderNode(Node):
     def _on_datagram(self, msg: dict, packed, recv_ns: int) -> None:
         """A measurement datagram (FriRemoteSocket's thread): passed on, and answered during
         this commander's reproduction."""
-        self.bus.publish("robot/state", *packed)
         with self._lock:
-            if self.policy is None or msg["episode"] != self.episode:
-                return
-            self.sections.cycles += 1
-            self.sections.add("decode", self.clock.now_ns() - recv_ns)
-            self._recv_ns = recv_ns
-            self._answer(msg)
+            if self.policy is not None and msg["episode"] == self.episode:
+                self.sections.cycles += 1
+                self.sections.add("decode", self.clock.now_ns() - recv_ns)
+                self._recv_ns = recv_ns
+                self._answer(msg)
+        # after the answer: the KRC waits for that, the estimator's copy does not
+        self.bus.publish("robot/state", *packed)
 
     def _drain(self, give_up: bool = False):
         for seq in sorted(self._pending):
