@@ -28,7 +28,6 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import optimize
 
 from etar import inference
 from etar.demonstrations import StepArrays
@@ -263,6 +262,8 @@ def fit_softmax_blocks(w, features, targets, l2, solver="gd", max_steps=1, at_w=
     if K == 1 or features.shape[0] == 0:
         return w.copy()
     if solver == "lbfgs":
+        from scipy import optimize  # learning only: the services import this module and never fit
+
         out = w.copy()
         for r in range(R):
             tr = np.ascontiguousarray(targets[:, r : r + 1, :])

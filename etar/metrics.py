@@ -5,7 +5,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
 
 @dataclass(frozen=True)
@@ -42,6 +41,10 @@ def match_phases(true, pred, n_true: int | None = None, n_pred: int | None = Non
     pred = np.asarray(pred, dtype=np.int64)
     n_true = int(true.max()) + 1 if n_true is None else n_true
     n_pred = int(pred.max()) + 1 if n_pred is None else n_pred
+    # imported here: every service imports this module (through etar.task) and only scoring needs
+    # scipy.optimize, a quarter of a second of each process's start-up
+    from scipy.optimize import linear_sum_assignment
+
     confusion = np.zeros((n_pred, n_true))
     np.add.at(confusion, (pred, true), 1)
     rows, cols = linear_sum_assignment(-confusion)
