@@ -33,6 +33,8 @@ from llvmlite import ir
 from numba import njit, types
 from numba.extending import intrinsic
 
+from robot_sim.kernels import JIT
+
 ROW_MAJOR, NO_TRANS, TRANS, UPPER = 101, 111, 112, 121
 
 _NATIVE = {types.int32: ir.IntType(32), types.int64: ir.IntType(64), types.float64: ir.DoubleType(),
@@ -63,7 +65,7 @@ call_syrk = _foreign(types.void, _I32, _I32, _I32, _I64, _I64, _F64, _I64, _I64,
 call_gesv = _foreign(types.void, _I64, _I64, _I64, _I64, _I64, _I64, _I64, _I64)
 
 
-@njit(cache=True)
+@njit(**JIT)
 def gemv(fn, a, x, y, trans):
     """``y = a @ x`` (``a.T @ x`` with ``trans``) for a C-contiguous float64 (m, n) ``a``, as
     numpy computes it: dgemv at ``fn`` (``GEMV``), row-major, unit strides."""

@@ -115,9 +115,10 @@ def recorded_samples(path, period_ns: int | None = SAMPLE_PERIOD_NS) -> dict:
 # 2026-12-03 the bare mj_step took 0.62-0.70 of the row (3 pairs), so about 4.8 us there.  The
 # robot's process took 57 % of a core over UDP on that VM (bench/realtime_load.py --wire udp):
 # 570 us of CPU a 1 ms cycle, so on a machine 1.75 times slower the robot alone needs its whole
-# cycle; 1.5 times (7.2 us) leaves room for the remote and the Net F/T box on the same two
-# cores.  The gauge passed at 8-11 us on machines that then failed these tests (CI and this VM,
-# 2026-12-03: an 11 us limit had been derived from the row, not from the bare step).
+# cycle; 1.5 times leaves room for the remote and the Net F/T box on the same two cores:
+# 1.5 x (0.62-0.70 x 7.2 us) = 6.7-7.5 us, and the limit is the top of that.  The gauge
+# passed at 8-11 us on machines that then failed these tests (CI and this VM, 2026-12-03:
+# an 11 us limit had been derived from the row, not from the bare step).
 # ETAR_REALTIME_TESTS=force runs them whatever the gauge says.
 REALTIME_MUJOCO_STEP_US = 7.5
 
@@ -147,7 +148,8 @@ def mujoco_step_us() -> float:
 # A shared virtual machine stalls now and then for several milliseconds (DESIGN.md; the bare loop of
 # bench/realtime_load.py misses deadlines in the same runs), and a stall of a few cycles inside
 # FRI's 100-cycle window drops command mode, as a real KRC does.  A realtime test is therefore run
-# again once when its run fell short of 1 kHz by the run's own verdict, and skipped, with both
+# again once when its run fell short of 1 kHz by the run's own verdict (and the test judged it a
+# stall: command mode entered, nearly every cycle answered in time), and skipped, with both
 # verdicts, when the second attempt falls short too; anything else fails at once.  Holding the
 # clock is bench/realtime_load.py's figure, measured against a bare loop on the same machine.
 REALTIME_ATTEMPTS = 2

@@ -311,6 +311,9 @@ class RobotNode(Node):
             self._episode_after, self.episode = self.episode, -1
         self.ep = _Episode(self.cell.fri.seq + 1, self.cell.fri.statistics(), self.clock.now_ns())
         self.sections = self.ep.sections
+        # a cycle an earlier episode opened and never closed (it failed mid-cycle): its
+        # measurement's copy is not this episode's to record
+        self._datagrams.clear()
         if self.udp is not None:
             self.ep.krl_events = len(self.udp.krl.events)
             self.ep.wire0 = dataclasses.replace(self.udp.endpoint.counters)
@@ -505,13 +508,15 @@ class RobotNode(Node):
             hand = np.array(teacher_msg["wrench"])
             teacher_done = bool(teacher_msg["done"])
         t1 = self.clock.now_ns()
-        outcome = cell.end_cycle(hand).outcome
-        t2 = self.clock.now_ns()
+        try:
+            outcome = cell.end_cycle(hand).outcome
+        finally:
+            t2 = self.clock.now_ns()
+            if self._datagrams:  # they crossed the wire, whatever the step did
+                self._publish_datagrams()
+                sec.add("publish", self.clock.now_ns() - t2)
         sec.add("answers", t1 - t0)
         sec.add("step", t2 - t1)
-        if self._datagrams:
-            self._publish_datagrams()
-            sec.add("publish", self.clock.now_ns() - t2)
         ep.k += 1
         if outcome.state != ep.fri_state:
             if outcome.state == FriState.CMD:

@@ -46,24 +46,19 @@ def wait_for(predicate, seconds: float, what: str):
         raise AssertionError(f"timed out after {seconds} s waiting for {what}")
 
 
-def fri_fell_back(served: dict) -> str | None:
-    """A served episode's line when the KRC left command mode (FRI quality below OK: answers
-    missed or late), or None."""
+def fri_fell_back(served: dict, commanded: bool) -> str | None:
+    """A served episode's line when the KRC left command mode (FRI quality below OK) on a
+    machine that stalls now and then, or None when it did not.  A remote the KRC never let
+    into command mode, answers it did not take, or many cycles unanswered fail instead:
+    those are not a stall."""
     kinds = [e["kind"] for e in served["wire"]["krl_events"]]
+    f, datagrams = served["fri"], served["wire"]["datagrams"]
+    assert commanded and f["command_mode_entered"] >= 1, f"command mode never entered: {kinds}; {f}"
     if "fallback" not in kinds:
         return None
-    f = served["fri"]
+    assert datagrams["wrong_id"] == datagrams["unsent"] == 0, datagrams
+    assert f["answered"] >= 0.9 * (f["answered"] + f["missed"]), f"not a stall: {f}"
     return (f"the KRC left command mode {kinds.count('fallback')} time(s): {f['missed']} FRI cycles unanswered in "
-            f"time of {f['answered'] + f['missed']}, longest run {f['longest_miss_run']}")
-
-
-def missed_before_command_mode(served: dict, seconds: float) -> str:
-    """Why command mode was not entered within ``seconds`` of the remote's friStart: FRI's
-    quality never held PERFECT long enough (the KRL program did take the request)."""
-    kinds = [e["kind"] for e in served["wire"]["krl_events"]]
-    assert "start" in kinds, f"the KRL program never took the remote's start: {kinds}"
-    f = served["fri"]
-    return (f"command mode not entered within {seconds} s of friStart: {f['missed']} FRI cycles unanswered in "
             f"time of {f['answered'] + f['missed']}, longest run {f['longest_miss_run']}")
 
 
@@ -162,7 +157,10 @@ def _serve_a_lab_remote_and_a_net_ft_client(pynetft, out: Path) -> str | None:
             elif channel.topic.endswith("netft/rdt"):
                 rdt_records += len(json.loads(message.data)["records"])
     assert rdt_records >= len(got)
-    shortfall = fri_fell_back(served) or (None if commanded else missed_before_command_mode(served, 8))
+    # no duplicates in the recording's copy of the wire, whatever the timing
+    sent = wire["datagrams"]["sent"] + SETTLE_CYCLES
+    assert directions["measurement"] <= sent and directions["command"] <= directions["measurement"]
+    shortfall = fri_fell_back(served, commanded)
     if shortfall:
         return shortfall
     kinds = [e["kind"] for e in wire["krl_events"]]
@@ -173,8 +171,7 @@ def _serve_a_lab_remote_and_a_net_ft_client(pynetft, out: Path) -> str | None:
     assert wire["datagrams"]["accepted"] > 0.9 * wire["datagrams"]["sent"]
     # the settle before the episode (the sensor tared while the arm rests) is recorded too; the
     # recording's copy of a datagram may be dropped when the bus is congested (never the datagram)
-    sent = wire["datagrams"]["sent"] + SETTLE_CYCLES
-    assert 0.99 * sent <= directions["measurement"] <= sent
+    assert 0.99 * sent <= directions["measurement"]
     assert directions["command"] > 0.9 * directions["measurement"]
     assert max(moved) - min(moved) == pytest.approx(0.02, abs=3e-3)  # the 2 cm the remote commanded
     return None
@@ -227,7 +224,7 @@ def test_ctrl_c_ends_serving_with_the_report_of_what_was_served(tmp_path):
         assert took < 20 and "ending the served episode" in stderr
         served, = json.loads((out / "report.json").read_text())["served"]
         assert served["reason"] == "stopped"
-        shortfall = fri_fell_back(served) or (None if commanded else missed_before_command_mode(served, 10))
+        shortfall = fri_fell_back(served, commanded)
         if shortfall:
             return shortfall
         assert served["wire"]["command_mode_s"] > 0.5 and served["wire"]["datagrams"]["accepted"] > 1000

@@ -35,20 +35,26 @@ def test_the_smoke_scenario_reaches_its_goal_over_fri_udp_and_net_ft(tmp_path):
         assert report["wire"] == "udp" and "FRI 1.0 and Net F/T over UDP" in (out / "report.txt").read_text()
         assert len(report["demonstrations"]) == 2 and all(rc == 0 for rc in report["exit_codes"].values())
         services = report["timing"]["services"]
+        assert "fri_udp" in services["impedance_commander"], services["impedance_commander"]
         remote = services["impedance_commander"]["fri_udp"]
         assert remote["garbage"] == 0
         netft = services["phase_estimator"]["netft"]
         assert netft["calibrated"] and netft["records"] > 10_000 and netft["out_of_order"] == 0
+        rp, = report["reproductions"]
+        f = rp["fri"]
+        assert remote["answered"] >= f["answered"]
         if (report["error"] or "").startswith(CLOCK_NOT_HELD):
             assert proc.returncode == 1, "a run that did not hold its clock must fail"
+            # a machine that stalls now and then, not a remote that does not answer: command
+            # mode was entered and nearly every cycle answered in time (CI's failure: 1.9 % missed)
+            assert f["command_mode_entered"] >= 1 and f["answered"] >= 0.9 * (f["answered"] + f["missed"]), \
+                f"not a stalling machine: {report['error']}; {f}"
             return report["error"]
         assert proc.returncode == 0, proc.stderr[-3000:]
         assert report["error"] is None
-        rp, = report["reproductions"]
         assert rp["success"] and rp["phases"]["accuracy"] > 0.8  # realtime: the machine's load shows in it
         # the KRC's commands came over UDP: answered in time on nearly every cycle of the reproduction
-        assert rp["fri"]["answered"] > 0.95 * (rp["fri"]["answered"] + rp["fri"]["missed"])
-        assert remote["answered"] >= rp["fri"]["answered"]
+        assert f["answered"] > 0.95 * (f["answered"] + f["missed"])
         return None
 
     realtime_attempts(attempt)
