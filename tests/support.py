@@ -174,6 +174,21 @@ def realtime_attempts(attempt) -> None:
                 f"bench/realtime_load.py measures it against a bare loop (ETAR_REALTIME_TESTS=force fails instead)")
 
 
+# the share of an episode's FRI cycles answered in time above which a run that fell short of
+# 1 kHz is judged a stalling machine rather than a remote that does not answer (CI's
+# failure at de03c44 was a stall: 1.9 % missed)
+STALL_ANSWERED = 0.9
+
+
+def assert_a_stall(fri: dict, verdict: str) -> None:
+    """Fail unless an episode's FRI figures (``fri`` of report.json) are those of a machine
+    that stalled now and then: command mode entered, and at least ``STALL_ANSWERED`` of its
+    cycles answered in time.  ``verdict``: the run's own line on how it fell short."""
+    assert fri["command_mode_entered"] >= 1, f"not a stall, command mode never entered: {verdict}; {fri}"
+    assert fri["answered"] >= STALL_ANSWERED * (fri["answered"] + fri["missed"]), \
+        f"not a stall, too many cycles unanswered: {verdict}; {fri}"
+
+
 def require_realtime_machine() -> None:
     """Skip, saying why, where this machine is too slow to run the cell at 1 kHz realtime
     over UDP (``REALTIME_MUJOCO_STEP_US``), unless ETAR_REALTIME_TESTS=force."""

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from services.results.report import CLOCK_NOT_HELD
-from tests.support import realtime_attempts, require_realtime_machine
+from tests.support import assert_a_stall, realtime_attempts, require_realtime_machine
 
 # a realtime run over FRI/UDP: serial (make test runs these after the rest)
 pytestmark = [pytest.mark.serial]
@@ -45,10 +45,7 @@ def test_the_smoke_scenario_reaches_its_goal_over_fri_udp_and_net_ft(tmp_path):
         assert remote["answered"] >= f["answered"]
         if (report["error"] or "").startswith(CLOCK_NOT_HELD):
             assert proc.returncode == 1, "a run that did not hold its clock must fail"
-            # a machine that stalls now and then, not a remote that does not answer: command
-            # mode was entered and nearly every cycle answered in time (CI's failure: 1.9 % missed)
-            assert f["command_mode_entered"] >= 1 and f["answered"] >= 0.9 * (f["answered"] + f["missed"]), \
-                f"not a stalling machine: {report['error']}; {f}"
+            assert_a_stall(f, report["error"])  # a machine that stalls, not a remote that does not answer
             return report["error"]
         assert proc.returncode == 0, proc.stderr[-3000:]
         assert report["error"] is None
