@@ -216,12 +216,21 @@ def test_pynetft_bias_zeroes_the_reading_in_the_box():
     assert all(s.raw_wrench == tuple(feed.log[s.ft_sequence].counts.tolist()) for s in before)
     _, biased = _post_bias(after, feed.log)
     assert len(biased) >= 300
-    assert biased[0].raw_wrench == (0,) * 6
-    offset = feed.log[biased[0].ft_sequence].counts.astype(np.int64)
-    for s in biased:
-        assert np.array_equal(np.array(s.raw_wrench), feed.log[s.ft_sequence].counts - offset)
-    ft = [s.ft_sequence for s in before + after]
-    assert np.all(np.diff(ft) == 1) and health.lost_count == 0
+    # one record's counts taken off every later one: that record reads 0 as the box sent it.
+    # The client may miss it on a busy machine (UDP; its reader shares the GIL with the box
+    # here: 1 run in 10 under load), so it is found in the feed's log between the last sample
+    # received unbiased and the first biased one
+    offsets = {tuple((feed.log[s.ft_sequence].counts - np.array(s.raw_wrench)).tolist()) for s in biased}
+    assert len(offsets) == 1, offsets
+    offset = np.array(offsets.pop())
+    received = before + after
+    last_unbiased = received[-len(biased) - 1].ft_sequence
+    assert any(np.array_equal(feed.log[k].counts, offset) for k in range(last_unbiased + 1, biased[0].ft_sequence + 1))
+    ft = np.array([s.ft_sequence for s in received])
+    # in order; the client's own queue may drop a few on a busy machine (seen with its lost_count
+    # at 0: not the wire's), never many
+    assert np.all(np.diff(ft) >= 1) and np.sum(np.diff(ft) - 1) <= 0.01 * len(ft), np.diff(ft)
+    assert health.out_of_order_count == 0 and health.malformed_count == 0
     # |mean| of biased readings: the noise of one sample (1/16 N), not the 1.5-3 N offset + load
     assert np.all(np.abs(np.mean([s.force for s in biased], axis=0)) < 0.3)
     assert box.stats().biases == 1
@@ -241,9 +250,15 @@ def test_pynetft_bias_routed_to_the_sensor_model():
             c.bias()
             after = take(samples, 0.3)
     assert all(s.raw_wrench == tuple(feed.log[s.ft_sequence].counts.tolist()) for s in after)
-    first = next(i for i, s in enumerate(after) if s.raw_wrench == (0,) * 6)
-    assert all(s.force[2] > 20 for s in after[:first])  # the load of 31 N (+ the sensor's 3.2 N bias) until then
-    assert np.all(np.abs(np.mean([s.force for s in after[first:]], axis=0)) < 0.3)
+    # the record that completes the tare reads 0 as the box sent it (the feed's log): the first
+    # all-zero one from the first record taken after the request, which the load keeps off 0
+    # until then.  The client may miss a record on a busy machine (UDP, and its reader shares the
+    # GIL with the box here: the completing one went missing 3 times in 14 under load), so the
+    # samples are split by sequence, not at a zero one received
+    done = next(k for k in sorted(feed.log) if k >= after[0].ft_sequence and not feed.log[k].counts.any())
+    untared, tared = [s for s in after if s.ft_sequence < done], [s for s in after if s.ft_sequence >= done]
+    assert all(s.force[2] > 20 for s in untared)  # the load of 31 N (+ the sensor's 3.2 N bias) until then
+    assert len(tared) >= 100 and np.all(np.abs(np.mean([s.force for s in tared], axis=0)) < 0.3)
     assert not feed.sensor.tare_pending and np.all(feed.sensor.tare_offset != 0)
     assert box.stats().biases == 1
 
