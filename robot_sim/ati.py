@@ -109,16 +109,15 @@ drift still advances, a pending tare ignores the record.
 from __future__ import annotations
 
 import dataclasses
-import enum
 import math
-import struct
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Literal
+from typing import Any, Literal
 
 import numpy as np
 from numba import njit
 
 from robot_sim.kernels import JIT, HoldsAddresses, address, addresses, carray_at, entry
+from robot_sim.rdt import _INT32_MAX, _UINT32_MASK, SATURATION_BITS, AtiStatus, RdtRecord
 
 __all__ = [
     "AXES",
@@ -132,8 +131,6 @@ __all__ = [
 
 AXES: tuple[str, ...] = ("Fx", "Fy", "Fz", "Tx", "Ty", "Tz")
 
-_INT32_MAX = 2**31 - 1
-_UINT32_MASK = 0xFFFFFFFF
 
 MINI45_RANGES = (290.0, 290.0, 580.0, 10.0, 10.0, 10.0)
 MINI45_RESOLUTION = (1 / 8, 1 / 8, 1 / 8, 1 / 376, 1 / 376, 1 / 752)
@@ -142,28 +139,6 @@ MINI45_BIAS = (1.5, -0.9, 3.2, 0.04, -0.03, 0.012)
 MINI45_DRIFT_STD = (0.02, 0.02, 0.03, 4e-4, 4e-4, 2e-4)
 
 
-class AtiStatus(enum.IntFlag):
-    """Bits of :attr:`RdtRecord.status` (see the module docstring)."""
-
-    SAT_FX = 1 << 8
-    SAT_FY = 1 << 9
-    SAT_FZ = 1 << 10
-    SAT_TX = 1 << 11
-    SAT_TY = 1 << 12
-    SAT_TZ = 1 << 13
-    INPUT_NONFINITE = 1 << 14
-    FT_OUT_OF_RANGE = 1 << 30
-    ERROR = 1 << 31
-
-
-SATURATION_BITS: tuple[AtiStatus, ...] = (
-    AtiStatus.SAT_FX,
-    AtiStatus.SAT_FY,
-    AtiStatus.SAT_FZ,
-    AtiStatus.SAT_TX,
-    AtiStatus.SAT_TY,
-    AtiStatus.SAT_TZ,
-)
 _SAT_BITS_ARRAY = np.array([int(b) for b in SATURATION_BITS], dtype=np.int64)
 _STATUS_SATURATED = int(AtiStatus.ERROR | AtiStatus.FT_OUT_OF_RANGE)
 _STATUS_NONFINITE = int(AtiStatus.ERROR | AtiStatus.INPUT_NONFINITE)
@@ -322,77 +297,6 @@ class AtiConfig:
 
     def __hash__(self) -> int:
         return hash(self._key())
-
-
-@dataclass(eq=False)
-class RdtRecord:
-    """One RDT record as the Net F/T sends it: sequences, status word, int32 counts."""
-
-    rdt_sequence: int
-    ft_sequence: int
-    status: int
-    counts: np.ndarray
-    """(6,) int32: Fx, Fy, Fz, Tx, Ty, Tz in counts."""
-
-    SIZE: ClassVar[int] = 36
-    _WIRE: ClassVar[struct.Struct] = struct.Struct(">3I6i")
-
-    def __post_init__(self) -> None:
-        for name in ("rdt_sequence", "ft_sequence", "status"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 <= v <= _UINT32_MASK:
-                raise ValueError(f"RdtRecord.{name} must be a uint32, got {v!r}")
-        counts = np.asarray(self.counts)
-        if counts.shape != (6,) or counts.dtype.kind not in "iu":
-            raise ValueError(f"RdtRecord.counts must be 6 integers, got {self.counts!r}")
-        if counts.dtype != np.int32:
-            if np.any(np.abs(counts.astype(np.int64)) > _INT32_MAX):
-                raise ValueError(f"RdtRecord.counts must fit int32, got {self.counts!r}")
-            counts = counts.astype(np.int32)
-        self.counts = counts
-
-    @classmethod
-    def trusted(cls, rdt_sequence: int, ft_sequence: int, status: int, counts: np.ndarray) -> "RdtRecord":
-        """A record from values the sensor model itself made (uint32 sequences, int32
-        counts): the checks of the constructor, which cost more than the sample, skipped."""
-        rec = cls.__new__(cls)
-        rec.rdt_sequence, rec.ft_sequence, rec.status, rec.counts = rdt_sequence, ft_sequence, status, counts
-        return rec
-
-    def wrench(self, config: AtiConfig) -> np.ndarray:
-        """(6,) float64 wrench in N / Nm: counts / counts-per-unit."""
-        return self.counts / config.counts_per_unit
-
-    @property
-    def ok(self) -> bool:
-        return self.status == 0
-
-    def flags(self) -> AtiStatus:
-        """The status word as :class:`AtiStatus` (unknown bits are kept)."""
-        return AtiStatus(self.status)
-
-    def pack(self) -> bytes:
-        """The 36-byte big-endian wire form of the real RDT record."""
-        return self._WIRE.pack(self.rdt_sequence, self.ft_sequence, self.status, *self.counts.tolist())
-
-    @classmethod
-    def unpack(cls, data: bytes) -> RdtRecord:
-        if len(data) != cls.SIZE:
-            raise ValueError(f"an RDT record is {cls.SIZE} bytes, got {len(data)}")
-        rdt, ft, status, *counts = cls._WIRE.unpack(data)
-        return cls(rdt, ft, status, np.array(counts, dtype=np.int32))
-
-    def __eq__(self, other: object) -> bool:
-        if not isinstance(other, RdtRecord):
-            return NotImplemented
-        return (
-            self.rdt_sequence == other.rdt_sequence
-            and self.ft_sequence == other.ft_sequence
-            and self.status == other.status
-            and np.array_equal(self.counts, other.counts)
-        )
-
-    __hash__ = None  # type: ignore[assignment]  # mutable
 
 
 _BLOCK = 1024  # normals drawn per block: the same stream as one draw of 6 per sample, fewer calls

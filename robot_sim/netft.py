@@ -3,7 +3,7 @@
 :class:`robot_sim.ati.AtiSensor` makes the records an ATI Net F/T would send; this module
 puts them on the wire the way the real box does, so lab software written for a Net F/T
 connects to the simulation unchanged.  The box is fed, not clocked: whoever runs the
-sensor's cycle calls :meth:`NetFtBox.publish` with every :class:`~robot_sim.ati.RdtRecord`,
+sensor's cycle calls :meth:`NetFtBox.publish` with every :class:`~robot_sim.rdt.RdtRecord`,
 and the box sends it to the clients that asked for a stream.  No sensor model, no physics
 and no wall clock inside.
 
@@ -84,11 +84,14 @@ import struct
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from robot_sim.ati import SATURATION_BITS, AtiConfig, AtiStatus, RdtRecord
+from robot_sim.rdt import SATURATION_BITS, AtiStatus, RdtRecord
+
+if TYPE_CHECKING:
+    from robot_sim.ati import AtiConfig
 
 __all__ = [
     "NETFT_ERROR",
@@ -203,6 +206,10 @@ class NetFtBox:
         product_name: str = "Net F/T (robot_sim, simulated)",
         calibration_name: str = "SI-290-10",
     ) -> None:
+        # the sensor model's module (numba, its kernels) only where a box is made: a reader
+        # of the wire imports this module for its layouts alone
+        from robot_sim.ati import AtiConfig
+
         self.config = AtiConfig.mini45() if config is None else config
         if not isinstance(self.config, AtiConfig):
             raise TypeError(f"config must be an AtiConfig, got {type(self.config).__name__}")

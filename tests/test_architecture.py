@@ -87,18 +87,22 @@ def test_the_rule_itself_catches_an_import_that_points_back():
 
 def test_a_service_process_imports_its_own_node_only():
     """Each role's program loads its node's module and none of the other roles' (their
-    imports cost every process of a run a second or more of start-up: services.nodes), and
-    only the robot loads MuJoCo."""
+    imports cost every process of a run a second or more of start-up: services.nodes), only
+    the robot loads MuJoCo, and only the robot and the sensor the cell's compiled kernels (a
+    reader of the Net F/T's wire needs robot_sim.rdt, not the sensor model)."""
     probe = ("import sys\nfrom services.cli.roles import build_parser\n"
              "for role in sys.argv[1:]:\n"
              "    build_parser(role)\n"
-             "print(sorted(m for m in sys.modules if m.startswith('services.nodes.')), 'mujoco' in sys.modules)\n")
+             "print(sorted(m for m in sys.modules if m.startswith('services.nodes.')), 'mujoco' in sys.modules,"
+             " 'robot_sim.kernels' in sys.modules)\n")
     roles = ("robot", "ft_sensor", "teacher", "phase_estimator", "impedance_commander", "recorder", "foxglove_bridge")
     for role in roles:
         out = subprocess.run([sys.executable, "-c", probe, role], cwd=ROOT, capture_output=True, text=True, timeout=120)
         assert out.returncode == 0, out.stderr[-2000:]
-        loaded, mujoco = out.stdout.rsplit("] ", 1)
+        loaded, flags = out.stdout.rsplit("] ", 1)
+        mujoco, kernels = flags.split()
         others = [f"services.nodes.{r}" for r in roles if r != role and f"'services.nodes.{r}'" in loaded]
         assert not others, f"the {role} program imports other roles' nodes: {others}"
         assert f"'services.nodes.{role}'" in loaded, loaded
-        assert (mujoco.strip() == "True") == (role == "robot"), f"{role}: MuJoCo loaded: {mujoco.strip()}"
+        assert (mujoco == "True") == (role == "robot"), f"{role}: MuJoCo loaded: {mujoco}"
+        assert (kernels == "True") == (role in ("robot", "ft_sensor")), f"{role}: robot_sim.kernels loaded: {kernels}"

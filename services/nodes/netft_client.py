@@ -22,7 +22,7 @@ import urllib.request
 import xml.etree.ElementTree as ET
 from collections.abc import Callable
 
-from robot_sim.ati import AtiStatus
+from robot_sim.rdt import AtiStatus
 from robot_sim.fri import FRI_CYCLE_NS
 from robot_sim.netft import NETFT_SATURATION, RDT_HEADER, RDT_RECORD, RDT_REQUEST, RdtCommand
 from services.runtime.messages import FT_WRENCH

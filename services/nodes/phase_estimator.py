@@ -33,7 +33,7 @@ from robot_sim.fri_udp import host_port
 from services.nodes.netft_client import NetFtStream
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import option
-from robot_sim.ati import AtiStatus
+from robot_sim.rdt import AtiStatus
 from services.runtime.messages import ESTIMATOR_PHASE, estimator_instant
 
 _SATURATED = int(AtiStatus.FT_OUT_OF_RANGE)

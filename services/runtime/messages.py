@@ -365,7 +365,7 @@ FT_WRENCH = MessageType(
     (
         ("rdt_sequence", "int", "RDT packet counter (gaps: lost packets)"),
         ("ft_sequence", "int", "internal sample counter"),
-        ("status", "int", "status bits (0: ok; see robot_sim.ati.AtiStatus)"),
+        ("status", "int", "status bits (0: ok; see robot_sim.rdt.AtiStatus)"),
         ("counts", "int[6]", "Fx Fy Fz Tx Ty Tz in counts"),
         ("counts_per_force", "float", "counts per N"),
         ("counts_per_torque", "float", "counts per N m"),
