@@ -229,6 +229,28 @@ def test_diff_ignores_run_id_sent_ns_wall_clock_and_visual_topics(tmp_path):
     assert out["same"] and out["files"][0]["same"] and out["ignored"] == list(IGNORED)
 
 
+def test_diff_compares_what_a_foreign_peer_published_into_a_run(tmp_path):
+    """The recorder keeps every payload on the run's topics, a foreign peer's too: garbage, JSON
+    with a seq of any kind, duplicates.  diff compares them as bytes (seq -1) and names them."""
+    a = make_run(tmp_path / "a", "run-a")
+    b = make_run(tmp_path / "b", "run-b")
+    path = b / "recordings" / "demonstration_00.mcap"
+    shutil.copy(a / "recordings" / "reproduction_00.mcap", a / "recordings" / "demonstration_00.mcap")
+    foreign = [b"{not json", b'{"seq": "x"}', b'{"seq": null}', b'{"seq": 1.5}', b'{"seq": true}', b"[]", b"",
+               state(7, 99)]  # and cycle 7's state again, as A has it but for its publish time
+    with EpisodeWriter(path, run_id="run-b", episode_kind="reproduction", episode_index=0, scenario_text=SCENARIO,
+                       metadata={"start": "[0.6, -0.06, 0.3]"}) as w:
+        for i, payload in enumerate(foreign):
+            w.add("etar/run-b/robot/state", payload, 1_000 + i)
+    d = diff_runs(a, b)
+    print(d.text())
+    assert not d.content_same
+    f = next(f for f in d.files if f.name == "demonstration_00.mcap")
+    assert f.messages_b == len(foreign) and f.only_b == 1 and f.changed == 0  # the garbage at seq -1; cycle 7 same
+    assert f.first == "demonstration_00.mcap /robot/state seq -1: only in B"
+    assert sorted(recorded_content(b)["demonstration_00.mcap"])[0][1] == -1
+
+
 def test_diff_names_the_first_message_that_differs_and_a_file_only_one_run_has(tmp_path):
     a = make_run(tmp_path / "a", "run-a")
     b = make_run(tmp_path / "b", "run-b", change=42)
