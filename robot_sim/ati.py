@@ -117,7 +117,7 @@ import numpy as np
 from numba import njit
 
 from robot_sim.kernels import JIT, HoldsAddresses, address, addresses, carray_at, entry
-from robot_sim.rdt import _INT32_MAX, _UINT32_MASK, SATURATION_BITS, AtiStatus, RdtRecord
+from robot_sim.rdt import INT32_MAX, SATURATION_BITS, UINT32_MASK, AtiStatus, RdtRecord
 
 __all__ = [
     "AXES",
@@ -143,7 +143,7 @@ _SAT_BITS_ARRAY = np.array([int(b) for b in SATURATION_BITS], dtype=np.int64)
 _STATUS_SATURATED = int(AtiStatus.ERROR | AtiStatus.FT_OUT_OF_RANGE)
 _STATUS_NONFINITE = int(AtiStatus.ERROR | AtiStatus.INPUT_NONFINITE)
 _STATUS_SATURATED_K = np.int64(_STATUS_SATURATED)  # constants the compiled sample kernel reads
-_INT32_MAX_F = float(_INT32_MAX)
+_INT32_MAX_F = float(INT32_MAX)
 
 
 def _vec6(name: str, value: Any, *, positive: bool = False, nonnegative: bool = False) -> np.ndarray:
@@ -204,8 +204,8 @@ class AtiConfig:
         object.__setattr__(self, "counts_per_torque", cpt)
         cpu = np.array([cpf] * 3 + [cpt] * 3, dtype=np.float64)
         full_range_counts = ranges * cpu
-        if np.any(full_range_counts > _INT32_MAX):
-            name = "counts_per_force" if np.any(full_range_counts[:3] > _INT32_MAX) else "counts_per_torque"
+        if np.any(full_range_counts > INT32_MAX):
+            name = "counts_per_force" if np.any(full_range_counts[:3] > INT32_MAX) else "counts_per_torque"
             raise ValueError(
                 f"AtiConfig.{name} = {getattr(self, name)!r} makes the range "
                 f"{ranges.tolist()!r} overflow int32 counts"
@@ -394,7 +394,7 @@ class AtiSensor(HoldsAddresses):
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
         for name, v in (("rdt_sequence_start", rdt_sequence_start), ("ft_sequence_start", ft_sequence_start)):
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 <= v <= _UINT32_MASK:
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 <= v <= UINT32_MASK:
                 raise ValueError(f"{name} must be a uint32, got {v!r}")
         self.config = config
         self.seed = int(seed)
@@ -490,8 +490,8 @@ class AtiSensor(HoldsAddresses):
         x[:] = true_wrench
         drift_scale = self._advance_time(int(t_ns))
         rdt = self._next_rdt
-        self._next_rdt = (rdt + 1) & _UINT32_MASK
-        ft = (self._ft_start + self._sample_index) & _UINT32_MASK
+        self._next_rdt = (rdt + 1) & UINT32_MASK
+        ft = (self._ft_start + self._sample_index) & UINT32_MASK
         di = 0
         if drift_scale > 0.0:
             di = self._drift_i

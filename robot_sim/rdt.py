@@ -1,9 +1,10 @@
 """What an ATI Net F/T puts on the wire for one sample: the RDT record and its status word.
 
 Apart from the sensor model (``robot_sim.ati``), which makes the records, so that a reader
-of the wire (``services.nodes.netft_client``, ``robot_sim.netft``'s box side) loads neither
-the model's compiled kernels nor numba: the estimator's process imports this, not the model.
-The layout and the bits are described in ``robot_sim.ati``'s module docstring.
+of the wire (``services.nodes.netft_client``, ``robot_sim.netft``'s wire layouts) loads
+neither the model's compiled kernels nor numba: the estimator's process imports this, not
+the model.  The record's layout and what each status bit means are in ``robot_sim.ati``'s
+module docstring, beside the model that sets them.
 """
 
 from __future__ import annotations
@@ -18,12 +19,12 @@ import numpy as np
 if TYPE_CHECKING:
     from robot_sim.ati import AtiConfig
 
-_INT32_MAX = 2**31 - 1
-_UINT32_MASK = 0xFFFFFFFF
+INT32_MAX = 2**31 - 1
+UINT32_MASK = 0xFFFFFFFF
 
 
 class AtiStatus(enum.IntFlag):
-    """Bits of :attr:`RdtRecord.status` (see the module docstring)."""
+    """Bits of :attr:`RdtRecord.status` (what each means: ``robot_sim.ati``'s module docstring)."""
 
     SAT_FX = 1 << 8
     SAT_FY = 1 << 9
@@ -44,6 +45,8 @@ SATURATION_BITS: tuple[AtiStatus, ...] = (
     AtiStatus.SAT_TY,
     AtiStatus.SAT_TZ,
 )
+
+
 @dataclass(eq=False)
 class RdtRecord:
     """One RDT record as the Net F/T sends it: sequences, status word, int32 counts."""
@@ -60,13 +63,13 @@ class RdtRecord:
     def __post_init__(self) -> None:
         for name in ("rdt_sequence", "ft_sequence", "status"):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 <= v <= _UINT32_MASK:
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 <= v <= UINT32_MASK:
                 raise ValueError(f"RdtRecord.{name} must be a uint32, got {v!r}")
         counts = np.asarray(self.counts)
         if counts.shape != (6,) or counts.dtype.kind not in "iu":
             raise ValueError(f"RdtRecord.counts must be 6 integers, got {self.counts!r}")
         if counts.dtype != np.int32:
-            if np.any(np.abs(counts.astype(np.int64)) > _INT32_MAX):
+            if np.any(np.abs(counts.astype(np.int64)) > INT32_MAX):
                 raise ValueError(f"RdtRecord.counts must fit int32, got {self.counts!r}")
             counts = counts.astype(np.int32)
         self.counts = counts

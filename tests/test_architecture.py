@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from services.runtime.roles import ROLES
+
 ROOT = Path(__file__).resolve().parents[1]
 
 # lowest first: a wing may import the wings before it, never one after it
@@ -86,20 +88,24 @@ def test_the_rule_itself_catches_an_import_that_points_back():
 
 
 def test_a_service_process_imports_its_own_node_only():
-    """Each role's program loads its node's module and none of the other roles' (their
-    imports cost every process of a run a second or more of start-up: services.nodes), only
-    the robot loads MuJoCo, and only the robot and the sensor the cell's compiled kernels (a
-    reader of the Net F/T's wire needs robot_sim.rdt, not the sensor model)."""
+    """What each role's program has loaded once its command line is built (what --help
+    loads; its node's own start-up is not covered): its node's module and none of the other
+    roles' (their imports cost every process of a run a second or more: services.nodes),
+    MuJoCo only in the robot, the cell's compiled kernels only in the robot and the sensor
+    (a reader of the Net F/T's wire needs robot_sim.rdt, not the sensor model)."""
     probe = ("import sys\nfrom services.cli.roles import build_parser\n"
              "for role in sys.argv[1:]:\n"
              "    build_parser(role)\n"
              "print(sorted(m for m in sys.modules if m.startswith('services.nodes.')), 'mujoco' in sys.modules,"
              " 'robot_sim.kernels' in sys.modules)\n")
-    roles = ("robot", "ft_sensor", "teacher", "phase_estimator", "impedance_commander", "recorder", "foxglove_bridge")
-    for role in roles:
-        out = subprocess.run([sys.executable, "-c", probe, role], cwd=ROOT, capture_output=True, text=True, timeout=120)
-        assert out.returncode == 0, out.stderr[-2000:]
-        loaded, flags = out.stdout.rsplit("] ", 1)
+    roles = tuple(ROLES)
+    # one process per role, all at once: the test's cost is one start-up, not seven
+    probes = {role: subprocess.Popen([sys.executable, "-c", probe, role], cwd=ROOT, stdout=subprocess.PIPE,
+                                     stderr=subprocess.PIPE, text=True) for role in roles}
+    for role, proc in probes.items():
+        stdout, stderr = proc.communicate(timeout=120)
+        assert proc.returncode == 0, stderr[-2000:]
+        loaded, flags = stdout.rsplit("] ", 1)
         mujoco, kernels = flags.split()
         others = [f"services.nodes.{r}" for r in roles if r != role and f"'services.nodes.{r}'" in loaded]
         assert not others, f"the {role} program imports other roles' nodes: {others}"

@@ -5,9 +5,10 @@ messages and the time, answers control requests and publishes through a bus.
 
 A node's module is imported when its role is first asked for (``NODES[role]``, or a
 class by name: ``from services.nodes import RobotConfig``), not with this package: a
-service process runs one node, and importing all seven cost each of the seven processes
-of a run ~1.8 s of CPU at start-up (the robot's MuJoCo, the sensor's compiled kernels,
-numba and scipy), where the recorder alone needs 0.4 s (docs/benchmarks.md).
+service process runs one node, and importing all seven (the robot's MuJoCo, the sensor's
+compiled kernels, numba, scipy) cost every process of a run about a second of CPU at
+start-up that most of them never use (docs/benchmarks.md, "Start-up").  Asking whether a
+role is known imports nothing; ``NODES.values()`` and ``.items()`` import every node.
 """
 
 from __future__ import annotations
@@ -17,33 +18,37 @@ from importlib import import_module
 
 from services.runtime.roles import ROLES
 
-# role -> (its module in this package, the node class, its config class)
-_WHERE = {
-    "robot": ("robot", "RobotNode", "RobotConfig"),
-    "ft_sensor": ("ft_sensor", "FtSensorNode", "FtSensorConfig"),
-    "teacher": ("teacher", "TeacherNode", "TeacherConfig"),
-    "phase_estimator": ("phase_estimator", "PhaseEstimatorNode", "EstimatorConfig"),
-    "impedance_commander": ("impedance_commander", "ImpedanceCommanderNode", "CommanderConfig"),
-    "recorder": ("recorder", "RecorderNode", "RecorderConfig"),
-    "foxglove_bridge": ("foxglove_bridge", "FoxgloveBridgeNode", "FoxgloveBridgeConfig"),
+# role -> (the node class, its config class), both in the module of this package named
+# after the role
+_CLASSES = {
+    "robot": ("RobotNode", "RobotConfig"),
+    "ft_sensor": ("FtSensorNode", "FtSensorConfig"),
+    "teacher": ("TeacherNode", "TeacherConfig"),
+    "phase_estimator": ("PhaseEstimatorNode", "EstimatorConfig"),
+    "impedance_commander": ("ImpedanceCommanderNode", "CommanderConfig"),
+    "recorder": ("RecorderNode", "RecorderConfig"),
+    "foxglove_bridge": ("FoxgloveBridgeNode", "FoxgloveBridgeConfig"),
 }
-assert _WHERE.keys() == ROLES.keys(), "every role of services.runtime.roles has its node, and no other"
-_MODULE_OF = {cls: module for module, *classes in _WHERE.values() for cls in classes}
+assert _CLASSES.keys() == ROLES.keys(), "every role of services.runtime.roles has its node, and no other"
+_MODULE_OF = {cls: role for role, classes in _CLASSES.items() for cls in classes}
 
 
 class _Nodes(Mapping):
     """role -> (node class, its config class), each module imported on first use."""
 
     def __getitem__(self, role: str):
-        module, node, config = _WHERE[role]
-        loaded = import_module(f"{__name__}.{module}")
+        node, config = _CLASSES[role]
+        loaded = import_module(f"{__name__}.{role}")
         return getattr(loaded, node), getattr(loaded, config)
 
+    def __contains__(self, role) -> bool:  # Mapping's would import the role's module
+        return role in _CLASSES
+
     def __iter__(self) -> Iterator[str]:
-        return iter(_WHERE)
+        return iter(_CLASSES)
 
     def __len__(self) -> int:
-        return len(_WHERE)
+        return len(_CLASSES)
 
 
 NODES = _Nodes()

@@ -67,10 +67,10 @@ def recover(source, out=None, *, overwrite: bool = False) -> Recovered:
         if m.topic == "/robot/state":
             try:
                 msg = json.loads(m.payload)
-            except ValueError:
+            except (ValueError, RecursionError):
                 continue  # recorded as received, garbage included
             seq = msg.get("seq") if isinstance(msg, dict) else None
-            if isinstance(seq, int) and (last_seq is None or seq > last_seq):
+            if type(seq) is int and (last_seq is None or seq > last_seq):  # not a bool
                 last_seq = seq
     return Recovered(source, path, len(episode.messages), episode.chunks, last_seq, episode.problem or "")
 

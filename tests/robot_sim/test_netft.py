@@ -255,7 +255,8 @@ def test_pynetft_bias_routed_to_the_sensor_model():
     # until then.  The client may miss a record on a busy machine (UDP, and its reader shares the
     # GIL with the box here: the completing one went missing 3 times in 14 under load), so the
     # samples are split by sequence, not at a zero one received
-    done = next(k for k in sorted(feed.log) if k >= after[0].ft_sequence and not feed.log[k].counts.any())
+    done = next((k for k in sorted(feed.log) if k >= after[0].ft_sequence and not feed.log[k].counts.any()), None)
+    assert done is not None, f"no record from {after[0].ft_sequence} on reads 0: the bias did not reach the model"
     untared, tared = [s for s in after if s.ft_sequence < done], [s for s in after if s.ft_sequence >= done]
     assert all(s.force[2] > 20 for s in untared)  # the load of 31 N (+ the sensor's 3.2 N bias) until then
     assert len(tared) >= 100 and np.all(np.abs(np.mean([s.force for s in tared], axis=0)) < 0.3)

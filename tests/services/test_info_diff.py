@@ -237,6 +237,7 @@ def test_diff_compares_what_a_foreign_peer_published_into_a_run(tmp_path):
     path = b / "recordings" / "demonstration_00.mcap"
     shutil.copy(a / "recordings" / "reproduction_00.mcap", a / "recordings" / "demonstration_00.mcap")
     foreign = [b"{not json", b'{"seq": "x"}', b'{"seq": null}', b'{"seq": 1.5}', b'{"seq": true}', b"[]", b"",
+               b"[" * 100_000,  # nested past the JSON parser's recursion
                state(7, 99)]  # and cycle 7's state again, as A has it but for its publish time
     with EpisodeWriter(path, run_id="run-b", episode_kind="reproduction", episode_index=0, scenario_text=SCENARIO,
                        metadata={"start": "[0.6, -0.06, 0.3]"}) as w:
