@@ -27,7 +27,6 @@ is not a dependency of the testbench.
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -35,7 +34,7 @@ import numpy as np
 
 from services.recordings.format import RecordingError
 from services.recordings.reader import RecordedMessage, read_episode
-from services.runtime.messages import BY_TOPIC, MessageError, MessageType
+from services.runtime.messages import BY_TOPIC, MessageError, MessageType, loads
 
 # the two times every message has in the file, beside its payload's fields
 TIME_FIELDS = ("log_time_ns", "publish_time_ns")
@@ -123,7 +122,7 @@ def _arrays(path: Path, topic: str, messages: list[RecordedMessage], skip_bad: b
 def _decode(mtype: MessageType | None, payload: bytes) -> dict:
     if mtype is not None:
         return mtype.decode(payload)
-    msg = json.loads(payload)
+    msg = loads(payload)
     if not isinstance(msg, dict):
         raise MessageError(f"expected a JSON object, got {type(msg).__name__}")
     return msg

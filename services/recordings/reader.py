@@ -29,7 +29,7 @@ from mcap.records import Attachment, Channel, Chunk, DataEnd, Footer, Header, Me
 from mcap.stream_reader import StreamReader, breakup_chunk
 
 from services.recordings.format import MAGIC, METADATA_NAME, SCENARIO_ATTACHMENT, WALL_CLOCK_TOPICS, RecordingError
-from services.runtime.messages import SEQ_PREFIX
+from services.runtime.messages import SEQ_PREFIX, loads
 from services.runtime.visual_topics import SCHEMA_NAMES as VISUAL_SCHEMA_NAMES
 
 
@@ -91,7 +91,7 @@ def compared_messages(path) -> tuple[list[tuple[str, int, str]], bool]:
         if m.topic in WALL_CLOCK_TOPICS or m.topic in VISUAL_SCHEMA_NAMES:
             continue
         try:
-            d = json.loads(m.payload)
+            d = loads(m.payload)
             seq = d["seq"]
             # a foreign peer's JSON with a seq of another kind is no message either: keys
             # of mixed kinds would not sort
@@ -99,7 +99,7 @@ def compared_messages(path) -> tuple[list[tuple[str, int, str]], bool]:
                 raise TypeError(f"seq is {type(seq).__name__}")
             d.pop("sent_ns", None)
             text = json.dumps(d, sort_keys=True)
-        except (ValueError, TypeError, KeyError, AttributeError, RecursionError):  # not a message: compared as bytes
+        except (ValueError, TypeError, KeyError, AttributeError):  # not a message: compared as bytes
             seq, text = -1, repr(m.payload)
         out.append((m.topic, seq, text))
     return out, ep.complete

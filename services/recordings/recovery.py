@@ -13,7 +13,6 @@ before ``recover`` says it is done.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,6 +20,7 @@ from mcap.writer import CompressionType, IndexType, Writer
 
 from services.recordings.format import CHUNK_SIZE, METADATA_NAME, SCENARIO_ATTACHMENT, SCENARIO_MEDIA_TYPE, RecordingError
 from services.recordings.reader import read_episode
+from services.runtime.messages import loads
 from services.runtime.visual_topics import DERIVED_BY
 
 
@@ -66,8 +66,8 @@ def recover(source, out=None, *, overwrite: bool = False) -> Recovered:
     for m in episode.messages:
         if m.topic == "/robot/state":
             try:
-                msg = json.loads(m.payload)
-            except (ValueError, RecursionError):
+                msg = loads(m.payload)
+            except ValueError:
                 continue  # recorded as received, garbage included
             seq = msg.get("seq") if isinstance(msg, dict) else None
             if type(seq) is int and (last_seq is None or seq > last_seq):  # not a bool

@@ -16,7 +16,7 @@ from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, IndexType, Writer
 
 from services.recordings.format import CHUNK_SIZE, METADATA_NAME, SCENARIO_ATTACHMENT, SCENARIO_MEDIA_TYPE, RecordingError
 from services.runtime.provenance import code, code_text
-from services.runtime.messages import BY_TOPIC, MessageError, MessageType
+from services.runtime.messages import BY_TOPIC, MessageError, MessageType, loads
 from services.runtime.visual_topics import DERIVED_BY, SCHEMA_NAMES as VISUAL_SCHEMA_NAMES, schema_bytes as visual_schema
 
 _GENERIC_SCHEMA_NAME = "json_object"
@@ -112,7 +112,7 @@ class EpisodeWriter:
             if mtype is not None:
                 msg = mtype.decode(data)
             else:
-                msg = json.loads(data)
+                msg = loads(data)
                 if not isinstance(msg, dict):
                     raise MessageError("not a JSON object")
         except (MessageError, ValueError, UnicodeDecodeError):

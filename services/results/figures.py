@@ -35,7 +35,6 @@ report.json, scenario.yaml, model.json and recordings; writes nothing else.
 from __future__ import annotations
 
 import itertools
-import json
 import math
 from pathlib import Path
 
@@ -50,6 +49,7 @@ from robot_sim.worlds import HoseCoupler, Valley
 from services.recordings.demonstrations import load_demonstration
 from services.recordings.reader import read_episode
 from services.results.folder import RunFolderError, read_report
+from services.runtime.messages import loads
 
 FIGURES_DIR = "figures"
 # etar-bench compare's figure (services.results.compare), beside the run's own: not the run's to redraw
@@ -492,7 +492,7 @@ def reproduction_figure(path: Path, index: int, model, state: str, features: str
         if m.topic not in ("/estimator/phase", "/robot/command", "/robot/contact"):
             continue
         try:
-            msg = json.loads(m.payload)
+            msg = loads(m.payload)
         except ValueError:
             continue
         try:

@@ -88,11 +88,17 @@ def dumps(obj) -> bytes:
 
 def loads(data):
     """``json.loads`` through orjson; what orjson rejects is parsed by ``json``
-    (which accepts NaN, Infinity and big numbers and so can say what is wrong)."""
+    (which accepts NaN, Infinity and big numbers and so can say what is wrong).  A payload
+    nested past the parser's recursion (a foreign peer's ``[[[[...``, under the size limit)
+    raises ``json.JSONDecodeError`` like any other that is not JSON: the stdlib raises
+    RecursionError, which the callers' handling of bad payloads would not expect."""
     try:
         return _loads(data)
     except orjson.JSONDecodeError:
-        return json.loads(data)
+        try:
+            return json.loads(data)
+        except RecursionError:
+            raise json.JSONDecodeError("nested too deeply to parse", "", 0) from None
 
 
 class MessageError(ValueError):

@@ -21,6 +21,7 @@ import time
 import zenoh
 
 from services.runtime import topics
+from services.runtime.messages import loads
 from services.transport.profiling import ProcessProfile
 from services.transport.session import ZenohOptions, open_session
 from services.transport.subscriptions import LinkCounters, subscribe, subscribe_all
@@ -147,7 +148,7 @@ class Service:
 
     def _on_query(self, query: zenoh.Query) -> None:
         try:
-            payload = json.loads(query.payload.to_bytes()) if query.payload is not None else {}
+            payload = loads(query.payload.to_bytes()) if query.payload is not None else {}
             if not isinstance(payload, dict):
                 raise ValueError("control request must be a JSON object")
         except (ValueError, UnicodeDecodeError) as exc:

@@ -116,11 +116,12 @@ def test_garbage_is_counted_and_never_delivered_and_a_wrong_message_in_memory_is
     listener = Listener(bus, bus.clock)
     bus.attach(listener)
     bus.publish("robot/contact", b"\x00\xff not json")
+    bus.publish("robot/contact", b"[" * 60_000)  # under the size limit, nested past the parser's recursion
     bus.publish("robot/contact", *contact(1))
     bus.drain()
     assert listener.got == [1]
-    assert bus.bad[("listener", "robot/contact")] == 1 and "not JSON" in bus.links("listener")["robot/contact"][
-        "last_error"]
+    assert bus.bad[("listener", "robot/contact")] == 2 and "nested too deeply" in bus.links("listener")[
+        "robot/contact"]["last_error"]
     raw, msg = contact(2)
     msg = dict(msg, seq=3)  # what a node would hand over is not what the bytes say
     with pytest.raises(AssertionError, match="not what its bytes decode to"):
