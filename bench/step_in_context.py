@@ -79,12 +79,12 @@ def main():
 
     print(f"{'where':<8} {'mj_step us':>10} {'iterations':>11}   (arm pressed on a valley plate, "
           f"{args.cycles} steps a timing)")
-    for trial in range(args.trials):
-        def floor_in_company(k):
-            for _ in range(k):
-                whole(1)
-                floor(1)
+    def floor_in_company(k):
+        for _ in range(k):
+            whole(1)
+            floor(1)
 
+    for _ in range(args.trials):
         for name, run, only in (("floor", floor, None), ("cell", whole, None),
                                 ("floor+", floor_in_company, floor_cell.sim.data)):
             timed = physics.mujoco = TimedStep(only)

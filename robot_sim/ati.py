@@ -131,7 +131,6 @@ __all__ = [
 
 AXES: tuple[str, ...] = ("Fx", "Fy", "Fz", "Tx", "Ty", "Tz")
 
-
 MINI45_RANGES = (290.0, 290.0, 580.0, 10.0, 10.0, 10.0)
 MINI45_RESOLUTION = (1 / 8, 1 / 8, 1 / 8, 1 / 376, 1 / 376, 1 / 752)
 MINI45_NOISE_STD = tuple(r / 2 for r in MINI45_RESOLUTION)

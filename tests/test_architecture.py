@@ -3,6 +3,7 @@ points down the list of wings (lazy imports inside functions count too), and eta
 robot_sim/ import neither services/ nor each other."""
 
 import ast
+import json
 import re
 import subprocess
 import sys
@@ -93,11 +94,9 @@ def test_a_service_process_imports_its_own_node_only():
     roles' (their imports cost every process of a run a second or more: services.nodes),
     MuJoCo only in the robot, the cell's compiled kernels only in the robot and the sensor
     (a reader of the Net F/T's wire needs robot_sim.rdt, not the sensor model)."""
-    probe = ("import sys\nfrom services.cli.roles import build_parser\n"
-             "for role in sys.argv[1:]:\n"
-             "    build_parser(role)\n"
-             "print(sorted(m for m in sys.modules if m.startswith('services.nodes.')), 'mujoco' in sys.modules,"
-             " 'robot_sim.kernels' in sys.modules)\n")
+    probe = ("import json, sys\nfrom services.cli.roles import build_parser\nbuild_parser(sys.argv[1])\n"
+             "print(json.dumps({'nodes': [m for m in sys.modules if m.startswith('services.nodes.')],"
+             " 'mujoco': 'mujoco' in sys.modules, 'kernels': 'robot_sim.kernels' in sys.modules}))\n")
     roles = tuple(ROLES)
     # one process per role, all at once: the test's cost is one start-up, not seven
     probes = {role: subprocess.Popen([sys.executable, "-c", probe, role], cwd=ROOT, stdout=subprocess.PIPE,
@@ -105,10 +104,9 @@ def test_a_service_process_imports_its_own_node_only():
     for role, proc in probes.items():
         stdout, stderr = proc.communicate(timeout=120)
         assert proc.returncode == 0, stderr[-2000:]
-        loaded, flags = stdout.rsplit("] ", 1)
-        mujoco, kernels = flags.split()
-        others = [f"services.nodes.{r}" for r in roles if r != role and f"'services.nodes.{r}'" in loaded]
+        loaded = json.loads(stdout)
+        others = [f"services.nodes.{r}" for r in roles if r != role and f"services.nodes.{r}" in loaded["nodes"]]
         assert not others, f"the {role} program imports other roles' nodes: {others}"
-        assert f"'services.nodes.{role}'" in loaded, loaded
-        assert (mujoco == "True") == (role == "robot"), f"{role}: MuJoCo loaded: {mujoco}"
-        assert (kernels == "True") == (role in ("robot", "ft_sensor")), f"{role}: robot_sim.kernels loaded: {kernels}"
+        assert f"services.nodes.{role}" in loaded["nodes"], loaded
+        assert loaded["mujoco"] == (role == "robot"), f"{role}: MuJoCo loaded: {loaded['mujoco']}"
+        assert loaded["kernels"] == (role in ("robot", "ft_sensor")), f"{role}: robot_sim.kernels loaded: {loaded}"
