@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from services.foxglove.scene import VisualScene
+from services.foxglove.scene import VisualScene, world_of_scenario
+from services.recordings.writer import EpisodeWriter
 from services.runtime.messages import BY_TOPIC, SEQ_PREFIX, MessageError, dumps
 
 
@@ -92,3 +93,88 @@ class VisualTap:
                 out += self.scene.take(t, msg)
         self._latest.clear()
         return out + self.scene.take("robot/state", state)
+
+
+class VisualRecordings:
+    """Opens an episode's recording that carries, beside the run's own messages, the visual
+    topics they bring (``/viz/...`` at ``rate_hz``; none at 0 or where the scenario names no
+    world): what the recorder writes.  Called as ``EpisodeWriter`` is, so that the writer's
+    helper process (``services.recordings.offload``) can open them: in an in-process run
+    drawing the scene then costs the run's one CPU nothing.  Keeps one tap per world: the
+    arm's kinematics and the world's geometry are built once."""
+
+    def __init__(self, rate_hz: float):
+        self.rate_hz = rate_hz
+        self._taps: dict[str, VisualTap] = {}
+
+    def __call__(self, path, **options) -> "VisualRecording":
+        return VisualRecording(EpisodeWriter(path, **options), self._tap_for(options.get("scenario_text")))
+
+    def _tap_for(self, scenario_text: str | None) -> VisualTap | None:
+        if not self.rate_hz or not scenario_text:
+            return None
+        try:
+            world = world_of_scenario(scenario_text)
+        except ValueError:
+            return None
+        if world not in self._taps:
+            try:
+                self._taps[world] = VisualTap(VisualScene(world, self.rate_hz))
+            except ValueError:
+                return None
+        tap = self._taps[world]
+        tap.reset()
+        return tap
+
+
+class VisualRecording:
+    """One episode's ``EpisodeWriter`` and the visual messages its samples bring, recorded
+    after each at its reception time.  They are a view of the run: whatever goes wrong
+    drawing them costs only them (counted in ``visual_errors``, payloads the tap could not
+    decode in ``visual_undecodable``), never a message of the run."""
+
+    def __init__(self, writer: EpisodeWriter, tap: VisualTap | None):
+        self.writer = writer
+        self.tap = tap
+        self._undecodable0 = 0 if tap is None else tap.undecodable
+        self.visual_errors = 0
+
+    @property
+    def path(self):
+        return self.writer.path
+
+    @property
+    def messages_written(self) -> int:
+        return self.writer.messages_written
+
+    @property
+    def bad_payloads(self) -> int:
+        return self.writer.bad_payloads
+
+    @property
+    def visual_undecodable(self) -> int:
+        return 0 if self.tap is None else self.tap.undecodable - self._undecodable0
+
+    @property
+    def finished(self) -> bool:
+        return self.writer.finished
+
+    def add(self, key_expr: str, payload: bytes, log_time_ns: int, publish_time_ns: int | None = None) -> None:
+        self.writer.add(key_expr, payload, log_time_ns, publish_time_ns)
+        if self.tap is None:
+            return
+        try:
+            visuals = self.tap.take(key_expr[len(self.writer.prefix):], payload)
+        except Exception:  # noqa: BLE001 - counted; the run's own messages go on
+            self.visual_errors += 1
+            return
+        for visual_topic, visual in visuals:
+            try:  # one that will not encode (a NaN) costs only itself
+                data = encode(visual)
+            except ValueError:
+                self.visual_errors += 1
+                continue
+            self.writer.add(visual_topic, data, log_time_ns, log_time_ns)
+
+    def finish(self) -> None:
+        self.writer.finish()

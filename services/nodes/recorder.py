@@ -18,16 +18,13 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
-from services.recordings.writer import EpisodeWriter
 from services.recordings.offload import WriterProcess
 from services.runtime import topics
 from services.runtime.bus import Node, Subscription
 from services.runtime.config import FieldError, option
 from services.runtime.messages import MAX_PAYLOAD_BYTES, SEQ_PREFIX
 from services.runtime.visual_topics import VISUAL_RATE_HZ, check_visual_rate
-from services.foxglove.scene import VisualScene, world_of_scenario
-from services.foxglove.tap import VisualTap, encode
-
+from services.foxglove.tap import VisualRecordings
 
 
 @dataclass(frozen=True)
@@ -89,17 +86,17 @@ class RecorderNode(Node):
         self.prefix = topics.prefix(run_id) + "/"
         # one key string per topic: the writer's hand-over pickles a repeated object once per batch
         self._keys: dict[str, str] = {}
-        self.writer: EpisodeWriter | None = None
+        self.writer = None  # the open episode's (services.foxglove.tap.VisualRecording, or the helper's)
         self.lock = threading.Condition()  # a transport waits on it for messages still in flight
         self.last_seq: dict[str, int] = {}
         self.total = 0
         self.oversized = 0  # payloads over MAX_PAYLOAD_BYTES, not recorded
         self.subscriptions = [Subscription("**", self.on_sample, decode=False)]
-        self._writer_process = WriterProcess() if config.writer_process else None
-        self.visual_rate_hz = config.visual_rate_hz
-        self._taps: dict[str, VisualTap] = {}  # by world: the scene's geometry is built once
-        self.tap: VisualTap | None = None
-        self.visual_errors = 0
+        # the episode's files with their visual topics: opened here, or by the helper process
+        # in an in-process run, where the scene is drawn too (one CPU carries every node)
+        self._open = VisualRecordings(config.visual_rate_hz)
+        self._writer_process = WriterProcess(self._open) if config.writer_process else None
+        self.visual_errors = self.visual_undecodable = 0  # of the episodes finished
 
     def on_sample(self, topic: str, recv_ns: int, raw: bytes, message: dict | None = None) -> None:
         if len(raw) > MAX_PAYLOAD_BYTES:
@@ -115,8 +112,6 @@ class RecorderNode(Node):
                 self.writer.add(key, raw, recv_ns,
                                 None if message is None else message["sent_ns"])
                 self.total += 1
-                if self.tap is not None:
-                    self._visual(topic, raw, recv_ns, message)
             if message is not None:
                 seq = message["seq"]
             else:
@@ -126,40 +121,6 @@ class RecorderNode(Node):
                 if seq > self.last_seq.get(topic, -1):
                     self.last_seq[topic] = seq
                 self.lock.notify_all()
-
-    def _visual(self, topic: str, raw: bytes, recv_ns: int, message: dict | None) -> None:
-        """The visual messages this sample brings, recorded at its reception time.  They are
-        a view of the run: whatever goes wrong drawing them must cost nothing recorded."""
-        try:
-            visuals = self.tap.take(topic, raw, message)
-        except Exception:  # noqa: BLE001 - counted in status(); the run's own messages go on
-            self.visual_errors += 1
-            return
-        for visual_topic, visual in visuals:
-            try:  # one that will not encode (a NaN) costs only itself
-                payload = encode(visual)
-            except ValueError:
-                self.visual_errors += 1
-                continue
-            self.writer.add(visual_topic, payload, recv_ns, recv_ns)
-
-    def _tap_for(self, scenario_text: str | None) -> VisualTap | None:
-        """The visual tap of the episode's world (named by the scenario it records); none
-        without a scenario or with visual topics turned off."""
-        if not self.visual_rate_hz or not scenario_text:
-            return None
-        try:
-            world = world_of_scenario(scenario_text)
-        except ValueError:
-            return None
-        if world not in self._taps:
-            try:
-                self._taps[world] = VisualTap(VisualScene(world, self.visual_rate_hz))
-            except ValueError:
-                return None
-        tap = self._taps[world]
-        tap.reset()
-        return tap
 
     def lagging(self, wanted, last: int) -> list:
         """The topics among ``wanted`` whose newest message is older than cycle ``last``."""
@@ -173,15 +134,14 @@ class RecorderNode(Node):
         path.parent.mkdir(parents=True, exist_ok=True)
         with self.lock:
             if self.writer is not None:
-                self.writer.finish()
+                self._finish(self.writer)
             options = dict(run_id=self.run_id, episode_kind=p.get("kind", "episode"),
                            episode_index=int(p.get("index", 0)), scenario_text=p.get("scenario"),
                            metadata=p.get("metadata") or {})
             if self._writer_process is not None:
                 self.writer = self._writer_process.open(path, **options)
             else:
-                self.writer = EpisodeWriter(path, **options)
-            self.tap = self._tap_for(p.get("scenario"))
+                self.writer = self._open(path, **options)
         return str(path)
 
     def end(self, p: dict) -> dict:
@@ -190,19 +150,26 @@ class RecorderNode(Node):
             writer, self.writer = self.writer, None
         if writer is None:
             raise ValueError("no episode is being recorded")
-        writer.finish()
+        self._finish(writer)
         return {"messages": writer.messages_written, "bad_payloads": writer.bad_payloads, "lagging": lagging}
+
+    def _finish(self, writer) -> None:
+        writer.finish()
+        with self.lock:
+            self.visual_errors += writer.visual_errors
+            self.visual_undecodable += writer.visual_undecodable
 
     def status(self) -> dict:
         return {"total": self.total, "recording": self.writer is not None, "last_seq": self.last_seq,
-                "oversized": self.oversized, "visual_errors": self.visual_errors,
-                "visual_undecodable": sum(t.undecodable for t in self._taps.values())}
+                "oversized": self.oversized,
+                # of the episodes finished (an in-process run's helper counts them until then)
+                "visual_errors": self.visual_errors, "visual_undecodable": self.visual_undecodable}
 
     def close(self) -> None:
         with self.lock:
             try:
                 if self.writer is not None:
-                    self.writer.finish()
+                    self._finish(self.writer)
                     self.writer = None
             finally:
                 if self._writer_process is not None:

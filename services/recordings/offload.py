@@ -13,6 +13,10 @@ from services.recordings.format import RecordingError
 from services.recordings.writer import EpisodeWriter
 
 
+# what the helper's writer counted, sent back when it finishes a file
+FINISH_COUNTS = ("messages_written", "bad_payloads", "visual_errors", "visual_undecodable")
+
+
 class WriterProcess:
     """``EpisodeWriter`` s run in a helper process, fed over a pipe in batches.
 
@@ -25,7 +29,10 @@ class WriterProcess:
 
     BATCH = 2000  # messages per hand-over
 
-    def __init__(self):
+    def __init__(self, opener=EpisodeWriter):
+        """``opener(path, **options)``: what the helper opens an episode's file with,
+        ``EpisodeWriter`` or something called like it and answering like it (the recorder's
+        writer that adds the visual topics), picklable: the helper gets its own copy."""
         import subprocess
         import sys
 
@@ -33,6 +40,7 @@ class WriterProcess:
         # script, and forking copies the run's threads)
         self._proc = subprocess.Popen([sys.executable, "-m", "services.recordings.offload", "--writer-process"],
                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=None)
+        self._send(("opener", opener))
 
     def _call(self, *request):
         try:
@@ -80,8 +88,8 @@ class OffloadedEpisodeWriter:
         self._process = process
         self.path = path
         self._batch: list = []
-        self.messages_written = 0
-        self.bad_payloads = 0
+        # as the helper's writer counted them, once finished
+        self.messages_written = self.bad_payloads = self.visual_errors = self.visual_undecodable = 0
         self._finished = False
 
     def add(self, key_expr: str, payload: bytes, log_time_ns: int, publish_time_ns: int | None = None) -> None:
@@ -99,7 +107,8 @@ class OffloadedEpisodeWriter:
         if self._batch:
             self._process.send(self._batch)
             self._batch = []
-        self.messages_written, self.bad_payloads = self._process._call("finish")
+        for name, value in self._process._call("finish").items():
+            setattr(self, name, value)
 
     @property
     def finished(self) -> bool:
@@ -109,6 +118,7 @@ class OffloadedEpisodeWriter:
 def _writer_main(requests, replies) -> None:
     """The helper process: open / add / finish / close requests, until the pipe closes."""
     writer = None
+    opener = EpisodeWriter
 
     def reply(value) -> None:
         pickle.dump(value, replies, protocol=pickle.HIGHEST_PROTOCOL)
@@ -128,18 +138,21 @@ def _writer_main(requests, replies) -> None:
                 continue
             if kind == "close":
                 return
+            if kind == "opener":
+                opener = request[1]
+                continue
             try:
                 if kind == "open":
                     if writer is not None:
                         writer.finish()
-                    writer = EpisodeWriter(request[1], **request[2])
+                    writer = opener(request[1], **request[2])
                     reply((True, None))
                 elif kind == "finish":
                     w, writer = writer, None
                     if w is None:
                         raise RecordingError("no episode is being recorded")
                     w.finish()
-                    reply((True, (w.messages_written, w.bad_payloads)))
+                    reply((True, {name: getattr(w, name, 0) for name in FINISH_COUNTS}))
             except Exception as exc:  # the parent raises it, naming the file
                 reply((False, f"{type(exc).__name__}: {exc}"))
     finally:

@@ -207,6 +207,37 @@ def test_a_visual_tap_skips_garbage_and_counts_it():
                                                                  "SceneUpdate.json"]
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("writer_process", [False, True], ids=["in the recorder", "in the writer's helper"])
+def test_the_recorder_draws_the_visual_topics_a_run_recorded(run_dir, tmp_path, writer_process):
+    """The recorder over Zenoh draws the scene itself; in one process the MCAP writer's
+    helper process does (one CPU carries every node there).  Fed a recorded episode's own
+    messages as they came, either gives that episode's visual messages, byte for byte and
+    at the same log times; a frame's state that does not decode is counted in the
+    recorder's status, once its episode is finished."""
+    from services.nodes.recorder import RecorderConfig, RecorderNode
+
+    source = sorted((run_dir / "recordings").glob("reproduction_*.mcap"))[0]
+    episode = read_episode(source)
+    recorder = RecorderNode(RecorderConfig(out_dir=str(tmp_path), writer_process=writer_process), None, None,
+                            run_id="foxglove")
+    try:
+        recorder.begin({"path": "again.mcap", "kind": "reproduction", "index": 0,
+                        "scenario": episode.scenario_text})
+        own = [m for m in episode.messages if m.topic not in SCHEMA_NAMES]
+        for m in own:
+            recorder.on_sample(m.topic.lstrip("/"), m.log_time_ns, m.payload)
+        recorder.on_sample("robot/state", own[-1].log_time_ns + 1, b'{"seq":400000, garbage')
+        assert recorder.end({})["messages"] == len(episode.messages) + 1
+        assert recorder.status()["visual_undecodable"] == 1 and recorder.status()["visual_errors"] == 0
+    finally:
+        recorder.close()
+    drawn = [(m.topic, m.log_time_ns, m.payload) for m in read_episode(tmp_path / "again.mcap").messages
+             if m.topic in SCHEMA_NAMES]
+    recorded = [(m.topic, m.log_time_ns, m.payload) for m in episode.messages if m.topic in SCHEMA_NAMES]
+    assert len(recorded) > 100 and drawn == recorded
+
+
 def strip_visual(src: Path, dst: Path) -> dict:
     """Copies of ``src``'s recordings without the visual topics (a recording made before
     they existed); the visual messages each had."""
