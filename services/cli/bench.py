@@ -583,7 +583,8 @@ def build_parser() -> OneLineErrorParser:
                         "is refused unless --replace")
     p.add_argument("--replace", action="store_true", help="--out holds an earlier sweep: remove it first")
     p.add_argument("--record", choices=sweep.RECORD, default="summary",
-                   help="what to keep of each run: everything, its report and model (default), or nothing")
+                   help="what to keep of each run: everything (recordings with Foxglove's visual topics), its "
+                        "report and model (default), or nothing")
     p.add_argument("--workers", type=int, help="local processes (default: the CPUs this process may use)")
     p.add_argument("--cluster", metavar="ADDRESS",
                    help="a Dask scheduler, e.g. tcp://10.0.0.5:8786, to send the runs to instead")

@@ -23,7 +23,8 @@ Output: ``table.csv`` and ``table.json`` (one row per run: the parameters, the
 seed, phases chosen, reproductions that reached the goal, online phase accuracy,
 transition-time error, peak contact force, times), one PNG per metric against
 each parameter, and each run's directory under ``runs/`` as ``--record`` says:
-``full`` everything, ``summary`` the report and the model, ``none`` nothing.
+``full`` everything, ``summary`` the report and the model, ``none`` nothing (only
+``full`` draws Foxglove's visual topics into the recordings).
 """
 
 from __future__ import annotations
@@ -107,6 +108,16 @@ class RunSpec:
     def seed(self) -> int:
         return self.scenario.seed
 
+    def options(self):
+        """The run's options: in one process, no figures, one learner process.  Foxglove's
+        visual topics only where the recordings are kept (``full``): drawing them is about
+        a twentieth of a run's CPU, and a sweep's runs share the CPUs."""
+        from services.run.options import RunOptions
+
+        return RunOptions(out=self.out, transport="inproc", figures=False, run_id=f"sweep-{self.name}",
+                          learn_threads=self.learn_threads, workers=1,
+                          recorder_args=() if self.record == "full" else ("--visual-rate-hz", "0"))
+
 
 def plan(base: Scenario, parameters: list, repeats: int, out: Path, record: str,
          learn_threads: int) -> list[RunSpec]:
@@ -164,17 +175,13 @@ def _prepare(out_dir: Path, flag_value, replace: bool) -> None:
 
 def run_one(spec: RunSpec) -> dict:
     """One run in this process (a pool worker or a Dask worker): its table row."""
-    from services.run.options import RunOptions
     from services.run.runner import Runner
 
     t0 = time.monotonic()
     lines = []
     row = dict(run=spec.name, **{f"param {k}": v for k, v in spec.params.items()}, seed=spec.seed)
     try:
-        runner = Runner(spec.scenario, RunOptions(out=spec.out, transport="inproc", figures=False,
-                                                  run_id=f"sweep-{spec.name}", learn_threads=spec.learn_threads,
-                                                  workers=1),
-                        progress=lines.append)
+        runner = Runner(spec.scenario, spec.options(), progress=lines.append)
         report = runner.run()
     except Exception as exc:  # a run that cannot even start is a row with its error, not a dead sweep
         report = None

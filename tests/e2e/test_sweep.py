@@ -49,6 +49,16 @@ def test_parameters_are_parsed_and_every_combination_validated_before_anything_r
         assert load_scenario(tmp_path / "out" / "scenarios" / f"{s.name}.yaml").to_dict() == s.scenario.to_dict()
 
 
+def test_a_sweep_draws_the_visual_topics_only_into_recordings_it_keeps(tmp_path):
+    from services.run.configs import node_configs
+    from services.runtime.visual_topics import VISUAL_RATE_HZ
+
+    for record, rate in (("full", VISUAL_RATE_HZ), ("summary", 0), ("none", 0)):
+        spec, = plan(reproduction_scenario(), [], 1, tmp_path / record, record, 1)
+        recorder = node_configs(spec.scenario, spec.options(), ["recorder"], tmp_path, True)["recorder"]
+        assert recorder.visual_rate_hz == rate, record
+
+
 def check(result, out: Path, n_runs: int, record: str):
     assert result["runs"] == n_runs and result["failed"] == 0, result
     rows = list(csv.DictReader((out / "table.csv").open()))
