@@ -1,5 +1,5 @@
 """What the cell's per-cycle numba kernels cost per call in a running cell: through
-numba's dispatcher, and as machine code (``robot_sim.kernels.entry``, what the cell does).
+numba's dispatcher, and as machine code (``etar.kernels.entry``, what the cell does).
 
     python bench/dispatch_cost.py [--scenario scenarios/smoke.yaml] [--ways dispatcher,entry]
 
@@ -27,7 +27,6 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import robot_sim.ati as ati  # noqa: E402
-import robot_sim.kernels as kernels  # noqa: E402
 import robot_sim.krc as krc  # noqa: E402
 import robot_sim.physics as physics  # noqa: E402
 from node_costs import timed  # noqa: E402  (bench/, beside this script)
@@ -42,7 +41,7 @@ KERNELS = (
     (krc, "_rate_limit", krc._rate_limit_at),
     (physics, "_apply_forces", physics._applied_forces),
     (physics, "_sensed", physics._sensed_at),
-    (physics, "all_finite", kernels.all_finite_at),
+    (physics, "all_finite", physics.all_finite_at),
     (ati, "_sample", ati._sample_at),
 )
 

@@ -1,4 +1,4 @@
-"""The KRC's external-wrench estimate per call: the compiled kernel (robot_sim.blas,
+"""The KRC's external-wrench estimate per call: the compiled kernel (etar.blas,
 numpy's own BLAS and LAPACK) against the numpy path it replaced, on a running valley cell,
 alternately.
 

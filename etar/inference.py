@@ -39,7 +39,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
-_JIT = dict(cache=True, nogil=True, error_model="numpy")
+from etar.kernels import JIT as _JIT
+
 _STEP = dict(_JIT, inline="always")
 
 

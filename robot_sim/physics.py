@@ -10,7 +10,7 @@ carrying garbage on.
 ``joint_positions(out)``, ``joint_velocities(out)``, ``apply`` and ``step``
 allocate nothing (tests/robot_sim/test_allocation.py): the MjData arrays are
 viewed once (MjData never moves them), and the little arithmetic is done by
-numba kernels that reach the buffers through their addresses (``robot_sim.kernels``).
+numba kernels that reach the buffers through their addresses (``etar.kernels``).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import mujoco
 import numpy as np
 from numba import njit
 
-from robot_sim.kernels import JIT, HoldsAddresses, address, addresses, all_finite, carray_at, entry
+from etar.kernels import JIT, HoldsAddresses, address, addresses, carray_at, entry
 from robot_sim.worlds import TIMESTEP, WorldSpec
 
 JOINTS = tuple(f"joint{i}" for i in range(1, 8))
@@ -69,8 +69,18 @@ def _sensed_at(sensordata_at, force_adr, torque_adr, constraint_at, hand_at, nv,
         torques[i] = constraint[arm_dof + i] + hand[arm_dof + i]
 
 
+@njit(**JIT)
+def all_finite_at(addr, n):
+    a = carray_at(addr, (n,))
+    for i in range(n):
+        if not np.isfinite(a[i]):
+            return False
+    return True
+
+
 _apply_forces = entry(_applied_forces, f"{addresses(6)}, boolean, {addresses(4)}")
 _sensed = entry(_sensed_at, addresses(9))
+all_finite = entry(all_finite_at, addresses(2))
 
 
 class PhysicsError(RuntimeError):
@@ -213,7 +223,7 @@ class Simulation(HoldsAddresses):
         self.sense_at(address(wrench), address(torques))
 
     def sense_at(self, wrench_at: int, torques_at: int) -> None:
-        """``sense`` into the buffers at these addresses (robot_sim.kernels): the cell's,
+        """``sense`` into the buffers at these addresses (etar.kernels): the cell's,
         every cycle."""
         at = self._at
         _sensed(at["sensordata"], self._force_adr, self._torque_adr, at["constraint"], at["hand"], self._nv,

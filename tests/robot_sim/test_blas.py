@@ -1,11 +1,12 @@
-"""robot_sim.blas: kernels that call numpy's own OpenBLAS get numpy's bits, where a
+"""etar.blas: kernels that call numpy's own OpenBLAS get numpy's bits, where a
 written-out loop does not (bench/blas_bits.py counts how often)."""
 
 import numpy as np
 import pinocchio as pin
 import pytest
 
-from robot_sim import blas, cell
+from etar import blas
+from robot_sim import cell
 from robot_sim.kinematics import ArmKinematics
 from robot_sim.worlds import valley
 

@@ -15,7 +15,8 @@ cell's kernel calls cost 11.0 us a cycle through the dispatcher and 7.9 us as ma
 code, the same code.
 
 (numba's cache only tracks the file a kernel is defined in: after changing
-these helpers, clear robot_sim/__pycache__/*.nb[ic].)
+these helpers, clear etar/__pycache__/*.nb[ic] and robot_sim/__pycache__/*.nb[ic]: the
+kernels that use them live in both.)
 """
 
 from __future__ import annotations
@@ -79,15 +80,3 @@ def carray_at(addr, shape):
 def farray_at(addr, shape):
     """The column-major (Eigen's default) float64 array of ``shape`` at ``addr``."""
     return farray(_float64_pointer(addr), shape)
-
-
-@njit(**JIT)
-def all_finite_at(addr, n):
-    a = carray_at(addr, (n,))
-    for i in range(n):
-        if not np.isfinite(a[i]):
-            return False
-    return True
-
-
-all_finite = entry(all_finite_at, addresses(2))

@@ -20,7 +20,7 @@ numpy's bits; where it is False (``WHY`` says why) the callers keep their numpy 
 which records the same numbers more slowly.
 
 (numba's cache tracks only the file a kernel is defined in: after changing the
-intrinsics here, clear robot_sim/__pycache__/*.nb[ic], as for robot_sim.kernels.)
+intrinsics here, clear etar/__pycache__/*.nb[ic] and robot_sim/__pycache__/*.nb[ic], as for etar.kernels.)
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from llvmlite import ir
 from numba import njit, types
 from numba.extending import intrinsic
 
-from robot_sim.kernels import JIT
+from etar.kernels import JIT
 
 ROW_MAJOR, NO_TRANS, TRANS, UPPER = 101, 111, 112, 121
 
@@ -63,6 +63,8 @@ call_gemv = _foreign(types.void, _I32, _I32, _I64, _I64, _F64, _I64, _I64, _I64,
 call_syrk = _foreign(types.void, _I32, _I32, _I32, _I64, _I64, _F64, _I64, _I64, _F64, _I64, _I64)
 # dgesv_(&n, &nrhs, a, &lda, ipiv, b, &ldb, &info): every argument by address
 call_gesv = _foreign(types.void, _I64, _I64, _I64, _I64, _I64, _I64, _I64, _I64)
+# cblas_ddot(n, x, incx, y, incy): numpy's ``a @ b`` of two vectors, and np.linalg.norm's sum of squares
+call_dot = _foreign(types.float64, _I64, _I64, _I64, _I64, _I64)
 
 
 @njit(**JIT)
@@ -113,10 +115,11 @@ def _address(lib: ctypes.CDLL, name: str) -> int:
 
 
 _LIB, WHY = _library()
-GEMV = SYRK = GESV = 0
+GEMV = SYRK = GESV = DOT = 0
 if _LIB is not None:
     try:
-        GEMV, SYRK, GESV = (_address(_LIB, n) for n in ("scipy_cblas_dgemv64_", "scipy_cblas_dsyrk64_", "scipy_dgesv_64_"))
+        GEMV, SYRK, GESV, DOT = (_address(_LIB, n) for n in ("scipy_cblas_dgemv64_", "scipy_cblas_dsyrk64_",
+                                                              "scipy_dgesv_64_", "scipy_cblas_ddot64_"))
     except AttributeError as e:
         WHY = f"numpy's OpenBLAS lacks a function: {e}"
-AVAILABLE = bool(GEMV and SYRK and GESV)
+AVAILABLE = bool(GEMV and SYRK and GESV and DOT)
