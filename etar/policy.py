@@ -22,7 +22,9 @@ follow: its reference goes, stiffly, to where the demonstrations did it, and
 there the phase's law presses along its compliant axis as the teacher did.
 
 Pure numpy: no messaging, no simulator, no clock (``step`` is told ``dt``).
-The impedance commander (``services``) wraps it; tests drive it directly.
+The impedance commander (``services``) wraps it; tests drive it directly.  It runs
+``step`` compiled where it can (``etar.policy_kernel``: the same numbers); any change
+here is a change there, which ``tests/etar/test_policy_kernel.py`` catches.
 """
 
 from __future__ import annotations
