@@ -202,6 +202,18 @@ class ReproductionPolicy:
             return True
         return bool(np.linalg.norm(log3(self._goal_turn_T @ exp3(turned))) < self.rot_tol)
 
+    def tool_step(self, pose, tool_force, phase: int | None, dt: float = DT):
+        """``step`` for a controller that speaks in the tool's frame, as the KRC's Cartesian
+        impedance does: ``pose`` the measured tool pose as 12 numbers, the rows of
+        [R | x] (base axes); ``tool_force`` the measured external force (3,) in tool axes.
+        Returns (the force to add (3,), tool axes; the setpoint rotation; the tool's
+        position x (3,))."""
+        m = np.array(pose).reshape(3, 4)
+        R, x = m[:, :3], m[:, 3]
+        force = R @ np.asarray(tool_force, dtype=np.float64)
+        F, R_set = self.step(x, R, phase, dt, force)
+        return R.T @ F, R_set, x
+
     def step(self, x: np.ndarray, R: np.ndarray, phase: int | None, dt: float = DT,
              force: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(force in base axes (3,), setpoint rotation) for this cycle; ``dt``: time since

@@ -32,13 +32,14 @@ X, FORCE, DT, TOL, LEAD, GOAL, HOLD_K, HOLD_D = 0, 3, 6, 7, 8, 9, 12, 21
 STATE = 30  # reset() zeroes from here on
 F_OUT, REF, PREV, V, STALL_FROM, LAST_D, STALLED_FOR = 30, 33, 36, 39, 42, 45, 48
 T1, T2, T3, D = 49, 52, 55, 58  # scratch vectors; D the running law's direction
-N_FLOAT = 64
+POSE, TOOL_FORCE, TOOL_F_OUT = 61, 73, 76  # tool_step's: the rows of [R | x], its force in and out
+N_FLOAT = 80
 # per phase (a row each): direction, stiffness, damping, feedforward, speed, place, aim
 P_DIR, P_K, P_D, P_FF, P_SPEED, P_PLACE, P_AIM = 0, 3, 12, 21, 24, 25, 28
 P_FLOATS = 31
 # the int state
 HAS_REF, HAS_PREV, HAS_STALL_FROM, HAS_LAST_D, PHASE, HANDED, VISITED, AT_PLACE, GOAL_REACHED, APPLIED, \
-    HAS_GOAL, N_PHASES, PHASE_IN, HAS_FORCE = range(14)
+    HAS_GOAL, N_PHASES, PHASE_IN, HAS_FORCE, TOOL_FRAME = range(15)
 N_INT = 16
 # per phase: valid (a law, not None), in place, has a place, has an aim, free, successor (NONE: none)
 Q_VALID, Q_IN_PLACE, Q_HAS_PLACE, Q_HAS_AIM, Q_FREE, Q_SUCCESSOR = range(6)
@@ -58,8 +59,30 @@ def _gemv(fn, a, x, y):
     blas.call_gemv(fn, np.int32(blas.ROW_MAJOR), np.int32(blas.NO_TRANS), 3, 3, 1.0, a, 3, x, 1, 0.0, y, 1)
 
 
+@njit(**JIT, inline="always")
+def _gemv_rows(fn, a, lda, trans, x, y):
+    """numpy's ``R @ x`` (``R.T @ x`` with ``trans``) for the 3x3 ``R`` whose rows start
+    ``lda`` floats apart at ``a`` (the rotation in a (3, 4) pose), into ``y``."""
+    blas.call_gemv(fn, np.int32(blas.ROW_MAJOR), np.int32(blas.TRANS if trans else blas.NO_TRANS), 3, 3, 1.0, a,
+                   lda, x, 1, 0.0, y, 1)
+
+
 @njit(**JIT)
 def _step(dot_fn, gemv_fn, f_at, s_at, pf_at, pi_at, n_phases):
+    """``ReproductionPolicy.step``, or with TOOL_FRAME set ``tool_step``."""
+    f = carray_at(f_at, (N_FLOAT,))
+    tool_frame = carray_at(s_at, (N_INT,)).view(np.int64)[TOOL_FRAME]
+    if tool_frame:
+        _gemv_rows(gemv_fn, f_at + 8 * POSE, 4, False, f_at + 8 * TOOL_FORCE, f_at + 8 * FORCE)
+        for i in range(3):
+            f[X + i] = f[POSE + 4 * i + 3]
+    _law(dot_fn, gemv_fn, f_at, s_at, pf_at, pi_at, n_phases)
+    if tool_frame:
+        _gemv_rows(gemv_fn, f_at + 8 * POSE, 4, True, f_at + 8 * F_OUT, f_at + 8 * TOOL_F_OUT)
+
+
+@njit(**JIT, inline="always")
+def _law(dot_fn, gemv_fn, f_at, s_at, pf_at, pi_at, n_phases):
     """One ``ReproductionPolicy.step``, line for line (see it for the why of each)."""
     f = carray_at(f_at, (N_FLOAT,))
     s = carray_at(s_at, (N_INT,)).view(np.int64)
@@ -325,8 +348,23 @@ class CompiledPolicy(HoldsAddresses):
         s[HAS_FORCE] = force is not None
         f[DT] = dt
         s[PHASE_IN] = NONE if phase is None else phase
+        s[TOOL_FRAME] = 0
         self._kernel(blas.DOT, blas.GEMV, *self._at, self._n)
         return f[F_OUT:F_OUT + 3].copy(), self.R_hold
+
+    def tool_step(self, pose, tool_force, phase: int | None, dt: float = 0.001):
+        """``ReproductionPolicy.tool_step``: the same arguments, the same numbers."""
+        f, s = self._f, self._s
+        f[POSE:POSE + 12] = pose
+        f[TOOL_FORCE:TOOL_FORCE + 3] = tool_force
+        if self.R_hold is None:
+            self.R_hold = f[POSE:POSE + 12].reshape(3, 4)[:, :3].copy()
+        s[HAS_FORCE] = 1
+        f[DT] = dt
+        s[PHASE_IN] = NONE if phase is None else phase
+        s[TOOL_FRAME] = 1
+        self._kernel(blas.DOT, blas.GEMV, *self._at, self._n)
+        return f[TOOL_F_OUT:TOOL_F_OUT + 3].copy(), self.R_hold, f[X:X + 3].copy()
 
     # what the commander and the tests read of a policy's state
     @property

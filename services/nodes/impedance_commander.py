@@ -214,8 +214,6 @@ class ImpedanceCommanderNode(Node):
                 self.clock.sleep(c.stall_ms / 1e3)
         now = self.clock.now_ns
         t0 = now()
-        m = np.array(state["msr_cart_pos"]).reshape(3, 4)
-        R, x = m[:, :3], m[:, 3]
         cycles = seq - last if last is not None and 0 < seq - last <= 100 else 1
         self._last_answered_seq = seq
         if self._first_seq is None:
@@ -231,13 +229,13 @@ class ImpedanceCommanderNode(Node):
                     self.first_hold = self.hold
             elif not fault:
                 self.hold = None
-        # the policy holds stiffly where the tool is when it knows no phase
-        # the KRC's estimate of the external force (tcp axes, FRI order Fx Fy Fz first) in base
-        # axes: the policy slides a free-space phase along a surface it meets (etar.policy)
-        force = R @ np.asarray(state["est_ext_tcp_ft"][:3], dtype=np.float64)
-        F, R_set = self.policy.step(x, R, None if self.hold else self._latest_phase, cycles * FRI_CYCLE_NS / 1e9, force)
+        # the policy holds stiffly where the tool is when it knows no phase; it takes the KRC's
+        # estimate of the external force (tcp axes, FRI order Fx Fy Fz first): it slides a
+        # free-space phase along a surface it meets (etar.policy)
+        F, R_set, x = self.policy.tool_step(state["msr_cart_pos"], state["est_ext_tcp_ft"][:3],
+                                            None if self.hold else self._latest_phase, cycles * FRI_CYCLE_NS / 1e9)
         # the force in tcp axes; FRI orders the torques Tz, Ty, Tx (all zero here)
-        add = (R.T @ F).tolist() + [0.0, 0.0, 0.0]
+        add = F.tolist() + [0.0, 0.0, 0.0]
         cart = self._cart_pos
         cart[:, :3] = R_set
         cart[:, 3] = x

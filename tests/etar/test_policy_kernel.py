@@ -50,10 +50,14 @@ def policies():
              np.array([0.45, 0.0, 0.20]), (0.62, 0.0, 0.30), 0)]
 
 
-def drive(policy, rng, start, first, steps=10_000):
+def drive(policy, rng, start, first, tool, steps=10_000):
     """The policy's answers to a tool that follows its reference (with a floor and a wall
-    it cannot pass, and noise), a phase estimate that changes now and then (None and unknown phases too),
-    a contact force, and cycles that are sometimes two long."""
+    it cannot pass, and noise), a phase estimate that changes now and then (None and
+    unknown phases too), a contact force, and cycles that are sometimes two long.  With
+    ``tool``, through ``tool_step``: the pose as 12 numbers and the force in tool axes,
+    the tool turned a little off DOWN."""
+    tilt = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(0.3), -np.sin(0.3)], [0.0, np.sin(0.3), np.cos(0.3)]])
+    R = DOWN @ tilt if tool else DOWN
     x = np.array(start) + rng.normal(0, 0.002, 3)
     phase = None
     n = len(policy.phases)
@@ -65,8 +69,13 @@ def drive(policy, rng, start, first, steps=10_000):
         # a floor at z = 0.20 and a wall at x = 0.45 push back
         force = np.array([12.0 * (x[0] < 0.4501), 0.0, 12.0 * (x[2] < 0.2001)]) + rng.normal(0, 0.5, 3)
         dt = 0.002 if rng.random() < 0.03 else 0.001
-        F, R = policy.step(x.copy(), DOWN, phase, dt, force)
-        yield k, F, R
+        if tool:
+            pose = np.concatenate([R, x[:, None]], axis=1).ravel().tolist()
+            F, R_set, at = policy.tool_step(pose, (R.T @ force).tolist(), phase, dt)
+            assert at.tolist() == x.tolist()
+        else:
+            F, R_set = policy.step(x.copy(), R, phase, dt, force)
+        yield k, F, R_set
         ref = policy.ref
         if ref is not None:  # a fifth of the way to the reference each cycle
             x = x + 0.2 * (ref - x)
@@ -76,8 +85,9 @@ def drive(policy, rng, start, first, steps=10_000):
             x = x + rng.normal(0, 0.01, 3)  # a jump: the aim's and the place's far branches
 
 
+@pytest.mark.parametrize("tool", [False, True], ids=["step", "tool_step"])
 @pytest.mark.parametrize("name,impedances,goal,start,first", policies(), ids=[p[0] for p in policies()])
-def test_the_compiled_step_is_the_python_step_bit_for_bit(name, impedances, goal, start, first):
+def test_the_compiled_step_is_the_python_step_bit_for_bit(name, impedances, goal, start, first, tool):
     from etar.policy_kernel import CompiledPolicy, compilable
 
     seen = set()
@@ -85,8 +95,8 @@ def test_the_compiled_step_is_the_python_step_bit_for_bit(name, impedances, goal
         python = ReproductionPolicy(impedances, goal, goal_tolerance=0.01)
         assert compilable(python)
         compiled = CompiledPolicy(ReproductionPolicy(impedances, goal, goal_tolerance=0.01))
-        for (k, F1, R1), (_, F2, R2) in zip(drive(python, np.random.default_rng(seed), start, first),
-                                            drive(compiled, np.random.default_rng(seed), start, first)):
+        for (k, F1, R1), (_, F2, R2) in zip(drive(python, np.random.default_rng(seed), start, first, tool),
+                                            drive(compiled, np.random.default_rng(seed), start, first, tool)):
             assert F1.tobytes() == F2.tobytes(), (name, seed, k, F1, F2)
             assert R1.tobytes() == R2.tobytes()
             assert (python.applied, python.goal_reached, python.phase) == (
