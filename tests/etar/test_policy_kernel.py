@@ -91,7 +91,7 @@ def test_the_compiled_step_is_the_python_step_bit_for_bit(name, impedances, goal
     from etar.policy_kernel import CompiledPolicy, compilable
 
     seen = set()
-    for seed in range(4):
+    for seed in range(2):
         python = ReproductionPolicy(impedances, goal, goal_tolerance=0.01)
         assert compilable(python)
         compiled = CompiledPolicy(ReproductionPolicy(impedances, goal, goal_tolerance=0.01))
