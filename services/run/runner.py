@@ -132,7 +132,12 @@ class Runner:
                         self.record.service_stats = self.cell.statistics(self.roles)
                         self.record.restarts = list(self.cell.restarts)
                         self.record.hosts = self.cell.where()
-                        codes = self.cell.stop(self.roles, before_report=True)
+                        try:
+                            codes = self.cell.stop(self.roles, before_report=True)
+                        except Exception as exc:  # noqa: BLE001 - a service that cannot finish: said, and the report still written
+                            stopping = f"stopping the services: {type(exc).__name__}: {exc}"
+                            self.say(f"run failed: {stopping}" if error is None else stopping)
+                            error = error or stopping
                 finally:
                     self.profile.release()
                 if self.profile.requested:

@@ -245,5 +245,12 @@ class InProcessCell:
         return {}
 
     def close(self) -> None:
+        """Close every node, even after one raised (the first error is raised after all)."""
+        first = None
         for node in self.nodes.values():
-            node.close()
+            try:
+                node.close()
+            except Exception as exc:  # noqa: BLE001 - re-raised below, once the others are closed
+                first = first or exc
+        if first is not None:
+            raise first

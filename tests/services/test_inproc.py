@@ -316,3 +316,27 @@ def test_progress_counts_each_stages_episodes_and_the_recordings_go_on_numbering
     assert done == ["reproduction 1/1", "reproduction 1/1"], lines
     assert [r["path"] for r in report["reproductions"]] == ["recordings/reproduction_00.mcap",
                                                             "recordings/reproduction_01.mcap"]
+
+
+def test_a_writer_process_that_dies_fails_the_run_once_and_the_report_is_still_written(tmp_path, monkeypatch):
+    """The MCAP writer's helper killed in the middle of a demonstration: the run fails,
+    says so in one line (stopping the recorder, which cannot finish its file either, used
+    to raise past the report), and its report names the cause."""
+    from services.recordings import offload
+
+    send, batches = offload.WriterProcess.send, []
+
+    def dying_send(self, batch):
+        batches.append(len(batch))
+        if len(batches) == 3:
+            self._proc.kill()
+            self._proc.wait()
+        send(self, batch)
+
+    monkeypatch.setattr(offload.WriterProcess, "send", dying_send)
+    lines = []
+    report = support.run(support.scenario("smoke", {"demonstrate.count": 1}), tmp_path / "run",
+                         progress=lines.append, transport="inproc")
+    assert "the MCAP writer process is gone" in report["error"], report["error"]
+    assert [line for line in lines if line.startswith("run failed")] == [f"run failed: {report['error']}"]
+    assert (tmp_path / "run" / "report.json").is_file() and (tmp_path / "run" / "report.txt").is_file()
