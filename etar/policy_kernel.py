@@ -10,7 +10,7 @@ product numpy computes through its BLAS (``a @ b`` of two vectors and
 function called from the kernel (``etar.blas``), and everything else is the same
 element-wise arithmetic in the same order (numba, like numpy, neither reorders nor
 fuses floating-point operations unless told to).  Checked against the Python step on
-random and recorded trajectories in ``tests/etar/test_policy_kernel.py``.
+trajectories through every branch in ``tests/etar/test_policy_kernel.py``.
 
 Where numpy's BLAS cannot be called (``etar.blas.AVAILABLE`` False), or a phase turns,
 ``compiled_policy`` returns the Python policy: the same numbers, more slowly.
@@ -39,7 +39,7 @@ P_DIR, P_K, P_D, P_FF, P_SPEED, P_PLACE, P_AIM = 0, 3, 12, 21, 24, 25, 28
 P_FLOATS = 31
 # the int state
 HAS_REF, HAS_PREV, HAS_STALL_FROM, HAS_LAST_D, PHASE, HANDED, VISITED, AT_PLACE, GOAL_REACHED, APPLIED, \
-    HAS_GOAL, N_PHASES, PHASE_IN, HAS_FORCE, TOOL_FRAME = range(15)
+    HAS_GOAL, PHASE_IN, HAS_FORCE, TOOL_FRAME = range(14)
 N_INT = 16
 # per phase: valid (a law, not None), in place, has a place, has an aim, free, successor (NONE: none)
 Q_VALID, Q_IN_PLACE, Q_HAS_PLACE, Q_HAS_AIM, Q_FREE, Q_SUCCESSOR = range(6)
@@ -54,15 +54,10 @@ def _dot(fn, base, i, j):
 
 
 @njit(**JIT, inline="always")
-def _gemv(fn, a, x, y):
-    """numpy's ``A @ x`` for the C-contiguous 3x3 ``A``, into ``y`` (addresses)."""
-    blas.call_gemv(fn, np.int32(blas.ROW_MAJOR), np.int32(blas.NO_TRANS), 3, 3, 1.0, a, 3, x, 1, 0.0, y, 1)
-
-
-@njit(**JIT, inline="always")
-def _gemv_rows(fn, a, lda, trans, x, y):
-    """numpy's ``R @ x`` (``R.T @ x`` with ``trans``) for the 3x3 ``R`` whose rows start
-    ``lda`` floats apart at ``a`` (the rotation in a (3, 4) pose), into ``y``."""
+def _gemv(fn, a, x, y, lda=3, trans=False):
+    """numpy's ``A @ x`` (``A.T @ x`` with ``trans``) for the 3x3 ``A`` whose rows start
+    ``lda`` floats apart at ``a`` (3: C-contiguous; 4: the rotation in a (3, 4) pose),
+    into ``y`` (addresses)."""
     blas.call_gemv(fn, np.int32(blas.ROW_MAJOR), np.int32(blas.TRANS if trans else blas.NO_TRANS), 3, 3, 1.0, a,
                    lda, x, 1, 0.0, y, 1)
 
@@ -73,12 +68,12 @@ def _step(dot_fn, gemv_fn, f_at, s_at, pf_at, pi_at, n_phases):
     f = carray_at(f_at, (N_FLOAT,))
     tool_frame = carray_at(s_at, (N_INT,)).view(np.int64)[TOOL_FRAME]
     if tool_frame:
-        _gemv_rows(gemv_fn, f_at + 8 * POSE, 4, False, f_at + 8 * TOOL_FORCE, f_at + 8 * FORCE)
+        _gemv(gemv_fn, f_at + 8 * POSE, f_at + 8 * TOOL_FORCE, f_at + 8 * FORCE, 4)
         for i in range(3):
             f[X + i] = f[POSE + 4 * i + 3]
     _law(dot_fn, gemv_fn, f_at, s_at, pf_at, pi_at, n_phases)
     if tool_frame:
-        _gemv_rows(gemv_fn, f_at + 8 * POSE, 4, True, f_at + 8 * F_OUT, f_at + 8 * TOOL_F_OUT)
+        _gemv(gemv_fn, f_at + 8 * POSE, f_at + 8 * F_OUT, f_at + 8 * TOOL_F_OUT, 4, True)
 
 
 @njit(**JIT, inline="always")
