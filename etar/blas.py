@@ -41,9 +41,10 @@ _NATIVE = {types.int32: ir.IntType(32), types.int64: ir.IntType(64), types.float
            types.void: ir.VoidType()}
 
 
-def _foreign(ret, *argtypes):
+def foreign(ret, *argtypes):
     """A numba intrinsic ``call(address, *args)`` of a C function of these types (numba's
-    int32, int64, float64; pointers as int64 addresses)."""
+    int32, int64, float64; pointers as int64 addresses): BLAS's here, MuJoCo's in
+    robot_sim.physics."""
 
     def codegen(context, builder, signature, llargs):
         fnty = ir.FunctionType(_NATIVE[ret], [_NATIVE[t] for t in argtypes])
@@ -58,13 +59,13 @@ def _foreign(ret, *argtypes):
 
 _I32, _I64, _F64 = types.int32, types.int64, types.float64
 # cblas_dgemv(order, trans, m, n, alpha, a, lda, x, incx, beta, y, incy)
-call_gemv = _foreign(types.void, _I32, _I32, _I64, _I64, _F64, _I64, _I64, _I64, _I64, _F64, _I64, _I64)
+call_gemv = foreign(types.void, _I32, _I32, _I64, _I64, _F64, _I64, _I64, _I64, _I64, _F64, _I64, _I64)
 # cblas_dsyrk(order, uplo, trans, n, k, alpha, a, lda, beta, c, ldc)
-call_syrk = _foreign(types.void, _I32, _I32, _I32, _I64, _I64, _F64, _I64, _I64, _F64, _I64, _I64)
+call_syrk = foreign(types.void, _I32, _I32, _I32, _I64, _I64, _F64, _I64, _I64, _F64, _I64, _I64)
 # dgesv_(&n, &nrhs, a, &lda, ipiv, b, &ldb, &info): every argument by address
-call_gesv = _foreign(types.void, _I64, _I64, _I64, _I64, _I64, _I64, _I64, _I64)
+call_gesv = foreign(types.void, _I64, _I64, _I64, _I64, _I64, _I64, _I64, _I64)
 # cblas_ddot(n, x, incx, y, incy): numpy's ``a @ b`` of two vectors, and np.linalg.norm's sum of squares
-call_dot = _foreign(types.float64, _I64, _I64, _I64, _I64, _I64)
+call_dot = foreign(types.float64, _I64, _I64, _I64, _I64, _I64)
 
 
 @njit(**JIT)
@@ -86,6 +87,18 @@ def int64_at(typingctx, addr):
         return builder.load(builder.inttoptr(args[0], ir.IntType(64).as_pointer()))
 
     return types.int64(addr), codegen
+
+
+@intrinsic
+def int32_at(typingctx, addr):
+    """The C int stored at the address ``addr`` (a field of a MuJoCo struct, in a kernel)."""
+    if not isinstance(addr, types.Integer):
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.load(builder.inttoptr(args[0], ir.IntType(32).as_pointer()))
+
+    return types.int32(addr), codegen
 
 
 def _library() -> tuple[ctypes.CDLL | None, str]:

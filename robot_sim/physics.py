@@ -15,10 +15,14 @@ numba kernels that reach the buffers through their addresses (``etar.kernels``).
 
 from __future__ import annotations
 
+import ctypes
+from pathlib import Path
+
 import mujoco
 import numpy as np
-from numba import njit
+from numba import njit, types
 
+from etar import blas
 from etar.kernels import JIT, HoldsAddresses, address, addresses, carray_at, entry
 from robot_sim.worlds import TIMESTEP, WorldSpec
 
@@ -78,9 +82,76 @@ def all_finite_at(addr, n):
     return True
 
 
+# mj_contactForce(const mjModel*, const mjData*, int id, mjtNum result[6])
+_call_contact_force = blas.foreign(types.void, types.int64, types.int64, types.int32, types.int64)
+
+
+@njit(**JIT)
+def _tip_contacts_at(ncon, contact_at, stride, geom1_off, geom2_off, frame_off, tip, contact_force_fn, model_at,
+                     data_at, gemv_fn, force6_at, force_at, total_at, others_at, max_others):
+    """``Simulation.contacts``'s loop over MuJoCo's contact array, reading the mjContact
+    structs where MuJoCo keeps them: the total force on the tip (world axes) into
+    ``total``, the other geoms' ids into ``others``; returns how many contacts touch the
+    tip.  Each contact's force through MuJoCo's own ``mj_contactForce``, its rotation to
+    world axes through the dgemv numpy's ``frame.reshape(3, 3).T @ f`` calls (row-major,
+    transposed, lda 3), the sum in the same order: the Python loop's bits."""
+    total = carray_at(total_at, (3,))
+    force = carray_at(force_at, (3,))
+    others = carray_at(others_at, (max_others,))
+    total[:] = 0.0
+    count = 0
+    for k in range(ncon):
+        record = contact_at + k * stride
+        g1, g2 = blas.int32_at(record + geom1_off), blas.int32_at(record + geom2_off)
+        if g1 == tip:
+            other = g2
+        elif g2 == tip:
+            other = g1
+        else:
+            continue
+        _call_contact_force(contact_force_fn, model_at, data_at, np.int32(k), force6_at)
+        blas.call_gemv(gemv_fn, np.int32(blas.ROW_MAJOR), np.int32(blas.TRANS), 3, 3, 1.0, record + frame_off, 3,
+                       force6_at, 1, 0.0, force_at, 1)
+        if g2 == tip:
+            for i in range(3):
+                total[i] += force[i]
+        else:
+            for i in range(3):
+                total[i] -= force[i]
+        if count < max_others:
+            others[count] = other
+        count += 1
+    return count
+
+
+def _mujoco_function(name: str) -> tuple[int, str]:
+    """The address of a function of MuJoCo's C library as the bindings loaded it (0 and
+    why not): the file mapped from beside the ``mujoco`` package in this process."""
+    here = Path(mujoco.__file__).resolve().parent
+    try:
+        maps = Path("/proc/self/maps").read_text()
+    except OSError as e:  # not Linux
+        return 0, f"cannot see which libraries this process loaded ({e})"
+    for line in maps.splitlines():
+        path = Path(line.split(maxsplit=5)[-1])
+        if path.parent == here and path.name.startswith("libmujoco.so"):
+            try:
+                return ctypes.cast(getattr(ctypes.CDLL(str(path)), name), ctypes.c_void_p).value or 0, ""
+            except (OSError, AttributeError) as e:
+                return 0, f"{path.name}: {e}"
+    return 0, f"MuJoCo's library is not mapped from {here} in this process"
+
+
+_CONTACT_FORCE, WHY_NO_CONTACT_KERNEL = _mujoco_function("mj_contactForce")
+if _CONTACT_FORCE and not blas.AVAILABLE:
+    _CONTACT_FORCE, WHY_NO_CONTACT_KERNEL = 0, blas.WHY
+# the geom ids of the contacts on the tip a kernel call can report; more go the Python way
+_MAX_TIP_CONTACTS = 64
+
 _apply_forces = entry(_applied_forces, f"{addresses(6)}, boolean, {addresses(4)}")
 _sensed = entry(_sensed_at, addresses(9))
 all_finite = entry(all_finite_at, addresses(2))
+_tip_contacts = entry(_tip_contacts_at, addresses(16)) if _CONTACT_FORCE else None
 
 
 class PhysicsError(RuntimeError):
@@ -109,6 +180,12 @@ class Simulation(HoldsAddresses):
         self._geom_names = [m.geom(i).name for i in range(m.ngeom)]
         self._hand_qfrc = np.zeros(m.nv)
         self._contact6 = np.zeros(6)
+        # the contact kernel's buffers, and where MuJoCo keeps the contacts (found at the
+        # first contact: d->contact is the arena's start, for the life of the MjData)
+        self._contact_force3 = np.zeros(3)
+        self._contact_total = np.zeros(3)
+        self._tip_others = np.zeros(_MAX_TIP_CONTACTS)
+        self._contact_layout: tuple[int, ...] | None = None
         self._tau = np.zeros(7)
         self._hand_wrench = np.zeros(6)
         # the per-step arrays, viewed once: each index or slice would make a new array
@@ -135,7 +212,10 @@ class Simulation(HoldsAddresses):
                     "flange": address(d.site_xpos[self._flange_site]), "chain": address(chain),
                     "wrench": address(self._hand_wrench), "tau": address(self._tau), "hand": address(self._hand_qfrc),
                     "applied": address(d.qfrc_applied), "qacc": address(d.qacc),
-                    "sensordata": address(d.sensordata), "constraint": address(d.qfrc_constraint)}
+                    "sensordata": address(d.sensordata), "constraint": address(d.qfrc_constraint),
+                    "model": m._address, "data": d._address, "contact6": address(self._contact6),
+                    "force3": address(self._contact_force3), "total": address(self._contact_total),
+                    "others": address(self._tip_others)}
 
     @property
     def time(self) -> float:
@@ -232,7 +312,34 @@ class Simulation(HoldsAddresses):
     def contacts(self) -> tuple[np.ndarray, set, list[str]]:
         """What the tool tip touches, read once: the total force the environment
         exerts on it (world axes), the roles ('plate', 'coupler') of the geoms
-        touched and their names."""
+        touched and their names.  One kernel call over MuJoCo's contact array where
+        MuJoCo's library and numpy's BLAS can be called from one (``contacts_numpy``
+        otherwise: the same numbers)."""
+        n = self.data.ncon
+        if n == 0 or _tip_contacts is None:
+            return self.contacts_numpy()
+        layout = self._contact_layout or self._locate_contacts()
+        at = self._at
+        count = _tip_contacts(n, *layout, self._tip_geom, _CONTACT_FORCE, at["model"], at["data"], blas.GEMV,
+                              at["contact6"], at["force3"], at["total"], at["others"], _MAX_TIP_CONTACTS)
+        if count > _MAX_TIP_CONTACTS:
+            return self.contacts_numpy()
+        others = self._tip_others[:count].tolist()
+        roles = {self._role_of_geom.get(int(g), "other") for g in others}
+        return self._contact_total.copy(), roles, [self._geom_names[int(g)] for g in others]
+
+    def _locate_contacts(self) -> tuple[int, ...]:
+        """Where the contact array is and where an mjContact keeps the fields the kernel
+        reads, from the bindings' views of the first contact (there must be one)."""
+        c = self.data.contact
+        start = c.dist.__array_interface__["data"][0]  # dist: the struct's first field
+        self._contact_layout = (start, c.geom1.strides[0], c.geom1.__array_interface__["data"][0] - start,
+                                c.geom2.__array_interface__["data"][0] - start,
+                                c.frame.__array_interface__["data"][0] - start)
+        return self._contact_layout
+
+    def contacts_numpy(self) -> tuple[np.ndarray, set, list[str]]:
+        """``contacts`` through the bindings and numpy, contact by contact."""
         total = np.zeros(3)
         roles = set()
         names = []

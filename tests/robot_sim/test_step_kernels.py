@@ -170,3 +170,55 @@ def test_what_holds_its_buffers_addresses_refuses_to_be_copied():
         for how in (copy.copy, copy.deepcopy, pickle.dumps):
             with pytest.raises(TypeError, match=f"{type(thing).__name__} holds the addresses of its own buffers"):
                 how(thing)
+
+
+def _tip_contact_states(world, centre, spread, n, seed):
+    """Simulations with the tool tip placed (by IK, then mj_forward) at random points
+    around ``centre``: those where it touches something."""
+    from robot_sim.cell import RobotCell
+
+    cell = RobotCell(world, seed=0, with_sensor=False)
+    rng = np.random.default_rng(seed)
+    down = np.diag([1.0, -1.0, -1.0])
+    for _ in range(n):
+        try:
+            cell.place_tcp(np.asarray(centre) + rng.uniform(-1.0, 1.0, 3) * spread, down)
+        except ValueError:  # out of reach with the tool pointing down
+            continue
+        if cell.sim.data.ncon:
+            yield cell.sim
+
+
+def test_the_contact_kernel_reads_what_the_python_loop_reads():
+    """``Simulation.contacts`` (one kernel over MuJoCo's contact array, mj_contactForce and
+    numpy's dgemv by address) gives ``contacts_numpy``'s bits: in the valley (the tip
+    between two plates), in the coupler (the floor and the walls), and on a plane, where
+    MuJoCo orders the tip second in the contact (the plates and the coupler order it
+    first: the force's sign flips)."""
+    from robot_sim import physics
+    from robot_sim.worlds import WorldSpec, hose_coupler
+
+    if physics._tip_contacts is None:
+        pytest.skip(f"no contact kernel here: {physics.WHY_NO_CONTACT_KERNEL}")
+    plane = free_space()
+    plane = WorldSpec("plane", plane.xml.replace(
+        "<worldbody>", '<worldbody>\n    <geom name="table" type="plane" pos="0.55 0 0.2" size="0.3 0.3 0.01" '
+        'contype="1" conaffinity="2" condim="4"/>', 1), None, {"table": "plate"})
+    seen = {"tip first": 0, "tip second": 0, "two or more on the tip": 0}
+    for world, centre, spread in ((valley(), (0.55, 0.0, 0.20), (0.2, 0.05, 0.02)),
+                                  (hose_coupler(), (0.55, 0.0, 0.20), (0.03, 0.03, 0.02)),
+                                  (plane, (0.55, 0.0, 0.20), (0.1, 0.1, 0.005))):
+        states = 0
+        for sim in _tip_contact_states(world, centre, spread, 60, seed=len(world.name)):
+            contact, tip = sim.data.contact, sim._tip_geom
+            firsts, seconds = int(np.sum(contact.geom1 == tip)), int(np.sum(contact.geom2 == tip))
+            seen["tip first"] += firsts
+            seen["tip second"] += seconds
+            seen["two or more on the tip"] += firsts + seconds >= 2
+            force, roles, names = sim.contacts()
+            expected_force, expected_roles, expected_names = sim.contacts_numpy()
+            assert force.tobytes() == expected_force.tobytes(), (world.name, force, expected_force)
+            assert (roles, names) == (expected_roles, expected_names)
+            states += 1
+        assert states >= 10, f"{world.name}: the tip touched something in {states} of 60 placements"
+    assert all(seen.values()), seen
