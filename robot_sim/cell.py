@@ -233,13 +233,17 @@ class RobotCell(HoldsAddresses):
         self._joint_noise_i = i + 1
         np.multiply(self._joint_noise_block[i], self.joint_noise, out=self._q_msr)
         self._q_msr += self._q
-        kin.update(self._q_msr)
+        if _EXTERNAL_WRENCH is not None:
+            kin.update_with_jacobian(self._q_msr, "tcp", self._wrench_scratch.jacobian)
+            wrench = self._wrench_scratch.solve(_EXTERNAL_WRENCH)
+        else:
+            kin.update(self._q_msr)
+            wrench = self._external_wrench_tcp()
         R, p = kin.frame_views("tcp")
         cart = self._cart_pos
         cart[:, :3] = R
         cart[:, 3] = p
-        m = self.fri.measurement(self.t_ns, self._q_msr, cart.reshape(12),
-                                 standard_to_fri(self._external_wrench_tcp()))
+        m = self.fri.measurement(self.t_ns, self._q_msr, cart.reshape(12), standard_to_fri(wrench))
         self._last_measurement = m
         return m
 

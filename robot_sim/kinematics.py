@@ -46,6 +46,8 @@ def _load_pinocchio_inplace():
 
 
 PINOCCHIO_INPLACE, PINOCCHIO_INPLACE_MISSING = _load_pinocchio_inplace()
+# an extension built before it had this function (an older install) is still used for the rest
+_MEASURED_KINEMATICS = getattr(PINOCCHIO_INPLACE, "measured_kinematics", None)
 
 FRAMES = ("flange", "ati_sensor", "tool", "tcp")
 
@@ -87,6 +89,17 @@ class ArmKinematics:
             pin.forwardKinematics(self.model, self.data, q, qd)
         pin.computeJointJacobians(self.model, self.data, q)
         pin.updateFramePlacements(self.model, self.data)
+
+    def update_with_jacobian(self, q: np.ndarray, frame: str, out: np.ndarray) -> None:
+        """``update(q)``, then the frame's Jacobian in its own axes (LOCAL) into ``out``, a
+        C-contiguous (6, nv) float64 array: what a cycle's measurement needs, in one call
+        to robot_sim._pinocchio_inplace where it has it (the same algorithms, the same bits;
+        the bindings copy q into each of their three calls and return a new array)."""
+        if _MEASURED_KINEMATICS is not None:
+            _MEASURED_KINEMATICS(self.model, self.data, q, self.frame_ids[frame], out.T)
+        else:
+            self.update(q)
+            np.copyto(out, pin.getFrameJacobian(self.model, self.data, self.frame_ids[frame], pin.ReferenceFrame.LOCAL))
 
     def update_frames(self, q: np.ndarray) -> None:
         """Only the frame placements at q (no Jacobians): what drawing the arm needs."""

@@ -12,6 +12,8 @@
 // layout of Model and Data must be that of the loaded Pinocchio, so the module
 // carries the version it was built against and robot_sim.kinematics checks it.
 
+#include <stdexcept>
+
 #include <pinocchio/multibody.hpp>
 #include <pinocchio/algorithm/compute-all-terms.hpp>
 #include <pinocchio/algorithm/frames.hpp>
@@ -35,6 +37,29 @@ static void compute_all_terms(const pinocchio::Model &model, pinocchio::Data &da
   pinocchio::updateFramePlacements(model, data);
 }
 
+// a C-contiguous (6, nv) numpy array, seen by eigenpy through its transpose: a
+// column-major (nv, 6) matrix (eigenpy maps column-major Refs in place)
+typedef Eigen::Ref<Eigen::MatrixXd> TransposedJacobianRef;
+
+// What the measurement of a cycle asks of Pinocchio, in one call, bit for bit: what
+// pinocchio.forwardKinematics(q), computeJointJacobians(q) and updateFramePlacements
+// leave in data, and what getFrameJacobian(frame, LOCAL) would return, written into J
+// (6 x nv, a C-contiguous float64 array, passed as its transpose) instead of a new
+// array.  Four calls through the bindings copied q three times and allocated the result.
+static void measured_kinematics(const pinocchio::Model &model, pinocchio::Data &data,
+                                const ConstVectorRef &q, pinocchio::FrameIndex frame,
+                                TransposedJacobianRef JT) {
+  if (JT.rows() != model.nv || JT.cols() != 6)
+    throw std::invalid_argument("measured_kinematics: J must be a C-contiguous (6, nv) float64 array, "
+                                "passed as J.T");
+  pinocchio::forwardKinematics(model, data, q);
+  pinocchio::computeJointJacobians(model, data, q);
+  pinocchio::updateFramePlacements(model, data);
+  auto J = JT.transpose();
+  J.setZero();  // the binding's result starts at zero; columns outside the frame's support stay so
+  pinocchio::getFrameJacobian(model, data, frame, pinocchio::LOCAL, J);
+}
+
 BOOST_PYTHON_MODULE(_pinocchio_inplace) {
   // Pinocchio's module registers the Model/Data classes and eigenpy's converters
   bp::import("pinocchio");
@@ -43,4 +68,9 @@ BOOST_PYTHON_MODULE(_pinocchio_inplace) {
           (bp::arg("model"), bp::arg("data"), bp::arg("q"), bp::arg("v")),
           "computeAllTerms(model, data, q, v) and updateFramePlacements(model, data), "
           "with M symmetrised; q and v are read in place when contiguous float64.");
+  bp::def("measured_kinematics", &measured_kinematics,
+          (bp::arg("model"), bp::arg("data"), bp::arg("q"), bp::arg("frame"), bp::arg("JT")),
+          "forwardKinematics(model, data, q), computeJointJacobians(model, data, q), "
+          "updateFramePlacements(model, data), and getFrameJacobian(model, data, frame, LOCAL) "
+          "written into J, a C-contiguous (6, nv) float64 array passed as J.T.");
 }

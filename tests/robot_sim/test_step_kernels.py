@@ -222,3 +222,27 @@ def test_the_contact_kernel_reads_what_the_python_loop_reads():
             states += 1
         assert states >= 10, f"{world.name}: the tip touched something in {states} of 60 placements"
     assert all(seen.values()), seen
+
+
+def test_update_with_jacobian_leaves_what_the_bindings_leave(kin):
+    """One call to the extension (forwardKinematics, computeJointJacobians,
+    updateFramePlacements, getFrameJacobian LOCAL into a buffer) against the four calls
+    through Pinocchio's bindings, on another Data: the same bits, in the Jacobian and in
+    every frame placement and joint Jacobian it leaves."""
+    from robot_sim import kinematics
+
+    if kinematics._MEASURED_KINEMATICS is None:
+        pytest.skip(f"no extension here: {kinematics.PINOCCHIO_INPLACE_MISSING or 'an older build'}")
+    reference = kin.model.createData()
+    out = np.full((6, 7), np.nan)
+    for q, _ in random_states(200, seed=3):
+        for frame in FRAMES:
+            kin.update_with_jacobian(q, frame, out)
+            pin.forwardKinematics(kin.model, reference, q)
+            pin.computeJointJacobians(kin.model, reference, q)
+            pin.updateFramePlacements(kin.model, reference)
+            expected = pin.getFrameJacobian(kin.model, reference, kin.frame_ids[frame], LOCAL)
+            assert out.tobytes() == expected.tobytes(), frame
+            assert kin.data.J.tobytes() == reference.J.tobytes()
+            for mine, theirs in zip(kin.data.oMf, reference.oMf):
+                assert mine.homogeneous.tobytes() == theirs.homogeneous.tobytes()
