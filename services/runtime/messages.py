@@ -311,7 +311,11 @@ def _check_scalar(where: str, base: str, x) -> None:
     elif base == "float":
         if isinstance(x, bool) or not isinstance(x, (int, float)):
             raise MessageError(f"{where} must be a number, got {x!r}")
-        if not math.isfinite(x):
+        try:
+            finite = math.isfinite(x)
+        except OverflowError:  # JSON's integers have no bound: 1 and 400 zeros is valid JSON
+            raise MessageError(f"{where} is an integer of {len(str(abs(x)))} digits, too large for a float") from None
+        if not finite:
             raise MessageError(f"{where} is {x!r}")
     elif base == "bool":
         if not isinstance(x, bool):
