@@ -299,10 +299,11 @@ class RobotCell(HoldsAddresses):
     def receive(self, command: CommandPacket, t_arrival_ns: int) -> bool:
         return self.fri.receive(command, t_arrival_ns)
 
-    def deliver(self, command: CommandPacket, t_sent_ns: int) -> bool:
+    def deliver(self, command: CommandPacket, t_sent_ns: int, *, owned: bool = False) -> bool:
         """A command sent at ``t_sent_ns`` through the link's fault model (loss, delay,
-        corruption; ``faults``), then received; without faults the same as ``receive``."""
-        return self.fri.deliver(command, t_sent_ns)
+        corruption; ``faults``), then received; without faults the same as ``receive``
+        (``owned``: see ``FriLink.receive``)."""
+        return self.fri.deliver(command, t_sent_ns, owned=owned)
 
     def end_cycle(self, hand_wrench: np.ndarray | None = None) -> CycleResult:
         before = self.fri.last_applied

@@ -797,8 +797,10 @@ class FriLink:
         self.last_reject_reason = reason
         return False
 
-    def receive(self, packet: CommandPacket, t_ns: int) -> bool:
-        """A command packet arrives at ``t_ns``.  True if accepted as this cycle's answer."""
+    def receive(self, packet: CommandPacket, t_ns: int, *, owned: bool = False) -> bool:
+        """A command packet arrives at ``t_ns``.  True if accepted as this cycle's answer.
+        ``owned``: the caller made the packet for this call, float64 arrays nobody else
+        holds and a ControlMode (what ``CommandPacket.copy`` makes): it is kept as it is."""
         t_ns = int(t_ns)
         if self._state == FriState.OFF:
             return self._reject("link is OFF")
@@ -831,7 +833,7 @@ class FriLink:
                     self._duplicate += 1
                     return self._reject(f"duplicate answer to seq {s}")
                 # A copy: the sender may reuse its buffers, the wire would not share them.
-                self._cur_cmd = packet.copy()
+                self._cur_cmd = packet if owned else packet.copy()
                 self._cur_lat = latency
                 self.last_reject_reason = ""
                 return True
@@ -850,10 +852,11 @@ class FriLink:
             self._lat_sq += latency * latency
         return self._reject(f"answer to seq {s} arrived after its cycle closed (current seq {self._seq})")
 
-    def deliver(self, packet: CommandPacket, t_sent_ns: int) -> bool:
-        """Send ``packet`` from the remote at ``t_sent_ns`` through the fault hook, then ``receive`` it."""
+    def deliver(self, packet: CommandPacket, t_sent_ns: int, *, owned: bool = False) -> bool:
+        """Send ``packet`` from the remote at ``t_sent_ns`` through the fault hook, then
+        ``receive`` it (``owned`` as there; through the faults, each arrival is copied)."""
         if self.faults is None:
-            return self.receive(packet, t_sent_ns)
+            return self.receive(packet, t_sent_ns, owned=owned)
         accepted = False
         # each arrival is judged by its arrival time against the cycle it reaches: a copy
         # within the deadline is a duplicate, a packet held back past it is late

@@ -489,11 +489,13 @@ class RobotNode(Node):
                 ep.last_estimate = est
             stamp = m.stamp_ns - (m.seq - seq) * cell.cycle_ns
             arrival = stamp + (LOCKSTEP_LATENCY_NS if self.lockstep else recv - sent_at)
-            cell.deliver(CommandPacket(seq=msg["seq"], cart_pos=np.array(msg["cart_pos"]),
-                                       cart_stiffness=np.array(msg["cart_stiffness"]),
-                                       cart_damping=np.array(msg["cart_damping"]),
-                                       add_tcp_ft=np.array(msg["add_tcp_ft"]),
-                                       requested_mode=ControlMode(msg["requested_mode"])), arrival)
+            # made here from the message's lists, in float64 as the link's copy would be: the
+            # link keeps this packet instead of copying it again
+            cell.deliver(CommandPacket(seq=msg["seq"], cart_pos=np.array(msg["cart_pos"], dtype=np.float64),
+                                       cart_stiffness=np.array(msg["cart_stiffness"], dtype=np.float64),
+                                       cart_damping=np.array(msg["cart_damping"], dtype=np.float64),
+                                       add_tcp_ft=np.array(msg["add_tcp_ft"], dtype=np.float64),
+                                       requested_mode=ControlMode(msg["requested_mode"])), arrival, owned=True)
             if seq == m.seq:
                 goal_reached = bool(msg["goal_reached"])
                 if goal_reached and ep.goal_at < 0:

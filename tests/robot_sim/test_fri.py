@@ -160,6 +160,18 @@ def test_receive_keeps_its_own_copy_of_the_command():
     np.testing.assert_array_equal(out.command.cart_stiffness, STIFF)
 
 
+def test_receive_keeps_an_owned_command_without_copying_it():
+    """owned: the caller made the packet for the link (the robot node, from a message's
+    lists), so the link keeps that very packet; a copy would be the same numbers."""
+    b = Bench()
+    b.to_cmd()
+    link = b.link
+    m = link.measurement(b.t, Q, POSE, FT)
+    cmd = answer(m)
+    assert link.receive(cmd, b.t + 100, owned=True)
+    assert link.end_cycle(b.t + CYCLE).command is cmd
+
+
 # --------------------------------------------------------------- state machine
 def test_mon_to_cmd_only_after_request_and_perfect_hold():
     b = Bench()
