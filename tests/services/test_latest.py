@@ -116,3 +116,28 @@ def test_latest_every_tenth_takes_the_newest_tenth_cycle(link):
     assert wait_for(lambda: seen[-1] == 60)
     assert seen[0] == 10 and seen[-1] == 60 and len(seen) <= 3  # 50 at most in between, never 20-40
     assert all(s % 10 == 0 for s in seen)
+
+
+@pytest.mark.parametrize("latest", [True, False])
+def test_a_foreign_message_that_does_not_decode_leaves_the_subscription_working(link, latest):
+    """A float field holding 1 and 400 zeros (valid JSON) is counted bad, and the messages
+    after it are delivered: it raised OverflowError out of the decoder, which ended the
+    latest subscriber's drain thread, so the subscription went silent for good."""
+    import json
+
+    svc, run_id, session = link
+    seen = []
+    svc.subscribe("robot/contact", lambda msg, recv_ns, raw: seen.append(msg["seq"]), latest=latest)
+    pub = session.declare_publisher(topics.key(run_id, "robot/contact"))
+    assert wait_until_matched(pub)
+    pub.put(contact(1))
+    assert wait_for(lambda: seen == [1])
+    bad = json.loads(contact(2))
+    bad["contact_force"][0] = 10**400
+    pub.put(json.dumps(bad).encode())
+    assert wait_for(lambda: svc.links["robot/contact"].bad == 1)
+    for seq in range(3, 6):
+        pub.put(contact(seq))
+        assert wait_for(lambda: seen[-1] == seq)
+    assert seen == [1, 3, 4, 5]
+    assert "too large for a float" in svc.links["robot/contact"].last_error
