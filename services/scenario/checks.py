@@ -78,6 +78,9 @@ def _join(prefix: str, path: str) -> str:
 # count: 1000000000000 was accepted and grew the runner's memory at 44 MB/s
 MAX_EPISODES = 10_000  # per stage
 MAX_EPISODE_SECONDS = 3600.0  # simulated, per episode
+# a learn stage's effort: past these a fit would take days, so the number is a typo
+MAX_RESTARTS = 1_000
+MAX_EM_ITERATIONS = 100_000
 
 
 def _bound_text(minimum: float | None, strict: bool) -> str:
@@ -117,7 +120,11 @@ def _number(value: Any, name: str, minimum: float | None = None, strict: bool = 
     expected = f"expected a finite number{_bound_text(minimum, strict)}"
     if not isinstance(value, (int, float, np.integer, np.floating)) or isinstance(value, (bool, np.bool_)):
         raise ScenarioError(expected, path=name, value=value)
-    x = float(value)
+    try:
+        x = float(value)
+    except OverflowError:  # YAML's integers have no bound
+        raise ScenarioError(f"{expected}; this integer has {len(str(abs(int(value))))} digits",
+                            path=name, value="an integer too large for a float") from None
     if not math.isfinite(x) or (minimum is not None and (x <= minimum if strict else x < minimum)):
         raise ScenarioError(expected, path=name, value=value)
     return x

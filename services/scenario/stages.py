@@ -11,7 +11,7 @@ from typing import Any, Union
 
 from robot_sim.fri import LinkFaultError, LinkFaultSpec
 from robot_sim.worlds import HoseCoupler, Valley
-from services.scenario.checks import (CRITERIA, MAX_EPISODE_SECONDS, MAX_EPISODES, SELECTIONS, ScenarioError, Xyz, _bool, _candidates,
+from services.scenario.checks import (CRITERIA, MAX_EM_ITERATIONS, MAX_EPISODE_SECONDS, MAX_EPISODES, MAX_RESTARTS, SELECTIONS, ScenarioError, Xyz, _bool, _candidates,
                                       _choice, _int, _number, _phases, _seconds, _seed, _set, _sides, _transitions,
                                       _xyz)
 from services.scenario.starts import DEMONSTRATE_SEED_OFFSET, REPRODUCE_SEED_OFFSET
@@ -119,8 +119,8 @@ class LearnStage:
     criterion: str = doc('bic | aic', "bic")
     selection: str = doc('per_demonstration (each demonstration chooses, the majority wins: thesis 6.1) | pooled (one score over all demonstrations)', "per_demonstration")
     transitions: str | tuple[str, ...] = doc("effect (ETAR) | state (STAR), or a list of both: the first is the run's model and alone chooses the number of phases, each further one is fitted with that number and every one is scored against the true phases", ("effect",))
-    restarts: int = doc('EM restarts, int >= 1 (the best is kept)', 4)
-    max_iter: int = doc('EM iterations per restart, int >= 1', 200)
+    restarts: int = doc(f'EM restarts, 1..{MAX_RESTARTS} (the best is kept)', 4)
+    max_iter: int = doc(f'EM iterations per restart, 1..{MAX_EM_ITERATIONS}', 200)
     seed: int | None = doc("int >= 0; default the scenario's seed", None)
 
     @property
@@ -138,8 +138,8 @@ class LearnStage:
         _set(self, "criterion", _choice(self.criterion, "criterion", CRITERIA))
         _set(self, "selection", _choice(self.selection, "selection", SELECTIONS))
         _set(self, "transitions", _transitions(self.transitions, "transitions"))
-        _set(self, "restarts", _int(self.restarts, "restarts", 1))
-        _set(self, "max_iter", _int(self.max_iter, "max_iter", 1))
+        _set(self, "restarts", _int(self.restarts, "restarts", 1, MAX_RESTARTS))
+        _set(self, "max_iter", _int(self.max_iter, "max_iter", 1, MAX_EM_ITERATIONS))
         if self.seed is not None:
             _set(self, "seed", _seed(self.seed, "seed"))
 

@@ -223,6 +223,13 @@ ERROR_CASES = {
     "NaN": (
         MINIMAL.replace("count: 2", "count: 2\n      start_spread: .nan"), "stages[0].demonstrate.start_spread",
         "expected a finite number >= 0", "nan"),
+    "an integer past float64's range": (
+        MINIMAL.replace("count: 2", "count: 2\n      start: [1%s, 0.0, 0.4]" % ("0" * 400)),
+        "stages[0].demonstrate.start[0]", "expected a finite number; this integer has 401 digits",
+        "'an integer too large for a float'"),
+    "restarts past the bound": (
+        MINIMAL.replace("  - learn:", "  - learn:\n      restarts: 1%s" % ("0" * 400)), "stages[1].learn.restarts",
+        "expected an integer >= 1 and <= 1000", "1" + "0" * 400),
     "infinity in start": (
         MINIMAL.replace("count: 2", "count: 2\n      start: [0.7, .inf, 0.4]"), "stages[0].demonstrate.start[1]",
         "expected a finite number", "inf"),
