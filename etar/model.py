@@ -51,6 +51,15 @@ class FitReport:
     restart_objectives: tuple
 
 
+def _finite(value) -> bool:
+    """``math.isfinite``, False rather than OverflowError for an integer past float64's range
+    (a model file's JSON may hold one)."""
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
+
+
 class ETAR:
     """Effect-of-action based transitions auto-regressive HMM (thesis section 4).
 
@@ -80,9 +89,9 @@ class ETAR:
         if solver not in ("gd", "lbfgs"):
             raise ValueError(f"solver must be 'gd' or 'lbfgs', got {solver!r}")
         for name, value in (("w_l2", w_l2), ("sigma_prior_weight", sigma_prior_weight), ("ab_prior", ab_prior)):
-            if not (value >= 0 and math.isfinite(value)):
+            if not (value >= 0 and _finite(value)):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-        if sigma_prior_scale is not None and not (sigma_prior_scale > 0 and math.isfinite(sigma_prior_scale)):
+        if sigma_prior_scale is not None and not (sigma_prior_scale > 0 and _finite(sigma_prior_scale)):
             raise ValueError(f"sigma_prior_scale must be > 0 or None, got {sigma_prior_scale!r}")
         if n_restarts < 1:
             raise ValueError(f"n_restarts must be >= 1, got {n_restarts!r}")
@@ -416,13 +425,15 @@ class ETAR:
             raise ValueError(f"{source}: field 'version' is {data['version']!r}; this library reads {FORMAT_VERSION}")
         try:
             model = cls(need("n_phases"), need("transitions"), **data.get("hyperparameters", {}))
-        except TypeError as exc:
+        except TypeError as exc:  # an unknown hyperparameter
             raise ValueError(f"{source}: field 'hyperparameters': {exc}") from None
+        except ValueError as exc:  # a bad value: the message names its key
+            raise ValueError(f"{source}: {exc}") from None
         params = need("parameters")
         for key in ("A", "B", "Sigma", "W"):
             try:
                 setattr(model, key, np.array(need(key, params, "parameters."), dtype=np.float64))
-            except (TypeError, ValueError) as exc:
+            except (TypeError, ValueError, OverflowError) as exc:  # JSON's integers have no bound
                 raise ValueError(f"{source}: field 'parameters.{key}' is not a numeric array ({exc})") from None
         goal = params.get("goal")
         model.goal = None if goal is None else np.array(goal, dtype=np.float64)

@@ -71,6 +71,11 @@ def test_save_load_round_trip_is_exact(tmp_path, task_and_demos):
         (lambda d: d.update(version=99), "field 'version'"),
         (lambda d: d["parameters"].update(A="abc"), r"parameters.A"),
         (lambda d: d["parameters"].update(W=[[0.0]]), "W must have shape"),
+        # JSON's integers have no bound: one past float64's range, in the arrays and in a
+        # hyperparameter (both raised OverflowError; a bad hyperparameter's message lacked the file)
+        (lambda d: d["parameters"]["A"][0][0].__setitem__(0, 10**400), r"parameters.A' is not a numeric array"),
+        (lambda d: d["hyperparameters"].update(w_l2=10**400), "w_l2 must be a finite number >= 0"),
+        (lambda d: d["hyperparameters"].update(ab_prior=-1.0), "ab_prior must be a finite number >= 0"),
     ],
 )
 def test_corrupt_model_file_names_file_and_field(tmp_path, task_and_demos, mutate, match):
