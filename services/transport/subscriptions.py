@@ -107,6 +107,11 @@ def subscribe(session, run_id: str, topic: str, on_message, links: dict, profile
                 counters.bad += 1
                 counters.last_error = str(exc)
                 return
+            except Exception as exc:  # noqa: BLE001 - a decoder's own bug (tests/services/test_fuzz.py
+                # looks for them) must not end a latest subscriber's drain thread: counted, named
+                counters.bad += 1
+                counters.last_error = f"{type(exc).__name__} while decoding: {exc}"
+                return
             counters.latency.add(recv - msg["sent_ns"])
             verdict = counters.sequence.add(msg["seq"])
             if verdict is STALE:

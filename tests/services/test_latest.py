@@ -141,3 +141,31 @@ def test_a_foreign_message_that_does_not_decode_leaves_the_subscription_working(
         assert wait_for(lambda: seen[-1] == seq)
     assert seen == [1, 3, 4, 5]
     assert "too large for a float" in svc.links["robot/contact"].last_error
+
+
+def test_a_decoder_that_fails_unexpectedly_does_not_end_the_subscription(link, monkeypatch):
+    """Whatever a decoder raises besides MessageError (a bug of ours) is counted as a bad
+    message and named; the latest subscriber's drain thread goes on."""
+    from services.runtime.messages import MessageType
+
+    svc, run_id, session = link
+    seen = []
+    real = MessageType.decode
+
+    def flaky(self, raw):
+        if b'"seq":2,' in raw:
+            raise ZeroDivisionError("a decoder bug")
+        return real(self, raw)
+
+    monkeypatch.setattr(MessageType, "decode", flaky)
+    svc.subscribe("robot/contact", lambda msg, recv_ns, raw: seen.append(msg["seq"]), latest=True)
+    pub = session.declare_publisher(topics.key(run_id, "robot/contact"))
+    assert wait_until_matched(pub)
+    for seq in range(1, 5):
+        pub.put(contact(seq))
+        if seq == 2:
+            assert wait_for(lambda: svc.links["robot/contact"].bad == 1)
+        else:
+            assert wait_for(lambda: seen[-1:] == [seq])
+    assert seen == [1, 3, 4]
+    assert svc.links["robot/contact"].last_error == "ZeroDivisionError while decoding: a decoder bug"
