@@ -227,10 +227,17 @@ def test_pynetft_bias_zeroes_the_reading_in_the_box():
     last_unbiased = received[-len(biased) - 1].ft_sequence
     assert any(np.array_equal(feed.log[k].counts, offset) for k in range(last_unbiased + 1, biased[0].ft_sequence + 1))
     ft = np.array([s.ft_sequence for s in received])
-    # in order; the client's own queue may drop a few on a busy machine (seen with its lost_count
-    # at 0: not the wire's), never many
-    assert np.all(np.diff(ft) >= 1) and np.sum(np.diff(ft) - 1) <= 0.01 * len(ft), np.diff(ft)
-    assert health.out_of_order_count == 0 and health.malformed_count == 0
+    gaps = np.diff(ft) - 1
+    # in order, and whole but for one stretch the client accounts for: pynetft's bias() starts
+    # the stream again (0x0042, then 0x0002), the box starts its rdt_sequence at 1 again as a
+    # Net F/T does, and a client still reading the old stream's records drops the new stream's
+    # first ones as out of order (on a busy machine: ~210 of them in 4 runs of 14 with three
+    # CPU-bound processes beside it, its out_of_order_count the same, lost_count 0)
+    assert np.all(gaps >= 0), np.diff(ft)
+    assert np.count_nonzero(gaps) <= 1 + 0.01 * len(ft), np.diff(ft)
+    explained = health.out_of_order_count + health.lost_count + health.python_queue_dropped_count
+    assert np.sum(gaps) <= explained + 0.01 * len(ft), (int(np.sum(gaps)), health)
+    assert health.malformed_count == 0
     # |mean| of biased readings: the noise of one sample (1/16 N), not the 1.5-3 N offset + load
     assert np.all(np.abs(np.mean([s.force for s in biased], axis=0)) < 0.3)
     assert box.stats().biases == 1
