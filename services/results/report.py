@@ -29,7 +29,7 @@ from services.recordings.reader import read_episode
 from services.results.folder import strict_json
 from services.results.record import EpisodeRecord, RunRecord
 from services.nodes.robot import HOLD_WATCH_S
-from services.runtime.messages import BY_TOPIC, ESTIMATOR_PERIOD_NS, STRIDES, loads
+from services.runtime.messages import BY_TOPIC, ESTIMATOR_PERIOD_NS, INT_MAX, INT_MIN, STRIDES, loads
 from services.runtime.threads import process_map
 from services.results.text import pooled_histogram, histograms_text, render_text
 from services.runtime.timing import SequenceTracker, percentiles
@@ -61,8 +61,8 @@ def decoded_messages(ep) -> tuple[dict, int]:
         except (ValueError, TypeError, KeyError, UnicodeDecodeError):
             bad += 1
             continue
-        if not all(type(v) is int for v in values.values()):
-            bad += 1
+        if not all(type(v) is int and INT_MIN <= v <= INT_MAX for v in values.values()):
+            bad += 1  # the wire's integers are 64-bit; a bigger one would overflow the arrays below
             continue
         per.setdefault(topic, []).append((msg.log_time_ns, values))
     return per, bad

@@ -265,21 +265,32 @@ def _compile_pack(fields, checked):
     return scope["pack"]
 
 _isfinite = math.isfinite
+# the wire's integers are 64-bit (stamps in ns, sequence numbers, counts): JSON's have no
+# bound, and a reader's numpy arrays of them would overflow
+INT_MIN, INT_MAX = -(2**63), 2**63 - 1
 
 
 def _fast_check(f: Field):
     """A predicate that is True when the value certainly passes ``_check`` for ``f``
     (False means: look closer, it may still pass, e.g. an int in a float array)."""
     scalar = {"int": int, "float": float, "bool": bool, "str": str, "object": dict}[f.base]
+    lo, hi = INT_MIN, INT_MAX
     if "[" not in f.type:
         if scalar is float:
             return lambda v: type(v) is float and _isfinite(v)
+        if scalar is int:
+            return lambda v: type(v) is int and lo <= v <= hi
+        if scalar is dict:
+            return lambda v: type(v) is dict and not _has_non_finite(v)
         return lambda v: type(v) is scalar
     n = f.length
     if scalar is float:
         # a sum of finite floats is finite unless it overflows (then the slow path decides)
         return lambda v: (type(v) is list and (n is None or len(v) == n)
                           and all(type(x) is float for x in v) and _isfinite(sum(v)))
+    if scalar is int:
+        return lambda v: (type(v) is list and (n is None or len(v) == n)
+                          and all(type(x) is int and lo <= x <= hi for x in v))
     return lambda v: type(v) is list and (n is None or len(v) == n) and all(type(x) is scalar for x in v)
 
 
@@ -288,6 +299,8 @@ def _has_non_finite(v) -> bool:
         return not math.isfinite(v)
     if isinstance(v, (list, tuple)):
         return any(_has_non_finite(x) for x in v)
+    if isinstance(v, dict):
+        return any(_has_non_finite(x) for x in v.values())
     return False
 
 
@@ -308,14 +321,17 @@ def _check_scalar(where: str, base: str, x) -> None:
     if base == "int":
         if isinstance(x, bool) or not isinstance(x, int):
             raise MessageError(f"{where} must be an integer, got {x!r}")
+        if not INT_MIN <= x <= INT_MAX:
+            raise MessageError(f"{where} is an integer of {len(str(abs(x)))} digits, outside 64 bits")
     elif base == "float":
         if isinstance(x, bool) or not isinstance(x, (int, float)):
             raise MessageError(f"{where} must be a number, got {x!r}")
-        try:
-            finite = math.isfinite(x)
-        except OverflowError:  # JSON's integers have no bound: 1 and 400 zeros is valid JSON
-            raise MessageError(f"{where} is an integer of {len(str(abs(x)))} digits, too large for a float") from None
-        if not finite:
+        if isinstance(x, int) and not INT_MIN <= x <= INT_MAX:
+            # JSON's integers have no bound (1 and 400 zeros is valid JSON, past float64 too), and
+            # past 64 bits the parser gives a float back: the message would not read as written
+            raise MessageError(f"{where} is an integer of {len(str(abs(x)))} digits, past 64 bits "
+                               f"(write it as a float)")
+        if not math.isfinite(x):
             raise MessageError(f"{where} is {x!r}")
     elif base == "bool":
         if not isinstance(x, bool):
@@ -326,6 +342,8 @@ def _check_scalar(where: str, base: str, x) -> None:
     elif base == "object":
         if not isinstance(x, dict):
             raise MessageError(f"{where} must be an object, got {x!r}")
+        if _has_non_finite(x):  # NaN or Infinity inside (the stdlib parser reads them)
+            raise MessageError(f"{where} holds a number that is not finite")
 
 
 # ---------------------------------------------------------------------------
