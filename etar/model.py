@@ -541,3 +541,26 @@ class PhaseFilter:
             self._log_alpha[:] = -math.log(self.n_phases)
         self.n_updates += 1
         return self._alpha.copy()
+
+    def anchor(self, state, force) -> np.ndarray:
+        """Take a sample without conditioning on the step that ends at it.
+
+        For a step the phase's law did not drive (the KRC held the arm in monitor
+        mode) or one whose start is missing (a skipped sample): the posterior
+        stays what it was, and the sample becomes the start of the next step, so
+        the estimate after a hold continues from the phase before it.  Before any
+        sample it is ``update`` (the first sample conditions on no step either).
+        """
+        if not self._flags[0]:
+            return self.update(state, force)
+        s = np.asarray(state, dtype=np.float64)
+        f = np.asarray(force, dtype=np.float64)
+        if s.shape != (self.n_state,) or f.shape != (self.n_force,):
+            raise ValueError(
+                f"anchor expects state ({self.n_state},) and force ({self.n_force},), got {s.shape} and {f.shape}"
+            )
+        if not (np.isfinite(s).all() and np.isfinite(f).all()):
+            raise ValueError(f"non-finite sample: state={s.tolist()} force={f.tolist()}; filter unchanged")
+        self._prev_state[:] = s
+        self._prev_force[:] = f
+        return self._alpha.copy()

@@ -12,7 +12,11 @@ Control: ``reset`` (episode, model file; state and features default to the
 task's; ``resync``: the filter joins a reproduction under way, every phase
 equally likely at first, as after a restart).  A wrench with error status or a
 sample the filter rejects (non-finite) is skipped and counted; the filter keeps
-its state.  A wrench the sensor flags (saturated, non-finite input) is a fault
+its state.  A step the phase's law did not drive - the KRC in monitor mode at
+one of its ends (it holds the arm), or its first sample skipped or missing - is
+not conditioned on: its last sample only starts the next step, the posterior
+stays, and the estimate says why (``unconditioned``), so the estimate after a
+hold continues from the phase before it.  A wrench the sensor flags (saturated, non-finite input) is a fault
 the commander must act on at once: the estimate of that cycle is still
 published, with the last posterior and ``input_fault`` saying why it did not
 move.  A wrench that never comes shows as estimates that stop (the commander's
@@ -33,10 +37,12 @@ from robot_sim.fri_udp import host_port
 from services.nodes.netft_client import NetFtStream
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import option
+from robot_sim.fri import FriState
 from robot_sim.rdt import AtiStatus
-from services.runtime.messages import ESTIMATOR_PHASE, estimator_instant
+from services.runtime.messages import ESTIMATOR_PERIOD_NS, ESTIMATOR_PHASE, estimator_instant
 
 _SATURATED = int(AtiStatus.FT_OUT_OF_RANGE)
+_COMMAND_MODE = int(FriState.CMD)
 
 
 
@@ -76,6 +82,8 @@ class PhaseEstimatorNode(Node):
         self.skipped = 0
         self.updates = 0
         self.input_faults = 0  # estimates published with input_fault
+        self.unconditioned = {"arm_held": 0, "gap": 0}  # samples taken without conditioning on their step
+        self._last = None  # (stamp_ns, in command mode) of the filter's newest sample
         self._alpha = None  # the last posterior the filter gave
         self._lock = threading.Lock()
         self._states: dict[int, dict] = {}
@@ -125,7 +133,7 @@ class PhaseEstimatorNode(Node):
                 del store[k]
         if self.filter is None or state["episode"] != self.episode:
             return
-        fault = None
+        fault = unconditioned = None
         if wrench["status"] != 0:
             self.skipped += 1
             fault = "wrench_saturated" if wrench["status"] & _SATURATED else "wrench_invalid"
@@ -138,12 +146,27 @@ class PhaseEstimatorNode(Node):
                 self.R0 = pose_of(state["msr_cart_pos"])[0]
             s = state_vector(state["msr_cart_pos"], self.state_kind, self.R0)
             f = force_vector(wrench["wrench"], state["msr_cart_pos"], self.feature_kind)
+            # the AR emission of a step holds only where the phase's own law drove the arm
+            # from one sample to the next: not across a KRC hold (monitor mode), not across
+            # a missing sample; there the sample only starts the next step
+            commanded = state["fri_state"] == _COMMAND_MODE
+            last = self._last
+            if last is None or state["stamp_ns"] - last[0] != ESTIMATOR_PERIOD_NS:
+                unconditioned = "gap" if last is not None else None
+            elif not (commanded and last[1]):
+                unconditioned = "arm_held"
+            else:
+                unconditioned = None
             try:
-                alpha = self.filter.update(s, f)
+                alpha = self.filter.anchor(s, f) if unconditioned else self.filter.update(s, f)
             except ValueError:
                 self.skipped += 1
                 return
-            self.updates += 1
+            self._last = (state["stamp_ns"], commanded)
+            if unconditioned:
+                self.unconditioned[unconditioned] += 1
+            else:
+                self.updates += 1
             self._alpha = alpha
         if self._t0 is None:
             self._t0 = state["stamp_ns"]
@@ -153,7 +176,8 @@ class PhaseEstimatorNode(Node):
         self.bus.publish("estimator/phase", *ESTIMATOR_PHASE.pack(
             seq=seq, stamp_ns=state["stamp_ns"], sent_ns=self.clock.now_ns(), posterior=alpha,
             phase=int(np.argmax(alpha)), input_seq=seq, ft_seq=wrench["seq"], episode=self.episode,
-            **({"input_fault": fault} if fault else {})))
+            **({"input_fault": fault} if fault else {}),
+            **({"unconditioned": unconditioned} if unconditioned else {})))
 
     def handlers(self):
         return {"reset": self.reset}
@@ -182,13 +206,15 @@ class PhaseEstimatorNode(Node):
             self.R0 = None
             self._t0 = None
             self._alpha = None
+            self._last = None
             self._states.clear()
             self._wrenches.clear()
         return {"n_phases": task.n_phases}
 
     def status(self) -> dict:
         status = {"episode": self.episode, "updates": self.updates, "skipped": self.skipped,
-                  "input_faults": self.input_faults, "muted": self.muted}
+                  "input_faults": self.input_faults, "muted": self.muted,
+                  "unconditioned": dict(self.unconditioned)}
         if self.netft is not None:
             status["netft"] = self.netft.status()
         return status

@@ -40,11 +40,14 @@ REPORT_FIELDS = {"robot/state": ("seq", "sent_ns", "stamp_ns", "fri_quality", "f
                  "robot/contact": ("seq", "sent_ns", "true_phase"),
                  "estimator/phase": ("seq", "sent_ns", "phase")}
 _HEADER = ("seq", "sent_ns")
+# optional text fields the report counts, with the values it knows (any other is not read)
+REPORT_TEXT = {"estimator/phase": {"unconditioned": ("arm_held", "gap")}}
 
 
 def decoded_messages(ep) -> tuple[dict, int]:
     """What the report reads of one recorded episode, each message parsed once: per
-    topic, (log time ns, {field: int}).  A message that is not JSON, not an object, or
+    topic, (log time ns, {field: int}), with the known values of the optional text
+    fields in ``REPORT_TEXT`` where a message has one.  A message that is not JSON, not an object, or
     lacks one of those fields as an integer (garbage from a foreign peer, ``"seq":
     Infinity``, a wrong schema) is counted, never read: one bad message must not cost a
     run its report."""
@@ -64,6 +67,9 @@ def decoded_messages(ep) -> tuple[dict, int]:
         if not all(type(v) is int and INT_MIN <= v <= INT_MAX for v in values.values()):
             bad += 1  # the wire's integers are 64-bit; a bigger one would overflow the arrays below
             continue
+        for name, known in REPORT_TEXT.get(topic, {}).items():
+            if d.get(name) in known:
+                values[name] = d[name]
         per.setdefault(topic, []).append((msg.log_time_ns, values))
     return per, bad
 
@@ -92,7 +98,13 @@ def reproduction_phases(decoded: dict, phase_to_truth: dict, dt: float = ESTIMAT
     truth = np.array([truth_by_seq[s] for s in seqs])
     est = np.array([est_by_seq[s] for s in seqs])
     score = score_segmentation(truth, est, dt=dt, mapping={int(k): int(v) for k, v in phase_to_truth.items()})
-    return dict(updates=len(seqs), correct=int(round(score.accuracy * len(seqs))), **score.to_dict())
+    # estimates whose step the filter did not condition on (a KRC hold, a missing sample)
+    unconditioned = {"arm_held": 0, "gap": 0}
+    for _, d in decoded.get("estimator/phase", ()):
+        if d.get("unconditioned") in unconditioned:
+            unconditioned[d["unconditioned"]] += 1
+    return dict(updates=len(seqs), correct=int(round(score.accuracy * len(seqs))), **score.to_dict(),
+                unconditioned=unconditioned)
 
 
 QUALITY_NAMES = ("UNACCEPTABLE", "BAD", "OK", "PERFECT")

@@ -426,6 +426,11 @@ ESTIMATOR_PHASE = MessageType(
         Field("input_fault", "str", "present when this cycle's wrench could not be used: 'wrench_saturated' "
                                     "or 'wrench_invalid' (the sensor's status bits); the filter was not "
                                     "updated and posterior/phase are the last ones", optional=True),
+        Field("unconditioned", "str", "present when the filter took this sample without conditioning on the "
+                                      "step that ends at it: 'arm_held' (the KRC was not in command mode at one "
+                                      "of its ends, so the phase's law did not drive the arm) or 'gap' (the "
+                                      "step's first sample is missing); posterior/phase are the last ones",
+              optional=True),
     ),
     period_ns=ESTIMATOR_PERIOD_NS,
 )

@@ -144,6 +144,36 @@ def test_online_filter_rejects_nan_and_keeps_its_state(rng):
         np.testing.assert_array_equal(filt.update(s[t], f[t]), expected)
 
 
+def test_a_held_stretch_is_not_conditioned_on_and_the_filter_continues_from_before_it(rng):
+    """``anchor`` (the KRC held the arm, or a sample is missing): the posterior stays,
+    and the next update conditions on the step from the anchored sample only."""
+    model = random_model(rng, 3, 3, 3)
+    s, f = random_demo(rng, 60, 3, 3)
+    filt = model.filter()
+    np.testing.assert_array_equal(filt.anchor(s[0], f[0]), model.filter().update(s[0], f[0]))  # first: the prior
+    for t in range(1, 20):
+        before = filt.update(s[t], f[t])
+    for t in range(20, 30):
+        np.testing.assert_array_equal(filt.anchor(s[t], f[t]), before)
+    with pytest.raises(ValueError, match="non-finite"):
+        filt.anchor(s[30], np.full(3, np.nan))
+    online = np.array([filt.update(s[t], f[t]) for t in range(30, 60)])
+    # the forward recursion from `before` over the steps 29->30 ... 58->59 (row t of the
+    # arrays of samples 28.. is the step 28+t -> 29+t, under the transition at sample 28+t)
+    _, trans, _, log_emis = model._inference_arrays(s[28:], f[28:])
+    alpha, expected = before, []
+    for t in range(1, 31):
+        a = (alpha @ trans[t]) * np.exp(log_emis[t] - log_emis[t].max())
+        alpha = a / a.sum()
+        expected.append(alpha)
+    np.testing.assert_allclose(online, expected, atol=1e-12)
+    # conditioning on the held steps instead gives another posterior
+    plain = model.filter()
+    for t in range(31):
+        last = plain.update(s[t], f[t])
+    assert np.abs(last - online[0]).max() > 1e-6
+
+
 def test_star_filter_needs_a_goal(rng):
     model = random_model(rng, 2, 2, 2, transitions="state")
     with pytest.raises(ValueError, match="goal"):

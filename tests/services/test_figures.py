@@ -55,12 +55,15 @@ def test_the_figures_command_draws_them_again_and_refuses_a_folder_that_is_no_ru
 
 
 def test_a_run_without_demonstrations_says_which_figures_it_skips(tmp_path):
-    report = support.run(support.scenario("fri_dropout"), tmp_path / "run", figures=True, transport="inproc",
+    report = support.run(support.scenario("fri_dropout", {"reproduce.count": 1}), tmp_path / "run", figures=True, transport="inproc",
                          run_id="nodemos")
     assert report["error"] is None
     written, skipped = write_figures(tmp_path / "run")
-    assert [p.name for p in written] == ["reproduction_00_force_phase_alpha.png"]
-    assert any("no demonstrations" in s for s in skipped) and any("no selection scores" in s for s in skipped)
+    # the stored valley model keeps the BIC scores its learn stage chose by
+    assert [p.name for p in written] == ["bic_by_phase_count.png", "reproduction_00_force_phase_alpha.png"]
+    assert any("no demonstrations" in s for s in skipped) and not any("no selection scores" in s for s in skipped)
+    from services.results.figures import bic_figure
+    assert bic_figure({"criterion": "fixed"}, tmp_path) == "no selection scores (phase count fixed)"
 
 
 def test_the_runs_figures_draw_its_world_and_name_its_phases_by_the_true_ones(run_dir, monkeypatch):
