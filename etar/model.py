@@ -222,6 +222,7 @@ class ETAR:
         tol: float = 1e-7,
         seed: int = 0,
         progress: Callable[[str], None] | None = None,
+        start_labels: Sequence | None = None,
     ) -> "ETAR":
         """Learn the parameters from demonstrations by EM.
 
@@ -230,13 +231,16 @@ class ETAR:
         EM stops (see ``em.ConvergenceMonitor``).  ``n_restarts`` segment-based
         initialisations run ``init_iter`` iterations each; the best continues
         for up to ``max_iter`` iterations.  The same seed gives the same result.
+        ``start_labels``: a phase (0..K-1) per sample of every demonstration, e.g.
+        the true phases of simulated ones; EM starts once from the segmentation
+        they give, for up to ``max_iter`` iterations, instead of the restarts.
         """
         # numba's parallel E-step takes both cores; OpenBLAS threads spinning
         # beside it for the small M-step products cost 3-4x (measured)
         with threadpool_limits(limits=1, user_api="blas"):
-            return self._fit(demos, max_iter, tol, seed, progress)
+            return self._fit(demos, max_iter, tol, seed, progress, start_labels)
 
-    def _fit(self, demos, max_iter, tol, seed, progress):
+    def _fit(self, demos, max_iter, tol, seed, progress, start_labels=None):
         start = time.perf_counter()
         demos = check_demonstrations(demos)
         n, m = demos[0][0].shape[1], demos[0][1].shape[1]
@@ -261,20 +265,22 @@ class ETAR:
                 progress(msg)
 
         candidates = []
-        for r in range(self.n_restarts):
-            labels = em.segment_labels(stacked.starts, K, None if r == 0 else rng)
+        given = None if start_labels is None else _step_labels(start_labels, demos, K)
+        restarts = 1 if given is not None else self.n_restarts
+        for r in range(restarts):
+            labels = given if given is not None else em.segment_labels(stacked.starts, K, None if r == 0 else rng)
             W0 = np.zeros((K + 1, K, d + 1))
             C, Sigma, W = em.m_step(stacked, em.hard_expectations(labels, stacked.starts, K), W0,
                                     priors, self.solver, w_steps=30)
-            mon = em.ConvergenceMonitor(tol, self.init_iter if self.n_restarts > 1 else max_iter,
+            mon = em.ConvergenceMonitor(tol, self.init_iter if restarts > 1 else max_iter,
                                         n_samples, self.window)
             params = self._run_em(stacked, (C, Sigma, W), priors, mon, progress)
             candidates.append((mon.history[-1], params, mon))
-            say(f"restart {r + 1}/{self.n_restarts}: objective {mon.history[-1]:.3f} "
+            say(f"restart {r + 1}/{restarts}: objective {mon.history[-1]:.3f} "
                 f"after {mon.n_iter} iterations")
         best = int(np.argmax([c[0] for c in candidates]))
         _, params, mon = candidates[best]
-        if self.n_restarts > 1:
+        if restarts > 1:
             # the continued run re-scores the same parameters first: drop that entry
             history = mon.history[:-1]
             mon = em.ConvergenceMonitor(tol, max_iter + len(history), n_samples, self.window, list(history))
@@ -470,6 +476,21 @@ class ETAR:
         if not isinstance(data, dict):
             raise ValueError(f"{path}: expected a JSON object (an etar-model file), got a {type(data).__name__}")
         return cls.from_dict(data, str(path))
+
+
+def _step_labels(start_labels, demos, K: int) -> np.ndarray:
+    """Stacked labels of the steps (a step is governed by its first sample's phase)."""
+    if len(start_labels) != len(demos):
+        raise ValueError(f"start_labels: {len(start_labels)} label sequences for {len(demos)} demonstrations")
+    out = []
+    for i, (labels, (s, _)) in enumerate(zip(start_labels, demos)):
+        labels = np.asarray(labels)
+        if labels.shape != (s.shape[0],) or not np.issubdtype(labels.dtype, np.integer):
+            raise ValueError(f"start_labels[{i}]: expected {s.shape[0]} integer phases, got {labels.dtype} {labels.shape}")
+        if labels.size and (labels.min() < 0 or labels.max() >= K):
+            raise ValueError(f"start_labels[{i}]: phases must be 0..{K - 1}, got {labels.min()}..{labels.max()}")
+        out.append(labels[:-1].astype(np.int64))
+    return np.concatenate(out)
 
 
 class PhaseFilter:
