@@ -27,7 +27,10 @@ CPU): the hold lasts while the estimate is stale, and the policy resumes with
 the next fresh one.  The robot ends the episode once a hold has lasted 1 s.  An
 estimate that says its wrench could not be used (``input_fault``: the sensor
 saturated or read non-finite) is a fault of the same kind, acted on at once: the
-hold's reason is the estimate's.
+hold's reason is the estimate's.  An estimate taken after a missing sample
+(``unconditioned: gap``) does not move the filter, so it does not count as fresh:
+an estimator that misses every other sample anchors every one it takes, and its
+belief is frozen while its estimates keep coming.
 
 ``--fri-listen HOST:PORT`` (``etar-bench run --wire udp``, realtime): the commander is
 the KRC's FRI 1.0 remote over UDP, as a lab's control PC is.  The measurement datagrams
@@ -108,6 +111,7 @@ class ImpedanceCommanderNode(Node):
         self._phases: dict[int, dict] = {}  # lockstep: the estimates by cycle, until answered
         self._latest_phase = None
         self._latest_phase_seq = -1
+        self._conditioned_seq = -1  # the newest estimate that moved the filter (not one anchored after a gap)
         self._input_fault = ""  # the newest estimate's: why its wrench could not be used
         self._waiting_since = None
         self._last_answered_seq = None
@@ -153,6 +157,8 @@ class ImpedanceCommanderNode(Node):
     def _take_estimate(self, msg) -> None:
         self._latest_phase = msg["phase"]
         self._latest_phase_seq = msg["seq"]
+        if msg.get("unconditioned") != "gap":
+            self._conditioned_seq = msg["seq"]
         self._input_fault = msg.get("input_fault", "")
 
     def on_state(self, msg, recv_ns, raw):
@@ -219,7 +225,7 @@ class ImpedanceCommanderNode(Node):
         if self._first_seq is None:
             self._first_seq = seq
         if self.hold is None or not self.lockstep:
-            fresh = self._latest_phase_seq if self._latest_phase_seq >= 0 else self._first_seq
+            fresh = self._conditioned_seq if self._conditioned_seq >= 0 else self._first_seq
             fault = "stale_estimate" if seq - fresh > STALE_ESTIMATE_CYCLES else self._input_fault
             if fault and self.hold is None:
                 self.hold = dict(reason=fault, seq=seq, stamp_ns=state["stamp_ns"],
@@ -286,6 +292,7 @@ class ImpedanceCommanderNode(Node):
             self._phases.clear()
             self._latest_phase = None
             self._latest_phase_seq = -1
+            self._conditioned_seq = -1
             self._input_fault = ""
             self._waiting_since = None
             self._last_answered_seq = None

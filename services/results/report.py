@@ -94,15 +94,17 @@ def reproduction_phases(decoded: dict, phase_to_truth: dict, dt: float = ESTIMAT
     est_by_seq = {d["seq"]: d["phase"] for _, d in decoded.get("estimator/phase", ())}
     seqs = sorted(s for s in est_by_seq if s in truth_by_seq)
     if not seqs:
-        return {"updates": 0, "accuracy": None}
+        return {"updates": 0, "accuracy": None, "unconditioned": {"arm_held": 0, "gap": 0}}
     truth = np.array([truth_by_seq[s] for s in seqs])
     est = np.array([est_by_seq[s] for s in seqs])
     score = score_segmentation(truth, est, dt=dt, mapping={int(k): int(v) for k, v in phase_to_truth.items()})
-    # estimates whose step the filter did not condition on (a KRC hold, a missing sample)
+    # scored estimates whose step the filter did not condition on (a KRC hold, a missing
+    # sample), once per cycle as the accuracy counts them (a replayed copy is not another)
+    why_by_seq = {d["seq"]: d.get("unconditioned") for _, d in decoded.get("estimator/phase", ())}
     unconditioned = {"arm_held": 0, "gap": 0}
-    for _, d in decoded.get("estimator/phase", ()):
-        if d.get("unconditioned") in unconditioned:
-            unconditioned[d["unconditioned"]] += 1
+    for s in seqs:
+        if why_by_seq[s] in unconditioned:
+            unconditioned[why_by_seq[s]] += 1
     return dict(updates=len(seqs), correct=int(round(score.accuracy * len(seqs))), **score.to_dict(),
                 unconditioned=unconditioned)
 

@@ -189,51 +189,87 @@ def test_no_hold_while_the_estimates_come():
     assert "hold" not in summary and summary["reason"] == "elapsed", summary["reason"]
 
 
+def _commander_state(seq, clock):
+    from services.runtime.messages import ROBOT_STATE
+    return ROBOT_STATE.pack(seq=seq, stamp_ns=seq * 1_000_000, sent_ns=clock.now_ns(), reflected_seq=seq - 1,
+                            fri_state=2, fri_quality=3, control_mode=2, msr_jnt_pos=[0.0] * 7,
+                            msr_cart_pos=[1.0, 0, 0, 0.62, 0, -1.0, 0, -0.06, 0, 0, -1.0, 0.30],
+                            est_ext_tcp_ft=[0.0] * 6, answer_rate=1.0, latency_s=0.0, jitter_s=0.0,
+                            miss_rate=0.0, safety=0, gravity_compensation=False, episode=0)
+
+
+def _estimate(seq, clock, **optional):
+    from services.runtime.messages import ESTIMATOR_PHASE
+    return ESTIMATOR_PHASE.pack(seq=seq, stamp_ns=seq * 1_000_000, sent_ns=clock.now_ns(),
+                                posterior=[1.0, 0.0, 0.0], phase=0, input_seq=seq, ft_seq=seq, episode=0, **optional)
+
+
+def _commander_holds(mode, estimates):
+    """The hold reason of every command (seq -> reason) of a commander fed robot states
+    1..300 and, before the state of a cycle, ``estimates(seq, clock)`` (a packed estimate
+    or None)."""
+    from services.nodes.impedance_commander import ImpedanceCommanderNode
+    from services.runtime.bus import FakeClock
+
+    clock = FakeClock()
+    bus = InProcessBus(clock, check=True)
+    node = ImpedanceCommanderNode(CommanderConfig(), bus, clock, mode=mode)
+    bus.attach(node)
+    commands = []
+    sink = Listener(bus, clock)
+    sink.subscriptions = [Subscription("robot/command", lambda msg, t, raw: commands.append(msg))]
+    bus.attach(sink)
+    node.reset({"model": MODEL, "episode": 0})
+    for seq in range(1, 301):
+        estimate = estimates(seq, clock)
+        if estimate is not None:
+            bus.publish("estimator/phase", *estimate)
+        bus.publish("robot/state", *_commander_state(seq, clock))
+        bus.drain()
+        node.quiescent()  # lockstep: the estimate of a tenth cycle is not coming
+        bus.drain()
+        clock.advance(1_000_000)
+    return {c["seq"]: c["hold"] for c in commands}, node
+
+
 def test_on_the_realtime_clock_the_commander_holds_while_the_estimate_is_stale_and_resumes():
     """Realtime: an estimate can be late and then come.  The commander holds while the
     newest estimate is more than STALE_ESTIMATE_CYCLES old and follows the task again
     with the next fresh one; lockstep keeps the hold (a stale estimate there will not come)."""
-    from services.nodes.impedance_commander import STALE_ESTIMATE_CYCLES, ImpedanceCommanderNode
-    from services.runtime.bus import FakeClock
-    from services.runtime.messages import ESTIMATOR_PHASE, ROBOT_STATE
-
-    def state(seq, clock):
-        return ROBOT_STATE.pack(seq=seq, stamp_ns=seq * 1_000_000, sent_ns=clock.now_ns(), reflected_seq=seq - 1,
-                                fri_state=2, fri_quality=3, control_mode=2, msr_jnt_pos=[0.0] * 7,
-                                msr_cart_pos=[1.0, 0, 0, 0.62, 0, -1.0, 0, -0.06, 0, 0, -1.0, 0.30],
-                                est_ext_tcp_ft=[0.0] * 6, answer_rate=1.0, latency_s=0.0, jitter_s=0.0,
-                                miss_rate=0.0, safety=0, gravity_compensation=False, episode=0)
-
-    def phase(seq, clock):
-        return ESTIMATOR_PHASE.pack(seq=seq, stamp_ns=seq * 1_000_000, sent_ns=clock.now_ns(),
-                                    posterior=[1.0, 0.0, 0.0], phase=0, input_seq=seq, ft_seq=seq, episode=0)
+    from services.nodes.impedance_commander import STALE_ESTIMATE_CYCLES
 
     holds = {}
     for mode in ("realtime", "lockstep"):
-        clock = FakeClock()
-        bus = InProcessBus(clock, check=True)
-        node = ImpedanceCommanderNode(CommanderConfig(), bus, clock, mode=mode)
-        bus.attach(node)
-        commands = []
-        sink = Listener(bus, clock)
-        sink.subscriptions = [Subscription("robot/command", lambda msg, t, raw: commands.append(msg))]
-        bus.attach(sink)
-        node.reset({"model": MODEL, "episode": 0})
-        for seq in range(1, 301):
-            if seq == 10 or (seq >= 200 and seq % 10 == 0):  # cycle 10, then none until 200
-                bus.publish("estimator/phase", *phase(seq, clock))
-            bus.publish("robot/state", *state(seq, clock))
-            bus.drain()
-            node.quiescent()  # lockstep: the estimate of a tenth cycle is not coming
-            bus.drain()
-            clock.advance(1_000_000)
-        hold = {c["seq"]: c["hold"] for c in commands}
+        # cycle 10, then none until 200
+        hold, node = _commander_holds(mode, lambda seq, clock: _estimate(seq, clock) if seq == 10 or (
+            seq >= 200 and seq % 10 == 0) else None)
         holds[mode] = hold
         assert hold[10 + STALE_ESTIMATE_CYCLES] == "" and hold[11 + STALE_ESTIMATE_CYCLES] == "stale_estimate"
         assert node.status()["hold"]["estimate_seq"] == 10 and node.status()["holds"] == 1
     assert holds["realtime"][199] == "stale_estimate" and holds["realtime"][200] == ""
     assert all(holds["realtime"][s] == "" for s in range(200, 301))
     assert all(holds["lockstep"][s] == "stale_estimate" for s in range(61, 301))
+
+
+def test_estimates_that_only_anchor_after_gaps_are_stale_and_held_arm_ones_are_not():
+    """An estimator that misses every other sample anchors every one it takes
+    (``unconditioned: gap``): its posterior is frozen though its estimates keep coming,
+    so the commander holds as for a stale estimate.  Estimates anchored because the KRC
+    holds the arm (``arm_held``) are no fault: the filter resumes with command mode."""
+    from services.nodes.impedance_commander import STALE_ESTIMATE_CYCLES
+
+    def estimates(reason):
+        def make(seq, clock):
+            if seq % 10:
+                return None
+            return _estimate(seq, clock, **({"unconditioned": reason} if 100 <= seq < 200 else {}))
+        return make
+
+    gap, _ = _commander_holds("realtime", estimates("gap"))
+    assert gap[90 + STALE_ESTIMATE_CYCLES] == "" and gap[91 + STALE_ESTIMATE_CYCLES] == "stale_estimate"
+    assert gap[199] == "stale_estimate" and all(gap[s] == "" for s in range(200, 301))
+    held, _ = _commander_holds("realtime", estimates("arm_held"))
+    assert all(h == "" for h in held.values())
 
 
 @pytest.mark.slow
@@ -262,6 +298,8 @@ def test_a_transient_fri_dropout_holds_the_arm_and_the_estimate_continues_after_
         assert rp["phases"]["spurious_switches"] == 0, rp["phases"]
     table = (tmp_path / "out" / "report.txt").read_text()
     assert "CMD left/entered" in table and table.count("1/2") + table.count("1/1") == 2, table
+    held = sum(rp["phases"]["unconditioned"]["arm_held"] for rp in report["reproductions"])
+    assert f"estimates that did not condition on their step: arm held by the KRC {held}, sample missing 0" in table
 
 
 def test_duplicated_fri_commands_change_nothing_the_arm_does():

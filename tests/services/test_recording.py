@@ -495,3 +495,18 @@ def test_the_report_reads_past_garbage_in_a_recording_and_counts_it(tmp_path, rn
     t, q, state = fri_quality_series(decoded)
     assert len(t) == 60 and set(q.tolist()) == {3} and set(state.tolist()) == {2}
     assert reproduction_phases(decoded, {1: 1})["accuracy"] == 1.0
+
+
+def test_the_report_counts_each_unconditioned_estimate_once_and_only_the_values_it_knows():
+    from services.results.report import reproduction_phases
+
+    truth = [(0, {"seq": s, "sent_ns": 0, "true_phase": 0}) for s in (10, 20, 30, 40)]
+    estimates = [(0, {"seq": 10, "sent_ns": 0, "phase": 0}),
+                 (0, {"seq": 20, "sent_ns": 0, "phase": 0, "unconditioned": "arm_held"}),
+                 (0, {"seq": 20, "sent_ns": 0, "phase": 0, "unconditioned": "arm_held"}),  # a replayed copy
+                 (0, {"seq": 30, "sent_ns": 0, "phase": 0, "unconditioned": "gap"}),
+                 (0, {"seq": 50, "sent_ns": 0, "phase": 0, "unconditioned": "gap"}),  # no truth: not scored
+                 (0, {"seq": 40, "sent_ns": 0, "phase": 0, "unconditioned": "sideways"})]
+    phases = reproduction_phases({"robot/contact": truth, "estimator/phase": estimates}, {0: 0})
+    assert phases["updates"] == 4 and phases["unconditioned"] == {"arm_held": 1, "gap": 1}
+    assert reproduction_phases({}, {0: 0})["unconditioned"] == {"arm_held": 0, "gap": 0}
