@@ -81,8 +81,7 @@ def study(folder: str, subset: tuple | None = None) -> dict:
     em_models = {}
     for k in CANDIDATES:
         em_models[k] = ETAR(k, n_restarts=4).fit(pairs, max_iter=200, seed=seed)
-    per_sample = [np.append(z, z[-1]) for z in truth_steps]  # the label of step t -> t+1 is the phase at t+1
-    from_truth = ETAR(K_true, n_restarts=4).fit(pairs, max_iter=200, seed=seed, start_labels=per_sample)
+    from_truth = ETAR(K_true, n_restarts=4).fit(pairs, max_iter=200, seed=seed, start_labels=truth_steps)
 
     # the data per side and true phase: the force along the plate's normal (base y,z:
     # the plates are 45 degrees, mirror images across the valley's middle y = 0)

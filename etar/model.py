@@ -231,9 +231,11 @@ class ETAR:
         EM stops (see ``em.ConvergenceMonitor``).  ``n_restarts`` segment-based
         initialisations run ``init_iter`` iterations each; the best continues
         for up to ``max_iter`` iterations.  The same seed gives the same result.
-        ``start_labels``: a phase (0..K-1) per sample of every demonstration, e.g.
-        the true phases of simulated ones; EM starts once from the segmentation
-        they give, for up to ``max_iter`` iterations, instead of the restarts.
+        ``start_labels``: a phase (0..K-1) per step of every demonstration (T - 1
+        labels, step t -> t+1's, as ``load_demonstration``'s ``phases``), e.g. the
+        true phases of simulated ones, every phase present; EM starts once from the
+        segmentation they give, for up to ``max_iter`` iterations, instead of the
+        restarts.
         """
         # numba's parallel E-step takes both cores; OpenBLAS threads spinning
         # beside it for the small M-step products cost 3-4x (measured)
@@ -479,18 +481,23 @@ class ETAR:
 
 
 def _step_labels(start_labels, demos, K: int) -> np.ndarray:
-    """Stacked labels of the steps (a step is governed by its first sample's phase)."""
+    """Stacked step labels, checked against the demonstrations and the phases."""
     if len(start_labels) != len(demos):
         raise ValueError(f"start_labels: {len(start_labels)} label sequences for {len(demos)} demonstrations")
     out = []
     for i, (labels, (s, _)) in enumerate(zip(start_labels, demos)):
         labels = np.asarray(labels)
-        if labels.shape != (s.shape[0],) or not np.issubdtype(labels.dtype, np.integer):
-            raise ValueError(f"start_labels[{i}]: expected {s.shape[0]} integer phases, got {labels.dtype} {labels.shape}")
+        if labels.shape != (s.shape[0] - 1,) or not np.issubdtype(labels.dtype, np.integer):
+            raise ValueError(f"start_labels[{i}]: expected {s.shape[0] - 1} integer phases (one per step), "
+                             f"got {labels.dtype} {labels.shape}")
         if labels.size and (labels.min() < 0 or labels.max() >= K):
             raise ValueError(f"start_labels[{i}]: phases must be 0..{K - 1}, got {labels.min()}..{labels.max()}")
-        out.append(labels[:-1].astype(np.int64))
-    return np.concatenate(out)
+        out.append(labels.astype(np.int64))
+    stacked = np.concatenate(out)
+    missing = sorted(set(range(K)) - set(np.unique(stacked).tolist()))
+    if missing:
+        raise ValueError(f"start_labels: phase(s) {missing} label no step; a phase needs steps to start from")
+    return stacked
 
 
 class PhaseFilter:

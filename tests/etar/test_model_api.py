@@ -172,20 +172,22 @@ def test_a_fit_can_start_from_a_given_segmentation():
     task = make_task(3, seed=0)
     data = sample_demonstrations(task, 3, 300, seed=1)
     demos = [(s, f) for s, f, _ in data]
-    steps = [z for _, _, z in data]  # the phase of every step
-    truth = [np.append(z, z[-1]) for z in steps]  # of every sample
+    truth = [z for _, _, z in data]  # the phase of every step
     model = ETAR(3, n_restarts=4).fit(demos, max_iter=40, start_labels=truth)
     assert model.fit_report_.restart_objectives and len(model.fit_report_.restart_objectives) == 1
-    for (s, f), z in zip(demos, steps):
+    for (s, f), z in zip(demos, truth):
         path = model.viterbi(s, f)
         assert score_segmentation(z, path, mapping={0: 0, 1: 1, 2: 2}).accuracy > 0.95
     wrong = [np.zeros(len(z), dtype=np.int64) for z in truth]
     wrong[0][-5:] = 1
+    wrong[1][-5:] = 2
     other = ETAR(3).fit(demos, max_iter=40, start_labels=wrong)
     assert other.log_likelihood(demos) != model.log_likelihood(demos)
-    with pytest.raises(ValueError, match=r"start_labels\[1\]: expected 300 integer phases"):
+    with pytest.raises(ValueError, match=r"start_labels\[1\]: expected 299 integer phases"):
         ETAR(3).fit(demos, start_labels=[truth[0], truth[1][:-1], truth[2]])
     with pytest.raises(ValueError, match=r"start_labels\[2\]: phases must be 0..2, got 0..3"):
         ETAR(3).fit(demos, start_labels=[truth[0], truth[1], truth[2] + (truth[2] == 2)])
     with pytest.raises(ValueError, match="2 label sequences for 3 demonstrations"):
         ETAR(3).fit(demos, start_labels=truth[:2])
+    with pytest.raises(ValueError, match=r"phase\(s\) \[3\] label no step"):
+        ETAR(4).fit(demos, start_labels=truth)
