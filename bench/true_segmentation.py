@@ -78,9 +78,9 @@ def study(folder: str, subset: tuple | None = None) -> dict:
             per_side[side] = dict(accuracy=float(np.mean(mapped == z)), confusion=confusion.tolist())
         return dict(mapping={int(k): int(v) for k, v in mapping.items()}, per_side=per_side)
 
-    em_models = {}
-    for k in CANDIDATES:
-        em_models[k] = ETAR(k, n_restarts=4).fit(pairs, max_iter=200, seed=seed)
+    em_models = {k: ETAR(k, n_restarts=4).fit(pairs, max_iter=200, seed=seed) for k in CANDIDATES}
+    em_scores = {k: scored(mo) for k, mo in em_models.items()}
+    bic_choice = min(em_scores, key=lambda k: em_scores[k]["bic"])
     from_truth = ETAR(K_true, n_restarts=4).fit(pairs, max_iter=200, seed=seed, start_labels=truth_steps)
 
     # the data per side and true phase: the force along the plate's normal (base y,z:
@@ -190,10 +190,10 @@ def study(folder: str, subset: tuple | None = None) -> dict:
         data[key]["emission_own_starts"] = fit_own.get(key, 0.0)
         data[key]["emission_from_truth"] = fit_truth.get(key, 0.0)
     return dict(folder=str(folder), seed=seed, sides=sides, n_steps=n_steps, true_phases=K_true, sharing=sharing, mirror_terms=mirror_terms,
-                em={k: dict(scored(mo), objective=mo.fit_report_.objective) for k, mo in em_models.items()},
+                em={k: dict(em_scores[k], objective=mo.fit_report_.objective) for k, mo in em_models.items()},
                 em_segmentation=segmentation(em_models[K_true]),
                 one_more_segmentation=segmentation(em_models[K_true + 1]) if K_true + 1 in em_models else None,
-                bic_choice_segmentation=segmentation(em_models[min(em_models, key=lambda k: scored(em_models[k])["bic"])]),
+                bic_choice_segmentation=segmentation(em_models[bic_choice]),
                 from_truth=dict(scored(from_truth), objective=from_truth.fit_report_.objective,
                                 n_iter=from_truth.fit_report_.n_iter),
                 from_truth_segmentation=segmentation(from_truth), data=data)

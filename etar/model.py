@@ -545,13 +545,21 @@ class PhaseFilter:
         self._flags[:] = False
         self.n_updates = 0
 
-    def update(self, state, force) -> np.ndarray:
+    def _sample(self, state, force, caller: str) -> tuple[np.ndarray, np.ndarray]:
         s = np.asarray(state, dtype=np.float64)
         f = np.asarray(force, dtype=np.float64)
         if s.shape != (self.n_state,) or f.shape != (self.n_force,):
             raise ValueError(
-                f"update expects state ({self.n_state},) and force ({self.n_force},), got {s.shape} and {f.shape}"
+                f"{caller} expects state ({self.n_state},) and force ({self.n_force},), got {s.shape} and {f.shape}"
             )
+        return s, f
+
+    @staticmethod
+    def _non_finite(s: np.ndarray, f: np.ndarray) -> ValueError:
+        return ValueError(f"non-finite sample: state={s.tolist()} force={f.tolist()}; filter unchanged")
+
+    def update(self, state, force) -> np.ndarray:
+        s, f = self._sample(state, force, "update")
         status = inference.filter_update(
             s, f, self._goal, self._use_state, self._prev_state, self._prev_force, self._flags,
             self._alpha, self._log_alpha, self._C, self._chol_inv, self._log_norm, self._W,
@@ -559,7 +567,7 @@ class PhaseFilter:
             self._new_alpha, self._new_log_alpha,
         )
         if status == 1:
-            raise ValueError(f"non-finite sample: state={s.tolist()} force={f.tolist()}; filter unchanged")
+            raise self._non_finite(s, f)
         if status == 2:
             raise ValueError("sample impossible under every phase (check units); filter unchanged")
         if self.n_updates == 0 and self.start == "uniform":
@@ -581,14 +589,9 @@ class PhaseFilter:
         """
         if not self._flags[0]:
             return self.update(state, force)
-        s = np.asarray(state, dtype=np.float64)
-        f = np.asarray(force, dtype=np.float64)
-        if s.shape != (self.n_state,) or f.shape != (self.n_force,):
-            raise ValueError(
-                f"anchor expects state ({self.n_state},) and force ({self.n_force},), got {s.shape} and {f.shape}"
-            )
+        s, f = self._sample(state, force, "anchor")
         if not (np.isfinite(s).all() and np.isfinite(f).all()):
-            raise ValueError(f"non-finite sample: state={s.tolist()} force={f.tolist()}; filter unchanged")
+            raise self._non_finite(s, f)
         self._prev_state[:] = s
         self._prev_force[:] = f
         return self._alpha.copy()

@@ -91,20 +91,20 @@ def episode_links(decoded: dict) -> dict:
 def reproduction_phases(decoded: dict, phase_to_truth: dict, dt: float = ESTIMATOR_PERIOD_NS / 1e9) -> dict:
     """Accuracy and transition-time error of the online estimate in one recorded reproduction."""
     truth_by_seq = {d["seq"]: d["true_phase"] for _, d in decoded.get("robot/contact", ())}
-    est_by_seq = {d["seq"]: d["phase"] for _, d in decoded.get("estimator/phase", ())}
+    est_by_seq = {d["seq"]: d for _, d in decoded.get("estimator/phase", ())}
     seqs = sorted(s for s in est_by_seq if s in truth_by_seq)
     if not seqs:
         return {"updates": 0, "accuracy": None, "unconditioned": {"arm_held": 0, "gap": 0}}
     truth = np.array([truth_by_seq[s] for s in seqs])
-    est = np.array([est_by_seq[s] for s in seqs])
+    est = np.array([est_by_seq[s]["phase"] for s in seqs])
     score = score_segmentation(truth, est, dt=dt, mapping={int(k): int(v) for k, v in phase_to_truth.items()})
     # scored estimates whose step the filter did not condition on (a KRC hold, a missing
     # sample), once per cycle as the accuracy counts them (a replayed copy is not another)
-    why_by_seq = {d["seq"]: d.get("unconditioned") for _, d in decoded.get("estimator/phase", ())}
     unconditioned = {"arm_held": 0, "gap": 0}
     for s in seqs:
-        if why_by_seq[s] in unconditioned:
-            unconditioned[why_by_seq[s]] += 1
+        why = est_by_seq[s].get("unconditioned")
+        if why in unconditioned:
+            unconditioned[why] += 1
     return dict(updates=len(seqs), correct=int(round(score.accuracy * len(seqs))), **score.to_dict(),
                 unconditioned=unconditioned)
 

@@ -135,11 +135,14 @@ def render_text(r: dict) -> str:
         te = s["mean_transition_error_s"]
         lines.append(f"online phase accuracy overall: {'-' if acc is None else f'{acc:.4f}'}; mean transition "
                      f"error: {'-' if te is None else f'{te:.3f} s'}")
-        held = [(rp["phases"].get("updates", 0), rp["phases"].get("unconditioned") or {}) for rp in r["reproductions"]]
-        if any(sum(u.values()) for _, u in held):
-            lines.append(f"estimates that did not condition on their step: arm held by the KRC "
-                         f"{sum(u.get('arm_held', 0) for _, u in held)}, sample missing {sum(u.get('gap', 0) for _, u in held)}"
-                         f", of {sum(n for n, _ in held)}")
+        held = gap = scored = 0
+        for rp in r["reproductions"]:
+            unconditioned = rp["phases"].get("unconditioned") or {}
+            held, gap = held + unconditioned.get("arm_held", 0), gap + unconditioned.get("gap", 0)
+            scored += rp["phases"].get("updates", 0)
+        if held or gap:
+            lines.append(f"estimates that did not condition on their step: arm held by the KRC {held}, "
+                         f"sample missing {gap}, of {scored}")
     if r["learning"].get("offline") or s.get("by_model"):
         from services.results.compare import comparison_text
 
