@@ -33,25 +33,32 @@ def main(argv=None) -> int:
         if not (args.run / name).is_file():
             ap.error(f"{args.run / name}: missing (is {args.run} a finished run's folder?)")
 
+    try:
+        return study(args.run, ap)
+    except (OSError, ValueError, KeyError, TypeError) as e:  # a report, model or recording that does not read
+        ap.exit(2, f"{ap.prog}: error: {type(e).__name__}: {e}\n")
+
+
+def study(run: Path, ap: argparse.ArgumentParser) -> int:
     from etar.task import load_task
     from services.recordings.arrays import topic_arrays
     from services.recordings.demonstrations import load_demonstration
 
-    report = json.loads((args.run / "report.json").read_text())
-    task = load_task(args.run / "model.json")
+    report = json.loads((run / "report.json").read_text())
+    task = load_task(run / "model.json")
     if not report.get("demonstrations"):
-        ap.error(f"{args.run}: no recorded demonstrations to match the phases on")
-    demos = [load_demonstration(args.run / d["path"]) for d in report["demonstrations"]]
+        ap.error(f"{run}: no recorded demonstrations to match the phases on")
+    demos = [load_demonstration(run / d["path"]) for d in report["demonstrations"]]
     n_true = int(max(np.max(d["phases"]) for d in demos)) + 1
     overlap = np.zeros((task.n_phases, n_true), dtype=np.int64)
     for d in demos:
         np.add.at(overlap, (task.model.viterbi(d["states"], d["forces"]), np.asarray(d["phases"])), 1)
     many_to_one = {k: int(np.argmax(overlap[k])) for k in range(task.n_phases)}
-    print(f"{args.run}: {task.n_phases} learned phases; samples (learned x true) on the demonstrations "
+    print(f"{run}: {task.n_phases} learned phases; samples (learned x true) on the demonstrations "
           f"{overlap.tolist()}; many to one {many_to_one}")
     by_side: dict[str, list] = {}
     for rp in report["reproductions"]:
-        path = args.run / rp["path"]
+        path = run / rp["path"]
         estimates, contact = topic_arrays(path, "estimator/phase"), topic_arrays(path, "robot/contact")
         truth = dict(zip(contact["seq"].tolist(), contact["true_phase"].tolist()))
         scored = [many_to_one[int(p)] == truth[s] for s, p in zip(estimates["seq"].tolist(),

@@ -249,20 +249,32 @@ def main(argv=None) -> int:
                     help="only these demonstrations of each folder, by index (e.g. 0,1: one per side, as the "
                          "thesis had)")
     args = ap.parse_args(argv)
-    for f in args.folders:
-        if not (Path(f) / "report.json").is_file():
-            ap.error(f"{f}: no report.json (a run folder with recorded demonstrations?)")
+    if args.workers < 1:
+        ap.error(f"--workers: expected a count >= 1, got {args.workers}")
+    if args.json and not args.json.parent.is_dir():
+        ap.error(f"--json: {args.json.parent} is not a folder")
     subset = None
     if args.demonstrations:
         try:
             subset = tuple(int(i) for i in args.demonstrations.split(","))
         except ValueError:
             ap.error(f"--demonstrations: expected indices like 0,1, got {args.demonstrations!r}")
+    for f in args.folders:
+        try:
+            count = len(json.loads((Path(f) / "report.json").read_text())["demonstrations"])
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            ap.error(f"{f}: no readable report.json with demonstrations (a run folder with recorded "
+                     f"demonstrations?): {e}")
+        if subset is not None and not all(0 <= i < count for i in subset):
+            ap.error(f"--demonstrations: {args.demonstrations} in {f}, which has demonstrations 0..{count - 1}")
+    results = []
     with ProcessPoolExecutor(args.workers) as pool:
-        results = []
-        for r in pool.map(study, args.folders, [subset] * len(args.folders)):
-            show(r)
-            results.append(r)
+        try:
+            for r in pool.map(study, args.folders, [subset] * len(args.folders)):
+                show(r)
+                results.append(r)
+        except Exception as e:  # a recording that does not read, a fit that fails: one line, not a traceback
+            ap.exit(2, f"{ap.prog}: error: {type(e).__name__}: {e}\n")
     K = results[0]["true_phases"]
     gain = [r["from_truth"]["log_likelihood"] - r["em"][K]["log_likelihood"] for r in results]
     chosen = [min(r["em"], key=lambda k: r["em"][k]["bic"]) for r in results]
