@@ -5,7 +5,9 @@ learner's input) and online (the phase estimator), so both see the same numbers.
 
 - state ``position``: tcp position, base frame (3,);
   ``pose``: position and the orientation as a rotation vector relative to the
-  episode's first orientation (6,).
+  episode's first orientation (6,).  With a ``resolution`` > 0 the position is
+  rounded to a grid of that pitch (m): a coarser state, as a position measured
+  by a coarser sensor would be (the controller still sees the KRC's own).
 - features ``force``: the F/T force rotated into base axes (3,) - the sensor
   frame has the tcp's orientation; ``force_torque``: force and torque (6,).
 """
@@ -23,8 +25,11 @@ def pose_of(msr_cart_pos) -> tuple[np.ndarray, np.ndarray]:
     return m[:, :3], m[:, 3]
 
 
-def state_vector(msr_cart_pos, kind: str = "position", R0: np.ndarray | None = None) -> np.ndarray:
+def state_vector(msr_cart_pos, kind: str = "position", R0: np.ndarray | None = None,
+                 resolution: float = 0.0) -> np.ndarray:
     R, p = pose_of(msr_cart_pos)
+    if resolution > 0.0:
+        p = np.round(p / resolution) * resolution
     if kind == "position":
         return p.copy()
     if kind == "pose":

@@ -55,6 +55,7 @@ class LearnedTask:
     dt: float  # s between samples
     state: str = "position"
     features: str = "force"
+    state_resolution: float = 0.0  # m: the grid the state's position was rounded to (0: none)
     goal_rotation: np.ndarray | None = None  # (3,) rad: pose state only, the mean final turn
     phase_to_truth: dict | None = None  # learned phase -> true phase, from the demonstrations' labels
     selection: dict | None = None  # how the number of phases was chosen (etar.selection summary)
@@ -80,6 +81,10 @@ class LearnedTask:
         if model.n_state != STATES[self.state]:
             self._fail("metadata.state", f"the model's state has {model.n_state} columns; "
                                          f"{self.state!r} has {STATES[self.state]}", self.state)
+        res = self.state_resolution
+        if isinstance(res, bool) or not isinstance(res, (int, float)) or not (math.isfinite(res) and res >= 0):
+            self._fail("metadata.state_resolution", "expected a grid pitch >= 0 m (0: the state is not rounded)", res)
+        object.__setattr__(self, "state_resolution", float(res))
         if model.n_force != FEATURES[self.features]:
             self._fail("metadata.features", f"the model's force has {model.n_force} columns; "
                                             f"{self.features!r} has {FEATURES[self.features]}", self.features)
@@ -126,6 +131,8 @@ class LearnedTask:
         meta.update(impedance=[None if i is None else i.to_dict() for i in self.impedances], dt=float(self.dt),
                     state=self.state, features=self.features, goal=self.goal.tolist(),
                     demonstrations=list(self.demonstrations))
+        if self.state_resolution:
+            meta["state_resolution"] = self.state_resolution
         if self.goal_rotation is not None:
             meta["goal_rotation"] = self.goal_rotation.tolist()
         if self.phase_to_truth is not None:
@@ -164,7 +171,8 @@ class LearnedTask:
         state = meta.get("state") or ("pose" if model.n_state == 6 else "position")
         features = meta.get("features") or ("force_torque" if model.n_force == 6 else "force")
         return cls(model=model, impedances=tuple(imps), goal=meta["goal"], dt=meta.get("dt", 0.01), state=state,
-                   features=features, goal_rotation=meta.get("goal_rotation"),
+                   features=features, state_resolution=meta.get("state_resolution", 0.0),
+                   goal_rotation=meta.get("goal_rotation"),
                    phase_to_truth=meta.get("phase_to_truth") or None, selection=meta.get("selection"),
                    demonstrations=tuple(meta.get("demonstrations") or ()), source=source)
 
@@ -218,7 +226,7 @@ def infer_kinds(model: ETAR) -> tuple[str, str]:
 
 
 def learn_task(model: ETAR, demos, dt: float, *, state: str | None = None, features: str | None = None,
-               selection: dict | None = None, sources=(), source: str = "<memory>") -> LearnedTask:
+               state_resolution: float = 0.0, selection: dict | None = None, sources=(), source: str = "<memory>") -> LearnedTask:
     """The task a fitted ``model`` learned from ``demos``.
 
     ``demos``: dicts with ``states`` (T, n), ``forces`` (T, m) and optionally
@@ -249,5 +257,5 @@ def learn_task(model: ETAR, demos, dt: float, *, state: str | None = None, featu
         if len(truth) == len(pred):
             mapping = match_phases(truth, pred, n_pred=model.n_phases)
     return LearnedTask(model=model, impedances=tuple(imps), goal=goal, dt=float(dt), state=state, features=features,
-                       goal_rotation=goal_rotation, phase_to_truth=mapping, selection=selection,
+                       state_resolution=state_resolution, goal_rotation=goal_rotation, phase_to_truth=mapping, selection=selection,
                        demonstrations=tuple(str(s) for s in sources), source=source)

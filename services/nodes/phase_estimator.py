@@ -78,6 +78,7 @@ class PhaseEstimatorNode(Node):
         self.filter = None
         self.episode = -1
         self.state_kind, self.feature_kind = "position", "force"
+        self.state_resolution = 0.0
         self.R0 = None
         self.skipped = 0
         self.updates = 0
@@ -144,7 +145,7 @@ class PhaseEstimatorNode(Node):
         else:
             if self.R0 is None:
                 self.R0 = pose_of(state["msr_cart_pos"])[0]
-            s = state_vector(state["msr_cart_pos"], self.state_kind, self.R0)
+            s = state_vector(state["msr_cart_pos"], self.state_kind, self.R0, self.state_resolution)
             f = force_vector(wrench["wrench"], state["msr_cart_pos"], self.feature_kind)
             # the AR emission of a step holds only where the phase's own law drove the arm
             # from one sample to the next: not across a KRC hold (monitor mode), not across
@@ -199,6 +200,7 @@ class PhaseEstimatorNode(Node):
             self.task = task
             self.state_kind = p.get("state", task.state)
             self.feature_kind = p.get("features", task.features)
+            self.state_resolution = task.state_resolution
             # resync: a restarted estimator joins the reproduction under way, where the
             # learned prior of the task's first phase would be wrong
             self.filter = task.model.filter(start="uniform" if p.get("resync") else "first")

@@ -19,7 +19,7 @@ _DEMONSTRATION_TOPICS = {"/robot/state": ROBOT_STATE, "/ft/wrench": FT_WRENCH, "
 
 
 def load_demonstration(path, *, state: str = "position", features: str = "force", rate_hz: float = SAMPLE_RATE_HZ,
-                       allow_incomplete: bool = False) -> dict:
+                       allow_incomplete: bool = False, state_resolution: float = 0.0) -> dict:
     """One recorded demonstration as the ETAR learner takes it.
 
     Robot cycles (``seq``) that have a robot_state, an ft_wrench and a
@@ -28,7 +28,8 @@ def load_demonstration(path, *, state: str = "position", features: str = "force"
     deterministic, and the same instants whatever cycle the recording began on.
 
     Returns ``states`` (T, 3) tcp position [m] or (T, 6) position + rotation
-    vector of R_0^T R (relative to the first sample; ``etar.features``); ``forces``
+    vector of R_0^T R (relative to the first sample; ``etar.features``), its position
+    rounded to ``state_resolution`` m if > 0; ``forces``
     (T, 3) the F/T force, or (T, 6) force and torque, in base axes (the sensor
     has the tcp's orientation, so f_base = R f_sensor); ``phases`` (T-1,) the
     true phase of samples 1..T-1 (the label of step t -> t+1 is the phase at
@@ -101,7 +102,7 @@ def load_demonstration(path, *, state: str = "position", features: str = "force"
 
     # the same functions as the online estimator, so learner and estimator see the same numbers
     R0 = R[0]
-    states = np.array([state_vector(c, state, R0) for c in cart.reshape(-1, 12)])
+    states = np.array([state_vector(c, state, R0, state_resolution) for c in cart.reshape(-1, 12)])
     forces = np.array([force_vector(w, c, features) for w, c in zip(wrench, cart.reshape(-1, 12))])
 
     gaps = int((stamp_ns[-1] - stamp_ns[0]) // period_ns + 1 - len(chosen))

@@ -35,7 +35,8 @@ def _demonstrations(run_dir: Path):
     if not model_path or not report.get("demonstrations"):
         raise FiguresError(f"{report_path}: the run has no demonstrations and learned model to compare on")
     task = load_task(in_run(run_dir, model_path))
-    demos = [load_demonstration(in_run(run_dir, d["path"]), state=task.state, features=task.features)
+    demos = [load_demonstration(in_run(run_dir, d["path"]), state=task.state, features=task.features,
+                               state_resolution=task.state_resolution)
              for d in report["demonstrations"]]
     return task, demos
 

@@ -625,7 +625,8 @@ def write_figures(run_dir, progress=None) -> tuple[list[Path], list[str]]:
     for d in report.get("demonstrations", []):
         p = in_run(run_dir, d["path"])
         try:
-            demos.append(load_demonstration(p, state=task.state, features=task.features, allow_incomplete=True))
+            demos.append(load_demonstration(p, state=task.state, features=task.features,
+                                            state_resolution=task.state_resolution, allow_incomplete=True))
         except (OSError, ValueError) as exc:
             skipped.append(f"demonstration {p.name}: {exc}")
     if demos:

@@ -30,14 +30,15 @@ def learn(stage: LearnStage, scenario: Scenario, demonstrations: list[str], out:
     # which then reads the demonstrations too (a fixed number of phases is one fit)
     with process_map(workers if stage.phases == "auto" else 1) as work_map:
         demos = list(work_map(functools.partial(load_demonstration, state=scenario.state,
-                                                features=scenario.features), demonstrations))
+                                                features=scenario.features,
+                                                state_resolution=scenario.state_resolution), demonstrations))
         record.learned_from = [dict(path=path, samples=len(d["states"])) for path, d in zip(demonstrations, demos)]
         with learning_threads(threads):
             models, selection = _fit(stage, demos, work_map, say)
     for i, m in enumerate(models):
         # which learned phase is which true phase is judged on the demonstrations only
         task = learn_task(m, demos, float(demos[0]["dt"]), state=scenario.state, features=scenario.features,
-                          selection=selection, sources=[d["path"] for d in demos])
+                          state_resolution=scenario.state_resolution, selection=selection, sources=[d["path"] for d in demos])
         name = MODEL_NAMES[m.transitions]
         # a later scenario can reproduce with this file alone
         path = task.save(out / ("model.json" if i == 0 else f"model-{name}.json"))

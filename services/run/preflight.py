@@ -49,6 +49,10 @@ def _stored_model(scenario: Scenario) -> LearnedTask:
         raise ScenarioError(f"the model sees {task.state}/{task.features}, the scenario "
                             f"{scenario.state}/{scenario.features} (state/features)", path="model",
                             value=str(path), source=scenario.source)
+    if task.state_resolution != scenario.state_resolution:
+        raise ScenarioError(f"the model was learned on a state rounded to {task.state_resolution:g} m, the scenario "
+                            f"asks for {scenario.state_resolution:g} m (state_resolution)", path="model",
+                            value=str(path), source=scenario.source)
     return task
 
 

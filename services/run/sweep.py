@@ -287,13 +287,29 @@ def by_model_rows(rows: list[dict]) -> list[dict]:
 
 def comparison_over_seeds(rows: list[dict]) -> list[str] | None:
     """ETAR against STAR over the sweep's runs (one per data seed): the verdict of
-    ``services.results.compare.verdict`` on each figure's mean and spread over the runs."""
-    from etar.comparison import spread
-    from services.results.compare import OFFLINE, ONLINE, paired, verdict
-
+    ``services.results.compare.verdict`` on each figure's mean and spread over the runs,
+    for each swept value on its own (a sweep over the sensor's noise compares the models
+    at each noise level, never across them)."""
     rows = [r for r in rows if r.get("param model") in ("ETAR", "STAR") and not r.get("error")]
     if not rows:
         return None
+    swept = [k for k in rows[0] if k.startswith("param ") and k != "param model"]
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        groups.setdefault(tuple(r.get(k) for k in swept), []).append(r)
+    if len(groups) == 1:
+        return _comparison(rows)
+    lines = []
+    for values, group in groups.items():
+        at = ", ".join(f"{k.removeprefix('param ')}={v}" for k, v in zip(swept, values))
+        lines += [f"at {at}:", *_comparison(group), ""]
+    return lines[:-1]
+
+
+def _comparison(rows: list[dict]) -> list[str]:
+    from etar.comparison import spread
+    from services.results.compare import OFFLINE, ONLINE, paired, verdict
+
     summary = {name: {k: st for k, _, _ in OFFLINE + ONLINE
                       if (st := spread(r.get(k) for r in rows if r["param model"] == name)) is not None}
                for name in ("ETAR", "STAR")}
@@ -347,14 +363,22 @@ def plot(rows: list[dict], parameters: list, out: Path) -> list[Path]:
         values = list(p.values)
         logx = numeric and min(values) > 0 and max(values) / min(values) >= 10
         fig, axes = plt.subplots(2, 3, figsize=(13, 7))
+        # a run that reproduced with several models (ETAR and STAR): a series per model
+        named_models = list(dict.fromkeys(r["param model"] for r in rows if r.get("param model")))
+        models = named_models if named_models and p.path != "model" else [None]
         for ax, (key, label) in zip(axes.ravel(), METRICS):
-            means = []
-            for i, v in enumerate(values):
-                ys = [r.get(key) for r in rows if r.get(col) == v and r.get(key) is not None and not r.get("error")]
-                x = v if numeric else i
-                ax.scatter([x] * len(ys), ys, s=22, alpha=0.6, color="C0", label="one seed" if i == 0 else None)
-                means.append((x, float(np.mean(ys)) if ys else float("nan")))
-            ax.plot([m[0] for m in means], [m[1] for m in means], "-o", ms=3, color="C1", label="mean over seeds")
+            for n, model in enumerate(models):
+                means = []
+                named = "" if model is None else f"{model}: "
+                for i, v in enumerate(values):
+                    ys = [r.get(key) for r in rows if r.get(col) == v and r.get(key) is not None
+                          and not r.get("error") and (model is None or r.get("param model") == model)]
+                    x = v if numeric else i
+                    ax.scatter([x] * len(ys), ys, s=22, alpha=0.6, color=f"C{2 * n}",
+                               label=f"{named}one seed" if i == 0 else None)
+                    means.append((x, float(np.mean(ys)) if ys else float("nan")))
+                ax.plot([m[0] for m in means], [m[1] for m in means], "-o", ms=3, color=f"C{2 * n + 1}",
+                        label=f"{named}mean over seeds")
             if logx:
                 ax.set_xscale("log")
                 ax.set_xticks(values, [f"{v:g}" for v in values])
@@ -362,7 +386,7 @@ def plot(rows: list[dict], parameters: list, out: Path) -> list[Path]:
                 ax.set_xticks(range(len(values)), [str(v) for v in values])
             if key == "phases_chosen":
                 ax.yaxis.set_major_locator(MaxNLocator(integer=True))
-                top = max([m[1] for m in means if m[1] == m[1]], default=1.0)
+                top = max([y for line in ax.get_lines() for y in line.get_ydata() if y == y], default=1.0)
                 ax.set_ylim(0.5, top + 1.5)
             ax.set_xlabel(p.path)
             ax.set_ylabel(label)

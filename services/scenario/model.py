@@ -16,7 +16,7 @@ import yaml
 from services.runtime.cycle import CLOCKS
 from services.runtime.roles import RESTARTABLE
 from services.scenario.checks import (FEATURES, RESTART_POLICIES, STATES, WORLDS, ScenarioError, _choice, _join,
-                                      _list, _seed, _set, _text)
+                                      _list, _number, _seed, _set, _text)
 from services.scenario.stages import (STAGE_TYPES, CellSpec, DemonstrateStage, LearnStage, ReproduceStage, Stage,
                                       _check_stage_order, doc)
 from services.scenario.starts import DEMONSTRATE_SEED_OFFSET, REPRODUCE_SEED_OFFSET
@@ -37,6 +37,7 @@ class Scenario:
     seed: int = doc('int >= 0: the base seed of the cell, the sensor and every stage', 0)
     state: str = doc('position | pose: what ETAR uses as its state', "position")
     features: str = doc("force | force_torque: ETAR's transition and effect features", "force")
+    state_resolution: float = doc("m >= 0: ETAR's state position rounded to a grid of this pitch, offline and online (0: not rounded); the arm's control is not", 0.0)
     model: str | None = doc('a model file learned earlier (relative to the scenario file): the reproductions use it instead of a learn stage', None)
     cell: CellSpec = doc("the simulated cell's physics and devices (below)", CellSpec())
     restart: Any = doc('per service, what the runner does if it dies mid-run: never (the run fails) | on_failure (started again: a recorder writes on in a new file and the report names the gap, an estimator re-synchronises its filter); recorder and phase_estimator only', ())
@@ -61,6 +62,7 @@ class Scenario:
         _set(self, "seed", _seed(self.seed, "seed"))
         _choice(self.state, "state", STATES)
         _choice(self.features, "features", FEATURES)
+        _set(self, "state_resolution", _number(self.state_resolution, "state_resolution", 0.0))
         if self.model is not None:
             _text(self.model, "model", non_empty=True)
         if not isinstance(self.cell, CellSpec):
@@ -181,6 +183,8 @@ class Scenario:
                if f.init and f.name not in ("stages", "source")}
         if self.model is None:
             del out["model"]
+        if not self.state_resolution:
+            del out["state_resolution"]  # as before the key existed: a run's scenario file is unchanged
         if not self.restart:
             del out["restart"]
         else:

@@ -56,6 +56,8 @@ def test_a_task_is_made_from_a_fit_and_reads_back_the_same(learned):
     (lambda d: d["metadata"].update(dt=0), "metadata.dt", "> 0"),
     (lambda d: d["metadata"].update(state="pose"), "metadata.state", "3 columns"),
     (lambda d: d["metadata"].update(phase_to_truth={"7": 0}), "metadata.phase_to_truth", "0..2"),
+    (lambda d: d["metadata"].update(state_resolution=-0.001), "metadata.state_resolution", "pitch >= 0 m"),
+    (lambda d: d["metadata"].update(state_resolution="1 mm"), "metadata.state_resolution", "pitch >= 0 m"),
     (lambda d: d.update(n_state=6), "model", "'n_state' is 6, but the parameters have 3"),
     (lambda d: d["parameters"]["Sigma"].__setitem__(2, (-np.array(d["parameters"]["Sigma"][2])).tolist()), "model",
      "'parameters.Sigma[2]' is not positive definite"),
@@ -90,3 +92,24 @@ def test_a_task_is_checked_when_it_is_made_too(learned):
         LearnedTask(model=task.model, impedances=task.impedances, goal=task.goal, dt=0.01, features="force_torque")
     with pytest.raises(TaskError, match="nothing to reproduce"):
         LearnedTask(model=task.model, impedances=(None, None, None), goal=task.goal, dt=0.01)
+
+
+def test_a_coarser_state_is_kept_with_the_task_and_rounds_only_the_position():
+    from etar.features import state_vector
+
+    # a tool turned 0.3 rad about z, at a position between grid points
+    c, s = np.cos(0.3), np.sin(0.3)
+    cart = [c, -s, 0, 0.6213, s, c, 0, -0.0987, 0, 0, 1, 0.3004]
+    np.testing.assert_allclose(state_vector(cart, "position", resolution=0.002), [0.622, -0.098, 0.300])
+    np.testing.assert_array_equal(state_vector(cart, "position"), [0.6213, -0.0987, 0.3004])
+    pose = state_vector(cart, "pose", np.eye(3), resolution=0.002)
+    np.testing.assert_allclose(pose, [0.622, -0.098, 0.300, 0, 0, 0.3])
+
+
+def test_a_tasks_state_resolution_reads_back_and_is_absent_from_files_without_one(learned, tmp_path):
+    task, path, _ = learned
+    assert task.state_resolution == 0.0 and "state_resolution" not in json.loads(path.read_text())["metadata"]
+    # a copy of the model: saving writes the task into its model's metadata
+    coarse = LearnedTask(model=ETAR.from_dict(task.model.to_dict()), impedances=task.impedances, goal=task.goal, dt=0.01,
+                         state_resolution=0.001)
+    assert load_task(coarse.save(tmp_path / "coarse.json")).state_resolution == 0.001

@@ -119,3 +119,19 @@ def test_paired_counts_which_model_was_better_in_each_seed():
     assert len(lines) == 2
     assert lines[0].endswith("ETAR better in 1 of 2 seeds, STAR in 1, equal in 0")
     assert lines[1].endswith("ETAR better in 1 of 2 seeds, STAR in 0, equal in 1")  # less force is better
+
+
+def test_a_sweep_over_a_parameter_compares_the_models_at_each_value_on_its_own():
+    rows = []
+    for noise, (a, b) in ((1, (0.99, 0.95)), (64, (0.90, 0.97))):
+        for seed in (0, 1):
+            for name, acc in (("ETAR", a), ("STAR", b)):
+                rows.append({"run": f"n{noise}s{seed}", "param cell.sensor_noise": noise, "param model": name,
+                             "seed": seed, "error": None, "filter_accuracy": acc + 0.001 * seed})
+    text = comparison_over_seeds(rows)
+    first, second = text.index("at cell.sensor_noise=1:"), text.index("at cell.sensor_noise=64:")
+    low = next(line for line in text[first:second] if "online filter accuracy" in line)
+    high = next(line for line in text[second:] if "online filter accuracy" in line)
+    assert "better: ETAR" in low and "0.95" not in low.split("STAR")[0]
+    assert "better: STAR" in high
+    assert text[first + 1].startswith("ETAR against STAR over 2 data seed(s) (0, 1)")
