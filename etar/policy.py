@@ -58,6 +58,14 @@ CONTACT_FORCE = 2.0
 # (nearly) straight into it is the phase's end: it keeps pressing, so that the
 # estimator sees the contact it was taught to switch on
 MIN_SLIDE = 0.3
+# s: ... and only once it has pressed against the surface this long.  A phase taught in
+# free space meets a surface where the teacher pressed into it and the next phase began;
+# pressing first lets the estimator see the contact force that its transitions were
+# learned on.  Sliding at once, the law's push into the plate was gone, the force stayed
+# low, and on some one-sided valley models (seed 2) the estimate held free motion for up
+# to 3 s on the plate (online accuracy 0.997 -> 0.865 over 7 starts).  Under STALL_TIME,
+# so that a law still pressing after it slides before it is judged blocked.
+PRESS_TIME = 0.3
 # s: a moving phase whose tool touches something and makes less than STALL_SPEED of
 # its speed along its direction for this long is blocked: the law goes on with the
 # phase the demonstrations entered next (``PhaseImpedance.successor``) until the
@@ -176,6 +184,7 @@ class ReproductionPolicy:
         self.stalled_for = 0.0  # s since stall_from: the window over which progress is judged
         self.stall_from = None  # where the tool was when the window began (None: not touching)
         self.last_d = None  # the running law's direction last cycle (after aim and contact)
+        self.pressed_for = 0.0  # s the running free-space law has touched a surface (PRESS_TIME)
 
     def _setpoint_rotation(self) -> np.ndarray:
         if not self.turned_setpoint:
@@ -243,6 +252,7 @@ class ReproductionPolicy:
             self.stalled_for = 0.0
             self.stall_from = None
             self.last_d = None
+            self.pressed_for = 0.0
             self.at_place = False
             moving = law is not None and not law.in_place
             self.ref = x + law.direction * 0.5 * self.lead if moving else x.copy()
@@ -264,7 +274,12 @@ class ReproductionPolicy:
         if law.free and law.aim is None and force is not None:
             # (a phase aiming for its successor's place is meant to arrive and press there:
             # sliding the coupler's approach off the socket delayed the switch, 6-8 s -> 8-10.5 s)
-            d = self._along_contact(x, d, force)
+            if float(force @ force) > CONTACT_FORCE ** 2:
+                self.pressed_for += dt
+            else:
+                self.pressed_for = 0.0
+            if self.pressed_for >= PRESS_TIME:
+                d = self._along_contact(x, d, force)
         self.last_d = d
         if not law.in_place:
             self.ref = self.ref + d * law.speed * dt
