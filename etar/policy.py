@@ -58,14 +58,6 @@ CONTACT_FORCE = 2.0
 # (nearly) straight into it is the phase's end: it keeps pressing, so that the
 # estimator sees the contact it was taught to switch on
 MIN_SLIDE = 0.3
-# s: ... and only once it has pressed against the surface this long.  A phase taught in
-# free space meets a surface where the teacher pressed into it and the next phase began;
-# pressing first lets the estimator see the contact force that its transitions were
-# learned on.  Sliding at once, the law's push into the plate was gone, the force stayed
-# low, and on some one-sided valley models (seed 2) the estimate held free motion for up
-# to 3 s on the plate (online accuracy 0.997 -> 0.865 over 7 starts).  Under STALL_TIME,
-# so that a law still pressing after it slides before it is judged blocked.
-PRESS_TIME = 0.3
 # s: a moving phase whose tool touches something and makes less than STALL_SPEED of
 # its speed along its direction for this long is blocked: the law goes on with the
 # phase the demonstrations entered next (``PhaseImpedance.successor``) until the
@@ -184,7 +176,6 @@ class ReproductionPolicy:
         self.stalled_for = 0.0  # s since stall_from: the window over which progress is judged
         self.stall_from = None  # where the tool was when the window began (None: not touching)
         self.last_d = None  # the running law's direction last cycle (after aim and contact)
-        self.pressed_for = 0.0  # s the running free-space law has touched a surface (PRESS_TIME)
 
     def _setpoint_rotation(self) -> np.ndarray:
         if not self.turned_setpoint:
@@ -252,7 +243,6 @@ class ReproductionPolicy:
             self.stalled_for = 0.0
             self.stall_from = None
             self.last_d = None
-            self.pressed_for = 0.0
             self.at_place = False
             moving = law is not None and not law.in_place
             self.ref = x + law.direction * 0.5 * self.lead if moving else x.copy()
@@ -274,12 +264,7 @@ class ReproductionPolicy:
         if law.free and law.aim is None and force is not None:
             # (a phase aiming for its successor's place is meant to arrive and press there:
             # sliding the coupler's approach off the socket delayed the switch, 6-8 s -> 8-10.5 s)
-            if float(force @ force) > CONTACT_FORCE ** 2:
-                self.pressed_for += dt
-            else:
-                self.pressed_for = 0.0
-            if self.pressed_for >= PRESS_TIME:
-                d = self._along_contact(x, d, force)
+            d = self._along_contact(x, d, force)
         self.last_d = d
         if not law.in_place:
             self.ref = self.ref + d * law.speed * dt
@@ -361,7 +346,15 @@ class ReproductionPolicy:
         on different sides (the valley's plates: their contact forces mirror each
         other) holds on none of them, and its law pushed the tool into a plate it
         could not move along (two-sided valley, 3 phases: 19 of 20 stalled).  The
-        reference's own lead into the surface goes too (the spring would press on)."""
+        reference keeps what lead into the surface it has (at most ``lead``: 10 N at
+        2000 N/m): the tool slides on pressing, as the teacher did, and the estimator
+        sees the contact force its transition into the surface's phase was learned
+        on.  With that lead removed as well (a652513), the force stayed low and on
+        some one-sided valley models the estimate held free motion on the plate for up
+        to 3 s (seed 2's model, 7 starts: online accuracy 0.9972 before the slide,
+        0.8646 with it, 0.9726 now); pressing in place for 0.3 s before sliding
+        instead (888fdc1) gave 0.9972 there but 0.80 on the two-sided valley's left
+        plate, whose phase is learned on sliding (0.94 before)."""
         fn = math.sqrt(float(force @ force))
         if fn <= CONTACT_FORCE:
             return d
@@ -373,9 +366,6 @@ class ReproductionPolicy:
         tn = math.sqrt(float(t @ t))
         if tn < MIN_SLIDE:
             return d
-        back = float((self.ref - x) @ n)
-        if back < 0.0:
-            self.ref = self.ref - back * n
         return t / tn
 
     def _damping(self, K):

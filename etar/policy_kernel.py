@@ -23,7 +23,7 @@ from numba import njit
 
 from etar import blas
 from etar.kernels import JIT, HoldsAddresses, address, carray_at, entry
-from etar.policy import CONTACT_FORCE, MIN_SLIDE, PLACE_SPEED, PRESS_TIME, STALL_SPEED, STALL_TIME, ReproductionPolicy
+from etar.policy import CONTACT_FORCE, MIN_SLIDE, PLACE_SPEED, STALL_SPEED, STALL_TIME, ReproductionPolicy
 
 NONE = -(1 << 62)  # None where the Python policy holds an int or None (a phase)
 
@@ -33,7 +33,6 @@ STATE = 30  # reset() zeroes from here on
 F_OUT, REF, PREV, V, STALL_FROM, LAST_D, STALLED_FOR = 30, 33, 36, 39, 42, 45, 48
 T1, T2, T3, D = 49, 52, 55, 58  # scratch vectors; D the running law's direction
 POSE, TOOL_FORCE, TOOL_F_OUT = 61, 73, 76  # tool_step's: the rows of [R | x], its force in and out
-PRESSED_FOR = 79
 N_FLOAT = 80
 # per phase (a row each): direction, stiffness, damping, feedforward, speed, place, aim
 P_DIR, P_K, P_D, P_FF, P_SPEED, P_PLACE, P_AIM = 0, 3, 12, 21, 24, 25, 28
@@ -108,7 +107,6 @@ def _law(dot_fn, gemv_fn, f_at, s_at, pf_at, pi_at, n_phases):
         f[STALLED_FOR] = 0.0
         s[HAS_STALL_FROM] = 0
         s[HAS_LAST_D] = 0
-        f[PRESSED_FOR] = 0.0
         s[AT_PLACE] = 0
         if law != NONE and not pq[law, Q_IN_PLACE]:
             for i in range(3):
@@ -185,13 +183,9 @@ def _law(dot_fn, gemv_fn, f_at, s_at, pf_at, pi_at, n_phases):
             for i in range(3):
                 f[REF + i] = f[X + i] + along * f[D + i]
     if pq[law, Q_FREE] and not pq[law, Q_HAS_AIM] and s[HAS_FORCE]:
-        if _dot(dot_fn, f_at, FORCE, FORCE) > CONTACT_FORCE ** 2:
-            f[PRESSED_FOR] += dt
-        else:
-            f[PRESSED_FOR] = 0.0
         # _along_contact
         fn = np.sqrt(_dot(dot_fn, f_at, FORCE, FORCE))
-        if f[PRESSED_FOR] >= PRESS_TIME and not fn <= CONTACT_FORCE:
+        if not fn <= CONTACT_FORCE:
             for i in range(3):
                 f[T1 + i] = f[FORCE + i] / fn  # n
             into = _dot(dot_fn, f_at, D, T1)
@@ -200,12 +194,6 @@ def _law(dot_fn, gemv_fn, f_at, s_at, pf_at, pi_at, n_phases):
                     f[T2 + i] = f[D + i] - into * f[T1 + i]  # t
                 tn = np.sqrt(_dot(dot_fn, f_at, T2, T2))
                 if not tn < MIN_SLIDE:
-                    for i in range(3):
-                        f[T3 + i] = f[REF + i] - f[X + i]
-                    back = _dot(dot_fn, f_at, T3, T1)
-                    if back < 0.0:
-                        for i in range(3):
-                            f[REF + i] = f[REF + i] - back * f[T1 + i]
                     for i in range(3):
                         f[D + i] = f[T2 + i] / tn
     for i in range(3):
