@@ -48,7 +48,8 @@ def study(run: Path, ap: argparse.ArgumentParser) -> int:
     task = load_task(run / "model.json")
     if not report.get("demonstrations"):
         ap.error(f"{run}: no recorded demonstrations to match the phases on")
-    demos = [load_demonstration(run / d["path"]) for d in report["demonstrations"]]
+    demos = [load_demonstration(run / d["path"], state=task.state, features=task.features,
+                                state_resolution=task.state_resolution) for d in report["demonstrations"]]
     n_true = int(max(np.max(d["phases"]) for d in demos)) + 1
     overlap = np.zeros((task.n_phases, n_true), dtype=np.int64)
     for d in demos:
