@@ -186,7 +186,7 @@ def _figure(sweeps: list[dict], path: Path) -> Path:
                                                  " [x Mini45]" if "sensor_noise" in s["parameter"] else ""))
         axes[0, c].set_title(f"over {s['parameter']}", fontsize=9)
     axes[0, 0].legend(fontsize=7)
-    fig.suptitle("ETAR (force-driven transitions) against STAR (state-driven), scenarios/star_vs_etar.yaml",
+    fig.suptitle("ETAR (force-driven transitions)\nagainst STAR (state-driven)",
                  fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
