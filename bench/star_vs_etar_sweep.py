@@ -33,17 +33,22 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-# (key in a sweep's table, what, higher is better, the figure's label)
-FIGURES = (("filter_accuracy", "filter accuracy, offline on the demonstrations", True, "filter accuracy\n(offline)"),
-           ("filter_mean_transition_error_s", "filter transition-time error, offline [s]", False,
+from services.results.compare import OFFLINE, ONLINE, beyond_spread, paired_counts
+
+# which way is better, and the counting rules, are services.results.compare's; here only
+# how a figure is named in the table and labelled on the plot: (key in a sweep's table,
+# what, the figure's label)
+HIGHER_BETTER = {key: higher for key, _, higher in OFFLINE + ONLINE}
+FIGURES = (("filter_accuracy", "filter accuracy, offline on the demonstrations", "filter accuracy\n(offline)"),
+           ("filter_mean_transition_error_s", "filter transition-time error, offline [s]",
             "transition error [s]\n(offline)"),
-           ("filter_spurious_switches", "filter spurious switches, offline", False, "spurious switches\n(offline)"),
-           ("error_near_transitions", "one-step error near transitions, offline [m^2]", False,
+           ("filter_spurious_switches", "filter spurious switches, offline", "spurious switches\n(offline)"),
+           ("error_near_transitions", "one-step error near transitions, offline [m^2]",
             "one-step error near\ntransitions [m^2] (offline)"),
-           ("online_phase_accuracy", "phase accuracy in the reproductions", True, "phase accuracy\n(reproductions)"),
-           ("mean_transition_error_s", "transition-time error in the reproductions [s]", False,
+           ("online_phase_accuracy", "phase accuracy in the reproductions", "phase accuracy\n(reproductions)"),
+           ("mean_transition_error_s", "transition-time error in the reproductions [s]",
             "transition error [s]\n(reproductions)"),
-           ("success_rate", "reproductions reaching the goal", True, "reaching the goal"))
+           ("success_rate", "reproductions reaching the goal", "reaching the goal"))
 MODELS = ("ETAR", "STAR")
 
 
@@ -133,21 +138,20 @@ def _table(sweeps: list[dict]) -> list[str]:
         lines += ["", f"| {s['parameter']} | figure | seeds | ETAR | STAR | paired: ETAR / STAR / equal | "
                       "beyond spread |", "|---|---|---|---|---|---|---|"]
         for value in s["values"]:
-            for key, what, higher, _ in FIGURES:
+            for key, what, _ in FIGURES:
+                higher = HIGHER_BETTER[key]
                 m = _by_value(s, value, key)
                 seeds = sorted(m["ETAR"].keys() & m["STAR"].keys())
                 if not seeds:
                     continue
                 e = np.array([m["ETAR"][k] for k in seeds])
                 t = np.array([m["STAR"][k] for k in seeds])
-                etar = int(np.sum((e > t) if higher else (e < t)))
-                star = int(np.sum((t > e) if higher else (t < e)))
-                diff = abs(e.mean() - t.mean())
-                beyond = diff > max(np.ptp(e), np.ptp(t)) and diff > 0
+                etar, star, equal = paired_counts(zip(e, t), higher)
+                beyond = beyond_spread(e.mean(), t.mean(), np.ptp(e), np.ptp(t))
                 better = ("ETAR" if (e.mean() > t.mean()) == higher else "STAR") if beyond else "no"
                 lines.append(f"| {value:g} | {what} | {len(seeds)} | {_fmt(e.mean())} ({_fmt(e.min())}..{_fmt(e.max())})"
                              f" | {_fmt(t.mean())} ({_fmt(t.min())}..{_fmt(t.max())}) | {etar} / {star} / "
-                             f"{len(seeds) - etar - star} | {better} |")
+                             f"{equal} | {better} |")
         lines.append("")
     return lines
 
@@ -165,8 +169,9 @@ def _figure(sweeps: list[dict], path: Path) -> Path:
         values = s["values"]
         # the baseline 0 of a resolution cannot sit on a log axis: evenly spaced values, labelled
         xs = np.arange(len(values), dtype=float)
-        for r, (key, _, _, label) in enumerate(shown):
+        for r, (key, _, label) in enumerate(shown):
             ax = axes[r, c]
+            positive = False
             for n, model in enumerate(MODELS):
                 per_value = [_by_value(s, v, key)[model] for v in values]
                 mean = np.array([np.mean(list(d.values())) if d else np.nan for d in per_value])
@@ -177,7 +182,8 @@ def _figure(sweeps: list[dict], path: Path) -> Path:
                 ax.plot(xs, mean, "-o", ms=3, color=f"C{n}", label=f"{model} (mean; band: min..max over seeds)")
                 for x, d in zip(xs, per_value):
                     ax.scatter([x + shift] * len(d), list(d.values()), s=9, color=f"C{n}", alpha=0.6)
-            if "error_near" in key:
+                    positive |= any(v > 0 for v in d.values())
+            if "error_near" in key and positive:  # a log axis needs something above 0 to show
                 ax.set_yscale("log")
             ax.set_ylabel(label, fontsize=8)
             ax.grid(alpha=0.3)

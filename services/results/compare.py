@@ -69,14 +69,13 @@ def verdict(summary: dict) -> list[str]:
             continue
         a, b = e[key]["mean"], s[key]["mean"]
         seeds = min(e[key].get("n", 1), s[key].get("n", 1))
-        spread = max(e[key]["max"] - e[key]["min"], s[key]["max"] - s[key]["min"])
         if a == b:
             who = "equal"
         else:
             who = "ETAR" if (a > b) == higher_better else "STAR"
             if seeds < 2:
                 who += " (one seed: no spread to weigh it against)"
-            elif abs(a - b) <= spread:
+            elif not beyond_spread(a, b, e[key]["max"] - e[key]["min"], s[key]["max"] - s[key]["min"]):
                 who += " (within the spread between seeds)"
         better[key] = who
         lines.append(f"  {what:<40} ETAR {a:10.4g} ({e[key]['min']:.4g}..{e[key]['max']:.4g})   "
@@ -117,11 +116,24 @@ def paired(rows_by_seed: dict) -> list[str]:
         pairs = [(a, b) for a, b in pairs if a is not None and b is not None and np.isfinite(a) and np.isfinite(b)]
         if not pairs:
             continue
-        etar = sum((a > b) == higher_better and a != b for a, b in pairs)
-        star = sum((a < b) == higher_better and a != b for a, b in pairs)
-        lines.append(f"  {what:<40} ETAR better in {etar} of {len(pairs)} seeds, STAR in {star}, equal in "
-                     f"{len(pairs) - etar - star}")
+        etar, star, equal = paired_counts(pairs, higher_better)
+        lines.append(f"  {what:<40} ETAR better in {etar} of {len(pairs)} seeds, STAR in {star}, equal in {equal}")
     return lines
+
+
+def paired_counts(pairs, higher_better: bool) -> tuple[int, int, int]:
+    """Of (ETAR, STAR) pairs of one figure (a pair per data seed): in how many ETAR was
+    the better, in how many STAR, in how many they were equal."""
+    pairs = list(pairs)
+    etar = sum((a > b) == higher_better and a != b for a, b in pairs)
+    star = sum((a < b) == higher_better and a != b for a, b in pairs)
+    return etar, star, len(pairs) - etar - star
+
+
+def beyond_spread(a: float, b: float, range_a: float, range_b: float) -> bool:
+    """Two models' means of a figure differ by more than either model's range over the
+    data seeds: the one difference this project calls a result."""
+    return a != b and abs(a - b) > max(range_a, range_b)
 
 
 def run_summary(reports: list[dict]) -> dict:

@@ -135,3 +135,44 @@ def test_a_sweep_over_a_parameter_compares_the_models_at_each_value_on_its_own()
     assert "better: ETAR" in low and "0.95" not in low.split("STAR")[0]
     assert "better: STAR" in high
     assert text[first + 1].startswith("ETAR against STAR over 2 data seed(s) (0, 1)")
+
+
+def test_the_sweep_table_pairs_the_seeds_and_calls_a_difference_only_beyond_both_ranges(tmp_path):
+    """bench/star_vs_etar_sweep.py on two hand-made sweep folders: the paired counts, the
+    'beyond spread' column at each value, the baseline borrowed from the other sweep, the
+    figure written; a folder that is not such a sweep is refused in one line."""
+    import json
+    import runpy
+
+    def sweep(folder, param, values, figure):
+        rows = [{"run": f"{v}-{seed}", f"param {param}": v, "param model": name, "seed": seed, "error": None,
+                 "filter_accuracy": figure(v, seed, name)}
+                for v in values for seed in (0, 1, 2) for name in ("ETAR", "STAR")]
+        folder.mkdir()
+        (folder / "sweep.json").write_text(json.dumps({"parameters": {"model": ["ETAR", "STAR"], param: values}}))
+        (folder / "table.json").write_text(json.dumps(rows))
+        return folder
+
+    # noise 1: ETAR ahead by 0.05 with ranges of 0.02: beyond; noise 64: ETAR ahead in 2 of 3 seeds
+    # by less than the range: no verdict
+    noise = sweep(tmp_path / "noise", "cell.sensor_noise", [1, 64],
+                  lambda v, seed, name: (0.95 + 0.01 * seed + (0.05 if name == "ETAR" else 0.0)) if v == 1
+                  else [[0.90, 0.89], [0.93, 0.92], [0.90, 0.95]][seed][name == "STAR"])
+    grid = sweep(tmp_path / "grid", "state_resolution", [0.001],
+                 lambda v, seed, name: 0.5 + 0.001 * seed)
+    main = runpy.run_path(str(ROOT / "bench" / "star_vs_etar_sweep.py"))["main"]
+    out = tmp_path / "out"
+    assert main([str(noise), str(grid), "--baseline", "state_resolution=0", "--out", str(out)]) == 0
+    table = (out / "star_vs_etar.md").read_text().splitlines()
+    accuracy = [line for line in table if "filter accuracy" in line]
+    assert accuracy[0].startswith("| 1 |") and accuracy[0].endswith("| 3 / 0 / 0 | ETAR |"), accuracy
+    assert accuracy[1].startswith("| 64 |") and accuracy[1].endswith("| 2 / 1 / 0 | no |"), accuracy
+    # the grid sweep's 0 is the noise sweep's first value (noise 1): ETAR ahead there too
+    assert accuracy[2].startswith("| 0 |") and accuracy[2].endswith("| 3 / 0 / 0 | ETAR |"), accuracy
+    assert accuracy[3].startswith("| 0.001 |") and accuracy[3].endswith("| 0 / 0 / 3 | no |"), accuracy
+    assert (out / "star_vs_etar.png").stat().st_size > 10_000
+
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SystemExit) as exit_:
+        main([str(tmp_path / "empty"), "--out", str(out)])
+    assert exit_.value.code == 2
