@@ -98,14 +98,18 @@ def main(argv=None) -> int:
 def _read(path: Path) -> dict:
     summary = json.loads((path / "sweep.json").read_text())
     rows = json.loads((path / "table.json").read_text())
-    swept = [p for p in summary["parameters"] if p != "model"]
+    # a parameter given one value (--param learn.phases=3) holds for the whole sweep: said, not swept
+    params = {p: v for p, v in summary["parameters"].items() if p != "model"}
+    swept = list(params) if len(params) == 1 else [p for p, v in params.items() if len(v) > 1]
     if len(swept) != 1:
-        raise ValueError(f"{path / 'sweep.json'}: parameters: expected one swept besides the model, got {swept}")
+        raise ValueError(f"{path / 'sweep.json'}: parameters: expected one swept over several values besides the "
+                         f"model, got {swept or 'none'}")
+    fixed = {p: v[0] for p, v in params.items() if len(v) == 1}
     if not any(r.get("param model") in MODELS for r in rows):
         raise ValueError(f"{path / 'table.json'}: no ETAR and STAR rows (a sweep of scenarios/star_vs_etar.yaml?)")
     failed = sorted({r["run"] for r in rows if r.get("error")})
     return dict(path=str(path), parameter=swept[0], values=list(summary["parameters"][swept[0]]),
-                rows=[r for r in rows if not r.get("error")], failed=failed, baseline_from=None)
+                rows=[r for r in rows if not r.get("error")], failed=failed, baseline_from=None, fixed=fixed)
 
 
 def _by_value(sweep: dict, value, key: str) -> dict:
@@ -131,6 +135,8 @@ def _table(sweeps: list[dict]) -> list[str]:
              "is larger than either model's range over the seeds.", ""]
     for s in sweeps:
         lines.append(f"## {s['parameter']} ({s['path']})")
+        if s["fixed"]:
+            lines.append("with " + ", ".join(f"{k}={v}" for k, v in s["fixed"].items()))
         if s["baseline_from"]:
             lines.append(f"(the baseline value: the runs of {s['baseline_from']})")
         if s["failed"]:

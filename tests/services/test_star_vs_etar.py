@@ -144,12 +144,13 @@ def test_the_sweep_table_pairs_the_seeds_and_calls_a_difference_only_beyond_both
     import json
     import runpy
 
-    def sweep(folder, param, values, figure):
+    def sweep(folder, param, values, figure, fixed=None):
         rows = [{"run": f"{v}-{seed}", f"param {param}": v, "param model": name, "seed": seed, "error": None,
                  "filter_accuracy": figure(v, seed, name)}
                 for v in values for seed in (0, 1, 2) for name in ("ETAR", "STAR")]
         folder.mkdir()
-        (folder / "sweep.json").write_text(json.dumps({"parameters": {"model": ["ETAR", "STAR"], param: values}}))
+        parameters = {"model": ["ETAR", "STAR"], param: values, **(fixed or {})}
+        (folder / "sweep.json").write_text(json.dumps({"parameters": parameters}))
         (folder / "table.json").write_text(json.dumps(rows))
         return folder
 
@@ -158,8 +159,8 @@ def test_the_sweep_table_pairs_the_seeds_and_calls_a_difference_only_beyond_both
     noise = sweep(tmp_path / "noise", "cell.sensor_noise", [1, 64],
                   lambda v, seed, name: (0.95 + 0.01 * seed + (0.05 if name == "ETAR" else 0.0)) if v == 1
                   else [[0.90, 0.89], [0.93, 0.92], [0.90, 0.95]][seed][name == "STAR"])
-    grid = sweep(tmp_path / "grid", "state_resolution", [0.001],
-                 lambda v, seed, name: 0.5 + 0.001 * seed)
+    grid = sweep(tmp_path / "grid", "state_resolution", [0.001, 0.002],
+                 lambda v, seed, name: 0.5 + 0.001 * seed, fixed={"learn.phases": [3]})
     main = runpy.run_path(str(ROOT / "bench" / "star_vs_etar_sweep.py"))["main"]
     out = tmp_path / "out"
     assert main([str(noise), str(grid), "--baseline", "state_resolution=0", "--out", str(out)]) == 0
@@ -170,6 +171,8 @@ def test_the_sweep_table_pairs_the_seeds_and_calls_a_difference_only_beyond_both
     # the grid sweep's 0 is the noise sweep's first value (noise 1): ETAR ahead there too
     assert accuracy[2].startswith("| 0 |") and accuracy[2].endswith("| 3 / 0 / 0 | ETAR |"), accuracy
     assert accuracy[3].startswith("| 0.001 |") and accuracy[3].endswith("| 0 / 0 / 3 | no |"), accuracy
+    assert accuracy[4].startswith("| 0.002 |") and len(accuracy) == 5, accuracy
+    assert "with learn.phases=3" in table  # given one value: said, not swept
     assert (out / "star_vs_etar.png").stat().st_size > 10_000
 
     (tmp_path / "empty").mkdir()
