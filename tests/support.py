@@ -6,6 +6,7 @@ from __future__ import annotations
 import functools
 import json
 import os
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -199,3 +200,22 @@ def require_realtime_machine() -> None:
         pytest.skip(f"this machine takes {us:.1f} us for MuJoCo's step of the arm (best of 3 x 2000; about 4.8 on "
                     f"the reference VM): 1 kHz realtime over FRI/UDP needs at most {REALTIME_MUJOCO_STEP_US} us "
                     f"(ETAR_REALTIME_TESTS=force runs it anyway)")
+
+
+def popen_as_from_a_terminal(argv: list, **kwargs) -> subprocess.Popen:
+    """``subprocess.Popen(argv)`` with SIGINT at its default in the child, as a command
+    typed at a terminal has it.  A shell that starts a job in the background without job
+    control (``make test &`` in a script, nohup, some CI runners) starts it with SIGINT
+    ignored, every process under it inherits that, and Python keeps an inherited SIGINT
+    ignored: a Ctrl-C test would then send a signal nothing can see (the run went on to
+    its end).  A Python handler, unlike SIG_IGN, is reset to the default across exec, so
+    the parent holds one while it starts the child."""
+    import signal
+
+    if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
+        return subprocess.Popen(argv, **kwargs)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        return subprocess.Popen(argv, **kwargs)
+    finally:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)

@@ -12,6 +12,8 @@ import time
 import uuid
 from pathlib import Path
 
+from tests.support import popen_as_from_a_terminal
+
 # a whole run (or the service processes) over Zenoh: the slow lane
 # signals timed against the run: with the machine to itself
 pytestmark = [pytest.mark.slow, pytest.mark.zenoh, pytest.mark.serial]
@@ -35,7 +37,7 @@ def processes_of(run_id: str) -> list[int]:
 
 def start_smoke_run(out: Path, run_id: str) -> subprocess.Popen:
     """`etar-bench run scenarios/smoke.yaml` as its own process, its stderr readable as text."""
-    return subprocess.Popen(
+    return popen_as_from_a_terminal(
         [sys.executable, "-m", "services.cli.bench", "run", str(ROOT / "scenarios" / "smoke.yaml"), "--out", str(out),
          "--run-id", run_id], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
 

@@ -23,7 +23,7 @@ from robot_sim.fri import FriState
 from robot_sim.fri_wire import COMMAND_SIZE, MEASUREMENT_SIZE, CommandFlags, decode_command, decode_measurement
 from services.run.episode import SETTLE_CYCLES
 from tests.robot_sim.fri_remote import Remote
-from tests.support import assert_a_stall, realtime_attempts, require_realtime_machine
+from tests.support import assert_a_stall, popen_as_from_a_terminal, realtime_attempts, require_realtime_machine
 
 # the served cell on the realtime clock, at 1 kHz over UDP: serial (make test runs these after the rest)
 pytestmark = [pytest.mark.serial]
@@ -187,7 +187,7 @@ def _children(pid: int) -> list[int]:
 
 
 def _start_serve(out: Path, remote_port: int, seconds: int) -> subprocess.Popen:
-    proc = subprocess.Popen(
+    proc = popen_as_from_a_terminal(
         [sys.executable, "-m", "services.cli.bench", "serve", "scenarios/smoke.yaml", "--out", str(out),
          "--fri-remote", f"127.0.0.1:{remote_port}", "--netft", "none", "--max-seconds", str(seconds)],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
