@@ -10,14 +10,18 @@ starts for both models) of seeds in which each was the better.
 
     etar-bench sweep scenarios/star_vs_etar.yaml --param cell.sensor_noise=1,16,64,256 \\
         --repeats 5 --record summary --out runs/noise
-    etar-bench sweep scenarios/star_vs_etar.yaml --param state_resolution=0.0005,0.001,0.002,0.005 \\
-        --repeats 5 --record summary --out runs/resolution
-    python bench/star_vs_etar_sweep.py runs/noise runs/resolution --baseline state_resolution=0 \\
-        --out docs/runs/star-vs-etar-sweeps
+    etar-bench sweep scenarios/star_vs_etar.yaml --param state_resolution=0,0.0001,0.0003 \\
+        --param learn.phases=3 --repeats 5 --record summary --out runs/coarse
+    etar-bench sweep scenarios/star_vs_etar.yaml --param state_resolution=0.0003 \\
+        --param learn.phases=3 --repeats 10 --record summary --out runs/coarse10
+    python bench/star_vs_etar_sweep.py runs/noise runs/coarse runs/coarse10 --out runs/star-vs-etar
 
-A sweep's first value of another sweep's parameter can stand in for this sweep's
-missing one (``--baseline PARAM=VALUE``: the noise sweep's noise 1 is the resolution
-sweep's 0).  Writes ``OUT/star_vs_etar.md`` (the table) and ``OUT/star_vs_etar.png``.
+A parameter given one value (``learn.phases=3``) holds for its sweep and is said above
+its table.  Sweeps of the same parameter with the same fixed ones are laid out as one
+(more values, or more seeds at a value).  A sweep's first value of another sweep's
+parameter can stand in for this sweep's missing one (``--baseline PARAM=VALUE``: the
+noise sweep's noise 1 is a resolution sweep's 0, if both choose their phases alike).
+Writes ``OUT/star_vs_etar.md`` (the table) and ``OUT/star_vs_etar.png``.
 """
 
 from __future__ import annotations
@@ -71,7 +75,7 @@ def main(argv=None) -> int:
         if not sep or not name:
             ap.error(f"--baseline {item}: expected PARAM=NUMBER")
     try:
-        sweeps = [_read(path) for path in args.sweeps]
+        sweeps = _merged([_read(path) for path in args.sweeps])
     except (OSError, ValueError, KeyError, TypeError) as exc:
         ap.exit(2, f"{ap.prog}: error: {exc}\n")
     if not args.out.parent.is_dir():
@@ -98,18 +102,39 @@ def main(argv=None) -> int:
 def _read(path: Path) -> dict:
     summary = json.loads((path / "sweep.json").read_text())
     rows = json.loads((path / "table.json").read_text())
-    # a parameter given one value (--param learn.phases=3) holds for the whole sweep: said, not swept
+    # a parameter given one value (--param learn.phases=3) holds for the whole sweep: said, not
+    # swept; where every one has a single value, the first given is the one laid out
     params = {p: v for p, v in summary["parameters"].items() if p != "model"}
-    swept = list(params) if len(params) == 1 else [p for p, v in params.items() if len(v) > 1]
+    swept = [p for p, v in params.items() if len(v) > 1] or list(params)[:1]
     if len(swept) != 1:
         raise ValueError(f"{path / 'sweep.json'}: parameters: expected one swept over several values besides the "
                          f"model, got {swept or 'none'}")
-    fixed = {p: v[0] for p, v in params.items() if len(v) == 1}
+    fixed = {p: v[0] for p, v in params.items() if p != swept[0]}
     if not any(r.get("param model") in MODELS for r in rows):
         raise ValueError(f"{path / 'table.json'}: no ETAR and STAR rows (a sweep of scenarios/star_vs_etar.yaml?)")
     failed = sorted({r["run"] for r in rows if r.get("error")})
     return dict(path=str(path), parameter=swept[0], values=list(summary["parameters"][swept[0]]),
                 rows=[r for r in rows if not r.get("error")], failed=failed, baseline_from=None, fixed=fixed)
+
+
+def _merged(sweeps: list[dict]) -> list[dict]:
+    """Sweeps of the same parameter with the same fixed ones laid out as one (more values,
+    or more seeds at a value); a (value, seed, model) run twice is taken once, from the
+    first sweep given (the same seed gives the same run)."""
+    out: dict = {}
+    for s in sweeps:
+        key = (s["parameter"], tuple(sorted(s["fixed"].items())))
+        if key not in out:
+            out[key] = dict(s, rows=list(s["rows"]), values=list(s["values"]), failed=list(s["failed"]))
+            continue
+        m = out[key]
+        col = f"param {s['parameter']}"
+        seen = {(r.get(col), r.get("seed"), r.get("param model")) for r in m["rows"]}
+        m["rows"] += [r for r in s["rows"] if (r.get(col), r.get("seed"), r.get("param model")) not in seen]
+        m["values"] = sorted({*m["values"], *s["values"]})
+        m["failed"] += s["failed"]
+        m["path"] += f", {s['path']}"
+    return list(out.values())
 
 
 def _by_value(sweep: dict, value, key: str) -> dict:

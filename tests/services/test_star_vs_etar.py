@@ -161,11 +161,16 @@ def test_the_sweep_table_pairs_the_seeds_and_calls_a_difference_only_beyond_both
                   else [[0.90, 0.89], [0.93, 0.92], [0.90, 0.95]][seed][name == "STAR"])
     grid = sweep(tmp_path / "grid", "state_resolution", [0.001, 0.002],
                  lambda v, seed, name: 0.5 + 0.001 * seed, fixed={"learn.phases": [3]})
+    # a second sweep of the noise (one more value, and noise 64 again: taken once) joins the first
+    more = sweep(tmp_path / "more", "cell.sensor_noise", [64, 256], lambda v, seed, name: 0.1)
     main = runpy.run_path(str(ROOT / "bench" / "star_vs_etar_sweep.py"))["main"]
     out = tmp_path / "out"
-    assert main([str(noise), str(grid), "--baseline", "state_resolution=0", "--out", str(out)]) == 0
+    assert main([str(noise), str(grid), str(more), "--baseline", "state_resolution=0", "--out", str(out)]) == 0
     table = (out / "star_vs_etar.md").read_text().splitlines()
+    assert [line for line in table if line.startswith("## ")] == [
+        f"## cell.sensor_noise ({noise}, {more})", f"## state_resolution ({grid})"]
     accuracy = [line for line in table if "filter accuracy" in line]
+    assert accuracy.pop(2).startswith("| 256 |"), accuracy
     assert accuracy[0].startswith("| 1 |") and accuracy[0].endswith("| 3 / 0 / 0 | ETAR |"), accuracy
     assert accuracy[1].startswith("| 64 |") and accuracy[1].endswith("| 2 / 1 / 0 | no |"), accuracy
     # the grid sweep's 0 is the noise sweep's first value (noise 1): ETAR ahead there too
