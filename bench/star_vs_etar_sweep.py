@@ -203,8 +203,9 @@ def _figure(sweeps: list[dict], path: Path) -> Path:
         for r, (key, _, label) in enumerate(shown):
             ax = axes[r, c]
             positive = False
+            by_value = [_by_value(s, v, key) for v in values]
             for n, model in enumerate(MODELS):
-                per_value = [_by_value(s, v, key)[model] for v in values]
+                per_value = [m[model] for m in by_value]
                 mean = np.array([np.mean(list(d.values())) if d else np.nan for d in per_value])
                 lo = np.array([min(d.values()) if d else np.nan for d in per_value])
                 hi = np.array([max(d.values()) if d else np.nan for d in per_value])

@@ -349,12 +349,10 @@ class ReproductionPolicy:
         reference keeps what lead into the surface it has (at most ``lead``: 10 N at
         2000 N/m): the tool slides on pressing, as the teacher did, and the estimator
         sees the contact force its transition into the surface's phase was learned
-        on.  With that lead removed as well (a652513), the force stayed low and on
-        some one-sided valley models the estimate held free motion on the plate for up
-        to 3 s (seed 2's model, 7 starts: online accuracy 0.9972 before the slide,
-        0.8646 with it, 0.9726 now); pressing in place for 0.3 s before sliding
-        instead (888fdc1) gave 0.9972 there but 0.80 on the two-sided valley's left
-        plate, whose phase is learned on sliding (0.94 before)."""
+        on.  Without that push the estimate held free motion on a plate for up to 3 s;
+        pressing in place before sliding cost the two-sided valley's left plate
+        instead (the three versions measured: docs/learning.md, the reproduction
+        policy)."""
         fn = math.sqrt(float(force @ force))
         if fn <= CONTACT_FORCE:
             return d

@@ -6,6 +6,7 @@ from __future__ import annotations
 import functools
 import json
 import os
+import signal
 import subprocess
 from pathlib import Path
 
@@ -210,8 +211,6 @@ def popen_as_from_a_terminal(argv: list, **kwargs) -> subprocess.Popen:
     ignored: a Ctrl-C test would then send a signal nothing can see (the run went on to
     its end).  A Python handler, unlike SIG_IGN, is reset to the default across exec, so
     the parent holds one while it starts the child."""
-    import signal
-
     if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
         return subprocess.Popen(argv, **kwargs)
     signal.signal(signal.SIGINT, signal.default_int_handler)
