@@ -47,11 +47,13 @@ def per_step(fn, cycles):
     return (time.perf_counter() - t) / cycles * 1e6
 
 
-def pressed_cell():
-    """A valley cell with the tool 2 mm over the left plate, and a Cartesian impedance
-    command 1 cm into it: (cell, q0, command, stiffness)."""
-    g = Valley()
-    cell = RobotCell(valley(g), seed=0)
+def pressed_cell(world=None):
+    """A valley cell (``world``: another valley's, e.g. a contact candidate's) with the tool
+    2 mm over the left plate, and a Cartesian impedance command 1 cm into it: (cell, q0,
+    command, stiffness)."""
+    world = world or valley(Valley())
+    g = world.task
+    cell = RobotCell(world, seed=0)
     n = g.plate_normal(-1)
     y = -0.08
     contact = np.array([0.6, y, g.surface_z(y)]) + n * cell.kin.description.tool.tip_radius
@@ -77,12 +79,12 @@ def law_and_physics(cell, cmd):
     return steps
 
 
-def physical_floor_us(cycles: int = 5000) -> float:
+def physical_floor_us(cycles: int = 5000, world=None) -> float:
     """us per 1 ms cycle of the bare loop (law and physics, arm pressed on a plate): the
     floor a whole cycle is measured against (bench/lockstep_rtf.py)."""
-    cell, q0, cmd, _ = pressed_cell()
+    cell, q0, cmd, _ = pressed_cell(world)
     cell.place(q0)
-    return per_step(law_and_physics(cell, cmd), cycles)
+    return per_step(law_and_physics(cell, cmd), cycles) * cell.sim.substeps
 
 
 def commanded_cycles(cell, cmd, stiffness):

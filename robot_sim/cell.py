@@ -13,6 +13,7 @@ answers, and when, differs.  Time is the integer cycle count times the cycle.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -155,14 +156,18 @@ class RobotCell(HoldsAddresses):
         self.world = world
         self.sim = Simulation(world)
         self.kin = ArmKinematics()
-        self.krc = KrcController(self.kin, krc_config or KrcConfig())
+        step_ns = round(TIMESTEP * 1e9) // self.sim.substeps
+        # the KRC's law runs every physics step: its rate limits count in steps
+        krc_config = krc_config or KrcConfig()
+        self.krc = KrcController(self.kin, dataclasses.replace(krc_config, cycle_s=step_ns / 1e9)
+                                 if self.sim.substeps > 1 else krc_config)
         self.fri = FriLink(fri_config, faults)
-        step_ns = round(TIMESTEP * 1e9)
         if self.fri.config.cycle_ns % step_ns or self.fri.config.cycle_ns < step_ns:
             raise ValueError(f"FRI cycle {self.fri.config.cycle_ns} ns must be a whole number of physics steps "
                              f"({step_ns} ns)")
-        # friOpen(ms) with more than 1 ms: the KRC's own control still runs every physics
-        # step, with the cycle's command; FRI measures and takes commands every cycle
+        # friOpen(ms) with more than 1 ms, or a world stepped finer than the cycle (the
+        # reference physics): the KRC's own control still runs every physics step, with
+        # the cycle's command; FRI measures and takes commands every cycle
         self.steps_per_cycle = self.fri.config.cycle_ns // step_ns
         self.ati_config = ati_config or AtiConfig.mini45()
         # without_sensor: whoever runs the cell samples the tool wrench with its own
@@ -181,6 +186,9 @@ class RobotCell(HoldsAddresses):
         self._JJt = np.empty((6, 6))
         self._Jtau = np.empty(6)
         self._cart_pos = np.empty((3, 4))  # FRI's 3x4 row-major [R | p], filled from views of the kinematics
+        self._true_jacobian = np.empty((6, 7))
+        self._true_pose = np.zeros((3, 4))
+        self._true_twist = np.zeros(6)
         self._joint_noise_block = np.empty((0, 7))
         self._joint_noise_i = 0
         self._true_wrench = np.zeros(6)
@@ -233,6 +241,7 @@ class RobotCell(HoldsAddresses):
         self._joint_noise_i = i + 1
         np.multiply(self._joint_noise_block[i], self.joint_noise, out=self._q_msr)
         self._q_msr += self._q
+        self._true_motion()
         if _EXTERNAL_WRENCH is not None:
             kin.update_with_jacobian(self._q_msr, "tcp", self._wrench_scratch.jacobian)
             wrench = self._wrench_scratch.solve(_EXTERNAL_WRENCH)
@@ -246,6 +255,31 @@ class RobotCell(HoldsAddresses):
         m = self.fri.measurement(self.t_ns, self._q_msr, cart.reshape(12), standard_to_fri(wrench))
         self._last_measurement = m
         return m
+
+    def _true_motion(self) -> None:
+        """The tcp's true pose and velocity at the cycle's start, from the true joint state
+        (what a hand holding the tool feels), before the measured kinematics: the model's
+        data is left holding the measurement, as before."""
+        kin, jacobian = self.kin, self._true_jacobian
+        kin.update_with_jacobian(self._q, "tcp", jacobian)
+        R, p = kin.frame_views("tcp")
+        pose = self._true_pose
+        pose[:, :3] = R
+        pose[:, 3] = p
+        local = jacobian @ self._qd  # [v; w] in tcp axes
+        twist = self._true_twist
+        twist[:3] = R @ local[:3]
+        twist[3:] = R @ local[3:]
+
+    @property
+    def true_tcp_pose(self) -> np.ndarray:
+        """(12,) the tcp's true pose at the open cycle's start, 3x4 row-major [R | p], base frame."""
+        return self._true_pose.reshape(12).copy()
+
+    @property
+    def true_tcp_twist(self) -> np.ndarray:
+        """(6,) the tcp's true velocity at the open cycle's start [v; w], base frame axes."""
+        return self._true_twist.copy()
 
     def external_wrench_tcp(self) -> np.ndarray:
         """The KRC's estimate of the external wrench at the tcp, tcp axes,

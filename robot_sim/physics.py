@@ -162,8 +162,10 @@ class Simulation(HoldsAddresses):
     def __init__(self, world: WorldSpec):
         self.world = world
         self.model = mujoco.MjModel.from_xml_string(world.xml)
-        if abs(self.model.opt.timestep - TIMESTEP) > 1e-12:
-            raise ValueError(f"world {world.name}: timestep {self.model.opt.timestep} s, expected {TIMESTEP} s")
+        step = self.model.opt.timestep
+        if not (step > 0 and abs(TIMESTEP / step - round(TIMESTEP / step)) < 1e-9):
+            raise ValueError(f"world {world.name}: timestep {step} s, expected {TIMESTEP} s or a whole fraction of it")
+        self.substeps = round(TIMESTEP / step)  # physics steps per 1 ms (FRI_CYCLE_NS)
         self.data = mujoco.MjData(self.model)
         m = self.model
         self._qpos = np.array([m.jnt_qposadr[m.joint(n).id] for n in JOINTS])

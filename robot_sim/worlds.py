@@ -4,26 +4,56 @@
 forming a groove along x.  ``hose_coupler()`` is fig. 27: a coupler socket the
 tool enters, then turns in.  ``free_space()`` has no task geometry.
 
-Contact: only the tool tip collides (the arm's capsules are visual), with
-geoms of contype 1 / conaffinity 2.  MuJoCo takes the larger friction of the
-two geoms in contact, so the tip's own friction is set low (0.1) and each
-surface carries the pair's coefficients (sliding, torsional, rolling): steel
-tip on aluminium, sliding 0.25 (dry steel on aluminium is
-0.3-0.6 static; a polished tip on anodised plate slides lower), torsional
-0.005 m, rolling 1e-4 m; the coupler's rubber seal 0.8 sliding and 0.1 m
-torsional so that turning the hose end costs a measurable torque.
-Contact softness solref = (5 ms, 1): stiff, critically damped, stable at the
-1 ms step.  ``impratio = 0.01`` makes friction softer than the normal
-contact: with the default (1) a tip sliding on a plate under the arm's
-inertia chattered on and off the surface at ~170 Hz (friction impulses
-kicking it off through the arm's mass matrix; contact present in 76 % of the
-steps), with 0.01 it stays in contact (98 %) and the sliding friction is
-still mu N (measured 1.95 N at 7.8 N normal force, mu = 0.25).
+Contact: only the tool tip touches the world, through one explicit MuJoCo
+``<pair>`` per surface geom (``Surface``: its role and the pair's friction; the
+arm's own geoms are visual).  Friction per pair (sliding, torsional, rolling):
+steel tip on aluminium plates, sliding 0.25 (dry steel on aluminium is 0.3-0.6
+static; a polished tip on anodised plate slides lower), torsional 0.005 m, rolling
+1e-4 m; the coupler's rubber seal 0.8 sliding, and torsional 0.8 x the bore's 18 mm
+radius (0.0144 m: the seal's friction at its rim, 0.1 N m to turn the hose end at
+8 N of press).
+
+How the pair's rows are set, and why (docs/contact.md has the candidates and their
+numbers, ``python bench/contact_candidates.py``; MuJoCo's Computation chapter,
+"Physical realism and soft contacts", and its modelling guide, "Contact parameters",
+are the reference).  MuJoCo's convex contact model couples friction to the normal:
+a contact in its sliding zone (friction on the cone, mu N) feeds mu |jar_t| of
+separating acceleration into the normal row, jar_t being the friction rows'
+residual, about b_f v_t while sliding (``mj_constraintUpdate``); the documentation
+owns that "complementarity can be violated".  With the friction rows damped as the
+normal (b_f = 2 / (0.95 x 20 ms) = 105 /s, the default) a tip sliding at 5 cm/s
+floated off a plate in a sawtooth: 20-65 lift-offs a second, single-step drops of
+the force to 0 N, 1.7-2.8 N of step-to-step jitter; ten 0.1 ms steps per cycle did
+not cure it (more lift-offs), stiffer contacts and harder friction made it worse.
+
+- ``FRICTION_DAMPING`` = 2 /s: the friction rows' reference damping
+  (``solreffriction="0 -2"``, the direct form, which only an explicit pair has).
+  The separating term shrinks fifty-fold, while sliding friction stays mu N: the
+  sliding zone's force does not depend on b_f.  Below 1 /s the viscous zone reaches
+  the task's speeds and the friction ratio falls short of mu.
+- ``IMPRATIO`` = 10: friction ten times harder than the normal ("Preventing slip");
+  a tip pressed 8 N on a plate and pushed along it with 1 N creeps 0.9 mm/s instead of
+  sticking, where the friction before (impratio 0.01) crept 14.5 mm/s: viscous, not
+  Coulomb.  (impratio 10 alone, friction rows at 105 /s, floats the tip off 115 times
+  a second.)
+- ``NORMAL_SOLIMP`` from 0.8 (it was 0.9): twice the normal row's regularisation, so
+  that a teacher pressing with 4 N, which its tremor takes to about 1 N, no longer
+  floats off (12-17 lift-offs over eight demonstrations with 0.9, none with 0.8).
+  The price: at rest under 8 N the tip sinks 0.37 mm into the plate (0.15 mm with
+  0.9); a stiffer ``solref`` (5-10 ms) floated it off more, not less.
+- The coupler's torsional friction was 0.1 m, a lever five times the bore's radius:
+  turning the hose end floated the tip off the floor as a slide does (the teacher
+  that presses least, 4.3 lift-offs a second; none with 0.0144 m).
+
+The physics step is ``TIMESTEP`` (one FRI cycle); a world built with a finer
+``timestep`` (a whole fraction of it) is the reference the cell is checked against
+(``RobotCell(physics_substeps=...)``).
 """
 
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -33,6 +63,10 @@ from robot_sim.labels import LABELERS
 from robot_sim.lwr4.description import LWR4, ArmDescription
 
 TIMESTEP = FRI_CYCLE_NS / 1e9  # s: the physics step, one FRI cycle
+IMPRATIO = 10.0  # friction 10 x harder than the normal contact (module docstring)
+FRICTION_DAMPING = 2.0  # 1/s: b of the friction rows' reference acceleration (module docstring)
+NORMAL_SOLREF = (0.02, 1.5)  # s, damping ratio: the normal direction's reference
+NORMAL_SOLIMP = (0.8, 0.95, 0.002)  # impedance at 0 and at 2 mm of penetration (module docstring)
 
 
 @dataclass(frozen=True)
@@ -67,6 +101,24 @@ class HoseCoupler:
     bore_radius: float = 0.018
     depth: float = 0.03
     start_left: tuple = (0.62, -0.08, 0.36)  # the default tcp start: above and beside the socket
+    friction: float = 0.8  # sliding friction of the rubber seal on the hose end
+
+    @property
+    def torsional_friction(self) -> float:
+        """m: the seal grips the hose end at the bore's rim, so turning it costs the seal's
+        friction at the bore radius, mu r (0.0144 m: 0.12 N m at 8 N of press)."""
+        return self.friction * self.bore_radius
+
+
+@dataclass(frozen=True)
+class Surface:
+    """A geom the tool tip touches: its role ('plate', 'coupler') and the pair's friction
+    (sliding, torsional m, rolling m)."""
+
+    role: str
+    sliding: float
+    torsional: float
+    rolling: float = 1e-4
 
 
 @dataclass(frozen=True)
@@ -74,15 +126,37 @@ class WorldSpec:
     name: str
     xml: str
     task: object = None
-    contact_geoms: dict = field(default_factory=dict)  # geom name -> role
+    surfaces: dict = field(default_factory=dict)  # geom name -> Surface
+
+    @property
+    def contact_geoms(self) -> dict:
+        """geom name -> role of every surface the tip can touch."""
+        return {name: s.role for name, s in self.surfaces.items()}
+
+    @property
+    def timestep(self) -> float:
+        """The physics step the world's XML asks for, s."""
+        return float(re.search(r'<option timestep="([^"]+)"', self.xml).group(1))
 
 
-def _header(name: str) -> str:
+def physics_step(substeps: int) -> float:
+    """The physics step, s, of ``substeps`` whole nanosecond steps per FRI cycle."""
+    if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1 or FRI_CYCLE_NS % substeps:
+        raise ValueError(f"physics substeps must be a whole divisor of the {FRI_CYCLE_NS} ns FRI cycle (1, 2, 4, "
+                         f"5, 10, 20, ...), got {substeps!r}")
+    return FRI_CYCLE_NS // substeps / 1e9
+
+
+def _header(name: str, timestep: float) -> str:
+    substeps = round(TIMESTEP / timestep) if timestep > 0 else 0
+    if not (substeps >= 1 and FRI_CYCLE_NS % substeps == 0 and physics_step(substeps) == timestep):
+        raise ValueError(f"world {name}: the physics step must be a whole fraction of {TIMESTEP} s in whole "
+                         f"nanoseconds, got {timestep!r}")
     return f"""<mujoco model="{name}">
   <compiler angle="radian" autolimits="true"/>
-  <option timestep="{TIMESTEP!r}" integrator="implicitfast" gravity="0 0 -9.81" cone="elliptic" impratio="0.01"/>
+  <option timestep="{timestep!r}" integrator="implicitfast" gravity="0 0 -9.81" cone="elliptic" impratio="{IMPRATIO!r}"/>
   <default>
-    <geom solref="0.02 1.5" solimp="0.9 0.95 0.002"/>
+    <pair condim="4" solref="{_f(NORMAL_SOLREF)}" solimp="{_f(NORMAL_SOLIMP)}" solreffriction="0 {-FRICTION_DAMPING!r}"/>
   </default>
   <visual><global offwidth="960" offheight="720"/></visual>
   <worldbody>
@@ -91,9 +165,13 @@ def _header(name: str) -> str:
 """
 
 
-def _footer() -> str:
+def _footer(surfaces: dict | None = None) -> str:
+    pairs = "".join(f'    <pair geom1="tool_tip" geom2="{name}" '
+                    f'friction="{_f((s.sliding, s.sliding, s.torsional, s.rolling, s.rolling))}"/>\n'
+                    for name, s in (surfaces or {}).items())
+    contact = f"  <contact>\n{pairs}  </contact>\n" if pairs else ""
     return """  </worldbody>
-  <sensor>
+""" + contact + """  <sensor>
     <force name="ft_force" site="ft_site"/>
     <torque name="ft_torque" site="ft_site"/>
   </sensor>
@@ -101,12 +179,12 @@ def _footer() -> str:
 """
 
 
-def free_space(description: ArmDescription = LWR4) -> WorldSpec:
-    xml = _header("free_space") + description.mjcf_arm() + "\n" + _footer()
+def free_space(description: ArmDescription = LWR4, timestep: float = TIMESTEP) -> WorldSpec:
+    xml = _header("free_space", timestep) + description.mjcf_arm() + "\n" + _footer()
     return WorldSpec("free_space", xml)
 
 
-def valley(geometry: Valley = Valley(), description: ArmDescription = LWR4) -> WorldSpec:
+def valley(geometry: Valley = Valley(), description: ArmDescription = LWR4, timestep: float = TIMESTEP) -> WorldSpec:
     g = geometry
     plates = []
     length = g.x_end - g.x_start
@@ -122,25 +200,28 @@ def valley(geometry: Valley = Valley(), description: ArmDescription = LWR4) -> W
         quat = (math.cos(angle / 2), math.sin(angle / 2), 0.0, 0.0)
         plates.append(
             f'    <geom name="{name}" type="box" pos="{_f(centre)}" quat="{_f(quat)}" '
-            f'size="{length / 2!r} {slope / 2!r} {g.thickness / 2!r}" contype="1" conaffinity="2" '
-            f'condim="4" friction="{g.friction!r} 0.005 0.0001" rgba="0.75 0.77 0.8 1"/>'
+            f'size="{length / 2!r} {slope / 2!r} {g.thickness / 2!r}" contype="0" conaffinity="0" '
+            'rgba="0.75 0.77 0.8 1"/>'
         )
     stand = (
         f'    <geom name="valley_stand" type="box" pos="{xc!r} 0 {(g.groove_z - 0.02) / 2!r}" '
         f'size="{length / 2!r} 0.02 {(g.groove_z - 0.02) / 2!r}" contype="0" conaffinity="0" rgba="0.4 0.4 0.45 1"/>'
     )
-    xml = _header("valley") + "\n".join(plates) + "\n" + stand + "\n" + description.mjcf_arm() + "\n" + _footer()
-    return WorldSpec("valley", xml, g, {"plate_left": "plate", "plate_right": "plate"})
+    plate = Surface("plate", g.friction, 0.005)
+    surfaces = {"plate_left": plate, "plate_right": plate}
+    xml = (_header("valley", timestep) + "\n".join(plates) + "\n" + stand + "\n" + description.mjcf_arm() + "\n"
+           + _footer(surfaces))
+    return WorldSpec("valley", xml, g, surfaces)
 
 
-def hose_coupler(geometry: HoseCoupler = HoseCoupler(), description: ArmDescription = LWR4) -> WorldSpec:
+def hose_coupler(geometry: HoseCoupler = HoseCoupler(), description: ArmDescription = LWR4,
+                 timestep: float = TIMESTEP) -> WorldSpec:
     g = geometry
     cx, cy, cz = g.center
     wall = 0.01
     parts = [
         f'    <geom name="coupler_floor" type="cylinder" pos="{cx!r} {cy!r} {cz - 0.005!r}" '
-        f'size="{g.bore_radius + wall!r} 0.005" contype="1" conaffinity="2" condim="4" '
-        f'friction="0.8 0.1 0.0001" rgba="0.1 0.1 0.1 1"/>',
+        f'size="{g.bore_radius + wall!r} 0.005" contype="0" conaffinity="0" rgba="0.1 0.1 0.1 1"/>',
         f'    <geom name="coupler_post" type="cylinder" pos="{cx!r} {cy!r} {(cz - 0.01) / 2!r}" '
         f'size="0.03 {(cz - 0.01) / 2!r}" contype="0" conaffinity="0" rgba="0.3 0.3 0.35 1"/>',
     ]
@@ -153,11 +234,13 @@ def hose_coupler(geometry: HoseCoupler = HoseCoupler(), description: ArmDescript
         parts.append(
             f'    <geom name="coupler_wall{k}" type="box" pos="{cx + r * math.cos(a)!r} {cy + r * math.sin(a)!r} '
             f'{cz + g.depth / 2!r}" quat="{_f(quat)}" size="{wall / 2!r} {chord / 2!r} {g.depth / 2!r}" '
-            f'contype="1" conaffinity="2" condim="4" friction="0.8 0.1 0.0001" rgba="0.15 0.15 0.15 1"/>'
+            f'contype="0" conaffinity="0" rgba="0.15 0.15 0.15 1"/>'
         )
-    xml = _header("hose_coupler") + "\n".join(parts) + "\n" + description.mjcf_arm() + "\n" + _footer()
-    roles = {"coupler_floor": "coupler"} | {f"coupler_wall{k}": "coupler" for k in range(n_wall)}
-    return WorldSpec("hose_coupler", xml, g, roles)
+    seal = Surface("coupler", g.friction, g.torsional_friction)
+    surfaces = {"coupler_floor": seal} | {f"coupler_wall{k}": seal for k in range(n_wall)}
+    xml = (_header("hose_coupler", timestep) + "\n".join(parts) + "\n" + description.mjcf_arm() + "\n"
+           + _footer(surfaces))
+    return WorldSpec("hose_coupler", xml, g, surfaces)
 
 
 WORLDS = {"free_space": free_space, "valley": valley, "hose_coupler": hose_coupler}

@@ -148,8 +148,9 @@ class ArmDescription:
         Bodies ``link1..link7``, ``ati_sensor``, ``tool``; joints ``joint1..7``;
         sites ``flange``, ``ft_site`` (sensor face, on the tool body: MuJoCo's
         force/torque sensors there measure what the tool transmits to the
-        sensor) and ``tcp``; the tip geom ``tool_tip``.  Only the tool
-        collides (contype 2), with geoms whose conaffinity has bit 2.
+        sensor) and ``tcp``; the tip geom ``tool_tip``.  No geom collides by its
+        contype: a world pairs the tip with each surface it can touch
+        (``robot_sim.worlds``), so the pair, not the geoms, says how they meet.
         """
         t = self.tool
         lines = []
@@ -192,8 +193,7 @@ class ArmDescription:
             f'size="{t.rod_radius!r} {t.rod_length / 2 - t.tip_radius!r}" contype="0" conaffinity="0" '
             'rgba="0.3 0.3 0.35 1" mass="0"/>',
             f'{indent}    <geom name="tool_tip" type="sphere" pos="0 0 {t.sensor_to_tcp!r}" size="{t.tip_radius!r}" '
-            'contype="2" conaffinity="0" condim="4" friction="0.1 0.001 0.0001" rgba="0.2 0.2 0.25 1" '
-            'mass="0"/>',
+            'contype="0" conaffinity="0" rgba="0.2 0.2 0.25 1" mass="0"/>',
             f'{indent}    <site name="tcp" pos="0 0 {t.sensor_to_tcp!r}"/>',
             f"{indent}  </body>",
             f"{indent}</body>",

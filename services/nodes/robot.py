@@ -44,7 +44,7 @@ from robot_sim.krl import (KRL_CONVENTIONS, TB_EPISODE, TB_ESTIMATE_SEQ, TB_GOAL
                            TB_HOLD, TB_HOLDS, TB_KIND, TB_KINDS)
 from robot_sim.labels import LABELERS
 from robot_sim.teacher import DOWN
-from robot_sim.worlds import TASK_WORLDS, WORLDS, Valley, valley
+from robot_sim.worlds import TASK_WORLDS, WORLDS, Valley, physics_step, valley
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import nested, option
 from services.runtime.cycle import EpisodePlan
@@ -77,6 +77,8 @@ class RobotConfig:
     stall_ms: float = option(0.0, "fault injection: how long each stall lasts, ms", metavar="MS")
     plate_friction: float = option(Valley.friction, "valley: sliding friction coefficient of the plates (> 0)",
                                    metavar="MU")
+    physics_substeps: int = option(1, "physics steps per 1 ms FRI cycle, the KRC's law in each (more: the finer "
+                                      "reference physics, slower; a divisor of 1 000 000)", metavar="N")
     # the FRI link's faults (--fri-packet-loss, ... --fri-faults-until-s): robot_sim.fri.LinkFaultSpec
     fri: LinkFaultSpec = nested(LinkFaultSpec(), "fri_")
     wire: str = option("zenoh", "how the FRI remote talks to the KRC: zenoh (robot/command: the testbench's "
@@ -110,13 +112,15 @@ class RobotConfig:
         if self.fri_cycle_ms != 1 and (self.wire != "udp" or self.krl == "testbench"):
             raise ValueError(f"fri_cycle_ms {self.fri_cycle_ms}: a cycle other than 1 ms is for a lab's remote over "
                              "UDP (--wire udp --krl frilibrary|lwr_hw): the run's own nodes count 1 ms cycles")
+        physics_step(self.physics_substeps)  # a ValueError names what it must be
         host_port(self.fri_remote, "fri_remote")
         host_port(self.fri_bind, "fri_bind", listen=True)
 
     def world_spec(self):
+        step = physics_step(self.physics_substeps)
         if self.world == "valley":
-            return valley(Valley(friction=self.plate_friction))
-        return WORLDS[self.world]()
+            return valley(Valley(friction=self.plate_friction), timestep=step)
+        return WORLDS[self.world](timestep=step)
 
     def link_faults(self) -> LinkFaults | None:
         """The FRI link's fault model, seeded with the cell's seed (None: a clean link)."""
@@ -437,7 +441,8 @@ class RobotNode(Node):
         t3 = now()
         contact_msg = ROBOT_CONTACT.pack(
             seq=m.seq, stamp_ns=m.stamp_ns, sent_ns=t3, wrench=wrench, contact_force=contact,
-            touching=touching, true_phase=true_phase, episode=self.episode)
+            touching=touching, true_phase=true_phase, tcp_pose=cell.true_tcp_pose, tcp_twist=cell.true_tcp_twist,
+            episode=self.episode)
         t4 = now()
         self.bus.publish("robot/contact", *contact_msg)
         sec.add("measure", t3 - t2)

@@ -1,10 +1,9 @@
 """The teacher node: the simulated human guiding the arm during demonstrations.
 
-For every robot cycle it reads ``robot/state`` (the measured tcp pose) and
-``robot/contact`` (what the hand feels: the contact force and what the tool
-touches) and answers on ``teacher/wrench`` with the hand wrench for that cycle
-(``robot_sim.teacher``).  Velocities come from differences of consecutive
-measured poses.  Control: ``reset`` (episode, start, seed, goal_x), ``idle`` (the
+For every robot cycle it reads ``robot/state`` and ``robot/contact`` (what the
+hand feels: the tool's true pose and velocity, the contact force and what the
+tool touches) and answers on ``teacher/wrench`` with the hand wrench for that
+cycle (``robot_sim.teacher``).  Control: ``reset`` (episode, start, seed, goal_x), ``idle`` (the
 demonstration is over: answer nothing until the next reset).
 """
 
@@ -73,15 +72,24 @@ class TeacherNode(Node):
                     del store[k]
         if self.teacher is None or state["episode"] != self.episode:
             return
-        pose = np.asarray(state["msr_cart_pos"]).reshape(3, 4)
-        x, R = pose[:, 3], pose[:, :3]
-        if self._prev is not None and self._prev[0] == seq - 1:
-            v = (x - self._prev[1]) / DT
-            w = R @ pin.log3(self._prev[2].T @ R) / DT
-        else:
-            v = np.zeros(3)
-            w = np.zeros(3)
-        self._prev = (seq, x.copy(), R.copy())
+        true_pose, twist = contact.get("tcp_pose"), contact.get("tcp_twist")
+        if true_pose is not None and twist is not None:
+            # the hand holds the tool: it feels its true motion, not the KRC's measurement
+            # (whose 20 um of joint noise, differenced over 1 ms, made the hand's damping
+            # shake the arm by ~2 N at every cycle)
+            pose = np.asarray(true_pose).reshape(3, 4)
+            x, R = pose[:, 3], pose[:, :3]
+            v, w = np.asarray(twist[:3]), np.asarray(twist[3:])
+        else:  # a robot of an earlier version: the measured pose, differenced
+            pose = np.asarray(state["msr_cart_pos"]).reshape(3, 4)
+            x, R = pose[:, 3], pose[:, :3]
+            if self._prev is not None and self._prev[0] == seq - 1:
+                v = (x - self._prev[1]) / DT
+                w = R @ pin.log3(self._prev[2].T @ R) / DT
+            else:
+                v = np.zeros(3)
+                w = np.zeros(3)
+            self._prev = (seq, x.copy(), R.copy())
         hand = self.teacher.step(DT, x, v, R, w, np.asarray(contact["contact_force"]), contact["touching"])
         done = bool(self.teacher.done)
         if isinstance(self.teacher, HoseCouplerTeacher):

@@ -18,7 +18,8 @@ def node_configs(scenario: Scenario, options, roles, recordings: Path, offload_r
     MCAP writing in a helper process."""
     sc, cell = scenario, scenario.cell
     configs = {
-        "robot": RobotConfig(world=sc.world, seed=sc.seed, plate_friction=cell.plate_friction, fri=cell.fri),
+        "robot": RobotConfig(world=sc.world, seed=sc.seed, plate_friction=cell.plate_friction,
+                             physics_substeps=cell.physics_substeps, fri=cell.fri),
         "ft_sensor": FtSensorConfig(seed=sc.seed, noise_scale=cell.sensor_noise),
         "teacher": TeacherConfig(world=sc.world),
         "recorder": RecorderConfig(out_dir=str(recordings), writer_process=offload_recording),

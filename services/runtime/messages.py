@@ -245,9 +245,7 @@ def _compile_pack(fields, checked):
     1 kHz stream is packed, and the general loop over the fields (a lookup and a
     conversion check each) costs several microseconds more.  Anything unusual - a
     field missing or unknown, a value JSON cannot hold - goes to ``checked``, the
-    general path, which names the problem.  None for a type with optional fields."""
-    if any(f.optional for f in fields):
-        return None
+    general path, which names the problem (and leaves out an optional field not given)."""
     names = [f.name for f in fields]
     missing = " or ".join(f"{n} is M" for n in names)
     body = ", ".join(f"{n!r}: {n} if type({n}) in P else C({n})" for n in names)
@@ -376,12 +374,18 @@ ROBOT_STATE = MessageType(
 ROBOT_CONTACT = MessageType(
     "robot_contact", "robot/contact",
     "The physics' truth for the cycle: the wrench the tool transmits to the F/T sensor (what the ATI "
-    "model samples), the contact force on the tip and the true phase label.",
+    "model samples), the contact force on the tip, the true phase label and the tool's true pose and "
+    "velocity (what the teacher's hand, holding the tool, feels).",
     (
         ("wrench", "float[6]", "[Fx Fy Fz Tx Ty Tz] the tool exerts on the sensor, sensor frame, N / N m"),
         ("contact_force", "float[3]", "force the environment exerts on the tip, base frame, N"),
         ("touching", "str[]", "geoms the tip touches"),
         ("true_phase", "int", "physical phase label (valley: 0 free, 1 plate, 2 groove; coupler: 0 approach, 1 coupling)"),
+        # optional: recordings made before the teacher felt the tool's true motion lack them
+        Field("tcp_pose", "float[12]", "true tcp pose, 3x4 row-major [R | p], base frame, m (what a hand on the "
+              "tool feels)", optional=True),
+        Field("tcp_twist", "float[6]", "true tcp velocity [vx vy vz wx wy wz], base frame axes, m/s and rad/s",
+              optional=True),
         ("episode", "int", "demonstration/reproduction index"),
     ),
     period_ns=FRI_CYCLE_NS,

@@ -81,6 +81,7 @@ MAX_EPISODE_SECONDS = 3600.0  # simulated, per episode
 # a learn stage's effort: past these a fit would take days, so the number is a typo
 MAX_RESTARTS = 1_000
 MAX_EM_ITERATIONS = 100_000
+MAX_PHYSICS_SUBSTEPS = 100  # per FRI cycle: 10 us steps, a hundred times the shipped cost
 
 
 def _bound_text(minimum: float | None, strict: bool) -> str:

@@ -9,11 +9,12 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Union
 
-from robot_sim.fri import LinkFaultError, LinkFaultSpec
+from robot_sim.fri import FRI_CYCLE_NS, LinkFaultError, LinkFaultSpec
 from robot_sim.worlds import HoseCoupler, Valley
-from services.scenario.checks import (CRITERIA, MAX_EM_ITERATIONS, MAX_EPISODE_SECONDS, MAX_EPISODES, MAX_RESTARTS, SELECTIONS, ScenarioError, Xyz, _bool, _candidates,
-                                      _choice, _int, _number, _phases, _seconds, _seed, _set, _sides, _transitions,
-                                      _xyz)
+from services.scenario.checks import (CRITERIA, MAX_EM_ITERATIONS, MAX_EPISODE_SECONDS, MAX_EPISODES,
+                                      MAX_PHYSICS_SUBSTEPS, MAX_RESTARTS, SELECTIONS, ScenarioError, Xyz, _bool,
+                                      _candidates, _choice, _int, _number, _phases, _seconds, _seed, _set, _sides,
+                                      _transitions, _xyz)
 from services.scenario.starts import DEMONSTRATE_SEED_OFFSET, REPRODUCE_SEED_OFFSET
 
 def doc(text: str, default: Any = dataclasses.MISSING) -> Any:
@@ -210,18 +211,26 @@ class CellSpec:
 
     sensor_noise: float = doc(">= 0: the ATI's white noise as a multiple of the Mini45's", 1.0)
     plate_friction: float = doc("> 0, valley only: the plates' sliding friction coefficient", Valley.friction)
+    physics_substeps: int = doc("physics steps per 1 ms FRI cycle, the KRC's law in each: 1 as shipped, 10 for "
+                                "the finer reference physics (docs/contact.md; a divisor of 1 000 000, at most 100)",
+                                1)
     fri: LinkFaultSpec = LinkFaultSpec()  # the FRI link's faults
 
     def __post_init__(self):
         _set(self, "sensor_noise", _number(self.sensor_noise, "sensor_noise", 0.0))
         _set(self, "plate_friction", _number(self.plate_friction, "plate_friction", 0.0, strict=True))
+        _set(self, "physics_substeps", _int(self.physics_substeps, "physics_substeps", 1, MAX_PHYSICS_SUBSTEPS))
+        if FRI_CYCLE_NS % self.physics_substeps:
+            raise ScenarioError(f"expected a divisor of the {FRI_CYCLE_NS} ns FRI cycle (1, 2, 4, 5, 10, 20, ...)",
+                                path="physics_substeps", value=self.physics_substeps)
         if not isinstance(self.fri, LinkFaultSpec):
             raise ScenarioError("expected a LinkFaultSpec", path="fri", value=self.fri)
 
     @classmethod
     def keys(cls) -> list[str]:
         """The keys of ``cell`` in a scenario."""
-        return ["sensor_noise", "plate_friction", *(FRI_PREFIX + f.name for f in dataclasses.fields(LinkFaultSpec))]
+        return ["sensor_noise", "plate_friction", "physics_substeps",
+                *(FRI_PREFIX + f.name for f in dataclasses.fields(LinkFaultSpec))]
 
     @classmethod
     def from_keys(cls, data: Mapping) -> CellSpec:
@@ -234,7 +243,8 @@ class CellSpec:
         return cls(**{k: v for k, v in data.items() if not k.startswith(FRI_PREFIX)}, fri=fri)
 
     def to_keys(self) -> dict[str, Any]:
-        out = {"sensor_noise": self.sensor_noise, "plate_friction": self.plate_friction}
+        out = {"sensor_noise": self.sensor_noise, "plate_friction": self.plate_friction,
+               "physics_substeps": self.physics_substeps}
         out.update({FRI_PREFIX + f.name: getattr(self.fri, f.name) for f in dataclasses.fields(LinkFaultSpec)})
         return out
 

@@ -196,14 +196,16 @@ def test_the_contact_kernel_reads_what_the_python_loop_reads():
     MuJoCo orders the tip second in the contact (the plates and the coupler order it
     first: the force's sign flips)."""
     from robot_sim import physics
-    from robot_sim.worlds import WorldSpec, hose_coupler
+    from robot_sim.worlds import Surface, WorldSpec, hose_coupler
 
     if physics._tip_contacts is None:
         pytest.skip(f"no contact kernel here: {physics.WHY_NO_CONTACT_KERNEL}")
     plane = free_space()
     plane = WorldSpec("plane", plane.xml.replace(
         "<worldbody>", '<worldbody>\n    <geom name="table" type="plane" pos="0.55 0 0.2" size="0.3 0.3 0.01" '
-        'contype="1" conaffinity="2" condim="4"/>', 1), None, {"table": "plate"})
+        'contype="0" conaffinity="0"/>', 1).replace(
+        "  <sensor>", '  <contact><pair geom1="tool_tip" geom2="table"/></contact>\n  <sensor>', 1),
+        None, {"table": Surface("plate", 0.25, 0.005)})
     seen = {"tip first": 0, "tip second": 0, "two or more on the tip": 0}
     for world, centre, spread in ((valley(), (0.55, 0.0, 0.20), (0.2, 0.05, 0.02)),
                                   (hose_coupler(), (0.55, 0.0, 0.20), (0.03, 0.03, 0.02)),
