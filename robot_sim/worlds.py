@@ -19,31 +19,38 @@ numbers, ``python bench/contact_candidates.py``; MuJoCo's Computation chapter,
 are the reference).  MuJoCo's convex contact model couples friction to the normal:
 a contact in its sliding zone (friction on the cone, mu N) feeds mu |jar_t| of
 separating acceleration into the normal row, jar_t being the friction rows'
-residual, about b_f v_t while sliding (``mj_constraintUpdate``); the documentation
-owns that "complementarity can be violated".  With the friction rows damped as the
-normal (b_f = 2 / (0.95 x 20 ms) = 105 /s, the default) a tip sliding at 5 cm/s
-floated off a plate in a sawtooth: 20-65 lift-offs a second, single-step drops of
-the force to 0 N, 1.7-2.8 N of step-to-step jitter; ten 0.1 ms steps per cycle did
-not cure it (more lift-offs), stiffer contacts and harder friction made it worse.
+residual, the tangential acceleration plus b_f v_t (``mj_constraintUpdate``); the
+documentation owns that "complementarity can be violated".  With the friction rows
+damped as the normal (b_f = 2 / (0.95 x 20 ms) = 105 /s, the default) a tip sliding
+at 5 cm/s floated off a plate in a sawtooth: 20-65 lift-offs a second, single-step
+drops of the force to 0 N, 1.7-2.8 N of step-to-step jitter; ten 0.1 ms steps per
+cycle did not cure it, stiffer contacts and harder friction made it worse.  Damped
+too little (2 /s) the friction rows stop the floating, but their residual is then the
+tool's tangential acceleration more than its slip: the friction followed the hand's
+10 Hz tremor and fell towards 0 N at each turn of it while the tip slid on (41 % of
+the sliding steps more than 10 % off mu).
 
-- ``FRICTION_DAMPING`` = 2 /s: the friction rows' reference damping
-  (``solreffriction="0 -2"``, the direct form, which only an explicit pair has).
-  The separating term shrinks fifty-fold, while sliding friction stays mu N: the
-  sliding zone's force does not depend on b_f.  Below 1 /s the viscous zone reaches
-  the task's speeds and the friction ratio falls short of mu.
-- ``IMPRATIO`` = 10: friction ten times harder than the normal ("Preventing slip");
-  a tip pressed 8 N on a plate and pushed along it with 1 N creeps 0.9 mm/s instead of
-  sticking, where the friction before (impratio 0.01) crept 14.5 mm/s: viscous, not
-  Coulomb.  (impratio 10 alone, friction rows at 105 /s, floats the tip off 115 times
-  a second.)
-- ``NORMAL_SOLIMP`` from 0.8 (it was 0.9): twice the normal row's regularisation, so
-  that a teacher pressing with 4 N, which its tremor takes to about 1 N, no longer
-  floats off (12-17 lift-offs over eight demonstrations with 0.9, none with 0.8).
-  The price: at rest under 8 N the tip sinks 0.37 mm into the plate (0.15 mm with
-  0.9); a stiffer ``solref`` (5-10 ms) floated it off more, not less.
+- ``FRICTION_DAMPING`` = 25 /s: the friction rows' reference damping
+  (``solreffriction="0 -25"``, the direct form, which only an explicit pair has).
+  b_f v_t outweighs the tremor's accelerations, so sliding friction is mu N (within
+  10 % in 96-98 % of the sliding steps), and the separating term is a quarter of the
+  default's.
+- ``NORMAL_SOLIMP`` = (0.5, 0.95, 1 mm), from (0.9, 0.95, 2 mm): the normal row's
+  impedance starts at 0.5 at the surface (nine times the regularisation the
+  separating term must overcome) and reaches 0.95 at 1 mm; a tip sliding lightly
+  (the teacher pressing 4 N, which its tremor takes to about 1 N) stays on the plate.
+  The price: at rest under 8 N the tip sinks 0.54 mm into the plate (0.15 mm before),
+  and the landing's peak falls from 36 to 25 N; a stiffer ``solref`` (5-10 ms)
+  floated the tip off more, not less.
+- ``IMPRATIO`` = 10: friction ten times harder than the normal ("Preventing slip"):
+  pressed 8 N on a plate and pushed along it with 1 N (half of mu N), the tip creeps
+  0.4 mm/s, where the friction before (impratio 0.01) let it slide at 14.5 mm/s,
+  viscous rather than Coulomb.  (impratio 10 alone, the rows at 105 /s, floats the tip
+  off 115 times a second.)
 - The coupler's torsional friction was 0.1 m, a lever five times the bore's radius:
-  turning the hose end floated the tip off the floor as a slide does (the teacher
-  that presses least, 4.3 lift-offs a second; none with 0.0144 m).
+  turning the hose end floated the tip off the floor as a slide does (with the
+  friction rows at 2 /s, the teacher that presses least lifted off 4.3 times a second;
+  none with 0.0144 m).
 
 The physics step is ``TIMESTEP`` (one FRI cycle); a world built with a finer
 ``timestep`` (a whole fraction of it) is the reference the cell is checked against
@@ -64,9 +71,9 @@ from robot_sim.lwr4.description import LWR4, ArmDescription
 
 TIMESTEP = FRI_CYCLE_NS / 1e9  # s: the physics step, one FRI cycle
 IMPRATIO = 10.0  # friction 10 x harder than the normal contact (module docstring)
-FRICTION_DAMPING = 2.0  # 1/s: b of the friction rows' reference acceleration (module docstring)
+FRICTION_DAMPING = 25.0  # 1/s: b of the friction rows' reference acceleration (module docstring)
 NORMAL_SOLREF = (0.02, 1.5)  # s, damping ratio: the normal direction's reference
-NORMAL_SOLIMP = (0.8, 0.95, 0.002)  # impedance at 0 and at 2 mm of penetration (module docstring)
+NORMAL_SOLIMP = (0.5, 0.95, 0.001)  # impedance at 0 and at 1 mm of penetration (module docstring)
 
 
 @dataclass(frozen=True)
