@@ -3,12 +3,14 @@
     python bench/contact_fidelity.py out/valley                         # a run's folder
     python bench/contact_fidelity.py out/valley out/coupler --json fidelity.json
     python bench/contact_fidelity.py out/valley --reference out/valley-fine --plot contact.png
+    python bench/contact_fidelity.py sweeps/valley/runs/* --pool      # a sweep's runs as one
 
 Reads recordings only (a run's ``recordings/*.mcap``, or the files themselves), so it
 judges any run, old or new: the physics' own truth on ``/robot/contact`` (the contact
 force on the tool tip, what it touches, the true phase), the ATI's reading on
-``/ft/wrench``, the tool's motion (``tcp_twist`` where the recording has it, else the
-measured pose on ``/robot/state`` differenced over 20 ms).  The world and the pair's
+``/ft/wrench``, the tool's motion (``tcp_twist`` where the recording has it: the slip of
+the tip's point on the surface; else the tcp's, the measured pose on ``/robot/state``
+differenced over 20 ms).  The world and the pair's
 friction come from the scenario each recording carries.
 
 Per task, episode kind and true phase (the contact phases: true phase > 0):
@@ -47,6 +49,7 @@ import numpy as np
 SLIDING_MPS = 0.005  # above: the tip slides
 STUCK_MPS = 0.001  # below: it sticks
 MIN_NORMAL_N = 1.0
+TIP_RADIUS = 0.010  # m: robot_sim.lwr4's tool tip (the tcp is its centre)
 ESTIMATOR_SAMPLE = 10  # 1 ms cycles per estimator sample (100 Hz)
 DIFFERENCE_STEPS = 20  # the measured pose is differenced over this many cycles where no true velocity is recorded
 
@@ -69,11 +72,12 @@ class Episode:
     force: np.ndarray  # (T, 3) contact force on the tip, world axes
     touching: list  # (T,) lists of geom names
     velocity: np.ndarray  # (T, 3) tcp velocity, world axes
+    angular: np.ndarray  # (T, 3) the tool's angular velocity, world axes (NaN where not recorded)
     velocity_source: str
     position: np.ndarray  # (T, 3) tcp position
     ati: np.ndarray | None  # (T, 3) the ATI's force reading, sensor axes (cycles without one: NaN)
     commanded: np.ndarray | None  # (T,) |addTcpFT force| the commander sent (reproductions; else None)
-    normals: dict = field(default_factory=dict)  # geom -> function(position) -> unit normal
+    normals: dict = field(default_factory=dict)  # geom -> (axis, centre) of the face the tip rests on
 
 
 # ------------------------------------------------------------------ reading
@@ -120,20 +124,15 @@ def _surfaces(scenario: dict) -> tuple[str, dict, dict]:
 
 
 def _face_normal(gtype, centre, rotation, size):
-    """The outward normal of the face a tip at ``position`` rests on: a box's thinnest axis,
-    a cylinder's axis (the tip on its top), signed towards the tip."""
+    """(axis, centre) of the face a tip rests on: a box's thinnest axis, a cylinder's axis
+    (the tip on its top); the normal is the axis signed towards the tip."""
     import mujoco
 
     if gtype == mujoco.mjtGeom.mjGEOM_BOX:
-        axis = rotation[:, int(np.argmin(size[:3]))]
-    elif gtype == mujoco.mjtGeom.mjGEOM_CYLINDER:
-        axis = rotation[:, 2]
-    else:
-        raise StudyError(f"a surface of geom type {int(gtype)}: only boxes and cylinders are understood")
-
-    def normal(position):
-        return axis if (position - centre) @ axis >= 0 else -axis
-    return normal
+        return rotation[:, int(np.argmin(size[:3]))], centre
+    if gtype == mujoco.mjtGeom.mjGEOM_CYLINDER:
+        return rotation[:, 2], centre
+    raise StudyError(f"a surface of geom type {int(gtype)}: only boxes and cylinders are understood")
 
 
 def read(path: Path) -> Episode:
@@ -145,7 +144,9 @@ def read(path: Path) -> Episode:
 
     try:
         episode = read_episode(path)
-        arrays = recording_arrays(path, skip_bad=True)  # a foreign peer's garbage is not the physics
+        # a foreign peer's garbage is not the physics: left out
+        arrays = recording_arrays(path, skip_bad=True, topics=("/robot/contact", "/robot/state", "/ft/wrench",
+                                                               "/robot/command"))
     except RecordingError as exc:
         raise StudyError(str(exc)) from None
     if "/robot/contact" not in arrays:
@@ -161,7 +162,7 @@ def read(path: Path) -> Episode:
     order, seq = order[keep], seq[keep]
     touching = [list(c["touching"][i]) for i in order]
     if "tcp_twist" in c and not np.isnan(c["tcp_twist"]).any():
-        velocity, source = c["tcp_twist"][order, :3], "true"
+        velocity, angular, source = c["tcp_twist"][order, :3], c["tcp_twist"][order, 3:], "true, at the contact point"
         position = c["tcp_pose"][order].reshape(-1, 3, 4)[:, :, 3]
     else:
         state = arrays.get("/robot/state")
@@ -173,7 +174,8 @@ def read(path: Path) -> Episode:
         velocity = np.full_like(position, np.nan)
         if len(position) > k:
             velocity[k // 2: len(position) - k + k // 2] = (position[k:] - position[:-k]) / (k * 1e-3)
-        source = f"measured pose, {k} ms differences"
+        angular = np.full_like(position, np.nan)
+        source = f"the tcp's, measured pose differenced over {k} ms"
     ati = None
     ft = arrays.get("/ft/wrench")
     if ft is not None:
@@ -187,7 +189,7 @@ def read(path: Path) -> Episode:
     meta = episode.metadata
     run = path.parent.parent if path.parent.name == "recordings" else path.parent
     return Episode(path, str(run), world, meta.get("episode_kind", "?"), int(meta.get("episode_index", -1)), mu,
-                   c["true_phase"][order].astype(int), c["contact_force"][order], touching, velocity, source,
+                   c["true_phase"][order].astype(int), c["contact_force"][order], touching, velocity, angular, source,
                    position, ati, commanded, normals)
 
 
@@ -228,6 +230,46 @@ def ati_noise(episodes: list[Episode]) -> float:
     return float(np.sqrt(np.mean(np.var(d, axis=0))))
 
 
+def _tangential(e: Episode, a: int, b: int):
+    """Over steps [a, b): tangential speed, normal force, tangential force, and whether the
+    tip touches exactly one surface whose face is known (the others' figures are NaN)."""
+    n = b - a
+    normals = np.full((n, 3), np.nan)
+    for i, t in enumerate(e.touching[a:b]):
+        if len(t) == 1 and t[0] in e.normals:
+            axis, centre = e.normals[t[0]]
+            normals[i] = axis
+            if (e.position[a + i] - centre) @ axis < 0:
+                normals[i] = -axis
+    f, v = e.force[a:b], e.velocity[a:b]
+    w = e.angular[a:b]
+    if np.isfinite(w).all():
+        # the tip's surface point on the contact slides, not its centre: the tool turns
+        # under the hand while its tip rolls (v + w x (-r n))
+        v = v + np.cross(w, -TIP_RADIUS * np.nan_to_num(normals))
+    fn = np.einsum("ij,ij->i", f, normals)
+    vn = np.einsum("ij,ij->i", v, normals)
+    speed = np.linalg.norm(v - vn[:, None] * normals, axis=1)
+    ft = np.linalg.norm(f - fn[:, None] * normals, axis=1)
+    single = np.isfinite(speed)
+    return speed, fn, ft, single
+
+
+def _stick_events(speed: np.ndarray, single: np.ndarray) -> int:
+    """The times the speed falls below STUCK_MPS after it was above SLIDING_MPS, on one
+    surface all along (touching anything else, or lifting off, starts over)."""
+    events, slid = 0, False
+    for s, ok in zip(speed.tolist(), single.tolist()):
+        if not ok:
+            slid = False
+        elif s > SLIDING_MPS:
+            slid = True
+        elif s < STUCK_MPS and slid:
+            events += 1
+            slid = False
+    return events
+
+
 def measure(episodes: list[Episode], phase: int) -> dict:
     """The figures of the module docstring for one true phase over a group of episodes."""
     steps = airborne = lifts = 0
@@ -251,28 +293,13 @@ def measure(episodes: list[Episode], phase: int) -> dict:
                     total += var
                 else:
                     hf100 += above
-            sliding_before = False
-            for k in range(a, b):
-                t = e.touching[k]
-                if len(t) != 1 or t[0] not in e.normals:
-                    sliding_before = False
-                    continue
-                n = e.normals[t[0]](e.position[k])
-                f = e.force[k]
-                fn = float(f @ n)
-                v = e.velocity[k]
-                if not np.isfinite(v).all():
-                    continue
-                speed = float(np.linalg.norm(v - (v @ n) * n))
-                single_s += 1e-3
-                if speed > SLIDING_MPS:
-                    sliding_before = True
-                    if fn > MIN_NORMAL_N:
-                        ratios.append(float(np.linalg.norm(f - fn * n)) / fn)
-                        mus.add(e.mu[t[0]])
-                elif speed < STUCK_MPS and sliding_before:
-                    stick += 1
-                    sliding_before = False
+            speed, fn, ft, single = _tangential(e, a, b)
+            single_s += 1e-3 * int(single.sum())
+            sliding = single & (speed > SLIDING_MPS)
+            pressed = sliding & (fn > MIN_NORMAL_N)
+            ratios += (ft[pressed] / fn[pressed]).tolist()
+            mus.update(e.mu[t[0]] for t, p in zip(e.touching[a:b], pressed) if p)
+            stick += _stick_events(speed, single)
     if not steps:
         return {}
     jumps = np.concatenate(jumps) if jumps else np.zeros(0)
@@ -287,12 +314,13 @@ def measure(episodes: list[Episode], phase: int) -> dict:
             sum(map(len, commanded)) > 1 else math.nan}
 
 
-def study(episodes: list[Episode]) -> list[dict]:
-    """One row per (run, task, kind, contact phase), runs in the order given."""
+def study(episodes: list[Episode], pool: bool = False) -> list[dict]:
+    """One row per (run, task, kind, contact phase), runs in the order given; ``pool``: the
+    runs' episodes together, one row per (task, kind, contact phase)."""
     rows = []
     groups: dict[tuple, list[Episode]] = {}
     for e in episodes:
-        groups.setdefault((e.run, e.task, e.kind), []).append(e)
+        groups.setdefault(("all runs" if pool else e.run, e.task, e.kind), []).append(e)
     for (run, task, kind), group in groups.items():
         noise = ati_noise(group)
         for phase in sorted({int(p) for e in group for p in np.unique(e.phase)} - {0}):
@@ -398,13 +426,14 @@ def main(argv=None) -> int:
     ap.add_argument("runs", nargs="+", help="runs' folders or .mcap recordings")
     ap.add_argument("--reference", nargs="+", default=[], metavar="RUN",
                     help="the same episodes on a finer physics step, to compare with")
+    ap.add_argument("--pool", action="store_true", help="one table for all the runs' episodes (e.g. a sweep's seeds)")
     ap.add_argument("--json", type=Path, help="write the rows here too")
     ap.add_argument("--plot", type=Path, help="draw 0.4 s of the first contact phase (PNG)")
     args = ap.parse_args(argv)
     try:
         episodes = [read(p) for p in recordings_of(args.runs)]
         references = [read(p) for p in recordings_of(args.reference)] if args.reference else []
-        rows = study(episodes)
+        rows = study(episodes, args.pool)
         print(table(rows))
         sources = sorted({e.velocity_source for e in episodes})
         print(f"tangential speed from: {', '.join(sources)}")

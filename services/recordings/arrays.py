@@ -53,13 +53,15 @@ def topic_arrays(path, topic: str, *, skip_bad: bool = False) -> dict[str, np.nd
     return _arrays(episode.path, name, [m for m in episode.messages if m.topic == name], skip_bad)
 
 
-def recording_arrays(path, *, skip_bad: bool = False) -> dict[str, dict[str, np.ndarray]]:
-    """``topic_arrays`` of every topic of the recording at ``path``, reading it once:
-    {topic: {field: array}}, topics sorted."""
+def recording_arrays(path, *, skip_bad: bool = False, topics=None) -> dict[str, dict[str, np.ndarray]]:
+    """``topic_arrays`` of every topic of the recording at ``path`` (or of those of
+    ``topics`` it has), reading it once: {topic: {field: array}}, topics sorted."""
     episode = read_episode(path)
-    by_topic: dict[str, list[RecordedMessage]] = {t: [] for t in episode.channels}
+    wanted = None if topics is None else {_topic_name(t) for t in topics}
+    by_topic: dict[str, list[RecordedMessage]] = {t: [] for t in episode.channels if wanted is None or t in wanted}
     for m in episode.messages:
-        by_topic.setdefault(m.topic, []).append(m)
+        if wanted is None or m.topic in wanted:
+            by_topic.setdefault(m.topic, []).append(m)
     return {t: _arrays(episode.path, t, by_topic[t], skip_bad) for t in sorted(by_topic)}
 
 
