@@ -12,7 +12,9 @@ Matching a command to a cycle follows ``FriLink.receive``: a command's
 ``reflSeqCount`` is unwrapped near the open cycle (``fri_wire.unwrap``); the first
 well-formed, valid answer to the open cycle is *accepted*, a further one is a
 *duplicate*, one answering an older cycle is *late*, one answering a cycle not sent
-yet is *unsent*; a datagram of the wrong size or ``datagramId`` is counted
+yet is *unsent*; a datagram from any address but the remote's is *foreign* and ignored
+whole (its KRL requests too: a KRC answers the remote it was configured for, so a stray
+sender on the network cannot start or stop command mode); a datagram of the wrong size or ``datagramId`` is counted
 (``wrong_size``, ``wrong_id``) and ignored, and so is one that decodes to an invalid
 ``CommandPacket`` (``invalid``, the reason in ``last_reject_reason``).  Nothing
 raises for what a remote sends.
@@ -77,6 +79,7 @@ class FriUdpCounters:
     unsent: int = 0  # answers to a cycle not sent yet (or before any measurement)
     invalid: int = 0  # well-formed datagrams whose command CommandPacket.is_valid rejects
     receive_errors: int = 0  # errors the socket reported on reading
+    foreign: int = 0  # datagrams from another address than the remote's: ignored, KRL requests included
 
 
 def host_port(text: str, what: str, *, listen: bool = False) -> tuple[str, int]:
@@ -116,6 +119,8 @@ class FriUdpEndpoint:
                  defaults: Callable[[MeasurementPacket], CommandPacket | None] = hold_measured_pose,
                  clock: Callable[[], int] = time.monotonic_ns):
         self.remote = (str(remote[0]), int(remote[1]))
+        # the address its datagrams come from ("localhost" as the kernel reports it)
+        self._remote_source = (socket.gethostbyname(self.remote[0]), self.remote[1])
         self.defaults = defaults
         self.clock = clock
         self.counters = FriUdpCounters()
@@ -238,6 +243,11 @@ class FriUdpEndpoint:
                 return
             self.counters.received += 1
             self.last_source = source
+            if source[:2] != self._remote_source:
+                self.counters.foreign += 1
+                self.last_reject_reason = f"a datagram from {source[0]}:{source[1]}, not the remote " \
+                                          f"{self._remote_source[0]}:{self._remote_source[1]}"
+                continue
             self._take(self._in[:n], self._arrival(ancillary))
 
     def _arrival(self, ancillary) -> int:

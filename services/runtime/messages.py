@@ -500,7 +500,7 @@ EPISODE_SUMMARY = MessageType(
         ("loop", "object", "timing statistics of the robot's 1 kHz loop"),
         Field("wire", "object", "--wire udp: the KRC's and the remote's addresses, the KRL convention, the "
                                 "datagrams (sent, received, accepted, late, duplicate, wrong_size, wrong_id, "
-                                "invalid, ...), the KRL program's events, the link's state changes, seconds "
+                                "invalid, foreign: from another sender than the remote, ...), the KRL program's events, the link's state changes, seconds "
                                 "in command mode, first commands refused, the last refusal", optional=True),
     ),
 )

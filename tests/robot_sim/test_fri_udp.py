@@ -176,14 +176,38 @@ def test_an_invalid_command_is_dropped_and_a_valid_one_after_it_accepted(endpoin
 
 def test_a_command_before_any_measurement_is_ignored(remote):
     with FriUdpEndpoint(remote=remote.address) as ep:
-        stray = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            fake = bytearray(916)
-            stray.sendto(remote.command(bytes(fake)), ep.address)
-            wait_for(ep, lambda: ep.counters.received == 1)
-        finally:
-            stray.close()
+        remote.sock.sendto(remote.command(bytes(916)), ep.address)
+        wait_for(ep, lambda: ep.counters.received == 1)
         assert ep.counters.unsent == 1 and ep.poll() is None and ep.open_seq is None
+
+
+def test_a_stranger_cannot_answer_or_send_krl_requests(endpoint, remote):
+    """A KRC answers the remote it was configured for: a well-formed answer to the open cycle
+    from another port, carrying a KRL request ($FRI_FRM_INT[16] = 20, "stop"), is counted
+    and ignored whole; the remote's own answer after it is the cycle's."""
+    endpoint.send(packet(40))
+    m = remote.receive()
+    stranger = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        stop = bytearray(remote.command(m, tag=9.0))
+        struct.pack_into("<i", stop, 8 + 64 + 15 * 4, 20)
+        for _ in range(5):
+            stranger.sendto(bytes(stop), endpoint.address)
+        wait_for(endpoint, lambda: endpoint.counters.foreign == 5)
+    finally:
+        stranger.close()
+    assert endpoint.poll() is None and endpoint.krl_from is None and endpoint.counters.accepted == 0
+    assert "not the remote" in endpoint.last_reject_reason
+    remote.answer(m, tag=3.0)
+    cmd = endpoint.poll(WAIT_S)
+    assert cmd is not None and cmd.add_tcp_ft[0] == 3.0 and endpoint.krl_from.ints[15] == 10
+
+
+def test_a_remote_named_localhost_is_the_loopback_address_it_sends_from(remote):
+    with FriUdpEndpoint(remote=("localhost", remote.address[1])) as ep:
+        ep.send(packet(1))
+        remote.answer(remote.receive(), tag=2.0)
+        assert ep.poll(WAIT_S).add_tcp_ft[0] == 2.0 and ep.counters.foreign == 0
 
 
 def test_commands_without_cartesian_flags_take_the_defaults(endpoint, remote):
