@@ -21,9 +21,14 @@ machine, any IPv4 address of the machine to be reached from another; ports confi
   description does not ask for) is counted in :attr:`NetFtStats.ignored` and ignored.
   Replies go from the box's UDP port to the request's source address and port (clients
   ``connect()`` their socket and drop anything else).  Each requester has its own stream;
-  a new start from the same requester replaces it.  Four streams at most: a start from a
-  fifth requester ends the oldest stream (:attr:`NetFtStats.evicted`), so clients that
-  died without a stop request cannot lock a new one out.
+  a new start from the same requester replaces it.  Four streams at most, first come first
+  served: a start from a fifth requester is refused (:attr:`NetFtStats.refused`), so a
+  stranger cannot cut a stream the box already serves.  A client that died without a stop
+  request does not hold its place: on Linux the box asks for the network's errors
+  (``IP_RECVERR``), and the ICMP "port unreachable" its next record draws ends that stream
+  (:attr:`NetFtStats.unreachable`).  ATI's manual, as summarised in WIRE.md, does not say
+  how many clients a real box streams to or what it does with more; these are this box's
+  rules, chosen so that a lab's client keeps its stream.
 * **HTTP, TCP 80**: ``GET /netftapi2.xml`` (``prodname``, ``cfgcpf``, ``cfgcpt``,
   ``scfgfu``, ``scfgtu``, each exactly once, no DOCTYPE: what pynetft 2.1.3 parses, plus
   ``comrdtrate`` and ``comrdtbsiz``) and ``GET /netftcalapi.xml`` (root
@@ -68,7 +73,9 @@ guards its cycle), so the box and any other consumer of the model see the same b
 Threads: :meth:`publish` sends from the caller's thread (the sensor cycle); one I/O thread
 waits in ``select`` on the UDP socket, both TCP listeners and a wake-up pipe (no polling),
 HTTP and calibration connections are served on short-lived threads.  Everything the two
-sides share is behind one lock.  :meth:`close` stops and joins all of it.
+sides share is behind one lock.  :meth:`close` stops and joins all of it: it cuts the
+connections still open (a client trickling a byte at a time holds none of it), so it
+returns within about a second whatever the clients do.
 """
 
 from __future__ import annotations
@@ -81,7 +88,9 @@ import selectors
 import socket
 import socketserver
 import struct
+import sys
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
@@ -136,10 +145,13 @@ _FORCE_UNIT_N = 2
 _TORQUE_UNIT_NM = 3
 _UINT32 = 0xFFFFFFFF
 _INT32_MIN, _INT32_MAX = -(2**31), 2**31 - 1
-# streams at once; a start request beyond that ends the oldest stream (a client that died
-# without a stop request leaves its stream behind: without this, a few crashed clients
-# would lock every new one out, silently)
+# streams at once; a start request beyond that is refused (a dead client's stream ends on
+# the ICMP error its records draw, so crashed clients do not lock new ones out)
 _MAX_STREAMS = 4
+# Linux: ICMP errors of an unconnected UDP socket are queued for recvmsg(MSG_ERRQUEUE) with
+# the original destination, the client that is gone (ip(7))
+_IP_RECVERR = getattr(socket, "IP_RECVERR", 11)
+_MSG_ERRQUEUE = getattr(socket, "MSG_ERRQUEUE", 0x2000)
 _SATURATION_CAUSES = int(AtiStatus.FT_OUT_OF_RANGE | AtiStatus.INPUT_NONFINITE) | sum(int(b) for b in SATURATION_BITS)
 
 
@@ -167,8 +179,18 @@ class NetFtStats:
     """Well-formed RDT requests received."""
     ignored: int = 0
     """RDT datagrams ignored: malformed or an unknown command."""
-    evicted: int = 0
-    """Streams ended because a new client asked for one and the box had no room."""
+    http_requests: int = 0
+    """HTTP requests answered with a page."""
+    http_refused: int = 0
+    """HTTP requests that were no GET of a page the box has (404, 400, 501: garbage included)."""
+    calibration_requests: int = 0
+    """READCALINFO requests answered on TCP 49151."""
+    calibration_refused: int = 0
+    """Connections to TCP 49151 closed on a request that was not READCALINFO."""
+    refused: int = 0
+    """Start requests refused: four streams were running, none of them the requester's."""
+    unreachable: int = 0
+    """Streams ended because the network said their client is gone (ICMP port unreachable)."""
     biases: int = 0
     streams: int = 0
     """Streams running now."""
@@ -252,6 +274,7 @@ class NetFtBox:
         self._last_ft: int | None = None  # ft_sequence of the last record sent, as the sensor numbered it
         self._ft_shift = 0  # added to the sensor's ft_sequence (after a step back)
         self._bias_armed = False
+        self._send_failed = False  # a send raised: look at the network's errors
         self._bias = np.zeros(6, dtype=np.int64)
         self._biased = False
 
@@ -274,6 +297,9 @@ class NetFtBox:
             self._udp = udp
             udp.bind((self.address, self.rdt_port))
             self.rdt_port = udp.getsockname()[1]
+            udp.setblocking(False)  # one I/O thread reads it when select says; publish sends
+            if sys.platform == "linux":
+                udp.setsockopt(socket.IPPROTO_IP, _IP_RECVERR, 1)
             if self.http_port is not None:
                 server = _HttpServer((self.address, self.http_port), _XmlHandler, self)
                 self._servers.append(server)
@@ -325,6 +351,11 @@ class NetFtBox:
     @property
     def serving(self) -> bool:
         return self._state == "serving"
+
+    def _count(self, what: str) -> None:
+        """One more of a :class:`NetFtStats` counter (from a connection's thread)."""
+        with self._lock:
+            setattr(self._stats, what, getattr(self._stats, what) + 1)
 
     def stats(self) -> NetFtStats:
         with self._lock:
@@ -384,6 +415,8 @@ class NetFtBox:
                     self._tap(peer, data)
             for peer in finished:
                 del self._streams[peer]
+            if self._send_failed:
+                self._end_unreachable()
             stats.records_sent += records
             stats.datagrams_sent += datagrams
             return records
@@ -392,11 +425,33 @@ class NetFtBox:
         udp = self._udp
         if udp is None:
             return 0
-        try:
-            udp.sendto(data, peer)
-        except OSError:  # a full buffer or a vanished peer: UDP, the record is lost as on the wire
-            return 0
-        return 1
+        for _ in range(2):
+            try:
+                udp.sendto(data, peer)
+                return 1
+            except ConnectionRefusedError:
+                # an earlier record's ICMP error, reported by this send, which it stopped
+                # (the error is cleared by being reported): send again
+                self._send_failed = True
+            except OSError:  # a full buffer: UDP, the record is lost as on the wire
+                self._send_failed = True
+                return 0
+        return 0
+
+    def _end_unreachable(self) -> None:
+        """End the streams whose client the network says is gone (the ICMP errors queued
+        since the last look); call with the lock held."""
+        self._send_failed = False
+        udp = self._udp
+        while udp is not None:
+            try:
+                _, _, _, peer = udp.recvmsg(64, 512, _MSG_ERRQUEUE)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:  # no error queue here (not Linux), or the socket is closed
+                return
+            if peer is not None and self._streams.pop(peer, None) is not None:
+                self._stats.unreachable += 1
 
     # -- the network side -----------------------------------------------------------
 
@@ -415,7 +470,11 @@ class NetFtBox:
     def _on_rdt(self) -> None:
         try:
             data, peer = self._udp.recvfrom(2048)
-        except OSError:
+        except BlockingIOError:
+            return
+        except OSError:  # the socket's pending ICMP error (IP_RECVERR): whose client is gone
+            with self._lock:
+                self._end_unreachable()
             return
         bias = False
         with self._lock:
@@ -431,8 +490,10 @@ class NetFtBox:
                 return
             if (command in (RdtCommand.REALTIME, RdtCommand.BUFFERED) and peer not in self._streams
                     and len(self._streams) >= _MAX_STREAMS):
-                del self._streams[next(iter(self._streams))]  # the oldest (dicts keep their order)
-                stats.evicted += 1
+                self._end_unreachable()  # a place held by a client that is gone is free
+                if len(self._streams) >= _MAX_STREAMS:
+                    stats.refused += 1
+                    return
             stats.requests += 1
             if command == RdtCommand.STOP:
                 self._streams.pop(peer, None)
@@ -475,14 +536,59 @@ class NetFtBox:
                                    c.counts_per_torque, *([1] * 6))
 
 
-class _HttpServer(http.server.ThreadingHTTPServer):
-    """The box's web server; requests are accepted by the box's I/O thread."""
+class _Connections:
+    """A threading server's open connections, cut at close: a client that trickles a byte a
+    second would otherwise hold its handler thread (and the box's close, which joins it)
+    for as long as it likes."""
 
-    daemon_threads = False  # joined by server_close()
+    daemon_threads = True  # a handler that does not end is not waited for at exit
     timeout = 0  # handle_request() is called only when a connection is waiting
+    _CLOSE_JOIN_S = 1.0
+
+    def _track(self) -> None:
+        self._open: set = set()
+        self._handlers: list[threading.Thread] = []
+        self._open_lock = threading.Lock()
+        self._closing = False
+
+    def process_request(self, request, client_address):
+        thread = threading.Thread(target=self.process_request_thread, args=(request, client_address),
+                                  name=f"{type(self).__name__} {client_address[0]}:{client_address[1]}", daemon=True)
+        with self._open_lock:
+            self._open.add(request)
+            self._handlers = [t for t in self._handlers if t.is_alive()] + [thread]
+        thread.start()
+
+    def shutdown_request(self, request):
+        with self._open_lock:
+            self._open.discard(request)
+        super().shutdown_request(request)
+
+    def handle_error(self, request, client_address):
+        if not self._closing:  # a connection cut at close is not an error of the client's
+            super().handle_error(request, client_address)
+
+    def server_close(self):
+        with self._open_lock:
+            self._closing = True
+            open_now, handlers = list(self._open), list(self._handlers)
+        for sock in open_now:  # the handlers' reads end at once
+            try:
+                sock.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+        super(socketserver.ThreadingMixIn, self).server_close()  # the listening socket
+        deadline = time.monotonic() + self._CLOSE_JOIN_S
+        for thread in handlers:
+            thread.join(max(0.0, deadline - time.monotonic()))
+
+
+class _HttpServer(_Connections, http.server.ThreadingHTTPServer):
+    """The box's web server; requests are accepted by the box's I/O thread."""
 
     def __init__(self, address, handler, box: NetFtBox):
         self.box = box
+        self._track()
         super().__init__(address, handler)
 
 
@@ -496,6 +602,7 @@ class _XmlHandler(http.server.BaseHTTPRequestHandler):
         if path not in pages:
             self.send_error(404)
             return
+        self.server.box._count("http_requests")
         body = pages[path]().encode()
         self.send_response(200)
         self.send_header("Content-Type", "text/xml")
@@ -503,17 +610,21 @@ class _XmlHandler(http.server.BaseHTTPRequestHandler):
         self.end_headers()
         self.wfile.write(body)
 
+    def send_error(self, code, message=None, explain=None):  # the signature http.server calls
+        # a missing page, a malformed request line, a method the box has not (garbage)
+        self.server.box._count("http_refused")
+        super().send_error(code, message, explain)
+
     def log_message(self, format, *args):  # the signature http.server calls
         pass
 
 
-class _CalibrationServer(socketserver.ThreadingTCPServer):
+class _CalibrationServer(_Connections, socketserver.ThreadingTCPServer):
     allow_reuse_address = True
-    daemon_threads = False
-    timeout = 0
 
     def __init__(self, address, handler, box: NetFtBox):
         self.box = box
+        self._track()
         super().__init__(address, handler)
 
 
@@ -527,8 +638,12 @@ class _CalibrationHandler(socketserver.BaseRequestHandler):
                 data = _receive_exactly(self.request, _CALINFO_REQUEST_SIZE)
             except OSError:
                 return
-            if data is None or data[0] != 0x01:
-                return  # closed, or a command this box does not know (READFT): hang up
+            if data is None:
+                return  # closed
+            if data[0] != 0x01:
+                self.server.box._count("calibration_refused")
+                return  # a command this box does not know (READFT): hang up
+            self.server.box._count("calibration_requests")
             try:
                 self.request.sendall(self.server.box.calibration_info())
             except OSError:

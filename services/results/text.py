@@ -43,7 +43,8 @@ def served_text(e: dict) -> list[str]:
                  f"KRL program {w.get('krl', '?')}; {e['sim_seconds']:.1f} s ({e['reason']})",
              f"  datagrams: {d.get('sent', 0)} measurements sent, {d.get('received', 0)} received, "
              f"{d.get('accepted', 0)} commands in time, {d.get('late', 0)} late, {d.get('duplicate', 0)} duplicate, "
-             f"{d.get('wrong_size', 0)} wrong size, {d.get('wrong_id', 0)} wrong id, {d.get('invalid', 0)} invalid"
+             f"{d.get('wrong_size', 0)} wrong size, {d.get('wrong_id', 0)} wrong id, {d.get('invalid', 0)} invalid, "
+             f"{d.get('foreign', 0)} from other senders (ignored)"
              + (f" (last: {w['last_reject_reason']})" if w.get("last_reject_reason") else ""),
              f"  command mode: {w.get('command_mode_s', 0.0):.2f} s, entered {f.get('command_mode_entered', 0)} "
              f"time(s), left {f.get('command_mode_left', 0)}; FRI missed {f.get('missed', 0)} cycle(s), longest run "
@@ -61,6 +62,20 @@ def served_text(e: dict) -> list[str]:
         lines.append("  link: " + ", ".join(f"{c['at_s']:.2f} s {c['state']}/{c['quality']}" for c in changes[:12])
                      + (f", ... ({len(changes)} changes)" if len(changes) > 12 else ""))
     return lines
+
+
+def netft_text(r: dict) -> list[str]:
+    """The Net F/T box's line: what it streamed, whom it refused, the garbage it was sent."""
+    n = ((r.get("timing") or {}).get("services") or {}).get("ft_sensor", {}).get("netft")
+    if not n:
+        return []
+    return ["", f"Net F/T box {n.get('address', '?')} (RDT {n.get('rdt_port', '?')}, HTTP {n.get('http_port', '-')}, "
+                f"calibration {n.get('calibration_port', '-')}): {n.get('requests', 0)} RDT requests, "
+                f"{n.get('records_sent', 0)} records sent; refused {n.get('refused', 0)} start(s) (four streams "
+                f"running), ended {n.get('unreachable', 0)} stream(s) of clients gone, ignored "
+                f"{n.get('ignored', 0)} malformed RDT datagram(s); HTTP {n.get('http_requests', 0)} page(s), "
+                f"{n.get('http_refused', 0)} refused; calibration {n.get('calibration_requests', 0)}, "
+                f"{n.get('calibration_refused', 0)} refused"]
 
 
 def render_text(r: dict) -> str:
@@ -101,6 +116,7 @@ def render_text(r: dict) -> str:
                      f"{d['wall_seconds']:6.1f} s wall")
     for e in r.get("served") or []:
         lines += served_text(e)
+    lines += netft_text(r)
     sel = r["learning"]["selection"]
     if sel:
         lines.append("")

@@ -9,6 +9,7 @@ a client is not installed."""
 import random
 import socket
 import struct
+import sys
 import threading
 import time
 import urllib.error
@@ -463,6 +464,27 @@ def test_calibration_over_http_and_tcp_49151():
                 assert struct.unpack(">HBBII6H", reply) == (0x1234, 2, 3, 1_000_000, 2_000_000, 1, 1, 1, 1, 1, 1)
 
 
+
+def test_http_and_calibration_garbage_is_refused_and_counted():
+    """Pages served and refusals are counted per channel (report.txt's Net F/T line): a
+    request line that is no HTTP, a page the box has not, a method it has not, and a
+    calibration request that is not READCALINFO."""
+    with served_box() as box:
+        base = f"http://{box.address}:{box.http_port}"
+        urllib.request.urlopen(f"{base}/netftapi2.xml", timeout=2).read()
+        for garbage in (b"\x00\xffGARBAGE\r\n\r\n", b"GET /other.xml HTTP/1.0\r\n\r\n",
+                        b"BREW /netftapi2.xml HTTP/1.0\r\n\r\n"):
+            with socket.create_connection((box.address, box.http_port), timeout=2) as tcp:
+                tcp.sendall(garbage)
+                reply = tcp.recv(4096)  # an error page (without a status line for a request line without a version)
+                assert any(code in reply for code in (b"400", b"404", b"501")), reply
+        with socket.create_connection((box.address, box.calibration_port), timeout=2) as tcp:
+            tcp.sendall(b"\x02" + bytes(19))
+            assert tcp.recv(24) == b""  # hung up
+        _wait(lambda: box.stats().calibration_refused == 1)
+        stats = box.stats()
+        assert (stats.http_requests, stats.http_refused, stats.calibration_requests) == (1, 3, 0), stats
+
 def test_lifetime_and_arguments():
     box = NetFtBox(rdt_port=0, http_port=0, calibration_port=0).serve()
     ports = (box.rdt_port, box.http_port, box.calibration_port)
@@ -499,27 +521,89 @@ def _wait(condition, timeout: float = 2.0):
         time.sleep(0.001)
 
 
-def test_clients_that_died_without_a_stop_cannot_lock_a_new_one_out():
-    """Sixteen requesters start a stream and vanish; a seventeenth still gets its records
-    (the oldest streams make room), and the box keeps at most four."""
+def test_strangers_cannot_cut_a_stream_the_box_serves():
+    """A lab client streams; eight strangers on other ports ask for streams too.  The box
+    serves four at most, first come first served: the client's stream goes on, record for
+    record, and the five strangers beyond the fourth place are refused and counted."""
     with NetFtBox(rdt_port=0, http_port=None, calibration_port=None) as box:
-        dead = []
+        client = raw_socket(box)
+        client.send(struct.pack(">HHI", 0x1234, 0x0002, 0))
+        _wait(lambda: box.stats().requests == 1)
+        strangers = [raw_socket(box) for _ in range(8)]
+        try:
+            for s in strangers:
+                s.send(struct.pack(">HHI", 0x1234, 0x0002, 0))
+            _wait(lambda: box.stats().requests + box.stats().refused == 9)
+            sensor = AtiSensor(AtiConfig.mini45(), 1)
+            for k in range(5):
+                box.publish(sensor.read(WRENCH, k * 1_000_000))
+            got = [unpack_records(client.recv(2048))[0][0] for _ in range(5)]
+            assert got == [1, 2, 3, 4, 5]
+            stats = box.stats()
+            assert (stats.streams, stats.refused, stats.requests) == (4, 5, 4), stats
+        finally:
+            for s in strangers + [client]:
+                s.close()
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="the box learns of a vanished client from IP_RECVERR (Linux)")
+def test_clients_that_died_without_a_stop_cannot_lock_a_new_one_out():
+    """A client streams; sixteen requesters start a stream and vanish: three get places,
+    thirteen are refused.  The first record sent to the three draws the network's "port
+    unreachable", which ends their streams without costing the client a record; a new
+    client then gets its records."""
+    with NetFtBox(rdt_port=0, http_port=None, calibration_port=None) as box:
+        keeper = raw_socket(box)
+        keeper.send(struct.pack(">HHI", 0x1234, 0x0002, 0))
+        _wait(lambda: box.stats().requests == 1)
         for _ in range(16):
-            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            s.connect((box.address, box.rdt_port))
+            s = raw_socket(box)
             s.send(struct.pack(">HHI", 0x1234, 0x0002, 0))
-            dead.append(s)
-        live = raw_socket(box)
-        live.send(struct.pack(">HHI", 0x1234, 0x0002, 0))
-        sensor = AtiSensor(AtiConfig.mini45(), 1)
-        deadline = time.monotonic() + 2.0
-        while box.stats().requests < 17 and time.monotonic() < deadline:
-            time.sleep(0.01)
-        for k in range(5):
-            box.publish(sensor.read(WRENCH, k * 1_000_000))
-        records = unpack_records(live.recv(2048))
-        assert records and records[0][0] == 1
-        stats = box.stats()
-        assert stats.streams == 4 and stats.evicted == 13
-        for s in dead + [live]:
             s.close()
+        _wait(lambda: box.stats().requests + box.stats().refused == 17)
+        assert box.stats().streams == 4 and box.stats().refused == 13
+        sensor = AtiSensor(AtiConfig.mini45(), 1)
+        box.publish(sensor.read(WRENCH, 0))
+        _wait(lambda: box.stats().unreachable == 3)
+        live = raw_socket(box)
+        try:
+            live.send(struct.pack(">HHI", 0x1234, 0x0002, 0))
+            _wait(lambda: box.stats().streams == 2)
+            for k in range(1, 4):
+                box.publish(sensor.read(WRENCH, k * 1_000_000))
+            assert [unpack_records(keeper.recv(2048))[0][0] for _ in range(4)] == [1, 2, 3, 4]
+            assert [unpack_records(live.recv(2048))[0][0] for _ in range(3)] == [1, 2, 3]
+        finally:
+            live.close()
+            keeper.close()
+
+
+def test_close_is_not_held_by_clients_that_trickle():
+    """HTTP and calibration connections that send a byte every 0.5 s (never a whole request)
+    do not hold the box's close: it cuts them and returns within about a second."""
+    box = served_box()
+    trickling = [socket.create_connection((box.address, port), timeout=2) for port in
+                 (box.http_port, box.http_port, box.calibration_port)]
+    stop = threading.Event()
+
+    def trickle():
+        while not stop.wait(0.5):
+            for sock in trickling:
+                try:
+                    sock.send(b"G")
+                except OSError:
+                    pass
+    feeder = threading.Thread(target=trickle, daemon=True)
+    feeder.start()
+    try:
+        time.sleep(1.2)  # the handlers are reading
+        t0 = time.monotonic()
+        box.close()
+        took = time.monotonic() - t0
+        alive = [t.name for t in threading.enumerate() if t.name.startswith(("_HttpServer", "_CalibrationServer"))]
+        assert took < 1.5, took
+        assert alive == [], alive
+    finally:
+        stop.set()
+        for sock in trickling:
+            sock.close()

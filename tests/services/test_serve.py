@@ -135,7 +135,9 @@ def _serve_a_lab_remote_and_a_net_ft_client(pynetft, out: Path) -> str | None:
     assert wire["datagrams"]["wrong_size"] == wire["datagrams"]["invalid"] == 0
     assert served["safety"] == 0 and wire["safety_stop"] is None
     text = (out / "report.txt").read_text()
-    assert "served over FRI 1.0/UDP" in text
+    assert "served over FRI 1.0/UDP" in text and "0 from other senders (ignored)" in text, text
+    netft_line = next(line for line in text.splitlines() if line.startswith("Net F/T box"))
+    assert "refused 0 start(s)" in netft_line and "HTTP 1 page(s), 0 refused" in netft_line, netft_line
     # the recording: each datagram as its bytes and decoded, the RDT records the client got
     directions, rdt_records = {"measurement": 0, "command": 0}, 0
     moved = []
@@ -250,3 +252,32 @@ def test_services_stop_when_their_runner_is_killed_outright(tmp_path):
         for c in left:
             os.kill(c, signal.SIGKILL)
         assert not left, f"services outlived their runner: {left}"
+
+
+def test_a_port_another_serve_holds_is_named_before_anything_starts(tmp_path, capsys):
+    """A second serve on the first's --fri-bind, or on its Net F/T box's ports, is refused in
+    one line that names the flag, the address and why, before any service starts."""
+    import socket
+
+    from services.cli.bench import main as bench
+
+    udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    tcp = socket.socket()
+    try:
+        udp.bind(("127.0.0.1", 0))
+        tcp.bind(("127.0.0.1", 0))
+        tcp.listen()
+        fri, http = udp.getsockname()[1], tcp.getsockname()[1]
+        cases = ((["--fri-bind", f"127.0.0.1:{fri}"], f"--fri-bind 127.0.0.1:{fri}: 127.0.0.1:{fri} is taken"),
+                 (["--netft-rdt-port", str(fri), "--netft-http-port", "0", "--netft-calibration-port", "0"],
+                  f"the Net F/T box's UDP port (--netft-rdt-port {fri}): 127.0.0.1:{fri} is taken"),
+                 (["--netft-rdt-port", "0", "--netft-http-port", str(http), "--netft-calibration-port", "0"],
+                  f"the Net F/T box's TCP port (--netft-http-port {http}): 127.0.0.1:{http} is taken"))
+        for flags, said in cases:
+            assert bench(["serve", "scenarios/smoke.yaml", "--out", str(tmp_path / "served"), *flags]) == 2
+            err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+            assert len(err) == 1 and said in err[0], err
+            assert not (tmp_path / "served").exists()
+    finally:
+        udp.close()
+        tcp.close()
