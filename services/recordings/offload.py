@@ -37,9 +37,12 @@ class WriterProcess:
         import sys
 
         # its own interpreter (not multiprocessing: that re-imports the caller's main
-        # script, and forking copies the run's threads)
+        # script, and forking copies the run's threads), in its own session: Ctrl-C (or a
+        # SIGTERM to the run's process group) is the run's to handle, which finishes the
+        # episode's file through it; if the run dies, the pipe's end finishes the file
         self._proc = subprocess.Popen([sys.executable, "-m", "services.recordings.offload", "--writer-process"],
-                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=None)
+                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=None,
+                                      start_new_session=True)
         self._send(("opener", opener))
 
     def _call(self, *request):

@@ -74,6 +74,8 @@ class Runner:
         self.cell = None
         self.episodes = None
         self.ready = threading.Event()  # set once every service is up (tests and benches wait on it)
+        self._interrupted = False  # a Ctrl-C or SIGTERM has been taken
+        self._late_signal = ""  # one that came once the stages had ended (raised after the report)
         self.profile = Grant(parse_profile(options.realtime_profile) if scenario.clock == "realtime"
                              else frozenset())
         check_run_folder(self.out, options.out, replace=options.replace)
@@ -115,8 +117,9 @@ class Runner:
             self.episodes.event("run_end", "", -1, {})
         except BaseException as exc:
             if isinstance(exc, KeyboardInterrupt):
-                self._escalate_on_next_interrupt()
-            error = f"{type(exc).__name__}: {exc}"
+                self._interrupted = True
+            error = (f"interrupted ({str(exc) or 'SIGINT'})" if isinstance(exc, KeyboardInterrupt)
+                     else f"{type(exc).__name__}: {exc}")
             self.say(f"run failed: {error}")
             if self.cell is not None:
                 for line in self.cell.post_mortem():
@@ -124,8 +127,10 @@ class Runner:
             if isinstance(exc, KeyboardInterrupt):
                 raise
         finally:
-            # whatever fails here, the services, the session and the hosts are let go (the
+            # from here a signal must not cut the report short (_escalate_on_next_interrupt).
+            # Whatever fails here, the services, the session and the hosts are let go (the
             # outer finally) and the profile's hold on the machine too (the inner one)
+            self._escalate_on_next_interrupt()
             try:
                 try:
                     if self.cell is not None:
@@ -136,6 +141,11 @@ class Runner:
                             codes = self.cell.stop(self.roles, before_report=True)
                         except Exception as exc:  # noqa: BLE001 - a service that cannot finish: said, and the report still written
                             stopping = f"stopping the services: {type(exc).__name__}: {exc}"
+                            self.say(f"run failed: {stopping}" if error is None else stopping)
+                            error = error or stopping
+                        unclean = _unclean_exits(codes, getattr(self.cell, "lost", {}))
+                        if unclean:
+                            stopping = f"stopping the services: {unclean}"
                             self.say(f"run failed: {stopping}" if error is None else stopping)
                             error = error or stopping
                 finally:
@@ -150,6 +160,8 @@ class Runner:
             finally:
                 if self.cell is not None:
                     self.cell.stop(self.roles, before_report=False)
+        if self._late_signal:  # the stages had ended, the report is whole: the signal is still said
+            raise KeyboardInterrupt(self._late_signal)
         return report
 
     def _start_cell(self) -> None:
@@ -238,6 +250,7 @@ class Runner:
         except KeyboardInterrupt:
             # Ctrl-C (or SIGTERM) is how serving ends sooner: the episode ends there, with
             # its summary and the report; a second one aborts (_escalate_on_next_interrupt)
+            self._interrupted = True
             self._escalate_on_next_interrupt()
             self.say("interrupted: ending the served episode (again to abort)")
             summary = self.cell.stop_episode()
@@ -285,15 +298,23 @@ class Runner:
         self.episodes.rejoin(role)
 
     def _escalate_on_next_interrupt(self) -> None:
-        """Interrupted once: the services are being stopped and the report written.  A
-        second Ctrl-C (or SIGTERM) must not abort that half-way (leaving orphans and no
-        report): it kills the services at once and lets the clean-up finish."""
+        """The services are being stopped and the report written, after the stages or after
+        an interrupt.  A Ctrl-C (or SIGTERM) must not abort that half-way (leaving orphans
+        and no report): the first one after the stages ended lets the clean-up finish (and
+        is raised once the report is written); one after an interrupt kills the services at
+        once and lets the clean-up finish."""
         if threading.current_thread() is not threading.main_thread():
             return
 
         def escalate(signum, frame):
+            name = signal.Signals(signum).name
+            if not self._interrupted:
+                self._interrupted, self._late_signal = True, name
+                self.say(f"{name}: the run's stages have ended; the report is being written (again to kill the "
+                         "services at once)")
+                return
             killed = self.cell.kill() if self.cell is not None else 0
-            self.say(f"{signal.Signals(signum).name} again: killing the {killed} service processes now")
+            self.say(f"{name} again: killing the {killed} service processes now")
 
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, escalate)
@@ -301,3 +322,21 @@ class Runner:
 
 def run(scenario: Scenario, options: RunOptions, progress=print) -> dict:
     return Runner(scenario, options, progress).run()
+
+
+def _unclean_exits(codes: dict, lost) -> str:
+    """The services that did not end by themselves when asked to (a signal ended them, or an
+    error code), a lost one aside (its loss is the run's error already): one phrase, or ''."""
+    parts = []
+    for role, code in sorted(codes.items()):
+        if code in (0, None) or role in lost:
+            continue
+        if code < 0:
+            try:
+                name = signal.Signals(-code).name
+            except ValueError:
+                name = f"signal {-code}"
+            parts.append(f"{role} did not exit when asked and was ended by {name} (exit code {code})")
+        else:
+            parts.append(f"{role} exited with code {code}")
+    return "; ".join(parts)

@@ -81,7 +81,7 @@ def test_a_second_ctrl_c_kills_the_services_and_the_report_is_still_written(tmp_
     def read():  # a thread, so that a runner that hangs fails the test instead of hanging it
         for line in runner.stderr:
             said.append(line)
-            if "run failed: KeyboardInterrupt" in line:
+            if "run failed: interrupted (SIGINT)" in line:
                 cleaning_up.set()
 
     reader = threading.Thread(target=read, daemon=True)
@@ -107,5 +107,41 @@ def test_a_second_ctrl_c_kills_the_services_and_the_report_is_still_written(tmp_
         time.sleep(0.2)
     assert processes_of(run_id) == []  # no orphan
     report = json.loads((out / "report.json").read_text())
-    assert "KeyboardInterrupt" in report["error"]
+    assert report["error"] == "interrupted (SIGINT)"
     assert f"partial report in {out}" in text.splitlines()[-1]
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_an_in_process_run_interrupted_says_one_line_and_keeps_its_episode(tmp_path, signum):
+    """Ctrl-C (SIGINT to the process group, as a terminal sends it) or SIGTERM to an
+    in-process run mid-demonstration: no traceback, one line that names the signal, exit
+    130 within 2 s, and the episode recorded so far kept as a finished file (as over
+    Zenoh); the MCAP writer's helper process does not take the signal for itself."""
+    from services.recordings.reader import read_episode
+
+    out = tmp_path / "run"
+    runner = popen_as_from_a_terminal(
+        [sys.executable, "-m", "services.cli.bench", "run", str(ROOT / "scenarios" / "smoke.yaml"), "--out", str(out),
+         "--transport", "inproc", "--no-figures"], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+        text=True, start_new_session=True)
+    try:
+        first = out / "recordings" / "demonstration_00.mcap"
+        deadline = time.monotonic() + 120
+        while not (first.exists() and first.stat().st_size > 100_000) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert first.exists(), "no recording"
+        os.killpg(runner.pid, signum)
+        t0 = time.monotonic()
+        code = runner.wait(timeout=60)
+        took = time.monotonic() - t0
+        said = runner.stderr.read()
+    finally:
+        if runner.poll() is None:
+            os.killpg(runner.pid, signal.SIGKILL)
+    assert code == 130 and took < 2.0, (code, took, said)
+    assert "Traceback" not in said and "Error" not in said, said
+    assert said.strip().splitlines()[-1] == (f"etar-bench run: interrupted ({signum.name}); services stopped; "
+                                             f"partial report in {out}"), said
+    episode = read_episode(first)
+    assert episode.complete and len(episode.messages) > 1000, (episode.problem, len(episode.messages))
+    assert json.loads((out / "report.json").read_text())["error"] == f"interrupted ({signum.name})"
