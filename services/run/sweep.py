@@ -25,6 +25,11 @@ transition-time error, peak contact force, times), one PNG per metric against
 each parameter, and each run's directory under ``runs/`` as ``--record`` says:
 ``full`` everything, ``summary`` the report and the model, ``none`` nothing (only
 ``full`` draws Foxglove's visual topics into the recordings).
+
+Ctrl-C or SIGTERM stops a local sweep: nothing starts after it, each run under way is
+interrupted and writes its partial report, the workers are waited for (and killed after
+20 s), and the table holds the runs that had finished, with ``sweep.json`` marked
+``incomplete`` and naming the runs interrupted and those never started.
 """
 
 from __future__ import annotations
@@ -33,7 +38,9 @@ import csv
 import itertools
 import json
 import math
+import os
 import shutil
+import signal
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -71,7 +78,11 @@ class Parameter:
             try:
                 parsed.append(yaml.load(v, Loader=StrictLoader))
             except yaml.YAMLError as exc:
-                raise SweepError(f"--param {path}: value {v!r} is not YAML ({exc})") from None
+                # one line: what YAML found, not its multi-line excerpt of the text
+                problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+                raise SweepError(f"--param {path.strip()}: value {v!r} is not YAML ({problem})") from None
+        if not parsed:
+            raise SweepError(f"--param {text!r}: no values (expected PATH=V1,V2,..., e.g. cell.sensor_noise=0.5,1,2)")
         if len(set(map(repr, parsed))) != len(parsed):
             raise SweepError(f"--param {path}: the values repeat: {parsed}")
         return cls(path.strip(), tuple(parsed))
@@ -131,7 +142,6 @@ def plan(base: Scenario, parameters: list, repeats: int, out: Path, record: str,
     if len(set(paths)) != len(paths):
         raise SweepError(f"a parameter is given twice: {paths}")
     specs = []
-    (out / "scenarios").mkdir(parents=True, exist_ok=True)
     combos = list(itertools.product(*[p.values for p in parameters])) if parameters else [()]
     for combo in combos:
         params = dict(zip(paths, combo))
@@ -146,8 +156,11 @@ def plan(base: Scenario, parameters: list, repeats: int, out: Path, record: str,
             scenario = varied.replace("seed", seed)
             index = len(specs)
             name = f"run{index:03d}"
-            (out / "scenarios" / f"{name}.yaml").write_text(scenario.to_yaml())
             specs.append(RunSpec(index, name, params, scenario, str(out / "runs" / name), record, learn_threads))
+    # written once every combination is valid: a refused sweep leaves no sweep behind
+    (out / "scenarios").mkdir(parents=True, exist_ok=True)
+    for spec in specs:
+        (out / "scenarios" / f"{spec.name}.yaml").write_text(spec.scenario.to_yaml())
     return specs
 
 
@@ -180,12 +193,26 @@ def run_one(spec: RunSpec) -> dict:
     t0 = time.monotonic()
     lines = []
     row = dict(run=spec.name, **{f"param {k}": v for k, v in spec.params.items()}, seed=spec.seed)
+    if _STOPPING:  # the sweep was interrupted: nothing starts after the signal
+        return dict(row, error=f"not started: the sweep was interrupted ({_STOPPING})", interrupted="not started",
+                    wall_s=0.0)
+    global _RUNNING
+    _RUNNING = True  # from here a signal interrupts the run (before, it only stops the worker)
     try:
         runner = Runner(spec.scenario, spec.options(), progress=lines.append)
         report = runner.run()
+    except KeyboardInterrupt as exc:  # its partial report is in its folder (the runner wrote it)
+        written = Path(spec.out) / "report.json"
+        report = json.loads(written.read_text()) if written.exists() else None
+        if report is None or report.get("error") is not None:
+            return dict(row, error=f"interrupted ({str(exc) or 'SIGINT'})", interrupted="interrupted",
+                        wall_s=time.monotonic() - t0)
+        # the signal came once its stages had ended: the run is whole (its report says so)
     except Exception as exc:  # a run that cannot even start is a row with its error, not a dead sweep
         report = None
         row.update(error=f"{type(exc).__name__}: {exc}")
+    finally:
+        _RUNNING = False
     if report is not None:
         s = report["summary"]
         repro = report["reproductions"]
@@ -211,11 +238,65 @@ def run_one(spec: RunSpec) -> dict:
     return row
 
 
+# set in a pool worker by the first SIGINT or SIGTERM: the signal's name
+_STOPPING = ""
+_RUNNING = False  # a pool worker is in a run
+
+
+def _on_stop_signal(signum, frame):
+    """A pool worker's SIGINT and SIGTERM: the run under way is interrupted (it writes its
+    partial report), and no later one starts; a second signal is not let in to cut that
+    report short."""
+    global _STOPPING
+    if _STOPPING:
+        return
+    _STOPPING = signal.Signals(signum).name
+    if _RUNNING:  # between runs the worker is waiting for the next: it will not start it
+        raise KeyboardInterrupt(_STOPPING)
+
+
+def _worker_init() -> None:
+    signal.signal(signal.SIGINT, _on_stop_signal)
+    signal.signal(signal.SIGTERM, _on_stop_signal)
+
+
 def _pool(workers: int):
     import multiprocessing
 
     # spawn: a fresh interpreter per worker (numba's threads and Zenoh do not survive fork)
-    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=_worker_init)
+
+
+class SweepInterrupted(KeyboardInterrupt):
+    """A sweep stopped by SIGINT or SIGTERM: what had finished is tabulated (``summary``)."""
+
+    def __init__(self, why: str, summary: dict | None = None):
+        super().__init__(why)
+        self.why, self.summary = why, summary
+
+
+# how long the pool's workers get to write their interrupted runs' reports before they are killed
+_STOP_GRACE_S = 20.0
+
+
+def _stop_pool(pool, futures) -> None:
+    """Cancel the runs not started, tell each worker to stop (it writes the partial report of
+    the run it has), wait for them, and kill any that outlives the grace: none outlives the
+    sweep."""
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)  # idle workers get their end; queued runs are dropped
+    for p in processes:
+        try:
+            os.kill(p.pid, signal.SIGTERM)
+        except (ProcessLookupError, TypeError):
+            pass
+    deadline = time.monotonic() + _STOP_GRACE_S
+    for p in processes:
+        p.join(max(0.0, deadline - time.monotonic()))
+        if p.is_alive():
+            p.kill()
+            p.join(5.0)
 
 
 def execute(specs: list[RunSpec], workers: int, cluster: str | None, say=print) -> list[dict]:
@@ -257,10 +338,21 @@ def execute(specs: list[RunSpec], workers: int, cluster: str | None, say=print) 
             done(spec, run_one(spec))
     else:
         say(f"sweep: {len(specs)} runs on {workers} local processes")
-        with _pool(workers) as pool:
-            futures = {pool.submit(run_one, spec): spec for spec in specs}
+        pool = _pool(workers)
+        futures = {pool.submit(run_one, spec): spec for spec in specs}
+        try:
             for fut in as_completed(futures):
                 done(futures[fut], fut.result())
+        except KeyboardInterrupt as exc:
+            bar.close()
+            say(f"sweep: interrupted ({str(exc) or 'SIGINT'}): stopping the workers; the runs under way write "
+                "their partial reports")
+            _stop_pool(pool, futures)
+            for fut, spec in futures.items():  # finished while the signal was handled
+                if spec.index not in rows and fut.done() and not fut.cancelled() and fut.exception() is None:
+                    rows[spec.index] = fut.result()
+            raise SweepInterrupted(str(exc) or "SIGINT", {"rows": [rows[i] for i in sorted(rows)]}) from None
+        pool.shutdown(wait=True)
     bar.close()
     return [rows[i] for i in sorted(rows)]
 
@@ -330,6 +422,23 @@ def _progress(total: int):
 
 def _fmt(v, digits=3):
     return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.{digits}f}"
+
+
+def _tabulate_interrupted(stop: SweepInterrupted, specs, out_dir: Path, scenario, parameters, repeats,
+                          wall: float) -> dict:
+    """The table of the runs that finished before the signal, and sweep.json marked
+    incomplete (which runs were interrupted, which never started)."""
+    rows = [r for r in (stop.summary or {}).get("rows", []) if not r.get("interrupted")]
+    interrupted = [r["run"] for r in (stop.summary or {}).get("rows", []) if r.get("interrupted") == "interrupted"]
+    finished = {r["run"] for r in rows}
+    not_started = [s.name for s in specs if s.name not in finished and s.name not in interrupted]
+    csv_path, _ = write_table(by_model_rows(rows), out_dir) if rows else (None, None)
+    summary = dict(scenario=scenario.source, parameters={p.path: list(p.values) for p in parameters},
+                   repeats=repeats, runs=len(rows), failed=sum(1 for r in rows if r.get("error")),
+                   wall_seconds=wall, incomplete=f"interrupted ({stop.why})", interrupted_runs=interrupted,
+                   not_started=not_started, table=None if csv_path is None else str(csv_path))
+    (out_dir / "sweep.json").write_text(json.dumps(summary, indent=1) + "\n")
+    return summary
 
 
 def write_table(rows: list[dict], out: Path) -> tuple[Path, Path]:
@@ -422,7 +531,11 @@ def sweep(scenario: Scenario, parameters: list, *, repeats: int, out: str, recor
     threads = learn_threads or max(1, available_cpus() // workers)
     specs = plan(scenario, parameters, repeats, out_dir, record, threads)
     t0 = time.monotonic()
-    rows = execute(specs, min(workers, len(specs)), cluster, say)
+    try:
+        rows = execute(specs, min(workers, len(specs)), cluster, say)
+    except SweepInterrupted as stop:
+        raise SweepInterrupted(stop.why, _tabulate_interrupted(stop, specs, out_dir, scenario, parameters, repeats,
+                                                              time.monotonic() - t0)) from None
     wall = time.monotonic() - t0
     n_runs, n_failed = len(rows), sum(1 for r in rows if r.get("error"))
     rows = by_model_rows(rows)

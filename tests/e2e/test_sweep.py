@@ -37,6 +37,12 @@ def test_parameters_are_parsed_and_every_combination_validated_before_anything_r
     scenario = reproduction_scenario()
     with pytest.raises(SweepError, match=r"cell.sensor_noise: expected a finite number >= 0, got -1"):
         plan(scenario, [Parameter.parse("cell.sensor_noise=1,-1")], 1, tmp_path / "out", "none", 1)
+    # a refused sweep leaves nothing of a sweep behind, so the corrected command is not refused
+    with pytest.raises(SweepError, match=r"cell.sensor_noise: expected a finite number >= 0, got -1"):
+        sweep(scenario, [Parameter.parse("cell.sensor_noise=1,-1")], repeats=1, out=str(tmp_path / "refused"))
+    assert list((tmp_path / "refused").iterdir()) == []
+    with pytest.raises(SweepError, match="no values"):
+        Parameter.parse("cell.sensor_noise=,")
     with pytest.raises(SweepError, match="learn.phases: the scenario has no learn stage"):
         plan(scenario, [Parameter.parse("learn.phases=3")], 1, tmp_path / "out", "none", 1)
     specs = plan(scenario, [Parameter.parse("cell.sensor_noise=0.5,2")], 2, tmp_path / "out", "none", 1)
@@ -156,3 +162,76 @@ def test_a_sweep_of_etar_against_star_over_data_seeds(tmp_path):
         assert report["reproductions"][0]["start"] == report["reproductions"][1]["start"]
         assert all(r["phases"]["accuracy"] > 0.5 for r in report["reproductions"])
         assert "ETAR against STAR (thesis 6.3)" in (run / "report.txt").read_text()
+
+
+def _children(pid: int) -> list[int]:
+    """The processes whose parent is ``pid`` (the pool's workers and its resource tracker)."""
+    out = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                out.append(int(entry.name))
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.serial
+@pytest.mark.parametrize("how", ["SIGTERM to the sweep", "Ctrl-C to its group"])
+def test_an_interrupted_sweep_keeps_what_finished_and_leaves_no_worker(tmp_path, how):
+    """A local sweep of six runs on two workers, stopped once the first run has finished:
+    the sweep exits 130 in one line, no worker outlives it, nothing starts after the signal,
+    the finished runs are tabulated with sweep.json marked incomplete, and each run that was
+    under way has its partial report."""
+    scenario_file = tmp_path / "repro.yaml"
+    scenario_file.write_text(reproduction_scenario().to_yaml())
+    out = tmp_path / "sweep"
+    sweeper = support.popen_as_from_a_terminal(
+        [sys.executable, "-m", "services.cli.bench", "sweep", str(scenario_file), "--param",
+         "reproduce.start_perturbation=0.005,0.01,0.015,0.02,0.025,0.03", "--workers", "2", "--record", "summary",
+         "--out", str(out)], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        start_new_session=True)
+    said = []
+    try:
+        for line in sweeper.stderr:
+            said.append(line)
+            if re.search(r"\[1/6, ", line):
+                break
+        workers = _children(sweeper.pid)
+        assert len(workers) >= 2, (workers, "".join(said))
+        if how.startswith("SIGTERM"):
+            sweeper.send_signal(signal.SIGTERM)
+        else:
+            os.killpg(sweeper.pid, signal.SIGINT)
+        t0 = time.monotonic()
+        code = sweeper.wait(timeout=90)
+        took = time.monotonic() - t0
+        said += sweeper.stderr.readlines()
+    finally:
+        if sweeper.poll() is None:
+            os.killpg(sweeper.pid, signal.SIGKILL)
+    text = "".join(said)
+    assert code == 130 and took < 30, (code, took, text)
+    assert "Traceback" not in text, text
+    deadline = time.monotonic() + 5.0  # the resource tracker ends once it reads the sweep's end
+    while [p for p in workers if Path(f"/proc/{p}").exists()] and time.monotonic() < deadline:
+        time.sleep(0.1)
+    alive = {p: Path(f"/proc/{p}/cmdline").read_bytes().replace(b"\0", b" ")[:120] for p in workers
+             if Path(f"/proc/{p}").exists()}
+    assert alive == {}, f"outlived the sweep: {alive}"
+    last = text.strip().splitlines()[-1]
+    assert last.startswith("etar-bench sweep: interrupted (") and "sweep.json marked incomplete" in last, last
+    summary = json.loads((out / "sweep.json").read_text())
+    assert summary["incomplete"].startswith("interrupted (")
+    finished = [r["run"] for r in json.loads((out / "table.json").read_text())]
+    assert len(finished) >= 1 and summary["runs"] == len(finished)
+    assert len(finished) + len(summary["interrupted_runs"]) + len(summary["not_started"]) == 6, summary
+    for run in finished + summary["interrupted_runs"]:
+        assert (out / "runs" / run / "report.json").exists(), run
+    for run in summary["interrupted_runs"]:
+        assert json.loads((out / "runs" / run / "report.json").read_text())["error"].startswith("interrupted (")
+    for run in summary["not_started"]:
+        assert not (out / "runs" / run).exists(), f"{run} started after the signal"
