@@ -67,6 +67,25 @@ def test_the_api_refuses_an_unknown_option_before_anything_starts(tmp_path):
     assert not (tmp_path / "x").exists()
 
 
+def test_the_api_names_its_own_arguments_and_takes_a_scenario_as_a_dict(tmp_path):
+    """The API's errors name keyword arguments, not the command line's flags; a scenario
+    may be a dict (validated as a file's would be), anything else is refused by its type."""
+    from services import run_scenario
+    from services.scenario import ScenarioError
+
+    with pytest.raises(ValueError, match=r"^run_scenario: ready_timeout must be a number of seconds > 0") as err:
+        run_scenario("scenarios/smoke.yaml", out=tmp_path / "x", ready_timeout=-5)
+    assert "--" not in str(err.value)
+    with pytest.raises(ValueError, match=r"^run_scenario: foxglove must be in 0\.\.65535"):
+        run_scenario("scenarios/smoke.yaml", out=tmp_path / "x", foxglove=70000)
+    with pytest.raises(ScenarioError, match=r"<run_scenario's dict>: name: use 1-55 letters"):
+        run_scenario({"name": "my smoke", "world": "valley", "stages": [{"demonstrate": {"count": 1}}]},
+                     out=tmp_path / "x")
+    with pytest.raises(TypeError, match="scenario must be a Scenario, a dict or a YAML file's path, got int"):
+        run_scenario(3, out=tmp_path / "x")
+    assert not (tmp_path / "x").exists()
+
+
 def test_importing_services_loads_no_runner():
     import subprocess
 

@@ -63,6 +63,13 @@ CASES = [
     ("etar-bench sweep scenarios/smoke.yaml --out FILE", 2, "--out FILE: FILE is a file; --out names the sweep's folder"),
     ("etar-bench sweep scenarios/smoke.yaml --out SWEEP_DIR", 2, "--out SWEEP_DIR: SWEEP_DIR already holds a sweep "
                                                                   "(sweep.json); choose another folder, or --replace"),
+    ("etar-bench sweep scenarios/smoke.yaml --param cell.sensor_noise=, --out DIR/sweep", 2,
+     "--param 'cell.sensor_noise=,': no values"),
+    ("etar-bench sweep scenarios/smoke.yaml --param cell.sensor_noise=[1, --out DIR/sweep", 2,
+     "--param cell.sensor_noise: value '[1,' is not YAML (expected the node content, but found '<stream end>')"),
+    ("etar-bench recover REPRO.mcap --out DIR", 2, "--out DIR: a folder; --out names the output file"),
+    ("etar-bench recover REPRO.mcap --out DIR/missing/x.mcap", 2,
+     "--out DIR/missing/x.mcap: its folder DIR/missing does not exist"),
     ("etar-bench demo --out FILE", 2, "--out FILE: FILE is a file; --out names the run's folder"),
     ("etar-bench demo --out RUN_DIR", 2, "--out RUN_DIR: RUN_DIR already holds a run; choose another folder, or "
                                          "--replace"),

@@ -80,7 +80,7 @@ def cmd_run(args) -> int:
         report = runner.run()
     except KeyboardInterrupt as exc:
         written = (Path(out) / "report.json").exists()
-        _say(f"etar-bench run: interrupted ({exc or 'SIGINT'}); services stopped; "
+        _say(f"etar-bench run: interrupted ({str(exc) or 'SIGINT'}); services stopped; "
              + (f"partial report in {out}" if written else "no report was written"))
         return 130
     print((Path(out) / "report.txt").read_text())
@@ -237,9 +237,10 @@ def cmd_demo(args) -> int:
 
 def cmd_sweep(args) -> int:
     from etar.task import TaskError
-    from services.run.sweep import Parameter, SweepError, sweep
+    from services.run.sweep import Parameter, SweepError, SweepInterrupted, sweep
     from services.scenario import ScenarioError, load_scenario
 
+    signal.signal(signal.SIGTERM, _interrupt)  # kill: the same way out as Ctrl-C
     try:
         params = [Parameter.parse(p) for p in args.param]
         result = sweep(load_scenario(args.scenario), params, repeats=args.repeats, out=args.out, record=args.record,
@@ -248,9 +249,15 @@ def cmd_sweep(args) -> int:
     except (SweepError, ScenarioError, TaskError) as exc:
         _say(f"etar-bench sweep: error: {exc}")
         return 2
-    except KeyboardInterrupt:
-        _say(f"etar-bench sweep: interrupted; the runs finished so far are not tabulated (their folders are in "
-             f"{args.out}/runs)")
+    except SweepInterrupted as stop:
+        s = stop.summary or {}
+        _say(f"etar-bench sweep: interrupted ({stop.why}): {s.get('runs', 0)} run(s) finished"
+             + (f", their table {s['table']} (sweep.json marked incomplete)" if s.get("table") else ", no table")
+             + f"; {len(s.get('interrupted_runs', []))} interrupted (their partial reports under {args.out}/runs), "
+             f"{len(s.get('not_started', []))} not started")
+        return 130
+    except KeyboardInterrupt as exc:  # before any run started
+        _say(f"etar-bench sweep: interrupted ({str(exc) or 'SIGINT'}) before any run started")
         return 130
     where = result["cluster"] or f"{result['workers']} local processes"
     print(f"sweep: {result['runs']} runs ({result['failed']} failed) in {result['wall_seconds']:.0f} s on {where}; "
@@ -324,12 +331,24 @@ def cmd_recover(args) -> int:
         what = "a folder, not a recording" if Path(missing[0]).is_dir() else "no such file"
         _say(f"etar-bench recover: error: {missing[0]}: {what}")
         return 2
+    if args.out is not None:  # refused before anything is read or written
+        out = Path(args.out)
+        problem = ("a folder; --out names the output file" if out.is_dir() else
+                   f"its folder {out.parent} does not exist" if not out.parent.is_dir() else
+                   "exists (pass --force to replace it)" if out.exists() and not args.force else None)
+        if problem:
+            _say(f"etar-bench recover: error: --out {args.out}: {problem}")
+            return 2
     failed = 0
     for f in args.files:
         try:
             result = recover(f, args.out, overwrite=args.force)
         except RecordingError as exc:
             _say(f"etar-bench recover: error: {exc}")
+            failed += 1
+            continue
+        except OSError as exc:  # the output's folder not writable, a full disk
+            _say(f"etar-bench recover: error: {f}: could not write {exc.filename or args.out}: {exc.strerror}")
             failed += 1
             continue
         print(result.describe(), flush=True)

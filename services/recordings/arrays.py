@@ -1,7 +1,8 @@
 """A recording as numpy arrays, for notebooks: one array per field of a topic's messages.
 
 ``topic_arrays(path, "/robot/state")`` reads the file once (``read_episode``, so a
-truncated recording gives what it recovered) and returns, in log-time order, one array
+truncated recording gives what it recovered, with a ``TruncatedRecordingWarning`` that
+says so) and returns, in log-time order, one array
 per field, first axis the message:
 
 - ``log_time_ns`` and ``publish_time_ns`` (int64): the recorder's receive time and the
@@ -28,6 +29,7 @@ is not a dependency of the testbench.
 from __future__ import annotations
 
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -41,11 +43,24 @@ TIME_FIELDS = ("log_time_ns", "publish_time_ns")
 _MISSING = object()
 
 
+class TruncatedRecordingWarning(UserWarning):
+    """The arrays come from a recording that was not finished (its complete chunks only)."""
+
+
+def _read(path):
+    episode = read_episode(path)
+    if not episode.complete:
+        warnings.warn(f"{episode.path}: a truncated recording ({episode.problem or 'not finished'}): the arrays hold "
+                      f"the {len(episode.messages)} messages of its complete chunks", TruncatedRecordingWarning,
+                      stacklevel=3)
+    return episode
+
+
 def topic_arrays(path, topic: str, *, skip_bad: bool = False) -> dict[str, np.ndarray]:
     """Every message of ``topic`` (``"/robot/state"`` or ``"robot/state"``) in the recording
     at ``path`` as {field: array}, first axis the message (module docstring).  A topic the
     file has no channel for raises ``RecordingError`` naming the topics it has."""
-    episode = read_episode(path)
+    episode = _read(path)
     name = _topic_name(topic)
     if name not in episode.channels and not any(m.topic == name for m in episode.messages):
         have = ", ".join(sorted(episode.channels)) or "none"
@@ -56,7 +71,7 @@ def topic_arrays(path, topic: str, *, skip_bad: bool = False) -> dict[str, np.nd
 def recording_arrays(path, *, skip_bad: bool = False, topics=None) -> dict[str, dict[str, np.ndarray]]:
     """``topic_arrays`` of every topic of the recording at ``path`` (or of those of
     ``topics`` it has), reading it once: {topic: {field: array}}, topics sorted."""
-    episode = read_episode(path)
+    episode = _read(path)
     wanted = None if topics is None else {_topic_name(t) for t in topics}
     by_topic: dict[str, list[RecordedMessage]] = {t: [] for t in episode.channels if wanted is None or t in wanted}
     for m in episode.messages:

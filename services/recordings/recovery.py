@@ -56,6 +56,10 @@ def recover(source, out=None, *, overwrite: bool = False) -> Recovered:
     path = Path(out) if out is not None else default_output(source)
     if path.resolve() == source.resolve():
         raise RecordingError(f"{path}: the output must not be the truncated file itself (it is kept as it is)")
+    if path.is_dir():
+        raise RecordingError(f"{path}: a folder; the output is a file (e.g. {path / default_output(source).name})")
+    if not path.parent.is_dir():
+        raise RecordingError(f"{path}: its folder {path.parent} does not exist")
     if path.exists() and not overwrite:
         raise RecordingError(f"{path}: exists (pass --force to replace it)")
 
@@ -85,42 +89,46 @@ def write_copy(episode, path: Path, *, library: str, metadata: dict, extra=(), w
     a failure leaves ``path`` as it was."""
     path = Path(path)
     tmp = path.with_name(path.name + ".part")
-    with open(tmp, "wb") as f:
-        # as services.recordings.writer writes them: no index for a group that is empty
-        index_types = IndexType.CHUNK | IndexType.MESSAGE | IndexType.METADATA
-        if episode.attachments:
-            index_types |= IndexType.ATTACHMENT
-        writer = Writer(f, chunk_size=CHUNK_SIZE, compression=CompressionType.ZSTD, index_types=index_types)
-        writer.start(profile="", library=library)
-        writer.add_metadata(METADATA_NAME, metadata)
-        for name, data in episode.attachments.items():
-            writer.add_attachment(create_time=0, log_time=0, name=name, media_type=_media_type(name), data=data)
-        schema_ids: dict[tuple, int] = {}
-        channel_ids: dict[str, int] = {}
-        channels = [(topic, ch.schema_name, ch.schema_encoding, ch.schema_data, ch.message_encoding, ch.metadata)
-                    for topic, ch in sorted(episode.channels.items())]
-        for topic, name, data in dict.fromkeys((t, n, d) for t, n, d, _, _ in extra):
-            channels.append((topic, name, "jsonschema", data, "json", {"derived_by": DERIVED_BY}))
-        for topic, name, encoding, data, message_encoding, meta in channels:
-            key = (name, encoding, data)
-            if name and key not in schema_ids:
-                schema_ids[key] = writer.register_schema(name=name, encoding=encoding, data=data)
-            channel_ids[topic] = writer.register_channel(topic=topic, message_encoding=message_encoding,
-                                                         schema_id=schema_ids.get(key, 0), metadata=meta)
-        rows = [(m.log_time_ns, 0, i, m.topic, m.payload, m.publish_time_ns) for i, m in enumerate(episode.messages)]
-        rows += [(t, 1, i, topic, payload, t) for i, (topic, _, _, t, payload) in enumerate(extra)]
-        for log_time, _, _, topic, payload, publish_time in sorted(rows, key=lambda r: r[:3]):
-            writer.add_message(channel_id=channel_ids[topic], log_time=log_time, data=payload,
-                               publish_time=publish_time)
-        writer.finish()
+    try:
+        with open(tmp, "wb") as f:
+            # as services.recordings.writer writes them: no index for a group that is empty
+            index_types = IndexType.CHUNK | IndexType.MESSAGE | IndexType.METADATA
+            if episode.attachments:
+                index_types |= IndexType.ATTACHMENT
+            writer = Writer(f, chunk_size=CHUNK_SIZE, compression=CompressionType.ZSTD, index_types=index_types)
+            writer.start(profile="", library=library)
+            writer.add_metadata(METADATA_NAME, metadata)
+            for name, data in episode.attachments.items():
+                writer.add_attachment(create_time=0, log_time=0, name=name, media_type=_media_type(name), data=data)
+            schema_ids: dict[tuple, int] = {}
+            channel_ids: dict[str, int] = {}
+            channels = [(topic, ch.schema_name, ch.schema_encoding, ch.schema_data, ch.message_encoding, ch.metadata)
+                        for topic, ch in sorted(episode.channels.items())]
+            for topic, name, data in dict.fromkeys((t, n, d) for t, n, d, _, _ in extra):
+                channels.append((topic, name, "jsonschema", data, "json", {"derived_by": DERIVED_BY}))
+            for topic, name, encoding, data, message_encoding, meta in channels:
+                key = (name, encoding, data)
+                if name and key not in schema_ids:
+                    schema_ids[key] = writer.register_schema(name=name, encoding=encoding, data=data)
+                channel_ids[topic] = writer.register_channel(topic=topic, message_encoding=message_encoding,
+                                                             schema_id=schema_ids.get(key, 0), metadata=meta)
+            rows = [(m.log_time_ns, 0, i, m.topic, m.payload, m.publish_time_ns) for i, m in enumerate(episode.messages)]
+            rows += [(t, 1, i, topic, payload, t) for i, (topic, _, _, t, payload) in enumerate(extra)]
+            for log_time, _, _, topic, payload, publish_time in sorted(rows, key=lambda r: r[:3]):
+                writer.add_message(channel_id=channel_ids[topic], log_time=log_time, data=payload,
+                                   publish_time=publish_time)
+            writer.finish()
 
-    back = read_episode(tmp)
-    kept = [tuple(m) for m in back.messages if m.topic in episode.channels]
-    if not back.complete or kept != [tuple(m) for m in episode.messages] or \
-            len(back.messages) != len(episode.messages) + len(extra):
-        tmp.unlink()
-        raise RecordingError(f"{path}: the {what} file did not read back as written; nothing was written")
-    tmp.replace(path)
+        back = read_episode(tmp)
+        kept = [tuple(m) for m in back.messages if m.topic in episode.channels]
+        if not back.complete or kept != [tuple(m) for m in episode.messages] or \
+                len(back.messages) != len(episode.messages) + len(extra):
+            tmp.unlink()
+            raise RecordingError(f"{path}: the {what} file did not read back as written; nothing was written")
+        tmp.replace(path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)  # a failed write (a full disk, Ctrl-C) leaves nothing behind
+        raise
 
 
 def _media_type(name: str) -> str:

@@ -41,6 +41,8 @@ IGNORED = (
     "log and publish times, the metadata record (start, model path), the scenario attachment, the chunking",
     "in report.json: the run id, the transport, the provenance, every wall-clock figure (wall_seconds, "
     "episode_wall_seconds, real_time_factor) and the timing",
+    "in model.json (compared as a digest of the rest): the fit's seconds, the note of what made it and the "
+    "demonstrations' folders",
 )
 IGNORED_TEXT = "Not compared:\n" + "\n".join(f"  - {line}" for line in IGNORED)
 
@@ -115,7 +117,8 @@ class DiffResult:
                 return f.first
         for r in self.rows:
             if r.differs:
-                return f"report.json {r.name}: {_show(r.a)} in A, {_show(r.b)} in B"
+                where = r.name if r.name == "model.json" else f"report.json {r.name}"
+                return f"{where}: {_show(r.a)} in A, {_show(r.b)} in B"
         return None
 
     @property
@@ -319,8 +322,32 @@ def _result_rows(run_a: Path, ra: dict, run_b: Path, rb: dict) -> list[Row]:
         for i in range(max(len(ea), len(eb))):
             rows.append(Row(f"{kind[:-1]} {i}", _episode(ea[i]) if i < len(ea) else None,
                             _episode(eb[i]) if i < len(eb) else None))
+    rows.append(Row("model.json", _model(run_a), _model(run_b)))
     rows.append(Row("wall_seconds", _round(ra.get("wall_seconds")), _round(rb.get("wall_seconds")), compared=False))
     return rows
+
+
+def _model(run: Path) -> str | None:
+    """The run's learned (or stored) model as what the seed decides of it: a digest of its
+    JSON without the fit's wall-clock seconds, the note of what made it and the folders of
+    the demonstrations it learned from (their names stay)."""
+    import hashlib
+
+    path = run / "model.json"
+    if not path.exists():
+        return None
+    try:
+        model = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        return f"unreadable ({type(exc).__name__})"
+    if isinstance(model, dict):
+        (model.get("fit") or {}).pop("seconds", None)
+        meta = model.get("metadata") or {}
+        meta.pop("made_by", None)
+        if isinstance(meta.get("demonstrations"), list):  # where each run's folder is: by name only
+            meta["demonstrations"] = [Path(str(d)).name for d in meta["demonstrations"]]
+    text = json.dumps(model, sort_keys=True)
+    return f"sha256 {hashlib.sha256(text.encode()).hexdigest()[:12]}"
 
 
 def _flat(d: dict, prefix: str = "") -> dict:

@@ -13,8 +13,10 @@ report says what the remote did.
 from __future__ import annotations
 
 import dataclasses
+import errno
 import ipaddress
 import math
+import socket
 from dataclasses import dataclass
 
 from robot_sim.fri_udp import host_port
@@ -65,6 +67,19 @@ class ServeOptions:
         for flag, value in flags.items():
             if not (value.isdigit() and 0 <= int(value) <= 65535):
                 raise ValueError(f"{flag} {value}: not a port number 0..65535 (0: any free one)")
+        # every socket the cell will bind, tried now: a port another serve (or anything) holds
+        # is named before anything starts, not found by a service once the run is up
+        host, port = host_port(self.fri_bind, "--fri-bind", listen=True)
+        _free(socket.SOCK_DGRAM, host, port, f"--fri-bind {self.fri_bind}")
+        if self.netft is not None:
+            from robot_sim.netft import CALIBRATION_PORT, HTTP_PORT, RDT_PORT
+
+            for flag, kind, default in (("--netft-rdt-port", socket.SOCK_DGRAM, RDT_PORT),
+                                        ("--netft-http-port", socket.SOCK_STREAM, HTTP_PORT),
+                                        ("--netft-calibration-port", socket.SOCK_STREAM, CALIBRATION_PORT)):
+                port = int(flags.get(flag, default))
+                _free(kind, self.netft, port, f"the Net F/T box's {'UDP' if kind == socket.SOCK_DGRAM else 'TCP'} "
+                                              f"port ({flag} {port})")
 
     def robot_flags(self) -> tuple:
         return ("--wire", "udp", "--fri-remote", self.fri_remote, "--fri-bind", self.fri_bind, "--krl", self.krl,
@@ -72,6 +87,21 @@ class ServeOptions:
 
     def sensor_flags(self) -> tuple:
         return (("--netft", self.netft) + tuple(self.netft_ports)) if self.netft else ()
+
+
+def _free(kind: int, host: str, port: int, what: str) -> None:
+    """Refuse a port that is taken (port 0 is any free one)."""
+    if port == 0:
+        return
+    with socket.socket(socket.AF_INET, kind) as s:
+        if kind == socket.SOCK_STREAM:  # as the box's servers bind (a closed serve's TIME_WAIT is free)
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((host, port))
+        except OSError as exc:
+            why = ("is taken (is another serve running?)" if exc.errno == errno.EADDRINUSE else
+                   f"cannot be bound ({exc.strerror})")
+            raise ValueError(f"{what}: {host}:{port} {why}; choose another port, or 0 for any free one") from None
 
 
 def served_start(scenario: Scenario, options: ServeOptions) -> tuple[float, float, float]:

@@ -21,6 +21,8 @@ from services.scenario.stages import (STAGE_TYPES, CellSpec, DemonstrateStage, L
                                       _check_stage_order, doc)
 from services.scenario.starts import DEMONSTRATE_SEED_OFFSET, REPRODUCE_SEED_OFFSET
 
+_NAME = re.compile(r"^[A-Za-z0-9_\-]{1,55}$")
+
 
 @dataclass(frozen=True, kw_only=True)
 class Scenario:
@@ -56,6 +58,10 @@ class Scenario:
 
     def _validate(self) -> None:
         _text(self.name, "name", non_empty=True)
+        if not _NAME.match(self.name):
+            # a run's id is the name and 9 characters more, and the id is a Zenoh key's part
+            raise ScenarioError("use 1-55 letters, digits, '-' or '_' (the run's id and its Zenoh keys are made "
+                                "from it)", path="name", value=self.name)
         _text(self.description, "description")
         _choice(self.world, "world", WORLDS)
         _choice(self.clock, "clock", CLOCKS)

@@ -12,7 +12,8 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from services.recordings.arrays import TIME_FIELDS, recording_arrays, topic_arrays, topic_frame
+from services.recordings.arrays import (TIME_FIELDS, TruncatedRecordingWarning, recording_arrays, topic_arrays,
+                                       topic_frame)
 from services.recordings.format import RecordingError
 from services.recordings.reader import read_episode
 from services.recordings.writer import EpisodeWriter
@@ -132,6 +133,22 @@ def test_recording_arrays_every_topic_once(recording):
     assert {t: len(a["log_time_ns"]) for t, a in arrays.items()} == dict(counts)
     np.testing.assert_array_equal(arrays["/robot/state"]["msr_cart_pos"],
                                   topic_arrays(recording, "/robot/state")["msr_cart_pos"])
+
+
+def test_a_truncated_recording_gives_its_rows_with_a_warning_that_says_so(recording, tmp_path):
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a finished file: no warning
+        whole = topic_arrays(recording, "/robot/state")
+    data = recording.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) - 200])  # the summary and the footer gone, the chunks whole
+    with pytest.warns(TruncatedRecordingWarning, match=r"cut.mcap: a truncated recording .*: the arrays hold the"):
+        rows = topic_arrays(cut, "/robot/state")
+    np.testing.assert_array_equal(rows["seq"], whole["seq"][: len(rows["seq"])])
+    with pytest.warns(TruncatedRecordingWarning):
+        recording_arrays(cut, skip_bad=True)
 
 
 def test_topic_frame_needs_pandas_and_says_so(recording, monkeypatch):

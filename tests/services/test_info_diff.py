@@ -229,6 +229,27 @@ def test_diff_ignores_run_id_sent_ns_wall_clock_and_visual_topics(tmp_path):
     assert out["same"] and out["files"][0]["same"] and out["ignored"] == list(IGNORED)
 
 
+
+def test_diff_compares_the_runs_models(tmp_path):
+    """model.json is what a run learned: two runs whose models differ are not the same, even
+    with the same recordings; the fit's wall-clock seconds and the note of what made it are
+    not compared."""
+    a = make_run(tmp_path / "a", "run-a")
+    b = make_run(tmp_path / "b", "run-b")
+    model = {"format": "etar-model", "parameters": {"A": [[1.0, 0.0]]}, "fit": {"seconds": 1.5, "seed": 0},
+             "metadata": {"made_by": "a"}}
+    (a / "model.json").write_text(json.dumps(model))
+    (b / "model.json").write_text(json.dumps(dict(model, fit={"seconds": 9.0, "seed": 0},
+                                                  metadata={"made_by": "b"})))
+    assert diff_runs(a, b).same
+    (b / "model.json").write_text(json.dumps(dict(model, parameters={"A": [[1.0, 1e-9]]})))
+    d = diff_runs(a, b)
+    assert d.content_same and not d.results_same and not d.same
+    assert d.first_difference.startswith("model.json: sha256 "), d.first_difference
+    assert "DIFFERENT (the results)" in d.text()
+    (b / "model.json").unlink()
+    assert diff_runs(a, b).first_difference.endswith("in A, - in B")
+
 def test_diff_compares_what_a_foreign_peer_published_into_a_run(tmp_path):
     """The recorder keeps every payload on the run's topics, a foreign peer's too: garbage, JSON
     with a seq of any kind, duplicates.  diff compares them as bytes (seq -1) and names them."""

@@ -290,6 +290,18 @@ def test_recover_makes_a_truncated_file_a_finished_one_with_every_complete_chunk
     assert bench(["recover", str(header_only)]) == 1
     assert str(header_only) in capsys.readouterr().err
     assert bench(["recover", str(cut), str(path), "--out", str(tmp_path / "x.mcap")]) == 2
+    capsys.readouterr()
+    # --out refused before anything is written, in one line, exit 2 (a folder, a missing
+    # folder, an existing file without --force); nothing is left behind
+    folder = tmp_path / "outdir"
+    folder.mkdir()
+    for out, force, said in ((folder, True, "a folder; --out names the output file"),
+                             (tmp_path / "missing" / "x.mcap", False, f"its folder {tmp_path / 'missing'} does not"),
+                             (tmp_path / "again.mcap", False, "exists (pass --force to replace it)")):
+        assert bench(["recover", str(cut), "--out", str(out)] + (["--force"] if force else [])) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"--out {out}: {said}" in err[0], err
+    assert list(folder.iterdir()) == [] and not list(tmp_path.glob("*.part"))
 
 
 def test_killed_writer_leaves_its_complete_chunks(tmp_path):

@@ -502,6 +502,8 @@ def test_a_model_and_a_learn_stage_conflict(tmp_path):
     (MODEL_ONLY.replace("stop_at_goal: false", "stop_at_goal: 0"), "stages[0].reproduce.stop_at_goal",
      "expected true or false"),
     (MODEL_ONLY.replace("model: models/m.json", "model: ''"), "model", "expected a non-empty string"),
+    (MODEL_ONLY.replace("name: t", "name: my smoke"), "name", "use 1-55 letters, digits, '-' or '_'"),
+    (MODEL_ONLY.replace("name: t", "name: " + "x" * 56), "name", "use 1-55 letters, digits, '-' or '_'"),
 ])
 def test_model_and_stop_at_goal_are_checked(tmp_path, text, field_path, problem):
     with pytest.raises(ScenarioError) as caught:
