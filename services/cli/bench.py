@@ -56,6 +56,7 @@ def cmd_run(args) -> int:
     from services.run.runner import Runner
     from services.scenario import ScenarioError, load_scenario
     from services.transport.credentials import CredentialsError
+    from services.runtime.files import FileWriteError
     from services.transport.hosts import HostsError
 
     out = args.out or f"runs/{Path(args.scenario).stem}-{time.strftime('%Y%m%d-%H%M%S')}"
@@ -78,6 +79,9 @@ def cmd_run(args) -> int:
     signal.signal(signal.SIGTERM, _interrupt)
     try:
         report = runner.run()
+    except FileWriteError as exc:  # a full disk, a folder made read-only: what was kept stays readable
+        _say(f"etar-bench run: failed: {exc}; what was kept is in {out} (etar-bench info {out})")
+        return 1
     except KeyboardInterrupt as exc:
         written = (Path(out) / "report.json").exists()
         _say(f"etar-bench run: interrupted ({str(exc) or 'SIGINT'}); services stopped; "

@@ -127,6 +127,7 @@ def _writer_main(requests, replies) -> None:
         pickle.dump(value, replies, protocol=pickle.HIGHEST_PROTOCOL)
         replies.flush()
 
+    failed = None  # why the open file took no more (a full disk): the parent hears it at finish
     try:
         while True:
             try:
@@ -135,9 +136,12 @@ def _writer_main(requests, replies) -> None:
                 return  # the parent is gone: the finally below finishes the open file
             kind = request[0]
             if kind == "add":
-                if writer is not None:
-                    for key, raw, log, pub in request[1]:
-                        writer.add(key, raw, log, pub)
+                if writer is not None and failed is None:
+                    try:
+                        for key, raw, log, pub in request[1]:
+                            writer.add(key, raw, log, pub)
+                    except Exception as exc:  # noqa: BLE001 - said at finish, naming the file
+                        failed = str(exc) if isinstance(exc, RecordingError) else f"{type(exc).__name__}: {exc}"
                 continue
             if kind == "close":
                 return
@@ -147,20 +151,32 @@ def _writer_main(requests, replies) -> None:
             try:
                 if kind == "open":
                     if writer is not None:
-                        writer.finish()
+                        _finish_quietly(writer)
+                    writer, failed = None, None
                     writer = opener(request[1], **request[2])
                     reply((True, None))
                 elif kind == "finish":
                     w, writer = writer, None
                     if w is None:
                         raise RecordingError("no episode is being recorded")
+                    if failed is not None:
+                        _finish_quietly(w)
+                        raise RecordingError(failed)
                     w.finish()
                     reply((True, {name: getattr(w, name, 0) for name in FINISH_COUNTS}))
             except Exception as exc:  # the parent raises it, naming the file
-                reply((False, f"{type(exc).__name__}: {exc}"))
+                reply((False, str(exc) if isinstance(exc, RecordingError) else f"{type(exc).__name__}: {exc}"))
     finally:
         if writer is not None:
-            writer.finish()
+            _finish_quietly(writer)
+
+
+def _finish_quietly(writer) -> None:
+    """Finish a file whose failure has been (or cannot be) said: it keeps what it holds."""
+    try:
+        writer.finish()
+    except Exception:  # noqa: BLE001 - the file's failure is reported where it was met
+        pass
 
 
 if __name__ == "__main__":

@@ -41,6 +41,7 @@ class EpisodeWriter:
         self._schemas: dict[str, int] = {}  # schema name -> id
         self._channels: dict[str, tuple[int, MessageType | None]] = {}  # key expression -> (id, type)
         self._finished = False
+        self._failure: str | None = None  # why the file cannot take more (a full disk)
 
         record = {"run_id": run_id, "episode_kind": str(episode_kind), "episode_index": str(int(episode_index)),
                   "log_time": "CLOCK_MONOTONIC ns at reception (recorder)",
@@ -96,15 +97,23 @@ class EpisodeWriter:
         with self._lock:
             if self._finished:
                 raise RecordingError(f"{self.path}: add() after finish()")
+            if self._failure is not None:
+                raise RecordingError(self._failure)
             entry = self._channels.get(key_expr)
             if entry is None:
-                entry = self._register(key_expr)
+                try:
+                    entry = self._register(key_expr)
+                except OSError as exc:
+                    raise self._failed_with(exc) from None
             channel_id, mtype = entry
             if publish_time_ns is None:
                 sent = self._sent_ns(mtype, data)
                 publish_time_ns = log_time_ns if sent is None else sent
-            self._writer.add_message(channel_id=channel_id, log_time=log_time_ns, data=data,
-                                     publish_time=publish_time_ns)
+            try:
+                self._writer.add_message(channel_id=channel_id, log_time=log_time_ns, data=data,
+                                         publish_time=publish_time_ns)
+            except OSError as exc:
+                raise self._failed_with(exc) from None
             self.messages_written += 1
 
     def _sent_ns(self, mtype: MessageType | None, data: bytes) -> int | None:
@@ -163,10 +172,27 @@ class EpisodeWriter:
             if self._finished:
                 return
             self._finished = True
+            if self._failure is None:
+                try:
+                    self._writer.finish()
+                except OSError as exc:
+                    self._failed_with(exc)
             try:
-                self._writer.finish()
-            finally:
                 self._file.close()
+            except OSError as exc:  # the last buffered bytes, on a full disk
+                if self._failure is None:
+                    self._failed_with(exc)
+            if self._failure is not None:
+                raise RecordingError(self._failure)
+
+    def _failed_with(self, exc: OSError) -> RecordingError:
+        """The file cannot take more (a full disk): said once, naming it and the space left;
+        nothing more is written to it, and what it holds stays readable."""
+        from services.runtime.files import free_space
+
+        self._failure = (f"{self.path}: could not be written ({exc.strerror or exc}; {free_space(self.path)}); it "
+                         "keeps its complete chunks (etar-bench recover makes it a finished file)")
+        return RecordingError(self._failure)
 
     @property
     def finished(self) -> bool:

@@ -26,6 +26,7 @@ from etar.comparison import PARAMETERS, compare_transitions, separate_fits, spre
 from etar.task import load_task
 from services.results.figures import COMPARISON_FIGURE, FIGURES_DIR, FiguresError, _plt, _save, in_run, read_run_report
 from services.recordings.demonstrations import load_demonstration
+from services.runtime.files import write_file
 
 
 def _demonstrations(run_dir: Path):
@@ -219,10 +220,10 @@ def compare_run(run_dir, seeds=(0, 1, 2), progress=None, pair=(0, 1)) -> dict:
     c1 = table_c1(demos, pair, K, seeds, task.model.n_restarts, progress)
     result = {"run": str(run_dir), "phases": K, "demonstrations": len(demos), "seeds": list(seeds),
               "summary": summary, "evaluations": [e.to_dict() for e in evals], "table_c1": c1}
-    (run_dir / "comparison.json").write_text(json.dumps(result, indent=1) + "\n")
+    write_file(run_dir / "comparison.json", json.dumps(result, indent=1) + "\n")
     text = [f"ETAR against STAR on {len(demos)} demonstrations of {run_dir}, {K} phases, EM seeds "
             f"{', '.join(map(str, seeds))} (etar-bench compare)", *verdict(summary), "", *table_c1_text(c1)]
-    (run_dir / "comparison.txt").write_text("\n".join(text) + "\n")
+    write_file(run_dir / "comparison.txt", "\n".join(text) + "\n")
     _figure(run_dir, demos[0], truths[0], K, evals[:2])
     return result
 

@@ -50,6 +50,7 @@ from services.recordings.demonstrations import load_demonstration
 from services.recordings.reader import read_episode
 from services.results.folder import RunFolderError, read_report
 from services.runtime.messages import loads
+from services.runtime.files import write_via
 
 FIGURES_DIR = "figures"
 # etar-bench compare's figure (services.results.compare), beside the run's own: not the run's to redraw
@@ -84,12 +85,13 @@ def _boundaries(labels) -> list:
 def _save(fig, path: Path, laid_out: bool = False) -> Path:
     """Write ``fig`` to ``path`` and let it go.  ``laid_out``: the axes were placed by hand
     (tight_layout misjudges 3-D axes): crop the picture to what is drawn instead."""
-    if laid_out:
-        fig.savefig(path, dpi=110, bbox_inches="tight", pad_inches=0.15)
-    else:
+    if not laid_out:
         fig.tight_layout()
-        fig.savefig(path, dpi=110)
-    _plt().close(fig)
+    try:
+        crop = dict(bbox_inches="tight", pad_inches=0.15) if laid_out else {}
+        write_via(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png", **crop))
+    finally:
+        _plt().close(fig)
     return path
 
 

@@ -16,6 +16,7 @@ from pathlib import Path
 
 from services.results.figures import COMPARISON_FIGURE, FIGURES_DIR
 from services.results.text import provenance_text
+from services.runtime.files import FileWriteError, write_file
 
 # what an earlier drawing of the figures and the page may have left
 STALE_FILES = ("figures.error", "figures.skipped", "report.html", "report.html.error")
@@ -126,9 +127,16 @@ def render_html(run_dir) -> str:
 
 
 def write_html(run_dir) -> Path:
-    path = Path(run_dir) / "report.html"
-    path.write_text(render_html(run_dir))
-    return path
+    return write_file(Path(run_dir) / "report.html", render_html(run_dir))
+
+
+def _note(path: Path, text: str) -> None:
+    """Why a figure or the page is missing; on a disk too full for that too, the reason
+    was the run's to say (its figures are extras of a report already written)."""
+    try:
+        write_file(path, text)
+    except FileWriteError:
+        pass
 
 
 def write_figures_and_page(run_dir, progress=None) -> str:
@@ -148,14 +156,14 @@ def write_figures_and_page(run_dir, progress=None) -> str:
     try:
         written, skipped = write_figures(run_dir, progress=progress)
     except Exception as exc:
-        (run_dir / "figures.error").write_text(f"{type(exc).__name__}: {exc}\n")
+        _note(run_dir / "figures.error", f"{type(exc).__name__}: {exc}\n")
         written, skipped = [], [f"{type(exc).__name__}: {exc}"]
     if skipped:
-        (run_dir / "figures.skipped").write_text("".join(f"{why}\n" for why in skipped))
+        _note(run_dir / "figures.skipped", "".join(f"{why}\n" for why in skipped))
     try:
         write_html(run_dir)
     except Exception as exc:
-        (run_dir / "report.html.error").write_text(f"{type(exc).__name__}: {exc}\n")
+        _note(run_dir / "report.html.error", f"{type(exc).__name__}: {exc}\n")
     page = "report.html" if (run_dir / "report.html").is_file() and not (run_dir / "report.html.error").exists() \
         else "no report.html (report.html.error says why)"
     return (f"figures: {len(written)} in {run_dir / FIGURES_DIR}, {page} ({time.monotonic() - t:.1f} s)"

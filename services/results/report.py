@@ -32,6 +32,7 @@ from services.nodes.robot import HOLD_WATCH_S
 from services.runtime.messages import BY_TOPIC, ESTIMATOR_PERIOD_NS, INT_MAX, INT_MIN, STRIDES, loads
 from services.runtime.threads import process_map
 from services.results.text import pooled_histogram, histograms_text, render_text
+from services.runtime.files import FileWriteError, write_file, write_via
 from services.runtime.timing import SequenceTracker, percentiles
 
 
@@ -439,16 +440,20 @@ def write_report(run: RunRecord, exit_codes: dict, error: str | None, wall_secon
         "hosts": list(run.hosts),
     }
     report = strict_json(report)
-    (out / "report.json").write_text(json.dumps(report, indent=1, allow_nan=False) + "\n")
-    (out / "report.txt").write_text(render_text(report))
-    (out / "timing.txt").write_text(histograms_text(loops))
+    # report.json last: its presence says the report is whole (FileWriteError: none of it was)
+    write_file(out / "report.txt", render_text(report))
+    write_file(out / "timing.txt", histograms_text(loops))
+    write_file(out / "report.json", json.dumps(report, indent=1, allow_nan=False) + "\n")
     for stale in ("timing.png", "timing.png.error"):
         (out / stale).unlink(missing_ok=True)
     if run.clock == "realtime":  # in lockstep its histograms are the host's, not the loop's timing
         try:
-            plot_timing(report, loops, quality, out / "timing.png")
+            write_via(out / "timing.png", lambda tmp: plot_timing(report, loops, quality, tmp))
         except Exception as exc:  # a picture must not cost the run its report
-            (out / "timing.png.error").write_text(f"{type(exc).__name__}: {exc}\n")
+            try:
+                write_file(out / "timing.png.error", f"{type(exc).__name__}: {exc}\n")
+            except FileWriteError:
+                pass
     return report
 
 
@@ -481,5 +486,5 @@ def plot_timing(report, loops, quality: dict, path) -> None:
         ax.legend(fontsize=7)
     fig.suptitle(f"run {report['run_id']} ({report['environment']['clock']})")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    fig.savefig(path, dpi=100, format="png")  # path may be a temporary name without .png
     plt.close(fig)

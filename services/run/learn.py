@@ -16,6 +16,7 @@ from etar.selection import fit_order
 from etar.task import learn_task
 from services.recordings.demonstrations import load_demonstration
 from services.results.record import LearningRecord, ModelRecord
+from services.runtime.files import write_via
 from services.runtime.threads import learning_threads, process_map
 from services.scenario import LearnStage, Scenario
 
@@ -41,7 +42,7 @@ def learn(stage: LearnStage, scenario: Scenario, demonstrations: list[str], out:
                           state_resolution=scenario.state_resolution, selection=selection, sources=[d["path"] for d in demos])
         name = MODEL_NAMES[m.transitions]
         # a later scenario can reproduce with this file alone
-        path = task.save(out / ("model.json" if i == 0 else f"model-{name}.json"))
+        path = write_via(out / ("model.json" if i == 0 else f"model-{name}.json"), task.save)
         record.models[m.transitions] = ModelRecord(name=name, path=str(path), goal=task.goal.tolist(),
                                                    phase_to_truth=task.phase_to_truth)
         if i == 0:

@@ -40,6 +40,7 @@ from services.run.realtime_profile import Grant, parse_profile, placement, probe
 from services.run.serve import SERVED_TOPICS, served_start
 from services.scenario import Scenario, demonstration_starts, reproduction_starts
 from services.scenario.starts import teacher_seed
+from services.runtime.files import write_file
 from services.runtime.provenance import provenance
 from services.transport.cell import Start
 
@@ -88,7 +89,7 @@ class Runner:
         try:
             self.recordings.mkdir(parents=True, exist_ok=True)
             # the scenario as run, every default filled in: what `etar-bench run` takes back
-            (self.out / SCENARIO_FILE).write_text(scenario.to_yaml())
+            write_file(self.out / SCENARIO_FILE, scenario.to_yaml())
         except OSError as exc:
             raise ValueError(f"--out {options.out}: cannot make the run's folder {self.recordings} "
                              f"({exc.strerror or exc})") from None

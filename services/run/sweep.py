@@ -35,6 +35,7 @@ interrupted and writes its partial report, the workers are waited for (and kille
 from __future__ import annotations
 
 import csv
+import io
 import itertools
 import json
 import math
@@ -51,6 +52,7 @@ import yaml
 
 from services.scenario import Scenario, ScenarioError
 from services.scenario.loading import StrictLoader
+from services.runtime.files import write_file, write_via
 
 RECORD = ("full", "summary", "none")
 METRICS = (("phases_chosen", "phases chosen"), ("success_rate", "reproductions reaching the goal (fraction)"),
@@ -160,7 +162,7 @@ def plan(base: Scenario, parameters: list, repeats: int, out: Path, record: str,
     # written once every combination is valid: a refused sweep leaves no sweep behind
     (out / "scenarios").mkdir(parents=True, exist_ok=True)
     for spec in specs:
-        (out / "scenarios" / f"{spec.name}.yaml").write_text(spec.scenario.to_yaml())
+        write_file(out / "scenarios" / f"{spec.name}.yaml", spec.scenario.to_yaml())
     return specs
 
 
@@ -437,7 +439,7 @@ def _tabulate_interrupted(stop: SweepInterrupted, specs, out_dir: Path, scenario
                    repeats=repeats, runs=len(rows), failed=sum(1 for r in rows if r.get("error")),
                    wall_seconds=wall, incomplete=f"interrupted ({stop.why})", interrupted_runs=interrupted,
                    not_started=not_started, table=None if csv_path is None else str(csv_path))
-    (out_dir / "sweep.json").write_text(json.dumps(summary, indent=1) + "\n")
+    write_file(out_dir / "sweep.json", json.dumps(summary, indent=1) + "\n")
     return summary
 
 
@@ -446,12 +448,13 @@ def write_table(rows: list[dict], out: Path) -> tuple[Path, Path]:
     for row in rows:
         columns += [k for k in row if k not in columns]
     csv_path, json_path = out / "table.csv", out / "table.json"
-    with csv_path.open("w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=columns)
-        w.writeheader()
-        for row in rows:
-            w.writerow({k: ("" if row.get(k) is None else row.get(k)) for k in columns})
-    json_path.write_text(json.dumps(rows, indent=1, default=str) + "\n")
+    text = io.StringIO(newline="")
+    w = csv.DictWriter(text, fieldnames=columns)
+    w.writeheader()
+    for row in rows:
+        w.writerow({k: ("" if row.get(k) is None else row.get(k)) for k in columns})
+    write_file(csv_path, text.getvalue())
+    write_file(json_path, json.dumps(rows, indent=1, default=str) + "\n")
     return csv_path, json_path
 
 
@@ -511,7 +514,7 @@ def plot(rows: list[dict], parameters: list, out: Path) -> list[Path]:
         fig.suptitle(f"sweep over {p.path}")
         fig.tight_layout()
         path = out / f"{p.path.replace('.', '_').replace('[', '_').replace(']', '')}.png"
-        fig.savefig(path, dpi=90)
+        write_via(path, lambda tmp: fig.savefig(tmp, dpi=90, format="png"))
         plt.close(fig)
         written.append(path)
     return written
@@ -541,7 +544,7 @@ def sweep(scenario: Scenario, parameters: list, *, repeats: int, out: str, recor
     rows = by_model_rows(rows)
     comparison = comparison_over_seeds(rows)
     if comparison:
-        (out_dir / "comparison.txt").write_text("\n".join(comparison) + "\n")
+        write_file(out_dir / "comparison.txt", "\n".join(comparison) + "\n")
         say("\n".join(comparison))
         parameters = [*parameters, Parameter("model", tuple(dict.fromkeys(r["param model"] for r in rows
                                                                              if r.get("param model"))))]
@@ -552,5 +555,5 @@ def sweep(scenario: Scenario, parameters: list, *, repeats: int, out: str, recor
                    workers=workers, cluster=cluster, learn_threads=threads,
                    table=str(csv_path), plots=[str(p) for p in pngs],
                    comparison=str(out_dir / "comparison.txt") if comparison else None)
-    (out_dir / "sweep.json").write_text(json.dumps(summary, indent=1) + "\n")
+    write_file(out_dir / "sweep.json", json.dumps(summary, indent=1) + "\n")
     return summary
