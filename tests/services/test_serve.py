@@ -281,3 +281,52 @@ def test_a_port_another_serve_holds_is_named_before_anything_starts(tmp_path, ca
     finally:
         udp.close()
         tcp.close()
+
+
+@pytest.mark.slow
+def test_clients_that_trickle_do_not_hold_serving_past_its_end(tmp_path):
+    """HTTP and calibration connections to the Net F/T box that send a byte every 1.5 s
+    until serving ends (the box's handler threads held the ft_sensor until it was SIGKILLed:
+    37.7 s instead of 22, and exit 0 with 'error: null').  Serving now ends on time, every
+    service exits by itself (exit codes 0), and the report says so."""
+    import socket
+    import threading
+
+    out = tmp_path / "served"
+    with Remote("frilibrary") as remote:
+        proc = popen_as_from_a_terminal(
+            [sys.executable, "-m", "services.cli.bench", "serve", "scenarios/smoke.yaml", "--out", str(out),
+             "--fri-remote", f"127.0.0.1:{remote.port}", "--netft", "127.0.0.1", "--netft-rdt-port", "0",
+             "--netft-http-port", "0", "--netft-calibration-port", "0", "--max-seconds", "4"],
+            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        stop = threading.Event()
+        try:
+            box = None
+            for line in proc.stderr:
+                box = BOX_LINE.search(line)
+                if box:
+                    break
+            assert box is not None, "serve never said where its Net F/T box is"
+            started = time.monotonic()
+            address, http, calibration = box.group(1), int(box.group(3)), int(box.group(4))
+            trickling = [socket.create_connection((address, port), timeout=5) for port in (http, calibration)]
+
+            def trickle():
+                while not stop.wait(1.5):
+                    for sock in trickling:
+                        try:
+                            sock.send(b"G")
+                        except OSError:
+                            pass
+            threading.Thread(target=trickle, daemon=True).start()
+            stdout, stderr = proc.communicate(timeout=60)
+            took = time.monotonic() - started
+        finally:
+            stop.set()
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    assert proc.returncode == 0, stderr[-2000:]
+    report = json.loads((out / "report.json").read_text())
+    assert report["error"] is None and set(report["exit_codes"].values()) == {0}, report["exit_codes"]
+    assert took < 4 + 12, took  # the served 4 s and the report, not a shutdown's escalation
