@@ -3,6 +3,7 @@ processes of a run."""
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import os
@@ -218,3 +219,29 @@ def popen_as_from_a_terminal(argv: list, **kwargs) -> subprocess.Popen:
         return subprocess.Popen(argv, **kwargs)
     finally:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+@contextlib.contextmanager
+def trickling(addresses, every_s: float):
+    """TCP connections to ``addresses`` that each send one byte every ``every_s`` and never
+    a whole request (a slow or hostile client), closed on leaving."""
+    import socket
+    import threading
+
+    sockets = [socket.create_connection(address, timeout=5) for address in addresses]
+    stop = threading.Event()
+
+    def trickle():
+        while not stop.wait(every_s):
+            for sock in sockets:
+                try:
+                    sock.send(b"G")
+                except OSError:
+                    pass
+    threading.Thread(target=trickle, daemon=True).start()
+    try:
+        yield sockets
+    finally:
+        stop.set()
+        for sock in sockets:
+            sock.close()

@@ -27,6 +27,7 @@ from robot_sim.netft import (
     RdtCommand,
     netft_status,
 )
+from tests.support import trickling
 
 # a sensor feeding the box at 1 kHz against the wall clock: serial (make test runs these after the rest)
 pytestmark = [pytest.mark.serial]
@@ -582,28 +583,11 @@ def test_close_is_not_held_by_clients_that_trickle():
     """HTTP and calibration connections that send a byte every 0.5 s (never a whole request)
     do not hold the box's close: it cuts them and returns within about a second."""
     box = served_box()
-    trickling = [socket.create_connection((box.address, port), timeout=2) for port in
-                 (box.http_port, box.http_port, box.calibration_port)]
-    stop = threading.Event()
-
-    def trickle():
-        while not stop.wait(0.5):
-            for sock in trickling:
-                try:
-                    sock.send(b"G")
-                except OSError:
-                    pass
-    feeder = threading.Thread(target=trickle, daemon=True)
-    feeder.start()
-    try:
+    with trickling([(box.address, port) for port in (box.http_port, box.http_port, box.calibration_port)], 0.5):
         time.sleep(1.2)  # the handlers are reading
         t0 = time.monotonic()
         box.close()
         took = time.monotonic() - t0
         alive = [t.name for t in threading.enumerate() if t.name.startswith(("_HttpServer", "_CalibrationServer"))]
-        assert took < 1.5, took
-        assert alive == [], alive
-    finally:
-        stop.set()
-        for sock in trickling:
-            sock.close()
+    assert took < 1.5, took
+    assert alive == [], alive

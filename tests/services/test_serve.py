@@ -23,7 +23,8 @@ from robot_sim.fri import FriState
 from robot_sim.fri_wire import COMMAND_SIZE, MEASUREMENT_SIZE, CommandFlags, decode_command, decode_measurement
 from services.run.episode import SETTLE_CYCLES
 from tests.robot_sim.fri_remote import Remote
-from tests.support import assert_a_stall, popen_as_from_a_terminal, realtime_attempts, require_realtime_machine
+from tests.support import (assert_a_stall, popen_as_from_a_terminal, realtime_attempts, require_realtime_machine,
+                           trickling)
 
 # the served cell on the realtime clock, at 1 kHz over UDP: serial (make test runs these after the rest)
 pytestmark = [pytest.mark.serial]
@@ -289,9 +290,6 @@ def test_clients_that_trickle_do_not_hold_serving_past_its_end(tmp_path):
     until serving ends (the box's handler threads held the ft_sensor until it was SIGKILLed:
     37.7 s instead of 22, and exit 0 with 'error: null').  Serving now ends on time, every
     service exits by itself (exit codes 0), and the report says so."""
-    import socket
-    import threading
-
     out = tmp_path / "served"
     with Remote("frilibrary") as remote:
         proc = popen_as_from_a_terminal(
@@ -299,7 +297,6 @@ def test_clients_that_trickle_do_not_hold_serving_past_its_end(tmp_path):
              "--fri-remote", f"127.0.0.1:{remote.port}", "--netft", "127.0.0.1", "--netft-rdt-port", "0",
              "--netft-http-port", "0", "--netft-calibration-port", "0", "--max-seconds", "4"],
             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        stop = threading.Event()
         try:
             box = None
             for line in proc.stderr:
@@ -309,20 +306,10 @@ def test_clients_that_trickle_do_not_hold_serving_past_its_end(tmp_path):
             assert box is not None, "serve never said where its Net F/T box is"
             started = time.monotonic()
             address, http, calibration = box.group(1), int(box.group(3)), int(box.group(4))
-            trickling = [socket.create_connection((address, port), timeout=5) for port in (http, calibration)]
-
-            def trickle():
-                while not stop.wait(1.5):
-                    for sock in trickling:
-                        try:
-                            sock.send(b"G")
-                        except OSError:
-                            pass
-            threading.Thread(target=trickle, daemon=True).start()
-            stdout, stderr = proc.communicate(timeout=60)
+            with trickling([(address, http), (address, calibration)], 1.5):
+                stdout, stderr = proc.communicate(timeout=60)
             took = time.monotonic() - started
         finally:
-            stop.set()
             if proc.poll() is None:
                 proc.kill()
                 proc.communicate()
