@@ -129,3 +129,19 @@ def test_a_service_process_imports_its_own_node_only():
         assert f"services.nodes.{role}" in loaded["nodes"], loaded
         assert loaded["mujoco"] == (role == "robot"), f"{role}: MuJoCo loaded: {loaded['mujoco']}"
         assert loaded["kernels"] == (role in ("robot", "ft_sensor")), f"{role}: the cell's kernels loaded: {loaded}"
+
+
+def test_the_zenoh_port_has_one_home_that_compose_follows():
+    """The Zenoh port is services.transport.session.ZENOH_PORT; docker-compose.yml cannot
+    import it, so its default is checked against it here."""
+    import re
+
+    from services.transport.session import ZENOH_PORT
+
+    compose = (ROOT / "docker-compose.yml").read_text()
+    defaults = set(re.findall(r"\$\{ZENOH_PORT:-(\d+)\}", compose))
+    assert defaults == {str(ZENOH_PORT)}, defaults
+    product = [p for p in (ROOT / "services").rglob("*.py") if "7447" in p.read_text()
+               and p.name not in ("session.py",) and "7447" in "".join(
+                   line for line in p.read_text().splitlines() if not line.lstrip().startswith(("#", "etar-bench")))]
+    assert product == [], f"the Zenoh port written out beside its home: {product}"

@@ -33,6 +33,7 @@ from robot_sim.worlds import TASK_WORLDS
 from services.cli.version import add_version_argument
 from services.cli.parsing import OneLineErrorParser
 from services.cli.zenoh_flags import add_zenoh_arguments, zenoh_options
+from services.transport.session import ZENOH_PORT
 from services.runtime.visual_topics import FOXGLOVE_PORT, VISUAL_RATE_HZ, check_visual_rate
 
 
@@ -446,7 +447,7 @@ def cmd_router(args) -> int:
 
     from services.transport.session import zenoh_reason
 
-    opts = ZenohOptions(mode="router", connect=(), listen=tuple(args.listen or ["tcp/0.0.0.0:7447"]))
+    opts = ZenohOptions(mode="router", connect=(), listen=tuple(args.listen or [f"tcp/0.0.0.0:{ZENOH_PORT}"]))
     try:
         conf = opts.config()
         session = zenoh.open(conf)
@@ -676,7 +677,7 @@ def build_parser() -> OneLineErrorParser:
     p.set_defaults(func=cmd_certs)
 
     p = sub.add_parser("router", help="run a Zenoh router (for docker-compose or several hosts)")
-    p.add_argument("--listen", action="append", help="endpoint(s), default tcp/0.0.0.0:7447")
+    p.add_argument("--listen", action="append", help=f"endpoint(s), default tcp/0.0.0.0:{ZENOH_PORT}")
     p.set_defaults(func=cmd_router)
     return parser
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import os
 
-from services.transport.session import EndpointError, ZenohOptions, check_endpoint
+from services.transport.session import ZENOH_PORT, EndpointError, ZenohOptions, check_endpoint
 
 FIFO_PRIORITIES = range(1, 100)  # Linux's SCHED_FIFO priorities (99 the highest)
 FIFO_DEFAULT = 50  # --sched-fifo without a priority
@@ -27,7 +27,7 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser, *, process_flags: bool 
                    help="Zenoh session mode (default peer, or $ETAR_ZENOH_MODE)")
     g.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
                    help="endpoint to connect to, PROTOCOL/HOST:PORT with a port in 1..65535, e.g. "
-                        "tcp/127.0.0.1:7447 (repeatable; default $ETAR_ZENOH_CONNECT, comma-separated; an "
+                        f"tcp/127.0.0.1:{ZENOH_PORT} (repeatable; default $ETAR_ZENOH_CONNECT, comma-separated; an "
                         "endpoint not up yet is retried)")
     g.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
                    help="endpoint to listen on, PROTOCOL/HOST:PORT with a port in 0..65535 (0: any free one) "

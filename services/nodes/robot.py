@@ -50,13 +50,11 @@ from services.runtime.config import nested, option
 from services.runtime.cycle import EpisodePlan
 from services.runtime.roles import PARTICIPANTS, ROLES
 from services.runtime.loop import Sections
-from services.runtime.messages import EPISODE_SUMMARY, FRI_DATAGRAM, ROBOT_CONTACT, ROBOT_STATE, datagram_fields
+from services.runtime.messages import (EPISODE_SUMMARY, FRI_DATAGRAM, HOLD_WATCH_S, ROBOT_CONTACT, ROBOT_STATE,
+                                       datagram_fields)
 from services.runtime.timing import Histogram
 
 LOCKSTEP_LATENCY_NS = 100_000
-# once the commander holds the arm the episode is lost: the robot watches the hold
-# this long (its summary says how far the tcp went, how hard it pressed) and ends it
-HOLD_WATCH_S = 1.0
 HOLD_WATCH_CYCLES = int(HOLD_WATCH_S * FRI_RATE_HZ)
 # per-cycle sections (episode summary, loop.sections): waiting for the deadline or the
 # answers, handing the answers to the FRI link, the physics step (KRC law + MuJoCo +

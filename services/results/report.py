@@ -28,8 +28,7 @@ from robot_sim.fri import FRI_CYCLE_NS
 from services.recordings.reader import read_episode
 from services.results.folder import strict_json
 from services.results.record import EpisodeRecord, RunRecord
-from services.nodes.robot import HOLD_WATCH_S
-from services.runtime.messages import BY_TOPIC, ESTIMATOR_PERIOD_NS, INT_MAX, INT_MIN, STRIDES, loads
+from services.runtime.messages import BY_TOPIC, ESTIMATOR_PERIOD_NS, HOLD_WATCH_S, INT_MAX, INT_MIN, STRIDES, loads
 from services.runtime.threads import process_map
 from services.results.text import pooled_histogram, histograms_text, render_text
 from services.runtime.files import FileWriteError, write_file, write_via

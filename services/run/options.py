@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 from services.run.realtime_profile import parse_profile
 from services.runtime import topics
-from services.runtime.roles import FIFO_CHAIN
+from services.runtime.roles import CELL_ROLES, FIFO_CHAIN
 from services.scenario import Scenario, ScenarioError
 from services.transport.cell import TRANSPORTS, carrier
 from services.transport.session import ZenohOptions
@@ -117,7 +117,7 @@ class RunOptions:
     def roles(self, scenario: Scenario) -> list[str]:
         """The services this run needs: the scenario's (serving: the cell alone), and the
         live view's bridge."""
-        roles = ["robot", "ft_sensor", "recorder"] if self.serve is not None else list(scenario.roles)
+        roles = list(CELL_ROLES) if self.serve is not None else list(scenario.roles)
         return roles + (["foxglove_bridge"] if self.foxglove is not None else [])
 
     def carrier(self, scenario: Scenario):

@@ -47,6 +47,10 @@ from robot_sim.fri_wire import decode_command, decode_measurement, record_fields
 # the same instants (stamps that are multiples of it), so a model learned from recordings
 # runs online at the rate it was learned at.
 ESTIMATOR_PERIOD_NS = 10 * FRI_CYCLE_NS
+# once the commander holds the arm the episode is lost: the robot watches the hold this
+# long (its summary says how far the tcp went, how hard it pressed) and ends it with reason
+# hold:<reason>; the report says the same
+HOLD_WATCH_S = 1.0
 ESTIMATOR_STRIDE = ESTIMATOR_PERIOD_NS // FRI_CYCLE_NS  # FRI cycles per estimator update
 SAMPLE_RATE_HZ = 1e9 / ESTIMATOR_PERIOD_NS  # the demonstrations' sample rate, Hz
 

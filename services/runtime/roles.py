@@ -53,6 +53,10 @@ ROLES: dict[str, Role] = {r.name: r for r in (
     Role("foxglove_bridge", "the live view over Foxglove's WebSocket protocol"),
 )}
 
+# the cell every run has (a serve has only these), and the roles each kind of stage adds
+CELL_ROLES = ("robot", "ft_sensor", "recorder")
+STAGE_ROLES = {"demonstrate": ("teacher",), "learn": (), "reproduce": ("phase_estimator", "impedance_commander")}
+
 # the cycle participants in the order the robot has always listed them, and who answers for each
 PARTICIPANTS: dict[str, str] = {r.answers: r.name for r in sorted(
     (r for r in ROLES.values() if r.answers), key=lambda r: ("command", "teacher", "ft", "phase").index(r.answers))}

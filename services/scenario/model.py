@@ -14,7 +14,7 @@ from typing import Any
 import yaml
 
 from services.runtime.cycle import CLOCKS
-from services.runtime.roles import RESTARTABLE
+from services.runtime.roles import CELL_ROLES, RESTARTABLE, STAGE_ROLES
 from services.scenario.checks import (FEATURES, RESTART_POLICIES, STATES, WORLDS, ScenarioError, _choice, _join,
                                       _list, _number, _seed, _set, _text)
 from services.scenario.stages import (STAGE_TYPES, CellSpec, DemonstrateStage, LearnStage, ReproduceStage, Stage,
@@ -114,8 +114,7 @@ class Scenario:
         """The services the stages need: the cell always, the teacher to demonstrate, the
         estimator and the commander to reproduce (a run may add the live view's bridge)."""
         kinds = {s.kind for s in self.stages}
-        return (("robot", "ft_sensor", "recorder") + (("teacher",) if "demonstrate" in kinds else ())
-                + (("phase_estimator", "impedance_commander") if "reproduce" in kinds else ()))
+        return CELL_ROLES + tuple(r for kind, roles in STAGE_ROLES.items() if kind in kinds for r in roles)
 
     @property
     def demonstrate_stages(self) -> tuple[DemonstrateStage, ...]:

@@ -25,6 +25,9 @@ import zenoh
 
 # the link protocols this Zenoh carries: those addressed HOST:PORT, and a Unix socket's path
 IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+# Zenoh's own default port: the router listens on it (etar-bench router, docker-compose.yml's
+# ZENOH_PORT default) and the examples name it
+ZENOH_PORT = 7447
 PATH_PROTOCOLS = ("unixsock-stream",)
 _HOST = re.compile(r"\[[0-9A-Fa-f:.%\w]+\]|[A-Za-z0-9._-]+")
 
@@ -50,14 +53,14 @@ def check_endpoint(endpoint: str, flag: str = "--connect", *, listen: bool = Fal
     protocol, slash, rest = text.partition("/")
     address = re.split(r"[?#]", rest, maxsplit=1)[0]
     if not slash or not protocol or not address:
-        refuse("Endpoints must be of the form PROTOCOL/ADDRESS, e.g. tcp/127.0.0.1:7447")
+        refuse(f"Endpoints must be of the form PROTOCOL/ADDRESS, e.g. tcp/127.0.0.1:{ZENOH_PORT}")
     if protocol in PATH_PROTOCOLS:
         return text
     if protocol not in IP_PROTOCOLS:
         refuse(f"unknown protocol {protocol!r} (known: {', '.join(IP_PROTOCOLS + PATH_PROTOCOLS)})")
     host, colon, port = address.rpartition(":")
     if not colon or not host:
-        refuse(f"expected {protocol}/HOST:PORT, e.g. {protocol}/127.0.0.1:7447")
+        refuse(f"expected {protocol}/HOST:PORT, e.g. {protocol}/127.0.0.1:{ZENOH_PORT}")
     if not _HOST.fullmatch(host):
         refuse(f"{host!r} is not a host name or address (an IPv6 address goes in brackets: [::1])")
     lowest = 0 if listen else 1

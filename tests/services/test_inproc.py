@@ -158,7 +158,7 @@ def test_a_stale_phase_estimate_makes_the_commander_hold_the_arm_stiffly():
     STALE_ESTIMATE_CYCLES old, says so in every command, and the robot ends the episode
     after watching the hold; the arm stays put."""
     from services.nodes.impedance_commander import STALE_ESTIMATE_CYCLES
-    from services.nodes.robot import HOLD_WATCH_S
+    from services.runtime.messages import HOLD_WATCH_S
 
     c = InProcessCell("inproc-hold", {
         "robot": RobotConfig(), "ft_sensor": FtSensorConfig(),

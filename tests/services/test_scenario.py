@@ -533,3 +533,16 @@ def test_restart_policies_are_parsed_and_limited_to_where_a_restart_is_meaningfu
                       (["recorder"], "restart: expected a mapping of role: policy")):
         with pytest.raises(ScenarioError, match=says):
             Scenario.from_dict(minimal(restart=bad), "x.yaml")
+
+
+def test_the_roles_a_scenario_needs_come_from_the_roles_table():
+    """services.runtime.roles is the one list of which roles the cell and each kind of stage
+    need; every stage kind has its entry there, and every role it names exists."""
+    from services.runtime.roles import CELL_ROLES, ROLES, STAGE_ROLES
+    from services.scenario.stages import STAGE_TYPES
+
+    assert set(STAGE_ROLES) == set(STAGE_TYPES)
+    assert set(CELL_ROLES).union(*STAGE_ROLES.values()) <= set(ROLES)
+    assert load_scenario(SCENARIOS / "hold.yaml").roles == CELL_ROLES + STAGE_ROLES["reproduce"]
+    assert load_scenario(SCENARIOS / "smoke.yaml").roles == (CELL_ROLES + STAGE_ROLES["demonstrate"]
+                                                         + STAGE_ROLES["reproduce"])
