@@ -245,3 +245,20 @@ def trickling(addresses, every_s: float):
         stop.set()
         for sock in sockets:
             sock.close()
+
+
+def wait_until(condition, seconds: float, what: str, *, poll_s: float = 0.01, seen=None):
+    """Poll ``condition()`` until it is truthy (returned) or ``seconds`` pass: then an
+    AssertionError saying what was awaited, how long, and what was last seen (``seen()``,
+    else the condition's last value).  The one wait the tests share."""
+    import time
+
+    deadline = time.monotonic() + seconds
+    while True:
+        value = condition()
+        if value:
+            return value
+        if time.monotonic() >= deadline:
+            last = seen() if seen is not None else value
+            raise AssertionError(f"{what}: not within {seconds:g} s (last seen: {last!r})")
+        time.sleep(poll_s)

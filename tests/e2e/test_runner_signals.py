@@ -12,7 +12,7 @@ import time
 import uuid
 from pathlib import Path
 
-from tests.support import popen_as_from_a_terminal
+from tests.support import popen_as_from_a_terminal, wait_until
 
 # a whole run (or the service processes) over Zenoh: the slow lane
 # signals timed against the run: with the machine to itself
@@ -47,15 +47,13 @@ def test_sigterm_stops_the_services_and_writes_a_report(tmp_path):
     out = tmp_path / "run"
     runner = start_smoke_run(out, run_id)
     try:
-        deadline = time.monotonic() + 120
         for line in runner.stderr:  # until the services are up
-            if "services ready" in line or time.monotonic() > deadline:
+            if "services ready" in line:
                 break
         # until the first demonstration is being recorded: the recorder has written its first chunk
         first = out / "recordings" / "demonstration_00.mcap"
-        while not (first.exists() and first.stat().st_size > 10_000) and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert first.exists(), f"no recording after {deadline} s"
+        wait_until(lambda: first.exists() and first.stat().st_size > 10_000, 120, "the first recording's first chunk",
+                   poll_s=0.05)
         services = [p for p in processes_of(run_id) if p != runner.pid]
         assert len(services) == 6, services
         runner.send_signal(signal.SIGTERM)
@@ -63,10 +61,8 @@ def test_sigterm_stops_the_services_and_writes_a_report(tmp_path):
     finally:
         if runner.poll() is None:
             runner.kill()
-    deadline = time.monotonic() + 10
-    while processes_of(run_id) and time.monotonic() < deadline:
-        time.sleep(0.2)
-    assert processes_of(run_id) == []
+    wait_until(lambda: processes_of(run_id) == [], 10, "no process of the run left", poll_s=0.2,
+               seen=lambda: processes_of(run_id))
     report = json.loads((out / "report.json").read_text())
     assert "SIGTERM" in report["error"]
 
@@ -88,10 +84,8 @@ def test_a_second_ctrl_c_kills_the_services_and_the_report_is_still_written(tmp_
     reader.start()
     try:
         first = out / "recordings" / "demonstration_00.mcap"
-        deadline = time.monotonic() + 120
-        while not (first.exists() and first.stat().st_size > 10_000) and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert first.exists(), "".join(said)
+        wait_until(lambda: first.exists() and first.stat().st_size > 10_000, 120, "the first recording's first chunk",
+                   poll_s=0.05, seen=lambda: "".join(said))
         runner.send_signal(signal.SIGINT)
         assert cleaning_up.wait(30), "".join(said)
         runner.send_signal(signal.SIGINT)  # in the middle of the clean-up
@@ -102,10 +96,8 @@ def test_a_second_ctrl_c_kills_the_services_and_the_report_is_still_written(tmp_
             runner.kill()
     text = "".join(said)
     assert "SIGINT again: killing the 6 service processes now" in text, text
-    deadline = time.monotonic() + 10
-    while processes_of(run_id) and time.monotonic() < deadline:
-        time.sleep(0.2)
-    assert processes_of(run_id) == []  # no orphan
+    wait_until(lambda: processes_of(run_id) == [], 10, "no orphan of the run", poll_s=0.2,
+               seen=lambda: processes_of(run_id))
     report = json.loads((out / "report.json").read_text())
     assert report["error"] == "interrupted (SIGINT)"
     assert f"partial report in {out}" in text.splitlines()[-1]
@@ -126,10 +118,8 @@ def test_an_in_process_run_interrupted_says_one_line_and_keeps_its_episode(tmp_p
         text=True, start_new_session=True)
     try:
         first = out / "recordings" / "demonstration_00.mcap"
-        deadline = time.monotonic() + 120
-        while not (first.exists() and first.stat().st_size > 100_000) and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert first.exists(), "no recording"
+        wait_until(lambda: first.exists() and first.stat().st_size > 100_000, 120, "the first recording's chunks",
+                   poll_s=0.05)
         os.killpg(runner.pid, signum)
         t0 = time.monotonic()
         code = runner.wait(timeout=60)

@@ -27,7 +27,7 @@ from robot_sim.netft import (
     RdtCommand,
     netft_status,
 )
-from tests.support import trickling
+from tests.support import trickling, wait_until
 
 # a sensor feeding the box at 1 kHz against the wall clock: serial (make test runs these after the rest)
 pytestmark = [pytest.mark.serial]
@@ -516,10 +516,7 @@ def test_lifetime_and_arguments():
 
 def _wait(condition, timeout: float = 2.0):
     """Until the box's I/O thread has handled what was sent (its stats say so)."""
-    deadline = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < deadline, "the box did not handle the request in time"
-        time.sleep(0.001)
+    wait_until(condition, timeout, "the box handled the request", poll_s=0.001)
 
 
 def test_strangers_cannot_cut_a_stream_the_box_serves():
