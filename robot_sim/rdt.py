@@ -12,12 +12,16 @@ from __future__ import annotations
 import enum
 import struct
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, ClassVar
+from typing import ClassVar, Protocol
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from robot_sim.ati import AtiConfig
+
+class Calibration(Protocol):
+    """What turns counts into N and Nm (an ``AtiConfig`` is one): the wire needs the value,
+    not the sensor model."""
+
+    counts_per_unit: np.ndarray  # (6,) counts per N (forces) and per Nm (torques)
 
 INT32_MAX = 2**31 - 1
 UINT32_MASK = 0xFFFFFFFF
@@ -82,7 +86,7 @@ class RdtRecord:
         rec.rdt_sequence, rec.ft_sequence, rec.status, rec.counts = rdt_sequence, ft_sequence, status, counts
         return rec
 
-    def wrench(self, config: AtiConfig) -> np.ndarray:
+    def wrench(self, config: Calibration) -> np.ndarray:
         """(6,) float64 wrench in N / Nm: counts / counts-per-unit."""
         return self.counts / config.counts_per_unit
 
