@@ -14,7 +14,7 @@ from services.recordings.reader import read_episode
 from services.runtime import topics
 from services.transport.session import ZenohOptions, open_session
 from tests import support
-from tests.support import run, service_pid
+from tests.support import run, service_pid, wait_until
 
 # a whole run (or the service processes) over Zenoh: the slow lane
 pytestmark = [pytest.mark.slow, pytest.mark.zenoh]
@@ -125,10 +125,7 @@ def test_a_stale_episode_summary_from_a_foreign_peer_does_not_end_the_episode_in
                                             lambda s: old.append(s.payload.to_bytes()))
         cell.request("robot", "reset", start=[0.62, -0.06, 0.30], episode=0, kind="demonstration")
         first = cell.run_episode([], None, 0.5)
-        deadline = time.monotonic() + 10
-        while not old and time.monotonic() < deadline:
-            time.sleep(0.01)
-        assert old, "the peer never saw the first summary"
+        wait_until(lambda: old, 10, "the peer sees the first summary")
         # the second episode: as soon as it runs, the foreign peer replays the first one's summary
         replayer = peer.declare_publisher(topics.key(run_id, "robot/episode"))
         replayed = threading.Event()

@@ -12,6 +12,7 @@ from services.runtime import topics
 from services.runtime.messages import FT_WRENCH, MAX_PAYLOAD_BYTES, ROBOT_CONTACT
 from services.transport.service import request
 from services.transport.session import ZenohOptions, open_session
+from tests.support import wait_until
 
 # service sessions over Zenoh on loopback
 pytestmark = [pytest.mark.zenoh]
@@ -94,16 +95,15 @@ def test_garbage_is_dropped_and_counted_valid_messages_are_answered(ft_sensor):
         pub.put(raw)
     # the sensor answers in order: once cycle 10's answer is here, any answer to the
     # copies or the stale one would have come before it
-    deadline = time.monotonic() + 10
-    while not any(m["seq"] == 10 for m in got[n:]) and time.monotonic() < deadline:
-        time.sleep(0.01)
+    wait_until(lambda: any(m["seq"] == 10 for m in got[n:]), 10, "the answer to cycle 10",
+               seen=lambda: [m["seq"] for m in got])
     assert [m["seq"] for m in got[n:]] == [8, 10], [m["seq"] for m in got]
-    deadline = time.monotonic() + 10  # the oversized one may come last (it is the longest on the wire)
-    while time.monotonic() < deadline:
-        links = request(session, run_id, "ft_sensor", "status")["links"]["robot/contact"]
-        if links["received"] == 14:
-            break
-        time.sleep(0.05)
+    def contact_links():
+        return request(session, run_id, "ft_sensor", "status")["links"]["robot/contact"]
+    # the oversized one may come last (it is the longest on the wire)
+    wait_until(lambda: contact_links()["received"] == 14, 10, "the sensor received the 14 messages", poll_s=0.05,
+               seen=contact_links)
+    links = contact_links()
     assert links["dropped"] == 3 and links["duplicates"] == 2 and links["out_of_order"] == 1, links
     assert links["bad"] == 4 and "byte limit" in links["last_error"], links
     # a well-formed message forged far ahead is taken (it is the newest), then the real

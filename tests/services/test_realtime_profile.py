@@ -13,6 +13,7 @@ from services.runtime import topics
 from services.runtime.bus import MonotonicClock
 from services.transport.process import NodeInputs, ZenohBus
 from tests.services.conftest import service_with_peer
+from tests.support import wait_until
 
 # SCHED_FIFO, CPU isolation and /dev/cpu_dma_latency of this machine: serial (make test runs these after the rest)
 pytestmark = [pytest.mark.serial]
@@ -115,9 +116,6 @@ def test_an_idle_teacher_takes_no_messages_and_says_when_it_listens(teacher_serv
         # gone with the subscriptions: its deletion reaches this session a moment later, so it is
         # polled for (looked at once right after idle, it was still live 1 run in 6 with two busy
         # processes beside it)
-        deadline = time.monotonic() + 10.0
-        while listeners.wait([token], 0.0) != [token] and time.monotonic() < deadline:
-            time.sleep(0.01)
-        assert listeners.wait([token], 0.0) == [token]
+        wait_until(lambda: listeners.wait([token], 0.0) == [token], 10.0, "the listening token gone")
     finally:
         state.undeclare()

@@ -24,7 +24,7 @@ from robot_sim.fri_wire import COMMAND_SIZE, MEASUREMENT_SIZE, CommandFlags, dec
 from services.run.episode import SETTLE_CYCLES
 from tests.robot_sim.fri_remote import Remote
 from tests.support import (assert_a_stall, popen_as_from_a_terminal, realtime_attempts, require_realtime_machine,
-                           trickling)
+                           trickling, wait_until)
 
 # the served cell on the realtime clock, at 1 kHz over UDP: serial (make test runs these after the rest)
 pytestmark = [pytest.mark.serial]
@@ -246,9 +246,11 @@ def test_services_stop_when_their_runner_is_killed_outright(tmp_path):
         assert len(children) >= 3, children  # robot, ft_sensor, recorder
         proc.kill()
         proc.communicate()
-        deadline = time.monotonic() + 15
-        while any(Path(f"/proc/{c}").exists() for c in children) and time.monotonic() < deadline:
-            time.sleep(0.1)
+        try:
+            wait_until(lambda: not any(Path(f"/proc/{c}").exists() for c in children), 15,
+                       "the services end with their runner", poll_s=0.1)
+        except AssertionError:
+            pass  # named below, once the survivors are killed
         left = [c for c in children if Path(f"/proc/{c}").exists()]
         for c in left:
             os.kill(c, signal.SIGKILL)
