@@ -77,14 +77,12 @@ def test_a_foxglove_client_watches_a_live_run_which_records_what_it_would_have_w
     thread = threading.Thread(target=go)
     thread.start()
     try:
-        port = None
-        deadline = time.monotonic() + 90
-        while port is None and time.monotonic() < deadline and not done.is_set():
+        def said_port():
             m = next((re.search(r"connect Foxglove to ws://127\.0\.0\.1:(\d+)", ln) for ln in list(lines)
                       if "connect Foxglove" in ln), None)
-            port = int(m.group(1)) if m else None
-            time.sleep(0.05)
-        assert port, lines
+            return int(m.group(1)) if m else (-1 if done.is_set() else None)
+        port = support.wait_until(said_port, 90, "the run names its live view's port", poll_s=0.05, seen=lambda: lines[-3:])
+        assert port > 0, lines
 
 
         async def both():

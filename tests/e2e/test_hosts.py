@@ -18,7 +18,7 @@ from services.runtime import topics
 from services.transport.credentials import make_credentials
 from services.transport.session import ZenohOptions, open_session
 from tests import support
-from tests.support import ROOT
+from tests.support import ROOT, wait_until
 
 # a whole run (or the service processes) over Zenoh: the slow lane
 pytestmark = [pytest.mark.slow, pytest.mark.zenoh]
@@ -41,10 +41,8 @@ for what, options in (("plain tcp", ZenohOptions(mode="client", connect=(endpoin
 
 
 def _wait_ready(runner, thread, seconds=90):
-    deadline = time.monotonic() + seconds
-    while not runner.ready.wait(0.05):
-        assert thread.is_alive(), "the run ended before its services were ready"
-        assert time.monotonic() < deadline, f"services not ready after {seconds} s"
+    wait_until(lambda: runner.ready.wait(0.05) or not thread.is_alive(), seconds, "the services ready", poll_s=0.0)
+    assert runner.ready.is_set(), "the run ended before its services were ready"
 
 
 def _processes_in(namespace: str) -> list[str]:

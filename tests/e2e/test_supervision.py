@@ -66,9 +66,8 @@ def test_a_service_killed_mid_reproduction_fails_the_run_at_once_and_keeps_the_e
 
     sub = peer.declare_subscriber(topics.key(run_id, "robot/state"), on_state)
     try:
-        deadline = time.monotonic() + 120
-        while not killed.wait(0.5) and runner.is_alive() and time.monotonic() < deadline:
-            pass
+        wait_until(lambda: killed.wait(0.5) or not runner.is_alive(), 120, "300 cycles of the reproduction",
+                   poll_s=0.0, seen=lambda: seen[0])
         assert killed.is_set(), f"the reproduction never reached 300 cycles: {result.get('report', {}).get('error')}"
         runner.join(90)
         assert not runner.is_alive(), "the runner did not end after the kill"

@@ -19,6 +19,7 @@ from robot_sim.fri import (
     MeasurementPacket,
 )
 from robot_sim.fri_udp import FriUdpEndpoint
+from tests.support import wait_until
 
 # FRI datagrams with answer deadlines: serial (make test runs these after the rest)
 pytestmark = [pytest.mark.serial]
@@ -92,10 +93,11 @@ def packet(seq: int, reflected: int = -1) -> MeasurementPacket:
 
 def wait_for(endpoint: FriUdpEndpoint, condition) -> None:
     """Poll until ``condition()`` holds (a datagram the remote sent has been read)."""
-    deadline = time.monotonic() + WAIT_S
-    while not condition():
-        assert time.monotonic() < deadline, f"timed out; counters {endpoint.counters}"
-        endpoint.poll(0.01)
+    def read_then_check():
+        endpoint.poll(0.01)  # waits on the socket, up to 10 ms
+        return condition()
+    wait_until(lambda: condition() or read_then_check(), WAIT_S, "the endpoint read what the remote sent",
+               poll_s=0.0, seen=lambda: endpoint.counters)
 
 
 def test_each_measurement_is_answered_and_matched_across_the_counter_wrap(endpoint, remote):

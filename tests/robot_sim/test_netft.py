@@ -288,9 +288,8 @@ def test_pynetft_sees_the_saturation_status_of_a_saturating_load():
             assert c.wait_for_first_sample(2.0)
             with feed.lock:
                 feed.wrench[:] = 10 * config.ranges * np.sign(WRENCH)
-            deadline = time.monotonic() + 3.0
-            while c.health().state != pynetft.ClientState.FAULTED and time.monotonic() < deadline:
-                time.sleep(0.01)
+            wait_until(lambda: c.health().state == pynetft.ClientState.FAULTED, 3.0, "pynetft faults",
+                       seen=lambda: c.health().state)
             health = c.health()
         finally:
             c.stop()
@@ -335,10 +334,8 @@ def test_netft_client_counts_and_count_limited_requests():
             assert [sensor.receive() for _ in range(300)] == [expected] * 300
             assert box.stats().streams == 1
             sensor.send(RdtCommand.STOP)
-            deadline = time.monotonic() + 2.0
-            while box.stats().streams and time.monotonic() < deadline:
-                time.sleep(0.005)
-            assert box.stats().streams == 0
+            wait_until(lambda: box.stats().streams == 0, 2.0, "the stream stopped", poll_s=0.005,
+                       seen=box.stats)
         finally:
             sensor.sock.close()
 
