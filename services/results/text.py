@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from services.runtime.provenance import describe_code
 from services.runtime.timing import Histogram
 
@@ -221,3 +223,22 @@ def render_text(r: dict) -> str:
         lines.append(f"  {topic:<22} {v['p50_us']:9.0f} {v['p99_us']:8.0f} {v['max_us']:8.0f} {v['lost']:6d} "
                      f"{v['out_of_order']:6d}")
     return "\n".join(lines) + "\n"
+
+
+def summary_line(report: dict, out, page: bool = True) -> str:
+    """One line: phases chosen, reproductions that reached the goal, online accuracy,
+    where the report is (report.html, with its figures, when it was written); or that
+    the run failed, and why."""
+    s = report["summary"]
+    parts = []
+    if s.get("phases_chosen") is not None:
+        parts.append(f"{s['phases_chosen']} phases")
+    if s.get("reproductions"):
+        parts.append(f"{s['successes']} of {s['reproductions']} reproductions reached the goal")
+        acc = s.get("online_phase_accuracy")
+        parts.append(f"online phase accuracy {acc:.4f}" if acc is not None else "no online phase estimate")
+    html = Path(out) / "report.html"
+    where = f"report {html if page and html.is_file() else Path(out) / 'report.txt'}"
+    if report["error"] is not None:
+        return f"{report['scenario']}: RUN FAILED ({report['error']}); " + "; ".join(parts + [f"partial {where}"])
+    return f"{report['scenario']}: " + "; ".join(parts + [where])

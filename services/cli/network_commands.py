@@ -1,0 +1,51 @@
+"""``etar-bench`` certs and router: the network a run over several hosts needs, once the
+command line is parsed (``services.cli.bench``)."""
+
+from __future__ import annotations
+
+import time
+
+from services.cli.output import say
+from services.transport.session import ZENOH_PORT
+
+
+def cmd_certs(args) -> int:
+    from services.runtime.roles import CREDENTIAL_NAMES as ROLES
+    from services.transport.credentials import CredentialsError, make_credentials
+
+    try:
+        out = make_credentials(args.dir, hosts=tuple(args.host or ["127.0.0.1"]), roles=ROLES + tuple(args.role))
+    except CredentialsError as exc:
+        say(f"etar-bench certs: error: {exc}")
+        return 2
+    print(f"{out}: ca.pem (ca.key signs: keep it off the hosts), router.pem/.key, and a certificate per role "
+          f"({', '.join(ROLES + tuple(args.role))}); use with: etar-bench run SCENARIO --tls {out}", flush=True)
+    return 0
+
+
+def cmd_router(args) -> int:
+    """A real Zenoh router (the Python library in router mode) for multi-host or container runs."""
+    import zenoh
+
+    from services.transport.session import ZenohOptions
+
+    from services.transport.session import zenoh_reason
+
+    opts = ZenohOptions(mode="router", connect=(), listen=tuple(args.listen or [f"tcp/0.0.0.0:{ZENOH_PORT}"]))
+    try:
+        conf = opts.config()
+        session = zenoh.open(conf)
+    except ValueError as exc:  # names the flag and the value
+        say(f"etar-bench router: error: {exc}")
+        return 2
+    except zenoh.ZError as exc:  # e.g. an address it cannot listen on
+        say(f"etar-bench router: error: --listen {' '.join(opts.listen)}: {zenoh_reason(exc)}")
+        return 2
+    with session:
+        say(f"zenoh router listening on {', '.join(opts.listen)}; Ctrl-C to stop")
+        try:
+            while True:
+                time.sleep(1.0)
+        except KeyboardInterrupt:
+            return 0
+

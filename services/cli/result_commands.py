@@ -1,0 +1,162 @@
+"""``etar-bench`` report, info, diff, recover, figures, export and compare: reading a run's
+folder and its recordings once the command line is parsed (``services.cli.bench``)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from services.cli.output import say
+from services.runtime.visual_topics import check_visual_rate
+
+
+def cmd_report(args) -> int:
+    from services.results.folder import RunFolderError, read_report
+
+    path = Path(args.run_dir)
+    for name in ("report.txt", "report.json"):
+        if not (path / name).exists():
+            say(f"etar-bench report: {path / name} not found (is {path} a run directory?)")
+            return 2
+    try:
+        report = read_report(path)
+    except RunFolderError as exc:
+        say(f"etar-bench report: {exc}")
+        return 2
+    if args.json:
+        print(json.dumps(report, indent=1, allow_nan=False))
+    else:
+        print((path / "report.txt").read_text(), end="")
+    if report.get("error"):
+        say(f"etar-bench report: the run failed: {report['error']}")
+        return 1
+    return 0
+
+
+def cmd_info(args) -> int:
+    """What a recording or a run holds, as ``mcap info`` / ``ros2 bag info`` would say it."""
+    from services.results.info import describe, info_text
+
+    try:
+        described = describe(args.path)
+    except ValueError as exc:  # InfoError, RecordingError: one line naming the file
+        say(f"etar-bench info: error: {exc}")
+        return 2
+    print(json.dumps(described, indent=1, allow_nan=False) if args.json else info_text(described), flush=True)
+    return 0
+
+
+def cmd_diff(args) -> int:
+    """Like diff: 0 when the two runs recorded the same content and results, 1 when not,
+    2 on trouble."""
+    from services.results.diff import diff_runs
+
+    try:
+        result = diff_runs(args.run_a, args.run_b)
+    except ValueError as exc:  # DiffError, RecordingError
+        say(f"etar-bench diff: error: {exc}")
+        return 2
+    print(json.dumps(result.to_dict(), indent=1, allow_nan=False) if args.json else result.text(), flush=True)
+    return 0 if result.same else 1
+
+
+def cmd_recover(args) -> int:
+    from services.recordings.format import RecordingError
+    from services.recordings.recovery import recover
+
+    if args.out is not None and len(args.files) > 1:
+        say("etar-bench recover: --out names one output file: give one FILE with it")
+        return 2
+    missing = [f for f in args.files if not Path(f).is_file()]
+    if missing:
+        what = "a folder, not a recording" if Path(missing[0]).is_dir() else "no such file"
+        say(f"etar-bench recover: error: {missing[0]}: {what}")
+        return 2
+    if args.out is not None:  # refused before anything is read or written
+        out = Path(args.out)
+        problem = ("a folder; --out names the output file" if out.is_dir() else
+                   f"its folder {out.parent} does not exist" if not out.parent.is_dir() else
+                   "exists (pass --force to replace it)" if out.exists() and not args.force else None)
+        if problem:
+            say(f"etar-bench recover: error: --out {args.out}: {problem}")
+            return 2
+    failed = 0
+    for f in args.files:
+        try:
+            result = recover(f, args.out, overwrite=args.force)
+        except RecordingError as exc:
+            say(f"etar-bench recover: error: {exc}")
+            failed += 1
+            continue
+        except OSError as exc:  # the output's folder not writable, a full disk
+            say(f"etar-bench recover: error: {f}: could not write {exc.filename or args.out}: {exc.strerror}")
+            failed += 1
+            continue
+        print(result.describe(), flush=True)
+    return 1 if failed else 0
+
+
+def cmd_figures(args) -> int:
+    from services.results.figures import FiguresError, read_run_report
+    from services.results.html import write_figures_and_page
+
+    run_dir = Path(args.run_dir)
+    try:
+        read_run_report(run_dir)  # a run's folder, with a report to draw from
+    except FiguresError as exc:
+        say(f"etar-bench figures: error: {exc}")
+        return 2
+    print(write_figures_and_page(run_dir, progress=say), flush=True)
+    problems = [run_dir / name for name in ("figures.error", "report.html.error") if (run_dir / name).is_file()]
+    for path in problems:
+        say(f"etar-bench figures: {path}: {path.read_text().strip()}")
+    return 1 if problems else 0
+
+
+def cmd_export(args) -> int:
+    from services.foxglove.export import export_foxglove
+    from services.recordings.format import RecordingError
+
+    if not args.foxglove:
+        say("etar-bench export: error: say what to add: --foxglove (the only export so far)")
+        return 2
+    try:
+        check_visual_rate(args.visual_rate_hz, "--visual-rate-hz")
+    except ValueError as exc:
+        say(f"etar-bench export: error: {exc}")
+        return 2
+    if not (Path(args.run_dir) / "recordings").is_dir():
+        say(f"etar-bench export: error: {args.run_dir}: no recordings/ folder: not a run's folder")
+        return 2
+    try:
+        results = export_foxglove(args.run_dir, args.visual_rate_hz, progress=print)
+    except RecordingError as exc:
+        say(f"etar-bench export: error: {exc}")
+        return 1
+    added = sum(1 for r in results if r.added)
+    say(f"etar-bench export: visual topics added to {added} of {len(results)} recording(s)")
+    return 0
+
+
+def cmd_compare(args) -> int:
+    from services.results.compare import compare_run
+    from services.results.figures import FiguresError
+
+    if args.seeds < 1:
+        say(f"etar-bench compare: error: --seeds must be >= 1, got {args.seeds}")
+        return 2
+    try:
+        pair = tuple(int(x) for x in args.pair.split(","))
+        if len(pair) != 2:
+            raise ValueError
+    except ValueError:
+        say(f"etar-bench compare: error: --pair expects two demonstration numbers I,J (e.g. 0,1), got {args.pair!r}")
+        return 2
+    try:
+        compare_run(args.run_dir, seeds=tuple(range(args.seeds)), progress=say, pair=pair)
+    except FiguresError as exc:
+        say(f"etar-bench compare: error: {exc}")
+        return 2
+    print((Path(args.run_dir) / "comparison.txt").read_text(), end="", flush=True)
+    return 0
+
