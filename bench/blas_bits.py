@@ -1,7 +1,7 @@
 """How often a compiled product gives other bits than numpy's small products, which go
 through OpenBLAS (fused multiply-adds, its own summation order, kernels chosen by CPU):
 written out as a loop (numba, no fastmath), and called from numba in numpy's own library
-(etar.blas, what the cell's kernels do).
+(kernel_plumbing.blas, what the cell's kernels do).
 
     python bench/blas_bits.py [--trials 20000] [--seed 1]
 
@@ -25,7 +25,7 @@ from numba import njit
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from etar import blas  # noqa: E402
+from kernel_plumbing import blas  # noqa: E402
 
 
 @njit(cache=False)

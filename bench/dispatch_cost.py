@@ -1,5 +1,5 @@
 """What the cell's per-cycle numba kernels cost per call in a running cell: through
-numba's dispatcher, and as machine code (``etar.kernels.entry``, what the cell does).
+numba's dispatcher, and as machine code (``kernel_plumbing.addresses.entry``, what the cell does).
 
     python bench/dispatch_cost.py [--scenario scenarios/smoke.yaml] [--ways dispatcher,entry]
 

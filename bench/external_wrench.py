@@ -1,4 +1,4 @@
-"""The KRC's external-wrench estimate per call: the compiled kernel (etar.blas,
+"""The KRC's external-wrench estimate per call: the compiled kernel (kernel_plumbing.blas,
 numpy's own BLAS and LAPACK) against the numpy path it replaced, on a running valley cell,
 alternately.
 

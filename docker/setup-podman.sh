@@ -41,7 +41,7 @@ fi
 
 stamp="$state/wheelhouse.stamp"
 if [[ ! -f "$stamp" || "$root/pyproject.toml" -nt "$stamp" || "$root/setup.py" -nt "$stamp" \
-      || -n "$(find "$root/etar" "$root/robot_sim" "$root/services" \( -name '*.py' -o -name '*.cpp' \) -newer "$stamp" -print -quit)" ]]; then
+      || -n "$(find "$root/etar" "$root/kernel_plumbing" "$root/robot_sim" "$root/services" \( -name '*.py' -o -name '*.cpp' \) -newer "$stamp" -print -quit)" ]]; then
   echo "setup-podman: building the wheelhouse"
   rm -rf "$root/docker/wheelhouse" "$root/docker/project-wheel"
   "$py" -m pip wheel -q --wheel-dir "$root/docker/wheelhouse" "$root" 2>"$state/wheel.log" >/dev/null

@@ -39,7 +39,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from etar.kernels import JIT as _JIT
+from kernel_plumbing.addresses import JIT as _JIT
 
 _STEP = dict(_JIT, inline="always")
 

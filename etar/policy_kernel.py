@@ -7,12 +7,12 @@ one numba kernel over preallocated buffers, for the policies it can (no phase tu
 no goal rotation: a position state), and gives the same numbers bit for bit: every
 product numpy computes through its BLAS (``a @ b`` of two vectors and
 ``np.linalg.norm``: ddot; a 3x3 matrix times a vector: dgemv) is the same BLAS
-function called from the kernel (``etar.blas``), and everything else is the same
+function called from the kernel (``kernel_plumbing.blas``), and everything else is the same
 element-wise arithmetic in the same order (numba, like numpy, neither reorders nor
 fuses floating-point operations unless told to).  Checked against the Python step on
 trajectories through every branch in ``tests/etar/test_policy_kernel.py``.
 
-Where numpy's BLAS cannot be called (``etar.blas.AVAILABLE`` False), or a phase turns,
+Where numpy's BLAS cannot be called (``kernel_plumbing.blas.AVAILABLE`` False), or a phase turns,
 ``compiled_policy`` returns the Python policy: the same numbers, more slowly.
 """
 
@@ -21,8 +21,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from etar import blas
-from etar.kernels import JIT, HoldsAddresses, address, carray_at, entry
+from kernel_plumbing import blas
+from kernel_plumbing.addresses import JIT, HoldsAddresses, address, carray_at, entry
 from etar.policy import CONTACT_FORCE, MIN_SLIDE, PLACE_SPEED, STALL_SPEED, STALL_TIME, ReproductionPolicy
 
 NONE = -(1 << 62)  # None where the Python policy holds an int or None (a phase)

@@ -116,7 +116,7 @@ from typing import Any, Literal
 import numpy as np
 from numba import njit
 
-from etar.kernels import JIT, HoldsAddresses, address, addresses, carray_at, entry
+from kernel_plumbing.addresses import JIT, HoldsAddresses, address, addresses, carray_at, entry
 from robot_sim.rdt import INT32_MAX, SATURATION_BITS, UINT32_MASK, AtiStatus, RdtRecord
 
 __all__ = [
@@ -317,7 +317,7 @@ def _sample_at(x_at, const_at, state_at, tare_at, noise_at, ni, drift_at, di, dr
     still to average, samples in the average].  Writes ``out`` = [counts (whole numbers,
     as float64); the wrench, counts / counts-per-unit] and returns the status word, or
     -1 for a non-finite ``x`` (then only the drift has stepped: the noise is not drawn).
-    By address (etar.kernels): with arrays it cost more than the sample."""
+    By address (kernel_plumbing.addresses): with arrays it cost more than the sample."""
     const, state, tare = carray_at(const_at, (8, 6)), carray_at(state_at, (3, 6)), carray_at(tare_at, (2,))
     x, out = carray_at(x_at, (6,)), carray_at(out_at, (2, 6))
     if drift_scale > 0.0:

@@ -20,12 +20,12 @@ import numpy as np
 import pinocchio as pin
 from numba import njit
 
-from etar import blas
+from kernel_plumbing import blas
 from robot_sim.ati import AtiConfig, AtiSensor, RdtRecord
 from robot_sim.fri import (CommandPacket, ControlMode, CycleOutcome, FriConfig, FriLink, FriState, LinkFaults,
                            MeasurementPacket)
 from robot_sim.fri_wire import MeasurementExtras, jacobian_to_fri
-from etar.kernels import JIT, HoldsAddresses, address, addresses, carray_at, entry
+from kernel_plumbing.addresses import JIT, HoldsAddresses, address, addresses, carray_at, entry
 from robot_sim.kinematics import READY, ArmKinematics
 from robot_sim.krc import ImpedanceCommand, KrcConfig, KrcController
 from robot_sim.physics import Simulation
@@ -74,7 +74,7 @@ def _external_wrench_numpy(J, tau, JJt, Jtau):
 @njit(**JIT)
 def _external_wrench_at(syrk, gemv, gesv, j, tau, reg, jjt, jtau, lu, ints, ipiv, out):
     """``_external_wrench_numpy`` in one call, through the functions numpy calls
-    (etar.blas): J J^T by dsyrk (numpy's matmul of an array with its own transpose),
+    (kernel_plumbing.blas): J J^T by dsyrk (numpy's matmul of an array with its own transpose),
     mirrored; J tau by dgemv; the solve by dgesv on a column-major copy, as numpy's solve
     does.  ``ints``: int64 [n, nrhs, lda, ldb, info]; returns LAPACK's info."""
     row, upper, no_trans = np.int32(blas.ROW_MAJOR), np.int32(blas.UPPER), np.int32(blas.NO_TRANS)

@@ -26,7 +26,7 @@ until ``reset_safety()``; a non-finite measurement commands zero torque.
 ``compute`` is the 1 kHz step and allocates nothing
 (tests/robot_sim/test_allocation.py): Pinocchio fills its ``data`` in place
 (``ArmKinematics.update_dynamics``) and the laws are numba kernels over
-preallocated buffers, passed by address (etar.kernels).
+preallocated buffers, passed by address (kernel_plumbing.addresses).
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ import pinocchio as pin
 from numba import njit
 
 from robot_sim.fri import FRI_CYCLE_NS, ControlMode
-from etar.kernels import JIT, HoldsAddresses, address, addresses, carray_at, entry, farray_at
+from kernel_plumbing.addresses import JIT, HoldsAddresses, address, addresses, carray_at, entry, farray_at
 from robot_sim.kinematics import ArmKinematics
 
 POSITION, CART_IMP, JNT_IMP = ControlMode.POSITION, ControlMode.CART_IMP, ControlMode.JNT_IMP
@@ -337,7 +337,7 @@ def _state_problem_at(nv, q_at, qd_at, low_at, high_at, check_limits, force_at, 
     return 0
 
 
-# the step's kernels, called as machine code (etar.kernels.entry)
+# the step's kernels, called as machine code (kernel_plumbing.addresses.entry)
 _state_problem = entry(_state_problem_at, f"{addresses(5)}, boolean, int64, boolean, float64")
 _impedance_law = entry(_impedance_at, f"{addresses(12)}, boolean, {addresses(4)}")
 _pose = entry(_pose_at, addresses(3))

@@ -10,7 +10,7 @@ carrying garbage on.
 ``joint_positions(out)``, ``joint_velocities(out)``, ``apply`` and ``step``
 allocate nothing (tests/robot_sim/test_allocation.py): the MjData arrays are
 viewed once (MjData never moves them), and the little arithmetic is done by
-numba kernels that reach the buffers through their addresses (``etar.kernels``).
+numba kernels that reach the buffers through their addresses (``kernel_plumbing.addresses``).
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ import mujoco
 import numpy as np
 from numba import njit, types
 
-from etar import blas
-from etar.kernels import JIT, HoldsAddresses, address, addresses, carray_at, entry
+from kernel_plumbing import blas
+from kernel_plumbing.addresses import JIT, HoldsAddresses, address, addresses, carray_at, entry
 from robot_sim.worlds import TIMESTEP, WorldSpec
 
 JOINTS = tuple(f"joint{i}" for i in range(1, 8))
@@ -305,7 +305,7 @@ class Simulation(HoldsAddresses):
         self.sense_at(address(wrench), address(torques))
 
     def sense_at(self, wrench_at: int, torques_at: int) -> None:
-        """``sense`` into the buffers at these addresses (etar.kernels): the cell's,
+        """``sense`` into the buffers at these addresses (kernel_plumbing.addresses): the cell's,
         every cycle."""
         at = self._at
         _sensed(at["sensordata"], self._force_adr, self._torque_adr, at["constraint"], at["hand"], self._nv,

@@ -1,7 +1,7 @@
 """The import rules of docs/architecture.md, read from the code: every import in services/
-points down the list of wings (lazy imports inside functions count too), and etar/ and
-robot_sim/ import neither services/ nor each other (but for etar's kernel plumbing, which
-robot_sim's compiled cycle uses too)."""
+points down the list of wings (lazy imports inside functions count too), etar/ and
+robot_sim/ import neither services/ nor each other, and kernel_plumbing/, which both
+import, imports none of the three."""
 
 import ast
 import json
@@ -73,28 +73,21 @@ def test_a_wing_imports_only_the_wings_below_it(wing):
     assert not wrong, "\n".join(wrong)
 
 
-# what robot_sim may use of etar: the plumbing of compiled kernels, not the learner
-KERNEL_PLUMBING = ("etar.kernels", "etar.blas")
-
-
-@pytest.mark.parametrize("library,foreign", [("etar", ("services", "robot_sim")), ("robot_sim", ("services", "etar"))])
+@pytest.mark.parametrize("library,foreign", [("etar", ("services", "robot_sim")), ("robot_sim", ("services", "etar")),
+                                             ("kernel_plumbing", ("services", "robot_sim", "etar"))])
 def test_the_libraries_import_no_services_and_not_each_other(library, foreign):
     wrong = [f"{path.relative_to(ROOT)}:{line} imports {module}" for path in sources(library)
-             for module, line in imports(path) if module.split(".")[0] in foreign
-             and not (library == "robot_sim" and plumbing(module))]
+             for module, line in imports(path) if module.split(".")[0] in foreign]
     assert not wrong, "\n".join(wrong)
 
 
-def plumbing(module: str) -> bool:
-    """``module`` is etar's kernel plumbing, a name in it, or the package itself (``from etar
-    import blas``; its ``__init__`` loads nothing)."""
-    return module == "etar" or any(module == p or module.startswith(p + ".") for p in KERNEL_PLUMBING)
-
-
-def test_the_rule_lets_robot_sim_use_the_kernel_plumbing_and_nothing_else_of_etar():
+def test_the_rule_catches_robot_sim_importing_the_learner_and_lets_it_use_the_plumbing():
     path = ROOT / "robot_sim" / "probe.py"
-    text = "from etar import blas\nfrom etar.kernels import JIT\nfrom etar import ETAR\nimport etar.inference\n"
-    assert [m for m, _ in imports(path, text) if not plumbing(m)] == ["etar.ETAR", "etar.inference"]
+    text = "from kernel_plumbing import blas\nfrom kernel_plumbing.addresses import JIT\nfrom etar import ETAR\n" \
+           "import etar.inference\n"
+    found = list(imports(path, text))
+    assert sorted({line for m, line in found if m.split(".")[0] in ("services", "etar")}) == [3, 4]
+    assert sorted({line for m, line in found if m.split(".")[0] == "kernel_plumbing"}) == [1, 2]
 
 
 def test_the_rule_itself_catches_an_import_that_points_back():

@@ -7,7 +7,7 @@ place, the way to the place and the law there, the goal."""
 import numpy as np
 import pytest
 
-from etar import blas
+from kernel_plumbing import blas
 from etar.impedance import derive_impedance
 from etar.policy import ReproductionPolicy
 from etar.task import load_task

@@ -1,11 +1,11 @@
-"""etar.blas: kernels that call numpy's own OpenBLAS get numpy's bits, where a
+"""kernel_plumbing.blas: kernels that call numpy's own OpenBLAS get numpy's bits, where a
 written-out loop does not (bench/blas_bits.py counts how often)."""
 
 import numpy as np
 import pinocchio as pin
 import pytest
 
-from etar import blas
+from kernel_plumbing import blas
 from robot_sim import cell
 from robot_sim.kinematics import ArmKinematics
 from robot_sim.worlds import valley

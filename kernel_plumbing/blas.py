@@ -20,7 +20,7 @@ numpy's bits; where it is False (``WHY`` says why) the callers keep their numpy 
 which records the same numbers more slowly.
 
 (numba's cache tracks only the file a kernel is defined in: after changing the
-intrinsics here, clear etar/__pycache__/*.nb[ic] and robot_sim/__pycache__/*.nb[ic], as for etar.kernels.)
+intrinsics here, clear etar/__pycache__/*.nb[ic] and robot_sim/__pycache__/*.nb[ic], as for kernel_plumbing.addresses.)
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from llvmlite import ir
 from numba import njit, types
 from numba.extending import intrinsic
 
-from etar.kernels import JIT
+from kernel_plumbing.addresses import JIT
 
 ROW_MAJOR, NO_TRANS, TRANS, UPPER = 101, 111, 112, 121
 
