@@ -29,6 +29,7 @@ from typing import Callable
 import numpy as np
 
 from etar.demonstrations import DemonstrationError, check_demonstration
+from etar.parsing import OneLineErrorParser, one_line
 from etar.vocabulary import CRITERIA, FEATURES, STATES, TRANSITIONS
 
 USAGE_ERROR = 2  # a flag or a file the command cannot use: nothing was done
@@ -48,15 +49,6 @@ class UsageError(ValueError):
         super().__init__(text)
 
 
-class _Parser(argparse.ArgumentParser):
-    """argparse's own refusals in one line too (``prog: error: message``), exit code 2."""
-
-    def error(self, message):
-        self.exit(USAGE_ERROR, f"{self.prog}: error: {_one_line(message)}\n")
-
-
-def _one_line(text) -> str:
-    return " ".join(str(text).split())
 
 
 def _say(msg: str) -> None:
@@ -493,7 +485,7 @@ def _synth_command(args):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="etar", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = OneLineErrorParser(prog="etar", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"etar {_version()}",
                         help="print the installed version and exit")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -563,12 +555,12 @@ def main(argv=None) -> int:
     try:
         run = args.command_of(args)  # every flag and file checked; nothing done yet
     except (ValueError, OSError) as exc:  # UsageError, DemonstrationError, a model file's ValueError
-        print(f"{name}: error: {_one_line(exc)}", file=sys.stderr)
+        print(f"{name}: error: {one_line(exc)}", file=sys.stderr)
         return USAGE_ERROR
     try:
         return run()
     except (ValueError, OSError, FloatingPointError) as exc:
-        print(f"{name}: error: {_one_line(exc)}", file=sys.stderr)
+        print(f"{name}: error: {one_line(exc)}", file=sys.stderr)
         return RUN_FAILED
     except KeyboardInterrupt:
         print(f"{name}: interrupted", file=sys.stderr)

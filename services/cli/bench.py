@@ -25,9 +25,9 @@ import sys
 
 import numpy as np
 
+from etar.parsing import OneLineErrorParser
 from robot_sim.worlds import TASK_WORLDS
 from services.cli.version import add_version_argument
-from services.cli.parsing import OneLineErrorParser
 from services.cli.network_commands import cmd_certs, cmd_router
 from services.cli.result_commands import (cmd_compare, cmd_diff, cmd_export, cmd_figures, cmd_info, cmd_recover,
                                           cmd_report)

@@ -20,7 +20,7 @@ import sys
 
 import zenoh
 
-from services.cli.parsing import OneLineErrorParser
+from etar.parsing import OneLineErrorParser
 from services.cli.version import add_version_argument
 from services.cli.zenoh_flags import add_zenoh_arguments, zenoh_options
 from services.nodes import NODES

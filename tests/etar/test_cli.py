@@ -5,6 +5,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 from etar.cli import main
 
@@ -74,3 +75,16 @@ def test_learn_writes_to_a_relative_out_whose_folder_does_not_exist(tmp_path, mo
     data = json.loads((tmp_path / "new" / "folder" / "model.json").read_text())
     # the demonstrations are named as absolute paths: the file can be read from anywhere
     assert data["metadata"]["demonstrations"] == [str(tmp_path / "demos" / f"demo_0{i}.npz") for i in (0, 1)]
+
+
+def test_etar_words_argparse_refusals_as_every_program_of_the_testbench_does(capsys):
+    """One parser for every command line (etar.parsing): a flag's wrong value or an unknown
+    subcommand is one line naming the flag and the value, exit 2."""
+
+    for argv, said in ((["learn", "x.npz", "--out", "m.json", "--max-iter", "x"],
+                        "etar learn: error: --max-iter x: expected an integer"),
+                       (["bogus"], "etar: error: command bogus: not one of learn, inspect, synth")):
+        with pytest.raises(SystemExit) as done:
+            main(argv)
+        assert done.value.code == 2
+        assert capsys.readouterr().err.strip().splitlines() == [said]

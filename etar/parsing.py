@@ -1,6 +1,8 @@
-"""The command lines' parser: a usage error is one line on stderr,
-``<prog>: error: <flag> <value>: <problem>``, exit code 2 (argparse's own prints the
-usage first and words its errors ``argument --flag: ...``)."""
+"""The command lines' parser, for ``etar`` and every program of the testbench (which import
+it from here, the lowest package with a command line): a usage error is one line on stderr,
+``<prog>: error: <flag> <value>: <problem>``, exit code 2 (argparse's own prints the usage
+first and words its errors ``argument --flag: ...``).  The standard library only: a
+program's ``--help`` loads nothing else through it."""
 
 from __future__ import annotations
 
@@ -19,7 +21,7 @@ class OneLineErrorParser(argparse.ArgumentParser):
 
 def one_line_error(message: str) -> str:
     """argparse's error ``message`` worded ``<flag> <value>: <problem>`` on one line."""
-    message = " ".join(str(message).split())
+    message = one_line(message)
     m = re.fullmatch(r"argument (?P<flag>[^:]+): (?P<rest>.*)", message)
     if m is None:
         m = re.fullmatch(r"the following arguments are required: (.*)", message)
@@ -49,3 +51,8 @@ def one_line_error(message: str) -> str:
 
 def _unquoted(text: str) -> str:
     return text[1:-1] if len(text) >= 2 and text[0] == text[-1] and text[0] in "'\"" else text
+
+
+def one_line(text) -> str:
+    """Any error's text on one line (its whitespace runs as single spaces)."""
+    return " ".join(str(text).split())
