@@ -14,7 +14,7 @@ growth, and the largest transient of a single step), and C-level allocations
 per step: a malloc counter compiled here with gcc is preloaded into a child
 process run with PYTHONMALLOC=malloc, so that Python objects, numpy arrays,
 numba's runtime and C++ (Pinocchio, eigenpy, MuJoCo) all go through it
-(robot_sim.allocation).  ROBOT_SIM_PINOCCHIO_INPLACE=0 runs the same steps
+(bench/allocation.py).  ROBOT_SIM_PINOCCHIO_INPLACE=0 runs the same steps
 through Pinocchio's bindings instead of robot_sim._pinocchio_inplace.
 """
 
@@ -26,12 +26,6 @@ import time
 import numpy as np
 import pinocchio as pin
 
-from robot_sim.allocation import (
-    MallocCountUnavailable,
-    control_steps,
-    count_mallocs,
-    traced_allocation,
-)
 from robot_sim.cell import RobotCell
 from robot_sim.fri import CommandPacket
 from robot_sim.kinematics import PINOCCHIO_INPLACE, PINOCCHIO_INPLACE_MISSING
@@ -115,6 +109,10 @@ def whole_cell_cycle(cycles: int = 5000):
 
 
 def main():
+    # bench/allocation.py, beside this script (which other benches and the tests import for
+    # its cells and timings alone)
+    from allocation import MallocCountUnavailable, control_steps, count_mallocs, traced_allocation
+
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--cycles", type=int, default=5000)
     parser.add_argument("--no-malloc-count", action="store_true", help="skip the C-level allocation count")
@@ -159,7 +157,7 @@ def main():
         c, b = (x / cycles for x in counts[name]) if counts else (float("nan"), float("nan"))
         print(f"{name:<22} {t:>8.1f} {growth / cycles:>14.1f} {peak:>12d} {c:>13.2f} {b:>14.1f}")
     print("traced: tracemalloc (Python objects, numpy data, numba's runtime); peak: the largest transient of one "
-          "step;\nmallocs: every C-level allocation in the process (robot_sim.allocation: PYTHONMALLOC=malloc, "
+          "step;\nmallocs: every C-level allocation in the process (bench/allocation.py: PYTHONMALLOC=malloc, "
           "counter preloaded)" + (f" -- not measured: {why}" if counts is None else ""))
 
 

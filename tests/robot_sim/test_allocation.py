@@ -1,19 +1,26 @@
 """The 1 ms control step allocates nothing, in every KRC mode.
 
-Two measurements (robot_sim.allocation): tracemalloc in this process, for
+Two measurements (bench/allocation.py): tracemalloc in this process, for
 Python objects, numpy data and numba's runtime; and a malloc counter preloaded
 into a child process, for every C and C++ heap block as well (eigenpy,
 Pinocchio, MuJoCo).  Pinocchio's own bindings copy each numpy vector argument
 into a new Eigen vector; robot_sim._pinocchio_inplace is what removes those.
 """
 
+import runpy
+from pathlib import Path
+
 import numpy as np
 import pinocchio as pin
 import pytest
 
 from robot_sim import kinematics
-from robot_sim.allocation import CONTROL_STEPS, count_mallocs, traced_allocation
 from robot_sim.kinematics import ArmKinematics
+
+# a measuring tool, not part of the simulation: it lives with the benches
+ALLOCATION = runpy.run_path(str(Path(__file__).resolve().parents[2] / "bench" / "allocation.py"))
+CONTROL_STEPS, count_mallocs, traced_allocation = (ALLOCATION[n] for n in ("CONTROL_STEPS", "count_mallocs",
+                                                                           "traced_allocation"))
 
 STEPS = 2000
 

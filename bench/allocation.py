@@ -14,7 +14,7 @@ steps in a child process with a malloc counter preloaded (LD_PRELOAD, compiled
 here with the system's C compiler) and PYTHONMALLOC=malloc, so Python's own
 objects go through it too.
 
-    python -m robot_sim.allocation [--steps 2000]
+    python bench/allocation.py [--steps 2000]
 
 prints both for the control step of every KRC mode (``control_steps``).
 """
@@ -248,7 +248,7 @@ def count_mallocs(steps: int = 2000, modes: list[str] | None = None) -> dict[str
         if built.returncode != 0:
             raise MallocCountUnavailable(f"{cc} failed on the malloc counter: {built.stderr.strip()}")
         env = dict(os.environ, LD_PRELOAD=lib, PYTHONMALLOC="malloc", **{_COUNTER_ENV: lib})
-        child = subprocess.run([sys.executable, "-m", "robot_sim.allocation", "--child", "--steps", str(steps),
+        child = subprocess.run([sys.executable, os.path.abspath(__file__), "--child", "--steps", str(steps),
                                 "--modes", ",".join(modes)], check=False, env=env, capture_output=True,
                                text=True)
     if child.returncode != 0:
@@ -259,7 +259,7 @@ def count_mallocs(steps: int = 2000, modes: list[str] | None = None) -> dict[str
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m robot_sim.allocation", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python bench/allocation.py", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--steps", type=int, default=2000, help="control steps per mode (default 2000)")
     parser.add_argument("--modes", default=",".join(CONTROL_STEPS), help="comma-separated KRC modes")
