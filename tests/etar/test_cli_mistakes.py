@@ -60,7 +60,7 @@ def demos(tmp_path_factory):
     (["--phases", "2", "--length", "2"], "etar synth: error: --length: must be an integer >= 3 (a sample more than "
                                          "one step per phase of --phases 2), got 2"),
     (["--seed", "-1"], "etar synth: error: --seed: must be an integer >= 0, got -1"),
-    (["--phases", "x"], "etar synth: error: argument --phases: invalid int value: 'x'"),
+    (["--phases", "x"], "etar synth: error: --phases x: expected an integer"),
 ])
 def test_synth_refuses_a_bad_number(tmp_path, capsys, flags, line):
     out = tmp_path / "out"
@@ -103,8 +103,8 @@ LEARN_FLAG_CASES = [
     (["--phases", "40"], "--phases: a 40-phase model has 7476 free parameters, more than the 597 steps of the "
                          "demonstrations (record more or use fewer phases), got 40"),
     (["--seed", "-3"], "--seed: must be an integer >= 0, got -3"),
-    (["--criterion", "xic"], "argument --criterion: invalid choice: 'xic' (choose from 'bic', 'aic')"),
-    (["--max-iter", "many"], "argument --max-iter: invalid int value: 'many'"),
+    (["--criterion", "xic"], "--criterion xic: not one of bic, aic"),
+    (["--max-iter", "many"], "--max-iter many: expected an integer"),
 ]
 
 
