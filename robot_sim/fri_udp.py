@@ -243,7 +243,7 @@ class FriUdpEndpoint:
                 return
             self.counters.received += 1
             self.last_source = source
-            if source[:2] != self._remote_source:
+            if source != self._remote_source:  # (host, port): an AF_INET address
                 self.counters.foreign += 1
                 self.last_reject_reason = f"a datagram from {source[0]}:{source[1]}, not the remote " \
                                           f"{self._remote_source[0]}:{self._remote_source[1]}"

@@ -86,20 +86,8 @@ def test_serve_a_lab_remote_and_a_net_ft_client(tmp_path):
 
 def _serve_a_lab_remote_and_a_net_ft_client(pynetft, out: Path) -> str | None:
     with Remote("frilibrary", strategy=20) as remote:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "services.cli.bench", "serve", "scenarios/smoke.yaml", "--out", str(out),
-             "--fri-remote", f"127.0.0.1:{remote.port}", "--netft", "127.0.0.1", "--netft-rdt-port", "0",
-             "--netft-http-port", "0", "--netft-calibration-port", "0", "--max-seconds", "14",
-             ],
-            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        proc, box = _start_serve_with_box(out, remote.port, 14)
         try:
-            box = None
-            for line in proc.stderr:
-                found = BOX_LINE.search(line)
-                if found:
-                    box = found
-                    break
-            assert box is not None, "serve never said where its Net F/T box is"
             address, rdt, http = box.group(1), int(box.group(2)), int(box.group(3))
             wait_for(lambda: remote.received > 200, 10, "measurement datagrams")
             assert int(remote.last["intf"]["state"]) == FriState.MON and remote.krl_state == 10
@@ -187,6 +175,22 @@ def _children(pid: int) -> list[int]:
         text = (task / "children").read_text().split()
         out += [int(c) for c in text]
     return out
+
+
+def _start_serve_with_box(out: Path, remote_port: int, seconds: int):
+    """``etar-bench serve`` with a Net F/T box on free ports: the process, and the match of
+    the line that says where the box is (address, RDT, HTTP, calibration ports)."""
+    proc = popen_as_from_a_terminal(
+        [sys.executable, "-m", "services.cli.bench", "serve", "scenarios/smoke.yaml", "--out", str(out),
+         "--fri-remote", f"127.0.0.1:{remote_port}", "--netft", "127.0.0.1", "--netft-rdt-port", "0",
+         "--netft-http-port", "0", "--netft-calibration-port", "0", "--max-seconds", str(seconds)],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    for line in proc.stderr:
+        box = BOX_LINE.search(line)
+        if box:
+            return proc, box
+    proc.kill()
+    raise AssertionError(f"serve never said where its Net F/T box is: {proc.communicate()}")
 
 
 def _start_serve(out: Path, remote_port: int, seconds: int) -> subprocess.Popen:
@@ -294,18 +298,8 @@ def test_clients_that_trickle_do_not_hold_serving_past_its_end(tmp_path):
     service exits by itself (exit codes 0), and the report says so."""
     out = tmp_path / "served"
     with Remote("frilibrary") as remote:
-        proc = popen_as_from_a_terminal(
-            [sys.executable, "-m", "services.cli.bench", "serve", "scenarios/smoke.yaml", "--out", str(out),
-             "--fri-remote", f"127.0.0.1:{remote.port}", "--netft", "127.0.0.1", "--netft-rdt-port", "0",
-             "--netft-http-port", "0", "--netft-calibration-port", "0", "--max-seconds", "4"],
-            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        proc, box = _start_serve_with_box(out, remote.port, 4)
         try:
-            box = None
-            for line in proc.stderr:
-                box = BOX_LINE.search(line)
-                if box:
-                    break
-            assert box is not None, "serve never said where its Net F/T box is"
             started = time.monotonic()
             address, http, calibration = box.group(1), int(box.group(3)), int(box.group(4))
             with trickling([(address, http), (address, calibration)], 1.5):
