@@ -271,11 +271,12 @@ def _pool(workers: int):
 
 
 class SweepInterrupted(KeyboardInterrupt):
-    """A sweep stopped by SIGINT or SIGTERM: what had finished is tabulated (``summary``)."""
+    """A sweep stopped by SIGINT or SIGTERM: the rows of the runs it had (``execute``), and
+    once they are tabulated, the sweep's summary (``sweep``)."""
 
-    def __init__(self, why: str, summary: dict | None = None):
+    def __init__(self, why: str, rows: list | None = None, summary: dict | None = None):
         super().__init__(why)
-        self.why, self.summary = why, summary
+        self.why, self.rows, self.summary = why, rows or [], summary
 
 
 # how long the pool's workers get to write their interrupted runs' reports before they are killed
@@ -353,7 +354,7 @@ def execute(specs: list[RunSpec], workers: int, cluster: str | None, say=print) 
             for fut, spec in futures.items():  # finished while the signal was handled
                 if spec.index not in rows and fut.done() and not fut.cancelled() and fut.exception() is None:
                     rows[spec.index] = fut.result()
-            raise SweepInterrupted(str(exc) or "SIGINT", {"rows": [rows[i] for i in sorted(rows)]}) from None
+            raise SweepInterrupted(str(exc) or "SIGINT", [rows[i] for i in sorted(rows)]) from None
         pool.shutdown(wait=True)
     bar.close()
     return [rows[i] for i in sorted(rows)]
@@ -430,8 +431,8 @@ def _tabulate_interrupted(stop: SweepInterrupted, specs, out_dir: Path, scenario
                           wall: float) -> dict:
     """The table of the runs that finished before the signal, and sweep.json marked
     incomplete (which runs were interrupted, which never started)."""
-    rows = [r for r in (stop.summary or {}).get("rows", []) if not r.get("interrupted")]
-    interrupted = [r["run"] for r in (stop.summary or {}).get("rows", []) if r.get("interrupted") == "interrupted"]
+    rows = [r for r in stop.rows if not r.get("interrupted")]
+    interrupted = [r["run"] for r in stop.rows if r.get("interrupted") == "interrupted"]
     finished = {r["run"] for r in rows}
     not_started = [s.name for s in specs if s.name not in finished and s.name not in interrupted]
     csv_path, _ = write_table(by_model_rows(rows), out_dir) if rows else (None, None)
@@ -537,8 +538,8 @@ def sweep(scenario: Scenario, parameters: list, *, repeats: int, out: str, recor
     try:
         rows = execute(specs, min(workers, len(specs)), cluster, say)
     except SweepInterrupted as stop:
-        raise SweepInterrupted(stop.why, _tabulate_interrupted(stop, specs, out_dir, scenario, parameters, repeats,
-                                                              time.monotonic() - t0)) from None
+        raise SweepInterrupted(stop.why, stop.rows, _tabulate_interrupted(stop, specs, out_dir, scenario, parameters,
+                                                                          repeats, time.monotonic() - t0)) from None
     wall = time.monotonic() - t0
     n_runs, n_failed = len(rows), sum(1 for r in rows if r.get("error"))
     rows = by_model_rows(rows)
