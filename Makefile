@@ -11,7 +11,7 @@ OUT ?= out/$(basename $(notdir $(SCENARIO)))
 
 .PHONY: run test test-fast bench venv clean browser foxglove-schemas foxglove-studio
 
-$(STAMP): pyproject.toml setup.py robot_sim/native/pinocchio_inplace.cpp
+$(STAMP): pyproject.toml setup.py robot_sim/arm/native/pinocchio_inplace.cpp
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade "pip>=24,<27"
 	$(BIN)/python -m pip install --quiet -e ".[test,cluster]"

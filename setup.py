@@ -1,4 +1,4 @@
-"""The project's one compiled part: robot_sim._pinocchio_inplace (see its source).
+"""The project's one compiled part: robot_sim.arm._pinocchio_inplace (see its source).
 
 Everything else is in pyproject.toml.  The extension is compiled against the
 headers and libraries of the pin wheel in the build environment (pinned to the
@@ -29,8 +29,8 @@ def pinocchio_inplace() -> Extension:
     prefix = cmeel_prefix()
     lib = prefix / "lib"
     return Extension(
-        "robot_sim._pinocchio_inplace",
-        sources=["robot_sim/native/pinocchio_inplace.cpp"],
+        "robot_sim.arm._pinocchio_inplace",
+        sources=["robot_sim/arm/native/pinocchio_inplace.cpp"],
         include_dirs=[str(prefix / "include"), str(prefix / "include" / "eigen3"), numpy.get_include()],
         # the compile definitions of the pinocchio::pinocchio_default CMake target
         # (lib/cmake/pinocchio/pinocchioTargets.cmake): they fix the joint variant's size
@@ -39,9 +39,9 @@ def pinocchio_inplace() -> Extension:
                        ("PINOCCHIO_ENABLE_TEMPLATE_INSTANTIATION", None), ("PINOCCHIO_WITH_COLLISION", None)],
         library_dirs=[str(lib)],
         libraries=["pinocchio_default", "eigenpy", f"boost_python{sys.version_info.major}{sys.version_info.minor}"],
-        # installed: site-packages/robot_sim -> site-packages/cmeel.prefix/lib; an
+        # installed: site-packages/robot_sim/arm -> site-packages/cmeel.prefix/lib; an
         # editable install finds them because `import pinocchio` loaded them first
-        runtime_library_dirs=["$ORIGIN/../cmeel.prefix/lib"],
+        runtime_library_dirs=["$ORIGIN/../../cmeel.prefix/lib"],
         extra_compile_args=["-std=c++17", "-O2", "-g0", "-Wno-deprecated-declarations"],
         language="c++",
         optional=True,

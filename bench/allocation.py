@@ -35,17 +35,11 @@ from collections.abc import Callable
 import numpy as np
 import pinocchio as pin
 
-from robot_sim.kinematics import READY, ArmKinematics
-from robot_sim.krc import (
-    POSITION,
-    ImpedanceCommand,
-    KrcController,
-    SafetyReason,
-    pose_to_cart_pos,
-)
-from robot_sim.physics import Simulation
-from robot_sim.teacher import DOWN
-from robot_sim.worlds import Valley, free_space, valley
+from robot_sim.arm.kinematics import ArmKinematics, READY
+from robot_sim.krc.law import ImpedanceCommand, KrcController, POSITION, SafetyReason, pose_to_cart_pos
+from robot_sim.world.physics import Simulation
+from robot_sim.world.teacher import DOWN
+from robot_sim.world.tasks import Valley, free_space, valley
 
 WARM_UP = 300  # covers numba's first calls and several Lambda refreshes
 HAND = np.array([0.0, 1.5, -0.5, 0.05, 0.0, 0.02])  # a light touch: the hand path of apply() runs too

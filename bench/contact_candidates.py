@@ -3,7 +3,7 @@
     python bench/contact_candidates.py                  # every candidate, the table (~2 min)
     python bench/contact_candidates.py --only shipped,dd8d265
 
-Each candidate is a change to the shipped worlds' MuJoCo contact (robot_sim.worlds:
+Each candidate is a change to the shipped worlds' MuJoCo contact (robot_sim.world.tasks:
 the cone, impratio, the friction rows' solreffriction, the normal's solref and solimp,
 noslip, the physics step, the coupler's torsional friction).  For each, scripted episodes on the bare cell (no
 services: the cell, the simulated teacher holding the tool, 1 ms FRI cycles) measure:
@@ -46,11 +46,10 @@ from typing import Callable
 import numpy as np
 
 from robot_sim.cell import RobotCell
-from robot_sim.labels import CouplerLabeler, ValleyLabeler
-from robot_sim.teacher import DOWN, HoseCouplerTeacher, ValleyTeacher
-from robot_sim.worlds import (FRICTION_DAMPING, IMPRATIO, NORMAL_SOLIMP, NORMAL_SOLREF, HoseCoupler, Valley,
-                              WorldSpec, hose_coupler, physics_step)
-from robot_sim.worlds import valley as valley_world
+from robot_sim.world.labels import CouplerLabeler, ValleyLabeler
+from robot_sim.world.teacher import DOWN, HoseCouplerTeacher, ValleyTeacher
+from robot_sim.world.tasks import (FRICTION_DAMPING, HoseCoupler, IMPRATIO, NORMAL_SOLIMP, NORMAL_SOLREF,
+                                   Valley, WorldSpec, hose_coupler, physics_step, valley as valley_world)
 
 VALLEY_START = (0.62, -0.06, 0.30)  # the smoke scenario's: low over the left plate, the groove 4 s later
 VALLEY_GOAL_X = 0.57
@@ -177,7 +176,7 @@ def estimator_rms(a: Episode, b: Episode) -> float:
 
 def _edit(impratio=None, friction_damping=None, solref=None, solimp=None, cone=None, noslip=None, torsional=None,
           frictionless=False) -> Callable[[str], str]:
-    """An edit of a shipped world's XML (robot_sim.worlds' header and pairs)."""
+    """An edit of a shipped world's XML (robot_sim.world.tasks' header and pairs)."""
     def edit(xml: str) -> str:
         if impratio is not None:
             xml = xml.replace(f'impratio="{IMPRATIO!r}"', f'impratio="{impratio!r}"')

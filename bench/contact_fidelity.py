@@ -49,7 +49,7 @@ import numpy as np
 SLIDING_MPS = 0.005  # above: the tip slides
 STUCK_MPS = 0.001  # below: it sticks
 MIN_NORMAL_N = 1.0
-TIP_RADIUS = 0.010  # m: robot_sim.lwr4's tool tip (the tcp is its centre)
+TIP_RADIUS = 0.010  # m: robot_sim.arm.description's tool tip (the tcp is its centre)
 ESTIMATOR_SAMPLE = 10  # 1 ms cycles per estimator sample (100 Hz)
 DIFFERENCE_STEPS = 20  # the measured pose is differenced over this many cycles where no true velocity is recorded
 
@@ -100,10 +100,10 @@ def recordings_of(paths) -> list[Path]:
 
 def _surfaces(scenario: dict) -> tuple[str, dict, dict]:
     """(world, geom -> mu, geom -> normal function) of a recording's scenario, from the
-    world as robot_sim.worlds builds it with the scenario's friction."""
+    world as robot_sim.world.tasks builds it with the scenario's friction."""
     import mujoco
 
-    from robot_sim.worlds import WORLDS, Valley, valley
+    from robot_sim.world.tasks import Valley, WORLDS, valley
 
     world = scenario.get("world", "valley")
     if world not in WORLDS:

@@ -26,9 +26,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-import robot_sim.ati as ati  # noqa: E402
-import robot_sim.krc as krc  # noqa: E402
-import robot_sim.physics as physics  # noqa: E402
+import robot_sim.ati.sensor as ati  # noqa: E402
+import robot_sim.krc.law as krc  # noqa: E402
+import robot_sim.world.physics as physics
 from node_costs import timed  # noqa: E402  (bench/, beside this script)
 
 # (module, the name the cell calls, the dispatcher it is the machine code of)

@@ -20,7 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import pinocchio as pin  # noqa: E402
 
 from robot_sim import cell as cell_module  # noqa: E402
-from robot_sim.worlds import valley  # noqa: E402
+from robot_sim.world.tasks import valley
 
 
 def per_call_ns(f, calls: int) -> float:

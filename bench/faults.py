@@ -35,8 +35,8 @@ START = [0.62, -0.06, 0.30]
 
 
 def cell(sensor=None, **faults):
-    """The reproduction's nodes in one process; ``faults``: the FRI link's (robot_sim.fri.LinkFaultSpec)."""
-    from robot_sim.fri import LinkFaultSpec
+    """The reproduction's nodes in one process; ``faults``: the FRI link's (robot_sim.krc.faults.LinkFaultSpec)."""
+    from robot_sim.krc.faults import LinkFaultSpec
     from services.nodes import CommanderConfig, EstimatorConfig, FtSensorConfig, RecorderConfig, RobotConfig
     from services.transport.inproc import InProcessCell
 

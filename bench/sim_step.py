@@ -15,7 +15,7 @@ per step: a malloc counter compiled here with gcc is preloaded into a child
 process run with PYTHONMALLOC=malloc, so that Python objects, numpy arrays,
 numba's runtime and C++ (Pinocchio, eigenpy, MuJoCo) all go through it
 (bench/allocation.py).  ROBOT_SIM_PINOCCHIO_INPLACE=0 runs the same steps
-through Pinocchio's bindings instead of robot_sim._pinocchio_inplace.
+through Pinocchio's bindings instead of robot_sim.arm._pinocchio_inplace.
 """
 
 from __future__ import annotations
@@ -27,11 +27,11 @@ import numpy as np
 import pinocchio as pin
 
 from robot_sim.cell import RobotCell
-from robot_sim.fri import CommandPacket
-from robot_sim.kinematics import PINOCCHIO_INPLACE, PINOCCHIO_INPLACE_MISSING
-from robot_sim.krc import ImpedanceCommand, pose_to_cart_pos
-from robot_sim.teacher import DOWN
-from robot_sim.worlds import Valley, valley
+from robot_sim.krc.packets import CommandPacket
+from robot_sim.arm.kinematics import PINOCCHIO_INPLACE, PINOCCHIO_INPLACE_MISSING
+from robot_sim.krc.law import ImpedanceCommand, pose_to_cart_pos
+from robot_sim.world.teacher import DOWN
+from robot_sim.world.tasks import Valley, valley
 
 
 def per_step(fn, cycles):
@@ -148,7 +148,7 @@ def main():
         except MallocCountUnavailable as e:
             why = str(e)
     print(f"\ncontrol step (q, qd -> krc.compute -> apply -> step), {cycles} steps per mode; Pinocchio update: "
-          + ("robot_sim._pinocchio_inplace" if PINOCCHIO_INPLACE else f"the bindings ({PINOCCHIO_INPLACE_MISSING})"))
+          + ("robot_sim.arm._pinocchio_inplace" if PINOCCHIO_INPLACE else f"the bindings ({PINOCCHIO_INPLACE_MISSING})"))
     print(f"{'KRC mode':<22} {'us/step':>8} {'traced B/step':>14} {'peak B/step':>12} {'mallocs/step':>13} "
           f"{'malloc B/step':>14}")
     for name, (step, _) in control_steps().items():

@@ -26,7 +26,7 @@ import time
 
 import mujoco
 
-import robot_sim.physics as physics
+import robot_sim.world.physics as physics
 from sim_step import commanded_cycles, law_and_physics, pressed_cell
 
 _ns = time.perf_counter_ns
@@ -34,7 +34,7 @@ _ns = time.perf_counter_ns
 
 class TimedStep:
     """``mujoco.mj_step`` with its own time and the solver's iterations added up; stands in
-    for the ``mujoco`` module robot_sim.physics calls while a timing runs."""
+    for the ``mujoco`` module robot_sim.world.physics calls while a timing runs."""
 
     def __init__(self, only=None):
         self.only = only  # the MjData whose steps count (None: every one)

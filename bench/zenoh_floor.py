@@ -34,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import zenoh  # noqa: E402
 
-from robot_sim.fri import FRI_CYCLE_NS  # noqa: E402
+from robot_sim.cycle import FRI_CYCLE_NS
 from services.runtime.messages import estimator_instant  # noqa: E402
 from services.transport.launch import free_port  # noqa: E402
 from services.transport.session import ZenohOptions, open_session  # noqa: E402

@@ -4,7 +4,7 @@ numba wraps every ndarray argument of a call in a freshly allocated MemInfo
 (48 B through PyMem_RawMalloc, freed on return) and types each argument at the
 call, so a per-cycle kernel called with arrays allocates however little it
 computes, and costs microseconds before it starts.  Plain ints cost nothing to pass: the
-per-cycle kernels (robot_sim.physics, robot_sim.krc, robot_sim.ati) take the
+per-cycle kernels (robot_sim.world.physics, robot_sim.krc.law, robot_sim.ati.sensor) take the
 addresses of preallocated float64 buffers and view them with ``carray_at``/``farray_at``.
 Whoever takes an address keeps the array alive and never resizes it.
 

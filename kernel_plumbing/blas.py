@@ -44,7 +44,7 @@ _NATIVE = {types.int32: ir.IntType(32), types.int64: ir.IntType(64), types.float
 def foreign(ret, *argtypes):
     """A numba intrinsic ``call(address, *args)`` of a C function of these types (numba's
     int32, int64, float64; pointers as int64 addresses): BLAS's here, MuJoCo's in
-    robot_sim.physics."""
+    robot_sim.world.physics."""
 
     def codegen(context, builder, signature, llargs):
         fnty = ir.FunctionType(_NATIVE[ret], [_NATIVE[t] for t in argtypes])

@@ -21,15 +21,16 @@ import pinocchio as pin
 from numba import njit
 
 from kernel_plumbing import blas
-from robot_sim.ati import AtiConfig, AtiSensor, RdtRecord
-from robot_sim.fri import (CommandPacket, ControlMode, CycleOutcome, FriConfig, FriLink, FriState, LinkFaults,
-                           MeasurementPacket)
-from robot_sim.fri_wire import MeasurementExtras, jacobian_to_fri
 from kernel_plumbing.addresses import JIT, HoldsAddresses, address, addresses, carray_at, entry
-from robot_sim.kinematics import READY, ArmKinematics
-from robot_sim.krc import ImpedanceCommand, KrcConfig, KrcController
-from robot_sim.physics import Simulation
-from robot_sim.worlds import TIMESTEP, WorldSpec
+from robot_sim.arm.kinematics import READY, ArmKinematics
+from robot_sim.ati.rdt import RdtRecord
+from robot_sim.ati.sensor import AtiConfig, AtiSensor
+from robot_sim.krc.faults import LinkFaults
+from robot_sim.krc.link import CycleOutcome, FriConfig, FriLink
+from robot_sim.krc.packets import CommandPacket, ControlMode, FriState, MeasurementExtras, MeasurementPacket, fri_order
+from robot_sim.krc.law import ImpedanceCommand, KrcConfig, KrcController
+from robot_sim.world.physics import Simulation
+from robot_sim.world.tasks import TIMESTEP, WorldSpec
 
 # Noise of the measured joint positions FRI reports (rad, per joint, white).
 # Not from a KUKA datasheet (none gives it): chosen so the reported tcp position
@@ -327,7 +328,7 @@ class RobotCell(HoldsAddresses):
         return MeasurementExtras(
             cmd_jnt_pos=cmd_jnt, cmd_cart_pos=cmd_cart if self.krc.mode == ControlMode.CART_IMP else None,
             msr_jnt_trq=self.krc.last_tau.copy(), est_ext_jnt_trq=self._tau_ext.copy(),
-            jacobian=jacobian_to_fri(jacobian), mass_matrix=mass, gravity=gravity.copy(),
+            jacobian=fri_order(jacobian), mass_matrix=mass, gravity=gravity.copy(),
             miss_counter=self.fri.statistics().missed, error=int(self.krc.safety), sample_time_s=self.cycle_ns * 1e-9)
 
     def receive(self, command: CommandPacket, t_arrival_ns: int) -> bool:

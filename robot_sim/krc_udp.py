@@ -21,10 +21,10 @@ import time
 from collections.abc import Callable
 
 from robot_sim.cell import RobotCell
-from robot_sim.fri import CommandPacket, FriState, MeasurementPacket
-from robot_sim.fri_udp import FriUdpEndpoint
-from robot_sim.fri_wire import REMOTE_PORT
-from robot_sim.krl import KrlProgram
+from robot_sim.krc.packets import CommandPacket, FriState, MeasurementPacket
+from robot_sim.wire.fri_udp import FriUdpEndpoint
+from robot_sim.wire.fri_datagrams import REMOTE_PORT
+from robot_sim.krc.krl import KrlProgram
 
 __all__ = ["UdpKrc"]
 

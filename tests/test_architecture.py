@@ -1,7 +1,7 @@
 """The import rules of docs/architecture.md, read from the code: every import in services/
-points down the list of wings (lazy imports inside functions count too), etar/ and
-robot_sim/ import neither services/ nor each other, and kernel_plumbing/, which both
-import, imports none of the three."""
+and in robot_sim/ points down its list of wings (lazy imports inside functions count too),
+etar/ and robot_sim/ import neither services/ nor each other, kernel_plumbing/, which both
+import, imports none of the three, and no module imports itself back through others."""
 
 import ast
 import json
@@ -18,6 +18,22 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # lowest first: a wing may import the wings before it, never one after it
 WINGS = ("runtime", "scenario", "recordings", "foxglove", "nodes", "transport", "results", "run", "cli")
+
+
+# robot_sim/: each part and what of robot_sim it may import.  The wire is bytes and sockets:
+# it reads the packets, the KRL channels and the RDT record, never the law, the link's
+# books or the physics; the cell composes the parts the lab's KRC holds, not the wire.
+SIM_PARTS = {
+    "cycle": (),
+    "arm": ("cycle",),
+    "world": ("cycle", "arm"),
+    "ati": ("cycle",),
+    "krc": ("cycle", "arm"),
+    "wire": ("cycle", "krc.packets", "krc.krl", "ati"),
+    "cell": ("cycle", "arm", "world", "ati", "krc"),
+    "krc_udp": ("cycle", "arm", "world", "ati", "krc", "wire", "cell"),
+}
+SIM_TOP_MODULES = 3  # robot_sim/'s top holds the cycle, the cell and at most one more: the rest is in parts
 
 
 def imports(path: Path, text: str | None = None):
@@ -42,6 +58,24 @@ def imports(path: Path, text: str | None = None):
 def wing_of(module: str) -> str | None:
     parts = module.split(".")
     return parts[1] if parts[0] == "services" and len(parts) > 1 and parts[1] in WINGS else None
+
+
+def sim_part(module: str) -> str | None:
+    """The part of robot_sim/ a module belongs to ("krc.packets" for the wire's allowed
+    pieces of krc/, else the folder or the top module's name)."""
+    parts = module.split(".")
+    if parts[0] != "robot_sim" or len(parts) < 2:
+        return None
+    if parts[1] == "krc" and len(parts) > 2 and parts[2] in ("packets", "krl"):
+        return f"krc.{parts[2]}"
+    return parts[1]
+
+
+def sim_allowed(part: str, target: str) -> bool:
+    if target.split(".")[0] == part.split(".")[0]:
+        return True
+    allowed = SIM_PARTS[part.split(".")[0]]
+    return target in allowed or target.split(".")[0] in allowed
 
 
 def sources(folder: str):
@@ -104,11 +138,11 @@ def test_a_service_process_imports_its_own_node_only():
     loads; its node's own start-up is not covered): its node's module and none of the other
     roles' (their imports cost every process of a run a second or more: services.nodes),
     MuJoCo only in the robot, the cell's compiled kernels only in the robot and the sensor
-    (a reader of the Net F/T's wire needs robot_sim.rdt, not the sensor model)."""
+    (a reader of the Net F/T's wire needs robot_sim.ati.rdt, not the sensor model)."""
     probe = ("import json, sys\nfrom services.cli.roles import build_parser\nbuild_parser(sys.argv[1])\n"
              "print(json.dumps({'nodes': [m for m in sys.modules if m.startswith('services.nodes.')],"
              " 'mujoco': 'mujoco' in sys.modules,"
-             " 'kernels': any(m in sys.modules for m in ('robot_sim.physics', 'robot_sim.krc', 'robot_sim.ati'))}))\n")
+             " 'kernels': any(m in sys.modules for m in ('robot_sim.world.physics', 'robot_sim.krc.law', 'robot_sim.ati.sensor'))}))\n")
     roles = tuple(ROLES)
     # one process per role, all at once: the test's cost is one start-up, not seven
     probes = {role: subprocess.Popen([sys.executable, "-c", probe, role], cwd=ROOT, stdout=subprocess.PIPE,
@@ -122,6 +156,107 @@ def test_a_service_process_imports_its_own_node_only():
         assert f"services.nodes.{role}" in loaded["nodes"], loaded
         assert loaded["mujoco"] == (role == "robot"), f"{role}: MuJoCo loaded: {loaded['mujoco']}"
         assert loaded["kernels"] == (role in ("robot", "ft_sensor")), f"{role}: the cell's kernels loaded: {loaded}"
+
+
+def test_robot_sim_is_in_parts_with_few_modules_at_its_top():
+    top = sorted(p.stem for p in (ROOT / "robot_sim").glob("*.py") if p.name != "__init__.py")
+    folders = sorted(p.name for p in (ROOT / "robot_sim").iterdir() if p.is_dir() and not p.name.startswith(("_", ".")))
+    assert len(top) <= SIM_TOP_MODULES, f"robot_sim/ has {len(top)} modules at its top: {top}"
+    assert set(top) | set(folders) == set(SIM_PARTS), (top, folders)
+    text = (ROOT / "docs" / "architecture.md").read_text()
+    for part in folders:
+        assert f"`robot_sim/{part}/`" in text, f"docs/architecture.md says nothing of robot_sim/{part}/"
+
+
+def sim_wrong(path: Path, text: str | None = None) -> list[str]:
+    rel = path.relative_to(ROOT / "robot_sim")
+    part = rel.parts[0] if len(rel.parts) > 1 else rel.stem
+    if part == "__init__.py":
+        return []
+    return [f"{path.relative_to(ROOT)}:{line} imports {module} (robot_sim/{part} may import "
+            f"{', '.join(SIM_PARTS[part]) or 'nothing'} of robot_sim)"
+            for module, line in imports(path, text)
+            if (target := sim_part(module)) is not None and not sim_allowed(part, target)]
+
+
+def test_each_part_of_robot_sim_imports_only_what_its_rule_allows():
+    wrong = [w for path in sources("robot_sim") for w in sim_wrong(path)]
+    assert not wrong, "\n".join(wrong)
+
+
+@pytest.mark.parametrize("where,text,bad", [
+    ("wire/probe.py", "from robot_sim.krc.law import KrcController\n", True),
+    ("wire/probe.py", "from robot_sim.world import physics\n", True),
+    ("wire/probe.py", "def f():\n    from robot_sim.cell import RobotCell\n", True),
+    ("wire/probe.py", "from robot_sim.krc.packets import CommandPacket\nfrom robot_sim.ati.rdt import RdtRecord\n", False),
+    ("cycle.py", "from robot_sim.arm.description import LWR4\n", True),
+    ("ati/probe.py", "from robot_sim.krc.packets import FriState\n", True),
+    ("world/probe.py", "from robot_sim.krc.link import FriLink\n", True),
+    ("cell.py", "from robot_sim.wire.fri_udp import FriUdpEndpoint\n", True),
+    ("krc/probe.py", "from robot_sim.arm.kinematics import ArmKinematics\nfrom . import link\n", False),
+])
+def test_the_robot_sim_rule_catches_a_probe_that_breaks_it(where, text, bad):
+    assert bool(sim_wrong(ROOT / "robot_sim" / where, text)) == bad
+
+
+def import_graph() -> dict[str, set[str]]:
+    """Every product module and the product modules it imports (lazy imports count)."""
+    modules = {}
+    for package in ("etar", "robot_sim", "kernel_plumbing", "services"):
+        for path in sources(package):
+            name = ".".join(path.relative_to(ROOT).with_suffix("").parts)
+            modules[name.removesuffix(".__init__")] = path
+    graph = {}
+    for name, path in modules.items():
+        graph[name] = {m for m, _ in imports(path) if m in modules and m != name}
+    return graph
+
+
+def circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected groups of more than one module (Tarjan), each a circle."""
+    index, low, stack, on, out, counter = {}, {}, [], set(), [], [0]
+
+    def visit(v):
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            group = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                group.append(w)
+                if w == v:
+                    break
+            if len(group) > 1:
+                out.append(sorted(group))
+
+    sys.setrecursionlimit(max(sys.getrecursionlimit(), 10_000))
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_no_module_imports_itself_back_through_others():
+    """A package's __init__ that re-exports lazily is the one pattern allowed to point at
+    its own children (``services/__init__``'s run_scenario)."""
+    graph = import_graph()
+    for name in graph:
+        graph[name] = {m for m in graph[name] if not (name.count(".") == 0 and m.startswith(name + "."))}
+    assert circles(graph) == []
+
+
+def test_the_circle_check_finds_a_circle():
+    assert circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert circles({"a": {"b"}, "b": set()}) == []
 
 
 def test_the_zenoh_port_has_one_home_that_compose_follows():

@@ -26,7 +26,7 @@ import sys
 import numpy as np
 
 from etar.parsing import OneLineErrorParser
-from robot_sim.worlds import TASK_WORLDS
+from robot_sim.world.tasks import TASK_WORLDS
 from services.cli.version import add_version_argument
 from services.cli.network_commands import cmd_certs, cmd_router
 from services.cli.result_commands import (cmd_compare, cmd_diff, cmd_export, cmd_figures, cmd_info, cmd_recover,
@@ -67,9 +67,9 @@ def build_parser() -> OneLineErrorParser:
     from services.run.options import WIRES, RunOptions
     from services.runtime.cycle import CLOCKS
     from services.runtime.roles import FIFO_CHAIN
-    from services.transport.cell import TRANSPORTS
+    from services.transport.carriers import TRANSPORTS
 
-    from robot_sim.krl import LAB_CONVENTIONS
+    from robot_sim.krc.krl import LAB_CONVENTIONS
     from services.run.serve import ServeOptions
 
     fifo = ", ".join(f"{role} {priority}" for role, priority in FIFO_CHAIN)

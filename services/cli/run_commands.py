@@ -121,7 +121,7 @@ def cmd_check(args) -> int:
 def cmd_demo(args) -> int:
     """One demonstration by the teacher, run by the nodes in one process; its recording,
     and on request a picture and the arrays ``etar learn`` reads."""
-    from robot_sim.labels import LABELERS
+    from robot_sim.world.labels import LABELERS
     from services.recordings.demonstrations import load_demonstration
     from services.recordings.format import RecordingError
     from services.run.demonstration import demonstration_scenario, record_demonstration

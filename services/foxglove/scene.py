@@ -6,7 +6,7 @@ rate (50 Hz by default: one in every 20 FRI cycles):
 
 - ``/viz/tf`` (``foxglove.FrameTransforms``): every link frame and the tcp in
   ``base``, from the measured joint positions through the KRC's kinematic model
-  (Pinocchio, ``robot_sim.kinematics``: the one URDF both simulator and KRC use);
+  (Pinocchio, ``robot_sim.arm.kinematics``: the one URDF both simulator and KRC use);
 - ``/viz/geometry`` (``foxglove.SceneUpdate``): the arm's links and the task world
   (plates and groove, or coupler) as the MuJoCo model the physics runs has them,
   each arm geom attached to its link's frame, sent at the first visual frame and
@@ -40,7 +40,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from robot_sim.fri import FRI_RATE_HZ
+from robot_sim.cycle import FRI_RATE_HZ
 from services.runtime.visual_topics import (TOPIC_GEOMETRY, TOPIC_LOG, TOPIC_SCENE, TOPIC_STATUS, TOPIC_TF,
                                             VISUAL_RATE_HZ, check_visual_rate)
 
@@ -130,12 +130,12 @@ def _entity(stamp_ns: int, frame_id: str, entity_id: str, **primitives) -> dict:
 @lru_cache(maxsize=None)
 def world_geometry(world: str) -> tuple:
     """(frame_id, kind, pose, size, rgba) of every geom the physics has, from the MuJoCo
-    model of the world (``robot_sim.worlds``): the task's on ``base``, the arm's on the
+    model of the world (``robot_sim.world.tasks``): the task's on ``base``, the arm's on the
     frame of their link (MuJoCo's bodies carry the URDF's link names).  Planes (the
     floor) are left to Foxglove's grid."""
     import mujoco
 
-    from robot_sim.worlds import WORLDS
+    from robot_sim.world.tasks import WORLDS
 
     if world not in WORLDS:
         raise ValueError(f"unknown world {world!r}: expected one of {', '.join(WORLDS)}")
@@ -167,7 +167,7 @@ class VisualScene:
     ``events`` for the log lines.  ``reset`` between episodes."""
 
     def __init__(self, world: str, rate_hz: float = VISUAL_RATE_HZ):
-        from robot_sim.kinematics import ArmKinematics
+        from robot_sim.arm.kinematics import ArmKinematics
 
         check_visual_rate(rate_hz)
         self.world = world

@@ -21,7 +21,7 @@ import json
 import threading
 from dataclasses import dataclass
 
-from robot_sim.worlds import TASK_WORLDS
+from robot_sim.world.tasks import TASK_WORLDS
 from services.runtime import topics
 from services.runtime.bus import Node, Subscription
 from services.runtime.config import option

@@ -18,21 +18,12 @@ from collections.abc import Callable
 
 import numpy as np
 
-from robot_sim.fri import FRI_CYCLE_NS
-from robot_sim.fri_wire import (
-    CommandFlags,
-    FriWireError,
-    KrlChannels,
-    abc_order,
-    counter16,
-    decode_measurement,
-    new_command,
-    read_krl,
-    unwrap,
-    write_krl,
-)
-from robot_sim.krl import (TB_EPISODE, TB_ESTIMATE_SEQ, TB_GOAL_REACHED, TB_GRAVITY_COMPENSATION, TB_HOLD,
-                           TB_HOLDS)
+from robot_sim.cycle import FRI_CYCLE_NS
+from robot_sim.krc.krl import (KrlChannels, TB_EPISODE, TB_ESTIMATE_SEQ, TB_GOAL_REACHED,
+                               TB_GRAVITY_COMPENSATION, TB_HOLD, TB_HOLDS)
+from robot_sim.krc.packets import fri_order
+from robot_sim.wire.fri_datagrams import (CommandFlags, FriWireError, counter16, decode_measurement,
+                                          new_command, read_krl, unwrap, write_krl)
 from services.runtime.messages import ROBOT_STATE
 
 _CYCLES_PER_S = 1_000_000_000 // FRI_CYCLE_NS
@@ -131,8 +122,8 @@ class FriRemoteSocket:
         write_krl(out, krl)
         cmd = out["cmd"]
         cmd["cartPos"] = cart_pos
-        cmd["cartStiffness"] = abc_order(cart_stiffness)
-        cmd["cartDamping"] = abc_order(cart_damping)
+        cmd["cartStiffness"] = fri_order(cart_stiffness)
+        cmd["cartDamping"] = fri_order(cart_damping)
         cmd["addTcpFT"] = add_tcp_ft
         try:
             self._sock.sendto(out.tobytes(), self._source)

@@ -1,4 +1,4 @@
-"""The ft_sensor node: the ATI F/T sensor (``robot_sim.ati``), once per robot cycle.
+"""The ft_sensor node: the ATI F/T sensor (``robot_sim.ati.sensor``), once per robot cycle.
 
 Samples the tool wrench the robot publishes on ``robot/contact`` with the ATI
 model (bias, drift, noise, quantisation, saturation) and publishes an RDT-like
@@ -6,7 +6,7 @@ record on ``ft/wrench`` carrying the same cycle ``seq``.  Realtime: the newest
 contact message, skipping a backlog (``latest``).  Control: ``tare`` (software
 bias over the next N samples).  A malformed contact message is dropped and
 counted by the transport; a non-finite wrench sets the sensor's error bit
-(robot_sim.ati) instead of reaching the wire.
+(robot_sim.ati.sensor) instead of reaching the wire.
 
 Fault injection (``--fault``, from ``--fault-after`` s of simulated time into
 each episode, for the rest of it): ``stop``, the RDT stream stops (nothing more
@@ -17,7 +17,7 @@ bit).  The last two go through the sensor model itself, so the status bits are
 the ones a real record would carry.
 
 ``--netft HOST`` serves the sensor as an ATI Net F/T box on that address
-(``robot_sim.netft``): RDT over UDP (49152), the HTTP pages (80) and the calibration
+(``robot_sim.wire.netft``): RDT over UDP (49152), the HTTP pages (80) and the calibration
 channel (TCP 49151), ports configurable; every record the ATI model makes goes to the
 box's streaming clients, and a client's bias request tares the model (so the box and
 ``ft/wrench`` read the same).  Every RDT datagram sent goes out on ``netft/rdt`` too, as
@@ -35,8 +35,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from robot_sim.ati import AtiConfig, AtiSensor
-from robot_sim.netft import CALIBRATION_PORT, HTTP_PORT, RDT_PORT, RDT_RECORD, NetFtBox
+from robot_sim.ati.sensor import AtiConfig, AtiSensor
+from robot_sim.wire.netft import CALIBRATION_PORT, HTTP_PORT, NetFtBox, RDT_PORT, RDT_RECORD
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import option
 from services.runtime.messages import FT_WRENCH, NETFT_RDT

@@ -38,7 +38,7 @@ come to its socket; each is passed on to the rest of the run as ``robot/state`` 
 lab's FRI component passed them on to its Orocos graph) and, during its reproduction,
 answered with a command datagram to the address it came from.  What a ``robot/command``
 says beyond FRI (the goal reached, a hold and its reason, the estimate used) goes on the
-KRL channels (``robot_sim.krl``'s testbench layout); ``robot/command`` is still published,
+KRL channels (``robot_sim.krc.krl``'s testbench layout); ``robot/command`` is still published,
 for the recording.
 
 On the realtime clock only answers that can still count are sent: the commander
@@ -59,12 +59,12 @@ import numpy as np
 from etar.policy import LEAD, ReproductionPolicy
 from etar.policy_kernel import compiled_policy
 from etar.task import load_task
-from robot_sim.fri_udp import host_port
+from robot_sim.wire.fri_udp import host_port
 from services.nodes.fri_remote import FriRemoteSocket
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import option
 from services.runtime.loop import Sections
-from robot_sim.fri import FRI_CYCLE_NS
+from robot_sim.cycle import FRI_CYCLE_NS
 from services.runtime.messages import ESTIMATOR_STRIDE, ROBOT_COMMAND, estimator_instant
 from services.runtime.timing import Histogram
 

@@ -22,9 +22,9 @@ import urllib.request
 import xml.etree.ElementTree as ET
 from collections.abc import Callable
 
-from robot_sim.fri import FRI_CYCLE_NS
-from robot_sim.netft import NETFT_SATURATION, RDT_HEADER, RDT_RECORD, RDT_REQUEST, RdtCommand
-from robot_sim.rdt import AtiStatus
+from robot_sim.cycle import FRI_CYCLE_NS
+from robot_sim.wire.netft import NETFT_SATURATION, RDT_HEADER, RDT_RECORD, RDT_REQUEST, RdtCommand
+from robot_sim.ati.rdt import AtiStatus
 from services.runtime.messages import FT_WRENCH
 
 # the Net F/T word tells saturation (bit 17, which the box also sets for a non-finite

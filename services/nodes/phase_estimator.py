@@ -33,12 +33,12 @@ import numpy as np
 
 from etar.task import load_task
 from etar.features import force_vector, pose_of, state_vector
-from robot_sim.fri_udp import host_port
+from robot_sim.wire.fri_udp import host_port
 from services.nodes.netft_client import NetFtStream
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import option
-from robot_sim.fri import FriState
-from robot_sim.rdt import AtiStatus
+from robot_sim.krc.packets import FriState
+from robot_sim.ati.rdt import AtiStatus
 from services.runtime.messages import ESTIMATOR_PERIOD_NS, ESTIMATOR_PHASE, estimator_instant
 
 _SATURATED = int(AtiStatus.FT_OUT_OF_RANGE)

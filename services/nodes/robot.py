@@ -15,9 +15,9 @@ Control: ``reset`` (start, episode, kind), ``status``; the transports add
 before its episode starts).
 
 ``--wire udp`` (realtime only): the KRC speaks FRI 1.0 over UDP instead
-(``robot_sim.fri_udp``): every cycle a 916-byte measurement datagram goes to the remote
+(``robot_sim.wire.fri_udp``): every cycle a 916-byte measurement datagram goes to the remote
 at ``--fri-remote``, and the command datagram that answers it before the cycle ends is
-applied; a KRL program (``robot_sim.krl``, ``--krl``) starts and stops command mode as
+applied; a KRL program (``robot_sim.krc.krl``, ``--krl``) starts and stops command mode as
 the remote asks on the KRL channels.  The node goes on publishing ``robot/state`` and
 ``robot/contact``; both datagrams of every cycle also go out on ``fri/datagram``, as
 bytes and decoded.  An episode of kind ``served`` holds the arm at its start in monitor
@@ -34,17 +34,19 @@ from dataclasses import dataclass
 import numpy as np
 
 from robot_sim.cell import RobotCell
-from robot_sim.fri import (FRI_CYCLE_NS, FRI_RATE_HZ, CommandPacket, ControlMode, FriConfig, FriQuality, FriState,
-                           LinkFaults, LinkFaultSpec)
-from robot_sim.fri_udp import host_port
-from robot_sim.fri_wire import REMOTE_PORT
-from robot_sim.krc import SafetyReason
+from robot_sim.cycle import FRI_CYCLE_NS, FRI_RATE_HZ
+from robot_sim.krc.faults import LinkFaultSpec, LinkFaults
+from robot_sim.krc.link import FriConfig
+from robot_sim.krc.packets import CommandPacket, ControlMode, FriQuality, FriState
+from robot_sim.wire.fri_udp import host_port
+from robot_sim.wire.fri_datagrams import REMOTE_PORT
+from robot_sim.krc.law import SafetyReason
 from robot_sim.krc_udp import UdpKrc
-from robot_sim.krl import (KRL_CONVENTIONS, TB_EPISODE, TB_ESTIMATE_SEQ, TB_GOAL_REACHED, TB_GRAVITY_COMPENSATION,
-                           TB_HOLD, TB_HOLDS, TB_KIND, TB_KINDS)
-from robot_sim.labels import LABELERS
-from robot_sim.teacher import DOWN
-from robot_sim.worlds import TASK_WORLDS, WORLDS, Valley, physics_step, valley
+from robot_sim.krc.krl import (KRL_CONVENTIONS, TB_EPISODE, TB_ESTIMATE_SEQ, TB_GOAL_REACHED,
+                               TB_GRAVITY_COMPENSATION, TB_HOLD, TB_HOLDS, TB_KIND, TB_KINDS)
+from robot_sim.world.labels import LABELERS
+from robot_sim.world.teacher import DOWN
+from robot_sim.world.tasks import TASK_WORLDS, Valley, WORLDS, physics_step, valley
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import nested, option
 from services.runtime.cycle import EpisodePlan
@@ -77,7 +79,7 @@ class RobotConfig:
                                    metavar="MU")
     physics_substeps: int = option(1, "physics steps per 1 ms FRI cycle, the KRC's law in each (more: the finer "
                                       "reference physics, slower; a divisor of 1 000 000)", metavar="N")
-    # the FRI link's faults (--fri-packet-loss, ... --fri-faults-until-s): robot_sim.fri.LinkFaultSpec
+    # the FRI link's faults (--fri-packet-loss, ... --fri-faults-until-s): robot_sim.krc.faults.LinkFaultSpec
     fri: LinkFaultSpec = nested(LinkFaultSpec(), "fri_")
     wire: str = option("zenoh", "how the FRI remote talks to the KRC: zenoh (robot/command: the testbench's "
                                 "commander) or udp (FRI 1.0 datagrams: a lab's remote; realtime only)",

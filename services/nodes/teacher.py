@@ -3,7 +3,7 @@
 For every robot cycle it reads ``robot/state`` and ``robot/contact`` (what the
 hand feels: the tool's true pose and velocity, the contact force and what the
 tool touches) and answers on ``teacher/wrench`` with the hand wrench for that
-cycle (``robot_sim.teacher``).  Control: ``reset`` (episode, start, seed, goal_x), ``idle`` (the
+cycle (``robot_sim.world.teacher``).  Control: ``reset`` (episode, start, seed, goal_x), ``idle`` (the
 demonstration is over: answer nothing until the next reset).
 """
 
@@ -15,9 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
-from robot_sim.fri import FRI_CYCLE_NS
-from robot_sim.teacher import HoseCouplerTeacher, ValleyTeacher
-from robot_sim.worlds import TASK_WORLDS, HoseCoupler, Valley
+from robot_sim.cycle import FRI_CYCLE_NS
+from robot_sim.world.teacher import HoseCouplerTeacher, ValleyTeacher
+from robot_sim.world.tasks import HoseCoupler, TASK_WORLDS, Valley
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import option
 from services.runtime.messages import TEACHER_WRENCH

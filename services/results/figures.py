@@ -23,7 +23,7 @@ axes labelled with units, named after what it shows:
 
 Phases are named by what they are where the run knows it: a learned phase k that
 the demonstrations matched to a true phase (the model's ``phase_to_truth``) is
-"phase k = <the labeller's name of that true phase>" (robot_sim.labels), else
+"phase k = <the labeller's name of that true phase>" (robot_sim.world.labels), else
 "phase k".  Data stay SI; a figure shows positions in mm (its axis says so),
 forces in N, time in s.
 
@@ -44,8 +44,8 @@ from etar.analysis import prediction_errors
 from etar.comparison import filtered_messages
 from etar.metrics import score_segmentation
 from etar.task import load_task
-from robot_sim.labels import LABELERS
-from robot_sim.worlds import HoseCoupler, Valley
+from robot_sim.world.labels import LABELERS
+from robot_sim.world.tasks import HoseCoupler, Valley
 from services.recordings.demonstrations import load_demonstration
 from services.recordings.reader import read_episode
 from services.results.folder import RunFolderError, read_report

@@ -42,7 +42,7 @@ from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
 
-from robot_sim.fri import FRI_CYCLE_NS
+from robot_sim.cycle import FRI_CYCLE_NS
 from services.recordings.format import METADATA_NAME, SCENARIO_ATTACHMENT, RecordingError
 from services.recordings.reader import Episode, read_episode
 from services.results.folder import SCENARIO_FILE, read_report, strict_json

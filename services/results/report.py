@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from etar.metrics import score_segmentation
-from robot_sim.fri import FRI_CYCLE_NS
+from robot_sim.cycle import FRI_CYCLE_NS
 from services.recordings.reader import read_episode
 from services.results.folder import strict_json
 from services.results.record import EpisodeRecord, RunRecord

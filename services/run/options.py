@@ -15,7 +15,7 @@ from services.run.realtime_profile import parse_profile
 from services.runtime import topics
 from services.runtime.roles import CELL_ROLES, FIFO_CHAIN
 from services.scenario import Scenario, ScenarioError
-from services.transport.cell import TRANSPORTS, carrier
+from services.transport.carriers import TRANSPORTS, carrier
 from services.transport.session import ZenohOptions
 
 
@@ -121,7 +121,7 @@ class RunOptions:
         return roles + (["foxglove_bridge"] if self.foxglove is not None else [])
 
     def carrier(self, scenario: Scenario):
-        """The transport (``services.transport.cell``), checked against the scenario's clock
+        """The transport (``services.transport.carriers``), checked against the scenario's clock
         and the run's roles: every option and every credential before anything starts."""
         if self.foxglove:
             port_free(self.foxglove)

@@ -15,7 +15,7 @@ import numpy as np
 from etar.task import LearnedTask, TaskError, load_task
 from services.scenario import Scenario, ScenarioError, demonstration_starts, reproduction_starts
 
-FLOOR_Z = 0.0  # the floor plane of every task world (robot_sim.worlds), m
+FLOOR_Z = 0.0  # the floor plane of every task world (robot_sim.world.tasks), m
 EPISODE_NAMES = {"demonstrate": "demonstration", "reproduce": "reproduction"}  # by stage kind
 
 
@@ -77,7 +77,7 @@ def _starts(scenario: Scenario) -> list:
 def _reachable(scenario: Scenario, starts: list) -> None:
     if not starts:
         return
-    from robot_sim.kinematics import ArmKinematics
+    from robot_sim.arm.kinematics import ArmKinematics
 
     kinematics = ArmKinematics()
     for i, kind, j, side, xyz in starts:
@@ -92,8 +92,8 @@ def start_problem(xyz, kinematics=None) -> str | None:
     """Why the tcp cannot start at ``xyz`` (m) with the tool pointing down, or None."""
     import pinocchio as pin
 
-    from robot_sim.kinematics import READY, ArmKinematics
-    from robot_sim.teacher import DOWN
+    from robot_sim.arm.kinematics import ArmKinematics, READY
+    from robot_sim.world.teacher import DOWN
 
     if xyz[2] <= FLOOR_Z:
         return f"z = {xyz[2]:.3f} m, at or below the floor (z = {FLOOR_Z:g} m): raise the start's z"

@@ -19,9 +19,9 @@ import math
 import socket
 from dataclasses import dataclass
 
-from robot_sim.fri_udp import host_port
-from robot_sim.fri_wire import REMOTE_PORT
-from robot_sim.krl import LAB_CONVENTIONS
+from robot_sim.wire.fri_udp import host_port
+from robot_sim.wire.fri_datagrams import REMOTE_PORT
+from robot_sim.krc.krl import LAB_CONVENTIONS
 from services.scenario import Scenario
 from services.scenario.starts import reproduction_starts
 
@@ -72,7 +72,7 @@ class ServeOptions:
         host, port = host_port(self.fri_bind, "--fri-bind", listen=True)
         _free(socket.SOCK_DGRAM, host, port, f"--fri-bind {self.fri_bind}")
         if self.netft is not None:
-            from robot_sim.netft import CALIBRATION_PORT, HTTP_PORT, RDT_PORT
+            from robot_sim.wire.netft import CALIBRATION_PORT, HTTP_PORT, RDT_PORT
 
             for flag, kind, default in (("--netft-rdt-port", socket.SOCK_DGRAM, RDT_PORT),
                                         ("--netft-http-port", socket.SOCK_STREAM, HTTP_PORT),

@@ -12,7 +12,7 @@ a probability, or its type (N, NUMBER, TEXT).  A config that refuses a value rai
 ``FieldError`` (or a ValueError whose message begins with the field's name):
 ``config_from_args`` words it ``<flag> <value>: <problem>``.  A field made with
 ``nested(spec, prefix)`` holds a frozen dataclass defined elsewhere
-(``robot_sim.fri.LinkFaultSpec``): each of its fields is a flag
+(``robot_sim.krc.faults.LinkFaultSpec``): each of its fields is a flag
 ``--<prefix><field>``, its help the field's ``doc`` metadata.
 """
 
@@ -138,7 +138,7 @@ def config_from_args(cls, args: argparse.Namespace):
         except ValueError as exc:
             if getattr(exc, "field", None) is None:
                 raise
-            # the spec names its own field (robot_sim.fri.LinkFaultError): say the flag instead
+            # the spec names its own field (robot_sim.krc.faults.LinkFaultError): say the flag instead
             raise ValueError(f"--{(prefix + exc.field).replace('_', '-')} {_shown(exc.value)}: "
                              f"{exc.problem}") from None
     try:

@@ -39,8 +39,8 @@ from dataclasses import dataclass
 
 import orjson
 
-from robot_sim.fri import FRI_CYCLE_NS
-from robot_sim.fri_wire import decode_command, decode_measurement, record_fields
+from robot_sim.cycle import FRI_CYCLE_NS
+from robot_sim.wire.fri_datagrams import decode_command, decode_measurement, record_fields
 
 # The estimator's period on simulated time: every tenth FRI cycle, the 100 Hz at which the
 # thesis sampled its demonstrations.  The learner's samples and the estimator's updates are
@@ -401,7 +401,7 @@ FT_WRENCH = MessageType(
     (
         ("rdt_sequence", "int", "RDT packet counter (gaps: lost packets)"),
         ("ft_sequence", "int", "internal sample counter"),
-        ("status", "int", "status bits (0: ok; see robot_sim.rdt.AtiStatus)"),
+        ("status", "int", "status bits (0: ok; see robot_sim.ati.rdt.AtiStatus)"),
         ("counts", "int[6]", "Fx Fy Fz Tx Ty Tz in counts"),
         ("counts_per_force", "float", "counts per N"),
         ("counts_per_torque", "float", "counts per N m"),

@@ -10,7 +10,7 @@ import json
 from functools import lru_cache
 from pathlib import Path
 
-from robot_sim.fri import FRI_RATE_HZ
+from robot_sim.cycle import FRI_RATE_HZ
 
 SCHEMA_DIR = Path(__file__).with_name("foxglove_schemas")  # from @foxglove/schemas 2.1.0 (MIT), unchanged
 VISUAL_RATE_HZ = 50.0  # visual frames per second of simulated time: one in every 20 FRI cycles

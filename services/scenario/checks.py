@@ -11,7 +11,7 @@ import numpy as np
 
 from etar.vocabulary import CRITERIA, TRANSITIONS  # noqa: F401  (CRITERIA: the stages check it)
 from etar.vocabulary import FEATURES as ETAR_FEATURES, STATES as ETAR_STATES
-from robot_sim.worlds import TASK_WORLDS
+from robot_sim.world.tasks import TASK_WORLDS
 
 WORLDS = TASK_WORLDS
 RESTART_POLICIES = ("never", "on_failure")

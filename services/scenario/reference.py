@@ -1,6 +1,6 @@
 """The scenario reference, ``docs/scenarios.md``, generated from the definition itself: every
 key's default and meaning from the fields of ``Scenario``, its stages and its cell
-(``robot_sim.fri.LinkFaultSpec`` for the link's faults), and the table of scenario files
+(``robot_sim.krc.faults.LinkFaultSpec`` for the link's faults), and the table of scenario files
 from the files:
 
     python -m services.scenario.reference scenarios > docs/scenarios.md
@@ -15,10 +15,10 @@ import math
 import sys
 from pathlib import Path
 
-from robot_sim.fri import LinkFaultSpec
+from robot_sim.krc.faults import LinkFaultSpec
 from services.scenario.loading import load_scenario
 from services.scenario.model import Scenario
-from robot_sim.worlds import Valley
+from robot_sim.world.tasks import Valley
 from services.scenario.checks import MAX_START_DRAWS
 from services.scenario.starts import DEMONSTRATE_SEED_OFFSET, REPRODUCE_SEED_OFFSET, TEACHER_SEED_STRIDE
 from services.scenario.stages import DEFAULT_STARTS, FRI_PREFIX, STAGE_TYPES, VALLEY_GOAL_X, CellSpec
@@ -147,13 +147,13 @@ def reference(folder: Path | None = None) -> str:
              for f in dataclasses.fields(LinkFaultSpec)]
     lines += ["### `cell`: the simulated cell's physics and devices", "",
               "What a sweep varies.  The `fri_*` keys are the FRI link's faults "
-              "(`robot_sim.fri.LinkFaultSpec`; the robot's `--fri-*` flags are the same fields).", "",
+              "(`robot_sim.krc.faults.LinkFaultSpec`; the robot's `--fri-*` flags are the same fields).", "",
               *_table(cell)]
     for kind, cls in STAGE_TYPES.items():
         lines += [f"### `{kind}`", "", " ".join((cls.__doc__ or "").split("\n\n")[0].split()), "",
                   *_table(_rows(cls))]
     lines += ["### World defaults", "", "What a stage takes when it leaves `start` or `goal_x` out, and the cell "
-              "its `plate_friction` (from `robot_sim.worlds`).", "",
+              "its `plate_friction` (from `robot_sim.world.tasks`).", "",
               "| world | start (left side) | goal_x | plate_friction |", "|---|---|---|---|"]
     for world, start in DEFAULT_STARTS.items():
         valley = world == "valley"

@@ -9,8 +9,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Union
 
-from robot_sim.fri import FRI_CYCLE_NS, LinkFaultError, LinkFaultSpec
-from robot_sim.worlds import HoseCoupler, Valley
+from robot_sim.cycle import FRI_CYCLE_NS
+from robot_sim.krc.faults import LinkFaultError, LinkFaultSpec
+from robot_sim.world.tasks import HoseCoupler, Valley
 from services.scenario.checks import (CRITERIA, MAX_EM_ITERATIONS, MAX_EPISODE_SECONDS, MAX_EPISODES,
                                       MAX_PHYSICS_SUBSTEPS, MAX_RESTARTS, SELECTIONS, ScenarioError, Xyz, _bool,
                                       _candidates, _choice, _int, _number, _phases, _seconds, _seed, _set, _sides,
@@ -22,7 +23,7 @@ def doc(text: str, default: Any = dataclasses.MISSING) -> Any:
     return dataclasses.field(default=default, metadata={"doc": text})
 
 
-FRI_PREFIX = "fri_"  # the cell's keys for the FRI link's faults (robot_sim.fri.LinkFaultSpec)
+FRI_PREFIX = "fri_"  # the cell's keys for the FRI link's faults (robot_sim.krc.faults.LinkFaultSpec)
 DEFAULT_STARTS = {"valley": Valley.start_left, "hose_coupler": HoseCoupler.start_left}
 VALLEY_GOAL_X = Valley.goal_x
 
@@ -207,7 +208,7 @@ class ReproduceStage(_MotionStage):
 class CellSpec:
     """The simulated cell's parameters a study may vary (``etar-bench sweep``).  In a
     scenario the FRI link's faults are keys of the cell's own, ``fri_<field>`` for each
-    field of ``robot_sim.fri.LinkFaultSpec`` (``fri_packet_loss``, ``fri_delay_ms``, ...)."""
+    field of ``robot_sim.krc.faults.LinkFaultSpec`` (``fri_packet_loss``, ``fri_delay_ms``, ...)."""
 
     sensor_noise: float = doc(">= 0: the ATI's white noise as a multiple of the Mini45's", 1.0)
     plate_friction: float = doc("> 0, valley only: the plates' sliding friction coefficient", Valley.friction)

@@ -4,15 +4,24 @@ alone, so a run can be replayed and a report can say where each episode began.""
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
 from services.scenario.checks import (MAX_START_DRAWS, SIDES, WORLDS, ScenarioError, Xyz, _choice, _seed,
                                       _xyz)
 
-if TYPE_CHECKING:
-    from services.scenario.stages import DemonstrateStage, ReproduceStage
+
+
+class EpisodeStage(Protocol):
+    """What the starts read of a demonstrate or reproduce stage (``services.scenario.stages``,
+    which imports this module for its seeds)."""
+
+    count: int
+    sides: tuple[str, ...]
+    start: Xyz
+
+    def _for_world(self, world: str, seed: int) -> EpisodeStage: ...
 
 # Offsets keep demonstrations, learning and reproductions on independent random streams
 # even when every stage inherits the scenario's seed.
@@ -34,11 +43,11 @@ def _mirror(xyz: Xyz, side: str) -> Xyz:
     return (x, -y, z) if side == "right" else (x, y, z)
 
 
-def _side_of(stage: DemonstrateStage | ReproduceStage, i: int) -> str:
+def _side_of(stage: EpisodeStage, i: int) -> str:
     return stage.sides[i % len(stage.sides)]
 
 
-def demonstration_starts(stage: DemonstrateStage, world: str, seed: int) -> list[tuple[str, Xyz]]:
+def demonstration_starts(stage: EpisodeStage, world: str, seed: int) -> list[tuple[str, Xyz]]:
     """The (side, tcp start in m) of each demonstration of ``stage``, a function of ``seed``.
 
     Demonstration i starts at ``stage.start`` mirrored onto ``sides[i % len(sides)]``,
@@ -56,7 +65,7 @@ def demonstration_starts(stage: DemonstrateStage, world: str, seed: int) -> list
     return starts
 
 
-def reproduction_starts(stage: ReproduceStage, world: str, seed: int,
+def reproduction_starts(stage: EpisodeStage, world: str, seed: int,
                         demonstration_starts: Sequence[tuple[str, Sequence[float]]]) -> list[tuple[str, Xyz]]:
     """The (side, tcp start in m) of each reproduction of ``stage``, a function of ``seed``.
 

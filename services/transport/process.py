@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import zenoh
 
-from robot_sim.fri import FRI_RATE_HZ
+from robot_sim.cycle import FRI_RATE_HZ
 from services.nodes import NODES
 from services.runtime import topics
 from services.runtime.bus import MonotonicClock

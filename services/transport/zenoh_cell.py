@@ -10,7 +10,7 @@ import threading
 import time
 from dataclasses import replace
 
-from robot_sim.fri import FRI_CYCLE_NS
+from robot_sim.cycle import FRI_CYCLE_NS
 from services.runtime import topics
 from services.runtime.config import config_to_args
 from services.runtime.messages import EPISODE_SUMMARY

@@ -110,7 +110,8 @@ def test_a_service_killed_mid_reproduction_fails_the_run_at_once_and_keeps_the_e
 
 def test_a_stale_episode_summary_from_a_foreign_peer_does_not_end_the_episode_in_progress(tmp_path):
     from services.nodes import RobotConfig
-    from services.transport.cell import OverZenoh, Start
+    from services.transport.carriers import OverZenoh
+    from services.transport.cell import Start
 
     run_id = f"stale-{int(time.time() * 1000)}"
     cell = OverZenoh().open(run_id, {"robot": RobotConfig()},

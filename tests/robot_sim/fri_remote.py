@@ -4,7 +4,7 @@ It binds its UDP port, answers every measurement datagram to wherever it came fr
 (``reflSeqCount`` = the measurement's ``sendSeqCount``) and drives the KRL program through
 one of the public conventions.  What it commands comes from ``plan(m, rec, state)``, a
 function of the decoded measurement; what it saw is kept for the test to read.
-Independent of the KRC side's code except for the datagram layouts (robot_sim.fri_wire).
+Independent of the KRC side's code except for the datagram layouts (robot_sim.wire.fri_datagrams).
 """
 
 from __future__ import annotations
@@ -15,14 +15,8 @@ import threading
 
 import numpy as np
 
-from robot_sim.fri_wire import (
-    COMMAND_ID,
-    COMMAND_SIZE,
-    CommandFlags,
-    FriWireError,
-    decode_measurement,
-    new_command,
-)
+from robot_sim.wire.fri_datagrams import (COMMAND_ID, COMMAND_SIZE, CommandFlags, FriWireError,
+                                          decode_measurement, new_command)
 
 # KRL indices (1-based, as KRL counts) of each convention
 FRILIBRARY = dict(strategy=15, request=16, state=16, close_value=15, start=10, stop=20)

@@ -4,7 +4,7 @@ Two measurements (bench/allocation.py): tracemalloc in this process, for
 Python objects, numpy data and numba's runtime; and a malloc counter preloaded
 into a child process, for every C and C++ heap block as well (eigenpy,
 Pinocchio, MuJoCo).  Pinocchio's own bindings copy each numpy vector argument
-into a new Eigen vector; robot_sim._pinocchio_inplace is what removes those.
+into a new Eigen vector; robot_sim.arm._pinocchio_inplace is what removes those.
 """
 
 import runpy
@@ -14,8 +14,8 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from robot_sim import kinematics
-from robot_sim.kinematics import ArmKinematics
+from robot_sim.arm import kinematics
+from robot_sim.arm.kinematics import ArmKinematics
 
 # a measuring tool, not part of the simulation: it lives with the benches
 ALLOCATION = runpy.run_path(str(Path(__file__).resolve().parents[2] / "bench" / "allocation.py"))

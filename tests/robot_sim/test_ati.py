@@ -6,14 +6,9 @@ import math
 import numpy as np
 import pytest
 
-from robot_sim.ati import (
-    SATURATION_BITS,
-    AtiConfig,
-    AtiSensor,
-    AtiStatus,
-    RdtRecord,
-    WrenchKalmanFilter,
-)
+from robot_sim.ati.filter import WrenchKalmanFilter
+from robot_sim.ati.rdt import AtiStatus, RdtRecord, SATURATION_BITS
+from robot_sim.ati.sensor import AtiConfig, AtiSensor
 
 MS = 1_000_000  # ns
 ZERO6 = np.zeros(6)

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from robot_sim.ati import _SAT_BITS_ARRAY, _STATUS_NONFINITE, _STATUS_SATURATED, AtiConfig, AtiSensor
+from robot_sim.ati.sensor import AtiConfig, AtiSensor, _SAT_BITS_ARRAY, _STATUS_NONFINITE, _STATUS_SATURATED
 
 
 class Reference:

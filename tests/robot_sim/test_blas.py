@@ -7,8 +7,8 @@ import pytest
 
 from kernel_plumbing import blas
 from robot_sim import cell
-from robot_sim.kinematics import ArmKinematics
-from robot_sim.worlds import valley
+from robot_sim.arm.kinematics import ArmKinematics
+from robot_sim.world.tasks import valley
 
 pytestmark = pytest.mark.skipif(not blas.AVAILABLE, reason=f"numpy's OpenBLAS not reachable: {blas.WHY}")
 

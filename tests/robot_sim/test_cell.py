@@ -5,9 +5,9 @@ import numpy as np
 
 import pytest
 
-from robot_sim.cell import JOINT_POSITION_NOISE, RobotCell, fri_to_standard, standard_to_fri
-from robot_sim.fri import CommandPacket, ControlMode, FriQuality, FriState
-from robot_sim.worlds import free_space
+from robot_sim.cell import JOINT_POSITION_NOISE, RobotCell
+from robot_sim.krc.packets import CommandPacket, ControlMode, FriQuality, FriState, fri_order
+from robot_sim.world.tasks import free_space
 
 STIFF = np.array([2000.0] * 3 + [150.0] * 3)
 
@@ -82,10 +82,10 @@ def test_measurement_carries_the_state_and_the_external_force():
         cell.end_cycle(push)
     m = cell.begin_cycle()
     R = m.msr_cart_pos.reshape(3, 4)[:, :3]
-    est = fri_to_standard(m.est_ext_tcp_ft)
+    est = fri_order(m.est_ext_tcp_ft)
     np.testing.assert_allclose(R @ est[:3], push[:3], atol=0.2)  # force in tcp axes -> world
     np.testing.assert_allclose(m.msr_jnt_pos, cell.sim.joint_positions(), rtol=0, atol=6 * cell.joint_noise)
-    np.testing.assert_array_equal(standard_to_fri(fri_to_standard(np.arange(6.0))), np.arange(6.0))
+    np.testing.assert_array_equal(fri_order(fri_order(np.arange(6.0))), np.arange(6.0))
 
 
 def test_measured_joint_positions_carry_the_configured_white_noise():
@@ -123,8 +123,8 @@ def test_noise_free_measurement_and_bad_noise():
 def test_a_safety_stop_does_not_carry_into_the_next_placement():
     # a hand pushing 300 N latches the Cartesian force limit; placed elsewhere for the
     # next episode, the arm must start clean (the stale hand torque once re-latched it)
-    from robot_sim.teacher import DOWN
-    from robot_sim.worlds import valley
+    from robot_sim.world.teacher import DOWN
+    from robot_sim.world.tasks import valley
 
     cell = RobotCell(valley(), seed=0)
     cell.place_tcp(np.array([0.6, -0.08, 0.32]), DOWN)
@@ -140,4 +140,4 @@ def test_a_safety_stop_does_not_carry_into_the_next_placement():
         m = cell.begin_cycle()
         cell.end_cycle()
         assert cell.krc.safety == 0
-    assert np.linalg.norm(fri_to_standard(m.est_ext_tcp_ft)[:3]) < 5.0
+    assert np.linalg.norm(fri_order(m.est_ext_tcp_ft)[:3]) < 5.0

@@ -1,4 +1,4 @@
-"""The tool tip on a surface as a lab would see it (robot_sim.worlds' contact, docs/contact.md):
+"""The tool tip on a surface as a lab would see it (robot_sim.world.tasks' contact, docs/contact.md):
 a tip sliding on a plate, along the groove or turning in the coupler stays on it, its force
 carries no step-to-step jitter beyond twice the ATI's own noise, it slides at the pair's mu,
 and a ten times finer physics step gives the same force.  The episodes are
@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from robot_sim.ati import MINI45_NOISE_STD
+from robot_sim.ati.sensor import MINI45_NOISE_STD
 from robot_sim.cell import RobotCell
-from robot_sim.worlds import FRICTION_DAMPING, TIMESTEP, Valley, hose_coupler, physics_step, valley
+from robot_sim.world.tasks import FRICTION_DAMPING, TIMESTEP, Valley, hose_coupler, physics_step, valley
 
 ROOT = Path(__file__).resolve().parents[2]
 BENCH = runpy.run_path(str(ROOT / "bench" / "contact_candidates.py"))

@@ -5,15 +5,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from robot_sim.fri import (
-    CommandPacket,
-    ControlMode,
-    FriConfig,
-    FriLink,
-    FriQuality,
-    FriState,
-    LinkFaults,
-)
+from robot_sim.krc.faults import LinkFaults
+from robot_sim.krc.link import FriConfig, FriLink
+from robot_sim.krc.packets import CommandPacket, ControlMode, FriQuality, FriState
 
 CYCLE = 1_000_000
 Q = np.linspace(-0.3, 0.3, 7)

@@ -10,15 +10,9 @@ import time
 import numpy as np
 import pytest
 
-from robot_sim.fri import (
-    CommandPacket,
-    ControlMode,
-    FriLink,
-    FriQuality,
-    FriState,
-    MeasurementPacket,
-)
-from robot_sim.fri_udp import FriUdpEndpoint
+from robot_sim.krc.link import FriLink
+from robot_sim.krc.packets import CommandPacket, ControlMode, FriQuality, FriState, MeasurementPacket
+from robot_sim.wire.fri_udp import FriUdpEndpoint
 from tests.support import wait_until
 
 # FRI datagrams with answer deadlines: serial (make test runs these after the rest)

@@ -4,11 +4,11 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from robot_sim.kinematics import READY, ArmKinematics
-from robot_sim.krc import POSITION, ImpedanceCommand, KrcController, SafetyReason, pose_to_cart_pos
-from robot_sim.physics import Simulation
-from robot_sim.teacher import DOWN
-from robot_sim.worlds import Valley, free_space, valley
+from robot_sim.arm.kinematics import ArmKinematics, READY
+from robot_sim.krc.law import ImpedanceCommand, KrcController, POSITION, SafetyReason, pose_to_cart_pos
+from robot_sim.world.physics import Simulation
+from robot_sim.world.teacher import DOWN
+from robot_sim.world.tasks import Valley, free_space, valley
 
 
 def run(sim, krc, cycles, command=None, hold=False, hand=None, external_force=None):

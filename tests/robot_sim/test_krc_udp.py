@@ -12,12 +12,14 @@ import pinocchio as pin
 import pytest
 
 from robot_sim.cell import RobotCell
-from robot_sim.fri import ControlMode, FriConfig, FriQuality, FriState, LinkFaults
-from robot_sim.fri_wire import CommandFlags
+from robot_sim.krc.faults import LinkFaults
+from robot_sim.krc.link import FriConfig
+from robot_sim.krc.packets import ControlMode, FriQuality, FriState
+from robot_sim.wire.fri_datagrams import CommandFlags
 from robot_sim.krc_udp import UdpKrc
-from robot_sim.krl import OFF_STREAM_S, REFUSAL_INDEX
-from robot_sim.teacher import DOWN
-from robot_sim.worlds import free_space
+from robot_sim.krc.krl import OFF_STREAM_S, REFUSAL_INDEX
+from robot_sim.world.teacher import DOWN
+from robot_sim.world.tasks import free_space
 from tests.robot_sim.fri_remote import Remote
 
 # the KRC answering at 1 kHz over UDP: serial (make test runs these after the rest)

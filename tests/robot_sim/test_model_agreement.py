@@ -5,10 +5,10 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from robot_sim.kinematics import ArmKinematics
-from robot_sim.lwr4 import LWR4
-from robot_sim.physics import Simulation
-from robot_sim.worlds import free_space, hose_coupler, valley
+from robot_sim.arm.kinematics import ArmKinematics
+from robot_sim.arm.description import LWR4
+from robot_sim.world.physics import Simulation
+from robot_sim.world.tasks import free_space, hose_coupler, valley
 
 
 @pytest.fixture(scope="module")

@@ -1,6 +1,6 @@
 """The simulated ATI box speaks Net F/T: the unmodified PyPI clients ``netft`` 2.0.1 (module
-``NetFT``) and ``pynetft`` 2.1.3 against a served :class:`robot_sim.netft.NetFtBox` fed by a
-real :class:`robot_sim.ati.AtiSensor` at its 1 kHz rate; the rest with raw sockets.
+``NetFT``) and ``pynetft`` 2.1.3 against a served :class:`robot_sim.wire.netft.NetFtBox` fed by a
+real :class:`robot_sim.ati.sensor.AtiSensor` at its 1 kHz rate; the rest with raw sockets.
 
 Each box gets its own loopback address (127.0.0.x), since ``netft`` hard-codes UDP 49152;
 HTTP runs on a free port (pynetft's ``http_port``).  The client tests skip, saying why, when
@@ -19,14 +19,9 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
-from robot_sim.ati import AtiConfig, AtiSensor, AtiStatus, RdtRecord
-from robot_sim.netft import (
-    NETFT_ERROR,
-    NETFT_SATURATION,
-    NetFtBox,
-    RdtCommand,
-    netft_status,
-)
+from robot_sim.ati.rdt import AtiStatus, RdtRecord
+from robot_sim.ati.sensor import AtiConfig, AtiSensor
+from robot_sim.wire.netft import NETFT_ERROR, NETFT_SATURATION, NetFtBox, RdtCommand, netft_status
 from tests.support import trickling, wait_until
 
 # a sensor feeding the box at 1 kHz against the wall clock: serial (make test runs these after the rest)
@@ -582,6 +577,6 @@ def test_close_is_not_held_by_clients_that_trickle():
         t0 = time.monotonic()
         box.close()
         took = time.monotonic() - t0
-        alive = [t.name for t in threading.enumerate() if t.name.startswith(("_HttpServer", "_CalibrationServer"))]
+        alive = [t.name for t in threading.enumerate() if t.name.startswith(("PagesServer", "CalibrationServer"))]
     assert took < 1.5, took
     assert alive == [], alive

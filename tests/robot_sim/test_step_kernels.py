@@ -7,19 +7,12 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from robot_sim.kinematics import FRAMES, READY, ArmKinematics
-from robot_sim.krc import (
-    ImpedanceCommand,
-    KrcController,
-    SafetyReason,
-    frame_jacobian,
-    lambda_diagonal,
-    log3,
-    pose_to_cart_pos,
-)
-from robot_sim.lwr4 import LWR4
-from robot_sim.physics import Simulation
-from robot_sim.worlds import Valley, free_space, valley
+from robot_sim.arm.kinematics import ArmKinematics, FRAMES, READY
+from robot_sim.krc.law import (ImpedanceCommand, KrcController, SafetyReason, frame_jacobian, lambda_diagonal,
+                               log3, pose_to_cart_pos)
+from robot_sim.arm.description import LWR4
+from robot_sim.world.physics import Simulation
+from robot_sim.world.tasks import Valley, free_space, valley
 
 LOCAL, LWA = pin.ReferenceFrame.LOCAL, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 
@@ -162,7 +155,7 @@ def test_what_holds_its_buffers_addresses_refuses_to_be_copied():
     import copy
     import pickle
 
-    from robot_sim.ati import AtiConfig, AtiSensor
+    from robot_sim.ati.sensor import AtiConfig, AtiSensor
     from robot_sim.cell import RobotCell
 
     cell = RobotCell(valley())
@@ -195,8 +188,8 @@ def test_the_contact_kernel_reads_what_the_python_loop_reads():
     between two plates), in the coupler (the floor and the walls), and on a plane, where
     MuJoCo orders the tip second in the contact (the plates and the coupler order it
     first: the force's sign flips)."""
-    from robot_sim import physics
-    from robot_sim.worlds import Surface, WorldSpec, hose_coupler
+    from robot_sim.world import physics
+    from robot_sim.world.tasks import Surface, WorldSpec, hose_coupler
 
     if physics._tip_contacts is None:
         pytest.skip(f"no contact kernel here: {physics.WHY_NO_CONTACT_KERNEL}")
@@ -231,7 +224,7 @@ def test_update_with_jacobian_leaves_what_the_bindings_leave(kin):
     updateFramePlacements, getFrameJacobian LOCAL into a buffer) against the four calls
     through Pinocchio's bindings, on another Data: the same bits, in the Jacobian and in
     every frame placement and joint Jacobian it leaves."""
-    from robot_sim import kinematics
+    from robot_sim.arm import kinematics
 
     if kinematics._MEASURED_KINEMATICS is None:
         pytest.skip(f"no extension here: {kinematics.PINOCCHIO_INPLACE_MISSING or 'an older build'}")

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from robot_sim.worlds import Valley
+from robot_sim.world.tasks import Valley
 from services.recordings.writer import EpisodeWriter
 from services.runtime.messages import FT_WRENCH, ROBOT_COMMAND, ROBOT_CONTACT
 

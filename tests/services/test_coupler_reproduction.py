@@ -10,7 +10,7 @@ import pinocchio as pin
 import pytest
 
 from etar.task import load_task
-from robot_sim.worlds import HoseCoupler
+from robot_sim.world.tasks import HoseCoupler
 from tests import support
 from tests.support import recorded_samples
 

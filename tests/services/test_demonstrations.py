@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from robot_sim.lwr4 import LWR4
-from robot_sim.worlds import HoseCoupler, Valley
+from robot_sim.arm.description import LWR4
+from robot_sim.world.tasks import HoseCoupler, Valley
 from services.run.demonstration import demonstration_scenario, record_demonstration
 from tests.support import recorded_samples
 

@@ -73,7 +73,7 @@ def test_the_runs_figures_draw_its_world_and_name_its_phases_by_the_true_ones(ru
 
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-    from robot_sim.labels import LABELERS
+    from robot_sim.world.labels import LABELERS
     from services.results import figures
 
     kept = {}

@@ -13,7 +13,7 @@ import pytest
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
 from etar.task import load_task
-from robot_sim.worlds import HoseCoupler, Valley
+from robot_sim.world.tasks import HoseCoupler, Valley
 from services.recordings.writer import EpisodeWriter
 from services.results import figures
 from services.runtime.messages import (

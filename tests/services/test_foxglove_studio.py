@@ -192,7 +192,7 @@ def test_foxglove_studio_shows_a_reproduction_paused_after_a_seek_and_playing(re
     # the arm (orange) and the world (grey plates) drawn paused, after the seek and playing
     for tag in ("paused", "seeked", "playing"):
         image = Path(shown["shots"][f"{tag}-3d"])
-        # the arm is orange in the MuJoCo model (robot_sim.worlds), the world light grey
+        # the arm is orange in the MuJoCo model (robot_sim.world.tasks), the world light grey
         assert orange_share(image) > 0.05, f"no arm in the 3D panel {tag}: {image}"
         assert grey_share(image) > 0.02, f"no world in the 3D panel {tag}: {image}"
         assert label_share(image) < 0.05, f"frame labels swamp the 3D panel {tag}: {image}"

@@ -6,7 +6,7 @@ import tempfile
 
 import pytest
 
-from robot_sim.fri import LinkFaultSpec
+from robot_sim.krc.faults import LinkFaultSpec
 from services.nodes import CommanderConfig, EstimatorConfig, FtSensorConfig, RecorderConfig, RobotConfig
 from services.run.configs import node_configs
 from services.run.episode import Episodes
@@ -22,7 +22,7 @@ START = [0.62, -0.06, 0.30]
 
 
 def cell(**faults):
-    """The reproduction's nodes in this process, the FRI link with ``faults`` (robot_sim.fri.LinkFaultSpec)."""
+    """The reproduction's nodes in this process, the FRI link with ``faults`` (robot_sim.krc.faults.LinkFaultSpec)."""
     return InProcessCell("inproc-test", {
         "robot": RobotConfig(fri=LinkFaultSpec(**faults)), "ft_sensor": FtSensorConfig(),
         "recorder": RecorderConfig(out_dir=tempfile.mkdtemp()), "phase_estimator": EstimatorConfig(),

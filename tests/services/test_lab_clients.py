@@ -10,11 +10,12 @@ import time
 
 import numpy as np
 
-from robot_sim.ati import AtiConfig, AtiSensor
-from robot_sim.fri import ControlMode, FriQuality, FriState, MeasurementPacket
-from robot_sim.fri_wire import KrlChannels, abc_order, decode_command, encode_measurement, read_krl
-from robot_sim.krl import TB_EPISODE, TB_ESTIMATE_SEQ, TB_GOAL_REACHED, TB_GRAVITY_COMPENSATION, TB_HOLD, TB_HOLDS
-from robot_sim.netft import NetFtBox
+from robot_sim.ati.sensor import AtiConfig, AtiSensor
+from robot_sim.krc.packets import ControlMode, FriQuality, FriState, MeasurementPacket, fri_order
+from robot_sim.krc.krl import (KrlChannels, TB_EPISODE, TB_ESTIMATE_SEQ, TB_GOAL_REACHED,
+                               TB_GRAVITY_COMPENSATION, TB_HOLD, TB_HOLDS)
+from robot_sim.wire.fri_datagrams import decode_command, encode_measurement, read_krl
+from robot_sim.wire.netft import NetFtBox
 from services.nodes.fri_remote import FriRemoteSocket
 from services.nodes.netft_client import NetFtStream
 
@@ -58,7 +59,7 @@ def test_the_remote_socket_passes_measurements_on_and_answers_them():
         data, _ = krc.recvfrom(2048)
         cmd = decode_command(data)
         assert int(cmd["head"]["reflSeqCount"]) == seq & 0xFFFF
-        assert np.allclose(abc_order(cmd["cmd"]["cartStiffness"]), [0, 0, 0, 150, 100, 50])
+        assert np.allclose(fri_order(cmd["cmd"]["cartStiffness"]), [0, 0, 0, 150, 100, 50])
         frm = read_krl(cmd)
         assert frm.flag(TB_GOAL_REACHED) and TB_HOLDS[frm.ints[TB_HOLD - 1]] == "wrench_saturated"
         assert frm.ints[TB_ESTIMATE_SEQ - 1] == 69_990

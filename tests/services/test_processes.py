@@ -72,7 +72,7 @@ def test_garbage_is_dropped_and_counted_valid_messages_are_answered(ft_sensor):
     assert [m["seq"] for m in got] == [1, 2, 3, 4, 5]
     assert all(m["status"] == 0 for m in got)
     # untared: the tool's weight plus the sensor's bias
-    from robot_sim.ati import AtiConfig
+    from robot_sim.ati.sensor import AtiConfig
 
     assert abs(np.mean([m["wrench"][2] for m in got]) - (2.45 + AtiConfig.mini45().bias[2])) < 0.5
     status = request(session, run_id, "ft_sensor", "status")

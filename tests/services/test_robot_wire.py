@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from robot_sim.fri_wire import decode_command, decode_measurement
+from robot_sim.wire.fri_datagrams import decode_command, decode_measurement
 from services.nodes.robot import RobotConfig, RobotNode
 from tests.robot_sim.fri_remote import Remote
 

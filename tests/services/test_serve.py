@@ -19,8 +19,9 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from robot_sim.fri import FriState
-from robot_sim.fri_wire import COMMAND_SIZE, MEASUREMENT_SIZE, CommandFlags, decode_command, decode_measurement
+from robot_sim.krc.packets import FriState
+from robot_sim.wire.fri_datagrams import (COMMAND_SIZE, CommandFlags, MEASUREMENT_SIZE, decode_command,
+                                          decode_measurement)
 from services.run.episode import SETTLE_CYCLES
 from tests.robot_sim.fri_remote import Remote
 from tests.support import (assert_a_stall, popen_as_from_a_terminal, realtime_attempts, require_realtime_machine,

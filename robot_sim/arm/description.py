@@ -150,7 +150,7 @@ class ArmDescription:
         force/torque sensors there measure what the tool transmits to the
         sensor) and ``tcp``; the tip geom ``tool_tip``.  No geom collides by its
         contype: a world pairs the tip with each surface it can touch
-        (``robot_sim.worlds``), so the pair, not the geoms, says how they meet.
+        (``robot_sim.world.tasks``), so the pair, not the geoms, says how they meet.
         """
         t = self.tool
         lines = []

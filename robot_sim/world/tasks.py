@@ -65,9 +65,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from robot_sim.fri import FRI_CYCLE_NS
-from robot_sim.labels import LABELERS
-from robot_sim.lwr4.description import LWR4, ArmDescription
+from robot_sim.cycle import FRI_CYCLE_NS
+from robot_sim.world.labels import LABELERS
+from robot_sim.arm.description import ArmDescription, LWR4
 
 TIMESTEP = FRI_CYCLE_NS / 1e9  # s: the physics step, one FRI cycle
 IMPRATIO = 10.0  # friction 10 x harder than the normal contact (module docstring)

@@ -10,7 +10,7 @@
 //
 // Compiled by setup.py against the headers of the pin wheel it builds with; the
 // layout of Model and Data must be that of the loaded Pinocchio, so the module
-// carries the version it was built against and robot_sim.kinematics checks it.
+// carries the version it was built against and robot_sim.arm.kinematics checks it.
 
 #include <stdexcept>
 

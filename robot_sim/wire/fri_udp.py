@@ -1,8 +1,8 @@
 """The KRC's FRI 1.0 endpoint on a real UDP socket.
 
-A thin layer between the KRC's books (``robot_sim.fri.FriLink``) and a remote that
+A thin layer between the KRC's books (``robot_sim.krc.link.FriLink``) and a remote that
 speaks FRI 1.0 (a lab program, the Stanford FRI Library, ``lwr_hw``): each cycle the
-KRC :meth:`FriUdpEndpoint.send`\\ s its measurement datagram (``robot_sim.fri_wire``)
+KRC :meth:`FriUdpEndpoint.send`\\ s its measurement datagram (``robot_sim.wire.fri_datagrams``)
 to the remote's address, and :meth:`FriUdpEndpoint.poll` reads the command datagrams
 that have arrived on the same socket and returns the cycle's answer.  As WIRE.md
 says, the KRC initiates: the remote answers to the source address of the last
@@ -41,20 +41,11 @@ from typing import Self
 
 import numpy as np
 
-from robot_sim.fri import CommandPacket, ControlMode, MeasurementPacket
-from robot_sim.fri_wire import (
-    MEASUREMENT_DTYPE,
-    REMOTE_PORT,
-    FriWireError,
-    KrlChannels,
-    MeasurementExtras,
-    command_packet,
-    decode_command,
-    new_measurement,
-    read_krl,
-    unwrap,
-    write_measurement,
-)
+from robot_sim.krc.packets import CommandPacket, ControlMode, MeasurementExtras, MeasurementPacket
+from robot_sim.krc.krl import KrlChannels
+from robot_sim.wire.fri_datagrams import (FriWireError, MEASUREMENT_DTYPE, REMOTE_PORT, command_packet,
+                                          decode_command, new_measurement, read_krl, unwrap,
+                                          write_measurement)
 
 __all__ = ["FriUdpCounters", "FriUdpEndpoint", "hold_measured_pose", "host_port"]
 

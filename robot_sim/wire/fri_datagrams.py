@@ -41,10 +41,10 @@ received yet) goes out as 0, as a KRC that has heard nothing reflects.
 
 Orders.  FRI orders a wrench Fx, Fy, Fz, Tz, Ty, Tx and the rotational part of the
 Cartesian stiffness and damping A, B, C (about Z, Y, X).  The testbench's packets
-(``robot_sim.fri``) keep the wrenches in FRI's order already (``est_ext_tcp_ft``,
-``add_tcp_ft``; ``robot_sim.cell.fri_to_standard`` turns them into the law's), so the
+(``robot_sim.krc.packets``) keep the wrenches in FRI's order already (``est_ext_tcp_ft``,
+``add_tcp_ft``; ``robot_sim.krc.packets.fri_order`` turns them into the law's), so the
 wrenches cross unchanged; ``cart_stiffness`` and ``cart_damping`` are in the law's
-order x, y, z, rx, ry, rz and are permuted here (:func:`abc_order`, its own inverse).
+order x, y, z, rx, ry, rz and are permuted here (:func:`robot_sim.krc.packets.fri_order`, its own inverse).
 The Jacobian's rows go out X, Y, Z, RZ, RY, RX (:func:`jacobian_to_fri` from the
 usual [v; w] rows).
 
@@ -60,7 +60,7 @@ otherwise: the KRC's own values).
 
 Errors.  :func:`decode_measurement` and :func:`decode_command` raise
 :class:`FriWireError` (a ``ValueError``) for a datagram of the wrong length or
-``datagramId``; the endpoint (``robot_sim.fri_udp``) counts and ignores those.  The
+``datagramId``; the endpoint (``robot_sim.wire.fri_udp``) counts and ignores those.  The
 header's ``packetSize`` is written on encode and not judged on decode (the length
 of the datagram is).
 """
@@ -68,28 +68,20 @@ of the datagram is).
 from __future__ import annotations
 
 import struct
-from dataclasses import dataclass, field
 from enum import IntFlag
 
 import numpy as np
 
-from robot_sim.fri import (
-    FRI_CYCLE_NS,
-    CommandPacket,
-    ControlMode,
-    FriQuality,
-    FriState,
-    MeasurementPacket,
-)
+from robot_sim.krc.krl import KRL_SIZE, KrlChannels
+from robot_sim.krc.packets import (CommandPacket, ControlMode, FriQuality, FriState, MeasurementExtras,
+                                   MeasurementPacket, fri_order)
 
 __all__ = [
-    "ALL_DRIVES_POWERED",
     "COMMAND_DTYPE",
     "COMMAND_ID",
     "COMMAND_SIZE",
     "HEADER_DTYPE",
     "KRL_DTYPE",
-    "KRL_SIZE",
     "MEASUREMENT_DTYPE",
     "MEASUREMENT_ID",
     "MEASUREMENT_SIZE",
@@ -97,9 +89,6 @@ __all__ = [
     "REMOTE_PORT",
     "CommandFlags",
     "FriWireError",
-    "KrlChannels",
-    "MeasurementExtras",
-    "abc_order",
     "command_packet",
     "counter16",
     "decode_command",
@@ -107,7 +96,6 @@ __all__ = [
     "encode_command",
     "encode_measurement",
     "field_offsets",
-    "jacobian_to_fri",
     "measurement_packet",
     "mode_for_flags",
     "new_command",
@@ -125,8 +113,6 @@ MEASUREMENT_ID = 0x2006
 COMMAND_SIZE = 376
 COMMAND_ID = 0x1005
 REMOTE_PORT = 49938  # where both public FRI 1.0 remote libraries listen by default
-KRL_SIZE = 16  # values of each kind in a KRL block
-ALL_DRIVES_POWERED = 0x7F  # robot.power: one bit per drive, 7 joints
 
 _J, _CART, _FT = 7, 12, 6
 _COUNTER = 1 << 16
@@ -297,26 +283,6 @@ def unwrap(counter: int, near: int) -> int:
     return near + (counter - near + _COUNTER // 2) % _COUNTER - _COUNTER // 2
 
 
-# ------------------------------------------------------------------------ orders
-
-_ABC = np.array([0, 1, 2, 5, 4, 3])  # x y z A(about z) B(about y) C(about x)  <->  x y z rx ry rz
-
-
-def abc_order(values) -> np.ndarray:
-    """x, y, z, rx, ry, rz <-> x, y, z, A, B, C (FRI's Cartesian stiffness and damping
-    order, rotations about Z, Y, X); the permutation is its own inverse."""
-    return np.asarray(values, dtype=np.float64)[_ABC]
-
-
-def jacobian_to_fri(jacobian) -> np.ndarray:
-    """A (6, 7) Jacobian with rows [vx, vy, vz, wx, wy, wz] in FRI's row order
-    X, Y, Z, RZ, RY, RX (its own inverse too)."""
-    jacobian = np.asarray(jacobian, dtype=np.float64)
-    if jacobian.shape != (6, _J):
-        raise ValueError(f"jacobian has shape {jacobian.shape}, expected (6, 7)")
-    return jacobian[_ABC]
-
-
 def record_fields(rec: np.ndarray) -> dict:
     """A decoded datagram as nested plain values with FRI's names (``{"head": {...},
     "data": {"msrJntPos": [...], ...}}``): arrays as (nested) lists, float32 as the
@@ -347,39 +313,6 @@ def field_offsets(dtype: np.dtype) -> dict[str, tuple[int, np.dtype]]:
 
 
 # ------------------------------------------------------------------ KRL channels
-
-@dataclass(slots=True, eq=False)
-class KrlChannels:
-    """One direction's KRL block: ``$FRI_TO_*`` (KRC -> remote, in the measurement) or
-    ``$FRI_FRM_*`` (remote -> KRC, in the command).
-
-    KRL counts from 1: ``$FRI_TO_INT[16]`` is ``ints[15]``; ``$FRI_TO_BOOL[i]`` is bit
-    ``i - 1`` of ``bools`` (use :meth:`flag` / :meth:`set_flag` with the KRL index).
-    Reals cross as float32, integers as int32.
-    """
-
-    reals: np.ndarray = field(default_factory=lambda: np.zeros(KRL_SIZE))
-    ints: np.ndarray = field(default_factory=lambda: np.zeros(KRL_SIZE, dtype=np.int64))
-    bools: int = 0
-
-    def flag(self, krl_index: int) -> bool:
-        """``$FRI_..._BOOL[krl_index]`` (1..16)."""
-        return bool(self.bools >> (_krl_index(krl_index) - 1) & 1)
-
-    def set_flag(self, krl_index: int, value: bool) -> None:
-        bit = 1 << (_krl_index(krl_index) - 1)
-        self.bools = (self.bools | bit) if value else (self.bools & ~bit)
-
-    def copy(self) -> KrlChannels:
-        return KrlChannels(np.array(self.reals, dtype=np.float64), np.array(self.ints, dtype=np.int64),
-                           int(self.bools))
-
-
-def _krl_index(i: int) -> int:
-    if not 1 <= int(i) <= KRL_SIZE:
-        raise ValueError(f"KRL index {i} outside 1..{KRL_SIZE}")
-    return int(i)
-
 
 def read_krl(rec: np.ndarray) -> KrlChannels:
     """The KRL block of a decoded datagram (either kind), as float64/int64 copies."""
@@ -446,35 +379,6 @@ def decode_measurement(data) -> np.ndarray:
 def decode_command(data) -> np.ndarray:
     """A command datagram (any bytes-like) as a record (a copy); FriWireError if it is not one."""
     return _decode(data, COMMAND_DTYPE, COMMAND_SIZE, COMMAND_ID, "command")
-
-
-@dataclass(slots=True, eq=False)
-class MeasurementExtras:
-    """What a measurement datagram carries beyond a ``MeasurementPacket``.
-
-    None for the commanded positions means "the measured ones" (what a KRC holding
-    its pose in monitor mode reports: a remote mirrors these before it commands, so
-    they must be consistent and non-zero); the offsets FRI added default to zero
-    (nothing added).  Arrays are in FRI's orders: ``jacobian`` rows X Y Z RZ RY RX
-    (:func:`jacobian_to_fri`).
-    """
-
-    cmd_jnt_pos: np.ndarray | None = None  # (7,) rad, commanded before FRI's offset
-    cmd_jnt_pos_fri_offset: np.ndarray | None = None  # (7,)
-    cmd_cart_pos: np.ndarray | None = None  # (12,) commanded before FRI
-    cmd_cart_pos_fri_offset: np.ndarray | None = None  # (12,)
-    msr_jnt_trq: np.ndarray | None = None  # (7,) Nm
-    est_ext_jnt_trq: np.ndarray | None = None  # (7,) Nm
-    jacobian: np.ndarray | None = None  # (6, 7) FRI row order
-    mass_matrix: np.ndarray | None = None  # (7, 7)
-    gravity: np.ndarray | None = None  # (7,) Nm
-    temperature: np.ndarray | None = None  # (7,)
-    miss_counter: int = 0  # intf.stat.missCounter
-    sample_time_s: float = FRI_CYCLE_NS * 1e-9  # desiredMsrSampleTime and desiredCmdSampleTime
-    safety_limits: float = 0.0
-    power: int = ALL_DRIVES_POWERED
-    error: int = 0
-    warning: int = 0
 
 
 _DEFAULT_EXTRAS = MeasurementExtras()
@@ -581,8 +485,8 @@ def write_command(rec: np.ndarray, cmd: CommandPacket, *, send_seq: int, krl: Kr
     c["addTcpFT"] = cmd.add_tcp_ft  # FRI order on both sides
     c["jntStiffness"] = 0.0 if cmd.jnt_stiffness is None else cmd.jnt_stiffness
     c["jntDamping"] = 0.0 if cmd.jnt_damping is None else cmd.jnt_damping
-    c["cartStiffness"] = abc_order(cmd.cart_stiffness)
-    c["cartDamping"] = abc_order(cmd.cart_damping)
+    c["cartStiffness"] = fri_order(cmd.cart_stiffness)
+    c["cartDamping"] = fri_order(cmd.cart_damping)
     return rec
 
 
@@ -614,8 +518,8 @@ def command_packet(rec: np.ndarray, seq: int, current_mode: ControlMode,
     return CommandPacket(
         seq=int(seq),
         cart_pos=take(CommandFlags.CART_POS, np.array(c["cartPos"], dtype=np.float64), "cart_pos"),
-        cart_stiffness=take(CommandFlags.CART_STIFF, abc_order(c["cartStiffness"]), "cart_stiffness"),
-        cart_damping=take(CommandFlags.CART_DAMP, abc_order(c["cartDamping"]), "cart_damping"),
+        cart_stiffness=take(CommandFlags.CART_STIFF, fri_order(c["cartStiffness"]), "cart_stiffness"),
+        cart_damping=take(CommandFlags.CART_DAMP, fri_order(c["cartDamping"]), "cart_damping"),
         add_tcp_ft=take(CommandFlags.TCP_FT, np.array(c["addTcpFT"], dtype=np.float64), "add_tcp_ft"),
         jnt_pos=take(CommandFlags.JNT_POS, np.array(c["jntPos"], dtype=np.float64), "jnt_pos"),
         requested_mode=mode_for_flags(flags, current_mode),

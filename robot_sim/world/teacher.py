@@ -10,7 +10,7 @@ physiological tremor (a 10 Hz resonant force of 1.5 N per axis; physiological
 tremor is 8-12 Hz), and a gentle speed ramp at the start.
 
 The teacher's ``phase`` is its script's; the true phase of every cycle is labelled
-from the physics by ``robot_sim.labels``, in the robot, the same way in demonstrations
+from the physics by ``robot_sim.world.labels``, in the robot, the same way in demonstrations
 and reproductions.
 """
 
@@ -22,9 +22,9 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
-from robot_sim.fri import FRI_CYCLE_NS
-from robot_sim.lwr4.description import LWR4
-from robot_sim.worlds import HoseCoupler, Valley
+from robot_sim.cycle import FRI_CYCLE_NS
+from robot_sim.arm.description import LWR4
+from robot_sim.world.tasks import HoseCoupler, Valley
 
 DOWN = np.diag([-1.0, 1.0, -1.0])  # tcp z pointing down, x against the base x (the READY posture)
 _NORMALS_BLOCK = 3000  # the step's normal draws, a block at a time: the same numbers in the same order

@@ -1,9 +1,9 @@
 """The simulated ATI box on the network: :class:`NetFtBox` speaks Net F/T.
 
-:class:`robot_sim.ati.AtiSensor` makes the records an ATI Net F/T would send; this module
+:class:`robot_sim.ati.sensor.AtiSensor` makes the records an ATI Net F/T would send; this module
 puts them on the wire the way the real box does, so lab software written for a Net F/T
 connects to the simulation unchanged.  The box is fed, not clocked: whoever runs the
-sensor's cycle calls :meth:`NetFtBox.publish` with every :class:`~robot_sim.rdt.RdtRecord`,
+sensor's cycle calls :meth:`NetFtBox.publish` with every :class:`~robot_sim.ati.rdt.RdtRecord`,
 and the box sends it to the clients that asked for a stream.  No sensor model, no physics
 and no wall clock inside.
 
@@ -58,7 +58,7 @@ Record fields
   decoded by netft-cpp, pynetft's core, ``test/test_status.cpp``); any other bit becomes
   bit 31 alone.  The model's own bits 8-14 and 30 would read as analog-board and CPU/RAM
   errors there.  ``status_layout="model"`` sends the model's word unchanged (per-axis
-  saturation bits for software that knows :mod:`robot_sim.ati`).
+  saturation bits for software that knows :mod:`robot_sim.ati.sensor`).
 * ``Fx..Tz``: the sensor's int32 counts, minus the box's bias (below).
 
 Bias (0x0042)
@@ -81,7 +81,6 @@ returns within about a second whatever the clients do.
 from __future__ import annotations
 
 import dataclasses
-import http.server
 import ipaddress
 import os
 import selectors
@@ -90,17 +89,17 @@ import socketserver
 import struct
 import sys
 import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from robot_sim.rdt import SATURATION_BITS, AtiStatus, RdtRecord
+from robot_sim.ati.rdt import SATURATION_BITS, AtiStatus, RdtRecord
+from robot_sim.wire.netft_pages import RDT_HEADER, CalibrationServer, PagesServer
 
 if TYPE_CHECKING:
-    from robot_sim.ati import AtiConfig
+    from robot_sim.ati.sensor import AtiConfig
 
 __all__ = [
     "NETFT_ERROR",
@@ -114,7 +113,6 @@ __all__ = [
     "netft_status",
 ]
 
-RDT_HEADER = 0x1234
 RDT_PORT = 49152
 CALIBRATION_PORT = 49151
 HTTP_PORT = 80
@@ -139,10 +137,6 @@ RDT_REQUEST = struct.Struct(">HHI")  # header 0x1234, command, sample count
 RDT_RECORD = RdtRecord._WIRE  # one 36-byte record: rdt_sequence, ft_sequence, status, counts
 _RECORD_TAIL = struct.Struct(">2I6i")  # ft_sequence, status, counts: the same for every stream
 _RDT_SEQUENCE = struct.Struct(">I")
-_CALINFO_REQUEST_SIZE = 20
-_CALINFO_REPLY = struct.Struct(">HBBII6H")
-_FORCE_UNIT_N = 2
-_TORQUE_UNIT_NM = 3
 _UINT32 = 0xFFFFFFFF
 _INT32_MIN, _INT32_MAX = -(2**31), 2**31 - 1
 # streams at once; a start request beyond that is refused (a dead client's stream ends on
@@ -196,6 +190,22 @@ class NetFtStats:
     """Streams running now."""
 
 
+def _check_ports(**ports: int | None) -> None:
+    """Each a port number, 0 to bind a free one; None (the TCP channels only) leaves it out."""
+    for name, port in ports.items():
+        if port is None and name != "rdt_port":
+            continue
+        if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
+            raise ValueError(f"{name} must be a port number 0..65535, got {port!r}")
+
+
+def _check_page_names(**names: str) -> None:
+    """Names the XML pages carry as they are: no markup in them."""
+    for name, text in names.items():
+        if not isinstance(text, str) or not text.strip() or len(text) > 128 or any(c in text for c in "<>&"):
+            raise ValueError(f"{name} must be 1..128 characters without <, > or &, got {text!r}")
+
+
 @dataclass
 class _Stream:
     buffered: bool
@@ -230,7 +240,7 @@ class NetFtBox:
     ) -> None:
         # the sensor model's module (numba, its kernels) only where a box is made: a reader
         # of the wire imports this module for its layouts alone
-        from robot_sim.ati import AtiConfig
+        from robot_sim.ati.sensor import AtiConfig
 
         self.config = AtiConfig.mini45() if config is None else config
         if not isinstance(self.config, AtiConfig):
@@ -239,12 +249,7 @@ class NetFtBox:
             ip = ipaddress.IPv4Address(address)
         except ValueError:
             raise ValueError(f"address must be an IPv4 address, got {address!r}") from None
-        for name, port, optional in (("rdt_port", rdt_port, False), ("http_port", http_port, True),
-                                     ("calibration_port", calibration_port, True)):
-            if port is None and optional:
-                continue
-            if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
-                raise ValueError(f"{name} must be a port number 0..65535, got {port!r}")
+        _check_ports(rdt_port=rdt_port, http_port=http_port, calibration_port=calibration_port)
         if isinstance(rdt_buffer_size, bool) or not isinstance(rdt_buffer_size, int) or not 1 <= rdt_buffer_size <= 40:
             # 40 records of 36 bytes keep a datagram under a 1500-byte Ethernet MTU
             raise ValueError(f"rdt_buffer_size must be an integer 1..40, got {rdt_buffer_size!r}")
@@ -254,9 +259,7 @@ class NetFtBox:
             raise TypeError("on_bias must be callable or None")
         if tap is not None and not callable(tap):
             raise TypeError("tap must be callable or None")
-        for name, text in (("product_name", product_name), ("calibration_name", calibration_name)):
-            if not isinstance(text, str) or not text.strip() or len(text) > 128 or any(c in text for c in "<>&"):
-                raise ValueError(f"{name} must be 1..128 characters without <, > or &, got {text!r}")
+        _check_page_names(product_name=product_name, calibration_name=calibration_name)
         self.address = str(ip)
         self.rdt_port = rdt_port
         self.http_port = http_port
@@ -301,11 +304,11 @@ class NetFtBox:
             if sys.platform == "linux":
                 udp.setsockopt(socket.IPPROTO_IP, _IP_RECVERR, 1)
             if self.http_port is not None:
-                server = _HttpServer((self.address, self.http_port), _XmlHandler, self)
+                server = PagesServer((self.address, self.http_port), self)
                 self._servers.append(server)
                 self.http_port = server.server_address[1]
             if self.calibration_port is not None:
-                server = _CalibrationServer((self.address, self.calibration_port), _CalibrationHandler, self)
+                server = CalibrationServer((self.address, self.calibration_port), self)
                 self._servers.append(server)
                 self.calibration_port = server.server_address[1]
             self._wake = os.pipe()
@@ -352,7 +355,7 @@ class NetFtBox:
     def serving(self) -> bool:
         return self._state == "serving"
 
-    def _count(self, what: str) -> None:
+    def count(self, what: str) -> None:
         """One more of a :class:`NetFtStats` counter (from a connection's thread)."""
         with self._lock:
             setattr(self._stats, what, getattr(self._stats, what) + 1)
@@ -507,155 +510,3 @@ class NetFtBox:
                     self._bias_armed = True
         if bias:
             self._on_bias()
-
-    # -- calibration ----------------------------------------------------------------
-
-    def netftapi2_xml(self) -> str:
-        """The body of ``/netftapi2.xml``."""
-        c = self.config
-        rate = round(1.0 / c.sample_period_s)
-        return ("<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n<netft>\n"
-                f"<prodname>{self.product_name}</prodname>\n"
-                f"<cfgcpf>{c.counts_per_force}</cfgcpf>\n<cfgcpt>{c.counts_per_torque}</cfgcpt>\n"
-                "<scfgfu>N</scfgfu>\n<scfgtu>Nm</scfgtu>\n"
-                f"<comrdtrate>{rate}</comrdtrate>\n<comrdtbsiz>{self.rdt_buffer_size}</comrdtbsiz>\n"
-                "</netft>\n")
-
-    def netftcalapi_xml(self) -> str:
-        """The body of ``/netftcalapi.xml``."""
-        c = self.config
-        return ("<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n<netftCalibration>\n"
-                f"<calpn>{self.calibration_name}</calpn>\n<calfu>N</calfu>\n<caltu>Nm</caltu>\n"
-                f"<calcpf>{c.counts_per_force}</calcpf>\n<calcpt>{c.counts_per_torque}</calcpt>\n"
-                "</netftCalibration>\n")
-
-    def calibration_info(self) -> bytes:
-        """The 24-byte READCALINFO reply of TCP 49151."""
-        c = self.config
-        return _CALINFO_REPLY.pack(RDT_HEADER, _FORCE_UNIT_N, _TORQUE_UNIT_NM, c.counts_per_force,
-                                   c.counts_per_torque, *([1] * 6))
-
-
-class _Connections:
-    """A threading server's open connections, cut at close: a client that trickles a byte a
-    second would otherwise hold its handler thread (and the box's close, which joins it)
-    for as long as it likes."""
-
-    daemon_threads = True  # a handler that does not end is not waited for at exit
-    timeout = 0  # handle_request() is called only when a connection is waiting
-    _CLOSE_JOIN_S = 1.0
-
-    def _track(self) -> None:
-        self._open: set = set()
-        self._handlers: list[threading.Thread] = []
-        self._open_lock = threading.Lock()
-        self._closing = False
-
-    def process_request(self, request, client_address):
-        thread = threading.Thread(target=self.process_request_thread, args=(request, client_address),
-                                  name=f"{type(self).__name__} {client_address[0]}:{client_address[1]}", daemon=True)
-        with self._open_lock:
-            self._open.add(request)
-            self._handlers = [t for t in self._handlers if t.is_alive()] + [thread]
-        thread.start()
-
-    def shutdown_request(self, request):
-        with self._open_lock:
-            self._open.discard(request)
-        super().shutdown_request(request)
-
-    def handle_error(self, request, client_address):
-        if not self._closing:  # a connection cut at close is not an error of the client's
-            super().handle_error(request, client_address)
-
-    def server_close(self):
-        with self._open_lock:
-            self._closing = True
-            open_now, handlers = list(self._open), list(self._handlers)
-        for sock in open_now:  # the handlers' reads end at once
-            try:
-                sock.shutdown(socket.SHUT_RDWR)
-            except OSError:
-                pass
-        super(socketserver.ThreadingMixIn, self).server_close()  # the listening socket
-        deadline = time.monotonic() + self._CLOSE_JOIN_S
-        for thread in handlers:
-            thread.join(max(0.0, deadline - time.monotonic()))
-
-
-class _HttpServer(_Connections, http.server.ThreadingHTTPServer):
-    """The box's web server; requests are accepted by the box's I/O thread."""
-
-    def __init__(self, address, handler, box: NetFtBox):
-        self.box = box
-        self._track()
-        super().__init__(address, handler)
-
-
-class _XmlHandler(http.server.BaseHTTPRequestHandler):
-    timeout = 2.0
-    server_version = "NetFtSim/1.0"
-
-    def do_GET(self):  # the name http.server calls
-        path = self.path.split("?", 1)[0]
-        pages = {"/netftapi2.xml": self.server.box.netftapi2_xml, "/netftcalapi.xml": self.server.box.netftcalapi_xml}
-        if path not in pages:
-            self.send_error(404)
-            return
-        self.server.box._count("http_requests")
-        body = pages[path]().encode()
-        self.send_response(200)
-        self.send_header("Content-Type", "text/xml")
-        self.send_header("Content-Length", str(len(body)))
-        self.end_headers()
-        self.wfile.write(body)
-
-    def send_error(self, code, message=None, explain=None):  # the signature http.server calls
-        # a missing page, a malformed request line, a method the box has not (garbage)
-        self.server.box._count("http_refused")
-        super().send_error(code, message, explain)
-
-    def log_message(self, format, *args):  # the signature http.server calls
-        pass
-
-
-class _CalibrationServer(_Connections, socketserver.ThreadingTCPServer):
-    allow_reuse_address = True
-
-    def __init__(self, address, handler, box: NetFtBox):
-        self.box = box
-        self._track()
-        super().__init__(address, handler)
-
-
-class _CalibrationHandler(socketserver.BaseRequestHandler):
-    """READCALINFO requests on one connection until the client closes it (or 2 s idle)."""
-
-    def handle(self):
-        self.request.settimeout(2.0)
-        while True:
-            try:
-                data = _receive_exactly(self.request, _CALINFO_REQUEST_SIZE)
-            except OSError:
-                return
-            if data is None:
-                return  # closed
-            if data[0] != 0x01:
-                self.server.box._count("calibration_refused")
-                return  # a command this box does not know (READFT): hang up
-            self.server.box._count("calibration_requests")
-            try:
-                self.request.sendall(self.server.box.calibration_info())
-            except OSError:
-                return
-
-
-def _receive_exactly(sock: socket.socket, n: int) -> bytes | None:
-    parts, got = [], 0
-    while got < n:
-        chunk = sock.recv(n - got)
-        if not chunk:
-            return None
-        parts.append(chunk)
-        got += len(chunk)
-    return b"".join(parts)

@@ -39,9 +39,10 @@ import numpy as np
 import pinocchio as pin
 from numba import njit
 
-from robot_sim.fri import FRI_CYCLE_NS, ControlMode
+from robot_sim.cycle import FRI_CYCLE_NS
+from robot_sim.krc.packets import ControlMode
 from kernel_plumbing.addresses import JIT, HoldsAddresses, address, addresses, carray_at, entry, farray_at
-from robot_sim.kinematics import ArmKinematics
+from robot_sim.arm.kinematics import ArmKinematics
 
 POSITION, CART_IMP, JNT_IMP = ControlMode.POSITION, ControlMode.CART_IMP, ControlMode.JNT_IMP
 

@@ -1,9 +1,9 @@
 """What an ATI Net F/T puts on the wire for one sample: the RDT record and its status word.
 
-Apart from the sensor model (``robot_sim.ati``), which makes the records, so that a reader
-of the wire (``services.nodes.netft_client``, ``robot_sim.netft``'s wire layouts) loads
+Apart from the sensor model (``robot_sim.ati.sensor``), which makes the records, so that a reader
+of the wire (``services.nodes.netft_client``, ``robot_sim.wire.netft``'s wire layouts) loads
 neither the model's compiled kernels nor numba: the estimator's process imports this, not
-the model.  The record's layout and what each status bit means are in ``robot_sim.ati``'s
+the model.  The record's layout and what each status bit means are in ``robot_sim.ati.sensor``'s
 module docstring, beside the model that sets them.
 """
 
@@ -28,7 +28,7 @@ UINT32_MASK = 0xFFFFFFFF
 
 
 class AtiStatus(enum.IntFlag):
-    """Bits of :attr:`RdtRecord.status` (what each means: ``robot_sim.ati``'s module docstring)."""
+    """Bits of :attr:`RdtRecord.status` (what each means: ``robot_sim.ati.sensor``'s module docstring)."""
 
     SAT_FX = 1 << 8
     SAT_FY = 1 << 9

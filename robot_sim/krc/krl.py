@@ -4,7 +4,7 @@ FRI 1.0 has no start/stop handshake of its own: a KRL program on the KRC calls
 ``friOpen``, polls the ``$FRI_FRM_*`` values the remote sends, calls ``friStart``
 (command mode), ``friStop`` (monitor mode) and ``friClose``, and reports back on
 ``$FRI_TO_*``.  Each public remote library ships its own program (WIRE.md); this module
-runs either, a cycle at a time, against the KRC's :class:`~robot_sim.fri.FriLink`:
+runs either, a cycle at a time, against the KRC's :class:`~robot_sim.krc.link.FriLink`:
 
 - ``frilibrary``, the Stanford FRI Library's ``FRIControl.src`` (KRL index = C index + 1):
   ``$FRI_FRM_INT[15]`` strategy, ``$FRI_FRM_INT[16]`` request (10 start, 20 stop, the close
@@ -39,10 +39,13 @@ then opens FRI again (``frilibrary``) for the next run of the remote.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
-from robot_sim.fri import FRI_RATE_HZ, ControlMode, FriLink, FriQuality, FriState
-from robot_sim.fri_wire import KrlChannels
+import numpy as np
+
+from robot_sim.cycle import FRI_RATE_HZ
+from robot_sim.krc.link import FriLink
+from robot_sim.krc.packets import ControlMode, FriQuality, FriState
 
 __all__ = ["KRL_CONVENTIONS", "LAB_CONVENTIONS", "OFF_STREAM_S", "POLL_S", "REFUSAL_INDEX", "STRATEGIES", "KrlEvent", "KrlProgram"]
 
@@ -236,3 +239,39 @@ TB_GRAVITY_COMPENSATION = 1  # $FRI_TO_BOOL: the KRC runs gravity compensation (
 TB_GOAL_REACHED = 1  # $FRI_FRM_BOOL: the remote has reached its goal
 TB_HOLD, TB_ESTIMATE_SEQ = 1, 2  # $FRI_FRM_INT: why it holds (TB_HOLDS), the estimate it used (-1: none)
 TB_HOLDS = ("", "stale_estimate", "wrench_saturated", "wrench_invalid", "other")
+
+
+KRL_SIZE = 16  # values of each kind in a KRL block
+
+
+@dataclass(slots=True, eq=False)
+class KrlChannels:
+    """One direction's KRL block: ``$FRI_TO_*`` (KRC -> remote, in the measurement) or
+    ``$FRI_FRM_*`` (remote -> KRC, in the command).
+
+    KRL counts from 1: ``$FRI_TO_INT[16]`` is ``ints[15]``; ``$FRI_TO_BOOL[i]`` is bit
+    ``i - 1`` of ``bools`` (use :meth:`flag` / :meth:`set_flag` with the KRL index).
+    Reals cross as float32, integers as int32.
+    """
+
+    reals: np.ndarray = field(default_factory=lambda: np.zeros(KRL_SIZE))
+    ints: np.ndarray = field(default_factory=lambda: np.zeros(KRL_SIZE, dtype=np.int64))
+    bools: int = 0
+
+    def flag(self, krl_index: int) -> bool:
+        """``$FRI_..._BOOL[krl_index]`` (1..16)."""
+        return bool(self.bools >> (_krl_index(krl_index) - 1) & 1)
+
+    def set_flag(self, krl_index: int, value: bool) -> None:
+        bit = 1 << (_krl_index(krl_index) - 1)
+        self.bools = (self.bools | bit) if value else (self.bools & ~bit)
+
+    def copy(self) -> KrlChannels:
+        return KrlChannels(np.array(self.reals, dtype=np.float64), np.array(self.ints, dtype=np.int64),
+                           int(self.bools))
+
+
+def _krl_index(i: int) -> int:
+    if not 1 <= int(i) <= KRL_SIZE:
+        raise ValueError(f"KRL index {i} outside 1..{KRL_SIZE}")
+    return int(i)

@@ -24,7 +24,7 @@ from numba import njit, types
 
 from kernel_plumbing import blas
 from kernel_plumbing.addresses import JIT, HoldsAddresses, address, addresses, carray_at, entry
-from robot_sim.worlds import TIMESTEP, WorldSpec
+from robot_sim.world.tasks import TIMESTEP, WorldSpec
 
 JOINTS = tuple(f"joint{i}" for i in range(1, 8))
 

@@ -5,7 +5,7 @@ frame in the base (world) frame; Jacobians are taken in
 ``LOCAL_WORLD_ALIGNED`` (origin at the frame, axes of the base) unless stated.
 Results are copies, except what ``views`` and ``frame_views`` hand out.
 
-The realtime step (robot_sim.krc) must not allocate, and every Pinocchio
+The realtime step (robot_sim.krc.law) must not allocate, and every Pinocchio
 function that returns an array returns a new one, as does every access to an
 attribute of ``data``.  For it, ``update_dynamics`` runs algorithms that only
 fill ``data`` in place, and ``views``/``frame_views`` hand out views of
@@ -21,13 +21,13 @@ import os
 import numpy as np
 import pinocchio as pin
 
-from robot_sim.lwr4.description import LWR4, ArmDescription
+from robot_sim.arm.description import ArmDescription, LWR4
 
 log = logging.getLogger(__name__)
 
 
 def _load_pinocchio_inplace():
-    """(the compiled robot_sim._pinocchio_inplace module or None, why not).
+    """(the compiled robot_sim.arm._pinocchio_inplace module or None, why not).
 
     Imported after pinocchio: its libraries are then loaded and resolve the
     extension's.  A module built against another Pinocchio would read Model and
@@ -36,11 +36,11 @@ def _load_pinocchio_inplace():
     if os.environ.get("ROBOT_SIM_PINOCCHIO_INPLACE", "1") == "0":
         return None, "turned off by ROBOT_SIM_PINOCCHIO_INPLACE=0"
     try:
-        from robot_sim import _pinocchio_inplace as native
+        from robot_sim.arm import _pinocchio_inplace as native
     except ImportError as e:
-        return None, f"robot_sim._pinocchio_inplace did not import ({e}); reinstall with a C++ compiler"
+        return None, f"robot_sim.arm._pinocchio_inplace did not import ({e}); reinstall with a C++ compiler"
     if native.PINOCCHIO_VERSION != pin.__version__:
-        return None, (f"robot_sim._pinocchio_inplace was built against Pinocchio {native.PINOCCHIO_VERSION}, "
+        return None, (f"robot_sim.arm._pinocchio_inplace was built against Pinocchio {native.PINOCCHIO_VERSION}, "
                       f"{pin.__version__} is loaded; reinstall the project")
     return native, None
 
@@ -93,7 +93,7 @@ class ArmKinematics:
     def update_with_jacobian(self, q: np.ndarray, frame: str, out: np.ndarray) -> None:
         """``update(q)``, then the frame's Jacobian in its own axes (LOCAL) into ``out``, a
         C-contiguous (6, nv) float64 array: what a cycle's measurement needs, in one call
-        to robot_sim._pinocchio_inplace where it has it (the same algorithms, the same bits;
+        to robot_sim.arm._pinocchio_inplace where it has it (the same algorithms, the same bits;
         the bindings copy q into each of their three calls and return a new array)."""
         if _MEASURED_KINEMATICS is not None:
             _MEASURED_KINEMATICS(self.model, self.data, q, self.frame_ids[frame], out.T)
@@ -109,7 +109,7 @@ class ArmKinematics:
         """``update(q, qd)`` plus the joint-space inertia and the nonlinear
         effects, into ``views`` and ``frame_views``.  No Python object or numpy
         array is allocated (computeJointJacobians and nonLinearEffects would
-        return copies), and with robot_sim._pinocchio_inplace no C++ heap block
+        return copies), and with robot_sim.arm._pinocchio_inplace no C++ heap block
         either: Pinocchio's own bindings copy q and qd into two new Eigen
         vectors, which is the fallback when the extension is missing."""
         if PINOCCHIO_INPLACE is not None:
