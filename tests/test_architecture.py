@@ -31,9 +31,8 @@ SIM_PARTS = {
     "krc": ("cycle", "arm"),
     "wire": ("cycle", "krc.packets", "krc.krl", "ati"),
     "cell": ("cycle", "arm", "world", "ati", "krc"),
-    "krc_udp": ("cycle", "arm", "world", "ati", "krc", "wire", "cell"),
 }
-SIM_TOP_MODULES = 3  # robot_sim/'s top holds the cycle, the cell and at most one more: the rest is in parts
+SIM_TOP_MODULES = 3  # robot_sim/'s top: the cycle and the cell (and room for one more); the rest is in parts
 
 
 def imports(path: Path, text: str | None = None):

@@ -1,7 +1,7 @@
 """What an ATI Net F/T puts on the wire for one sample: the RDT record and its status word.
 
 Apart from the sensor model (``robot_sim.ati.sensor``), which makes the records, so that a reader
-of the wire (``services.nodes.netft_client``, ``robot_sim.wire.netft``'s wire layouts) loads
+of the wire (``services.transport.lab.netft_client``, ``robot_sim.wire.netft``'s wire layouts) loads
 neither the model's compiled kernels nor numba: the estimator's process imports this, not
 the model.  The record's layout and what each status bit means are in ``robot_sim.ati.sensor``'s
 module docstring, beside the model that sets them.

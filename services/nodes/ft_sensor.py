@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from robot_sim.ati.sensor import AtiConfig, AtiSensor
-from robot_sim.wire.netft import CALIBRATION_PORT, HTTP_PORT, NetFtBox, RDT_PORT, RDT_RECORD
+from robot_sim.wire.netft import CALIBRATION_PORT, HTTP_PORT, RDT_PORT, RDT_RECORD
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import option
 from services.runtime.messages import FT_WRENCH, NETFT_RDT
@@ -98,7 +98,8 @@ class FtSensorConfig:
 class FtSensorNode(Node):
     name = "ft_sensor"
 
-    def __init__(self, config: FtSensorConfig, bus, clock, *, run_id: str = "", mode: str = "lockstep", **_):
+    def __init__(self, config: FtSensorConfig, bus, clock, *, run_id: str = "", mode: str = "lockstep",
+                 netft_box=None, **_):
         super().__init__(bus, clock)
         self.ati_config = config.ati()
         # the sensor's samples counted from the cell's start: a record's ft_sequence is then the
@@ -117,16 +118,9 @@ class FtSensorNode(Node):
         if config.netft:
             if config.netft_topic:
                 self.publications.append(Publication("netft/rdt", drop_when_congested=True))
-            self.box = NetFtBox(self.ati_config, address=config.netft, rdt_port=config.netft_rdt_port,
-                                http_port=config.netft_http_port, calibration_port=config.netft_calibration_port,
-                                on_bias=self._netft_bias, tap=self._netft_sent if config.netft_topic else None)
-            try:
-                self.box.serve()
-            except OSError as exc:
-                raise OSError(f"--netft {config.netft}: cannot serve the Net F/T box (RDT UDP {config.netft_rdt_port}, "
-                              f"HTTP {config.netft_http_port}, TCP {config.netft_calibration_port}): "
-                              f"{exc.strerror or exc}; another box on that address? give another (127.0.0.2, ...) "
-                              f"or other ports") from None
+            if netft_box is None:
+                raise ValueError("netft: the service process brings the Net F/T box (services.transport.lab)")
+            self.box = netft_box(self.ati_config, self._netft_bias, self._netft_sent if config.netft_topic else None)
         self._stamp = (0, 0)  # the cycle of the record the box is sending (seq, stamp_ns)
         # keep_tenth: realtime takes the newest contact but never skips a tenth cycle's,
         # whose wrench the estimator needs (it lost half of them on a crowded CPU)

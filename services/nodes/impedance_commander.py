@@ -60,7 +60,6 @@ from etar.policy import LEAD, ReproductionPolicy
 from etar.policy_kernel import compiled_policy
 from etar.task import load_task
 from robot_sim.wire.fri_udp import host_port
-from services.nodes.fri_remote import FriRemoteSocket
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import option
 from services.runtime.loop import Sections
@@ -100,7 +99,8 @@ class CommanderConfig:
 class ImpedanceCommanderNode(Node):
     name = "impedance_commander"
 
-    def __init__(self, config: CommanderConfig, bus, clock, *, run_id: str = "", mode: str = "lockstep", **_):
+    def __init__(self, config: CommanderConfig, bus, clock, *, run_id: str = "", mode: str = "lockstep",
+                 fri_remote=None, **_):
         super().__init__(bus, clock)
         self.config = config
         self.lockstep = mode == "lockstep"
@@ -135,8 +135,10 @@ class ImpedanceCommanderNode(Node):
             if self.lockstep:
                 raise ValueError("fri_listen needs the realtime clock: the KRC sends on its own clock")
             self.publications.append(Publication("robot/state", drop_when_congested=True))
-            self.fri = FriRemoteSocket(host_port(config.fri_listen, "fri_listen", listen=True), self._on_datagram,
-                                       clock.now_ns)
+            if fri_remote is None:
+                raise ValueError("fri_listen: the service process brings the FRI remote's socket "
+                                 "(services.transport.lab)")
+            self.fri = fri_remote(self._on_datagram)
         else:
             self.subscriptions.append(Subscription("robot/state", self.on_state, latest=True))
 

@@ -34,7 +34,6 @@ import numpy as np
 from etar.task import load_task
 from etar.features import force_vector, pose_of, state_vector
 from robot_sim.wire.fri_udp import host_port
-from services.nodes.netft_client import NetFtStream
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import option
 from robot_sim.krc.packets import FriState
@@ -69,7 +68,8 @@ class EstimatorConfig:
 class PhaseEstimatorNode(Node):
     name = "phase_estimator"
 
-    def __init__(self, config: EstimatorConfig, bus, clock, *, run_id: str = "", mode: str = "lockstep", **_):
+    def __init__(self, config: EstimatorConfig, bus, clock, *, run_id: str = "", mode: str = "lockstep",
+                 netft_stream=None, **_):
         super().__init__(bus, clock)
         self.task = load_task(config.model) if config.model else None
         self.mute_after_ns = int(config.mute_after * 1e9)
@@ -95,8 +95,9 @@ class PhaseEstimatorNode(Node):
         if config.netft:
             if mode == "lockstep":
                 raise ValueError("netft needs the realtime clock: the box streams on the sensor's own clock")
-            self.netft = NetFtStream(host_port(config.netft, "netft"), config.netft_http_port,
-                                     lambda msg, recv_ns: self.on_wrench(msg, recv_ns, None), clock.now_ns)
+            if netft_stream is None:
+                raise ValueError("netft: the service process brings the Net F/T client (services.transport.lab)")
+            self.netft = netft_stream(lambda msg, recv_ns: self.on_wrench(msg, recv_ns, None))
         else:
             self.subscriptions.append(Subscription("ft/wrench", self.on_wrench, every_tenth=True, latest=True))
 

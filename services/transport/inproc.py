@@ -28,6 +28,7 @@ from services.nodes import NODES
 from services.runtime.bus import MonotonicClock
 from services.runtime.cycle import CycleEngine
 from services.runtime.messages import BY_TOPIC, EPISODE_SUMMARY, MessageError, estimator_instant
+from services.transport.lab import edges
 from services.transport.subscriptions import tenth_cycle
 
 _UNDECODED = object()
@@ -142,7 +143,8 @@ class InProcessCell:
         try:
             for role, config in configs.items():
                 node_cls, _ = NODES[role]
-                node = node_cls(config, self.bus, self.clock, run_id=run_id, mode="lockstep")
+                node = node_cls(config, self.bus, self.clock, run_id=run_id, mode="lockstep",
+                                **edges(role, config, self.clock))
                 self.nodes[role] = node
                 self.bus.attach(node)
         except BaseException:

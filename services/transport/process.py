@@ -26,6 +26,7 @@ from services.runtime.bus import MonotonicClock
 from services.runtime.cycle import CLOCKS, CycleEngine
 from services.runtime.roles import PARTICIPANTS, ROLES
 from services.transport.collector import PausedCollector
+from services.transport.lab import edges
 from services.transport.service import Service
 from services.transport.session import ZenohOptions
 
@@ -100,7 +101,7 @@ def run_node(role: str, node_config, process: ProcessConfig) -> int:
     with Service(role, process.run_id, process.zenoh, sched_fifo=process.sched_fifo, cpus=process.cpus) as svc:
         bus = ZenohBus(svc, realtime)
         node = node_cls(node_config, bus, clock, run_id=process.run_id, mode=process.clock,
-                        sched_fifo=svc.sched_fifo)
+                        sched_fifo=svc.sched_fifo, **edges(role, node_config, clock))
         bus.declare(node.publications)
         collector = PausedCollector()
         inputs = NodeInputs(node, svc, realtime, collector)
@@ -280,10 +281,10 @@ def drive_episode(node, svc: Service, plan, mode: str, clock, config, settle: bo
                          stall_every_cycles=int(config.stall_every * FRI_RATE_HZ) if config.stall_ms > 0 else 0,
                          stall_s=config.stall_ms / 1e3)
     lockstep = mode == "lockstep"
-    node.awaited = frozenset(plan.answers_from)
+    node.inbox.awaited = frozenset(plan.answers_from)
     checked, checked_at = 0, clock.now_ns()
-    arrived = node.arrived
-    seen = node.arrivals
+    arrived = node.inbox.arrived
+    seen = node.inbox.arrivals
     while not engine.done:
         if svc.stop.is_set():
             engine.stop()
@@ -304,12 +305,12 @@ def drive_episode(node, svc: Service, plan, mode: str, clock, config, settle: bo
         if lockstep and not engine.awaiting():
             continue  # the open cycle has all it needs (or needs nothing): close it now
         with arrived:
-            if node.arrivals == seen:
+            if node.inbox.arrivals == seen:
                 left = (wake - clock.now_ns()) / 1e9
                 if left > 0:
                     # lockstep: also wake every 50 ms to notice a stop
                     arrived.wait(min(left, 0.05) if lockstep else left)
-            seen = node.arrivals
+            seen = node.inbox.arrivals
     return node.end_episode(engine)
 
 

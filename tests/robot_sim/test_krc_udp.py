@@ -16,7 +16,7 @@ from robot_sim.krc.faults import LinkFaults
 from robot_sim.krc.link import FriConfig
 from robot_sim.krc.packets import ControlMode, FriQuality, FriState
 from robot_sim.wire.fri_datagrams import CommandFlags
-from robot_sim.krc_udp import UdpKrc
+from services.transport.lab.krc_udp import UdpKrc
 from robot_sim.krc.krl import OFF_STREAM_S, REFUSAL_INDEX
 from robot_sim.world.teacher import DOWN
 from robot_sim.world.tasks import free_space

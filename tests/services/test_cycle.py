@@ -200,9 +200,9 @@ def test_the_robot_is_woken_only_by_the_answers_its_episode_waits_for():
 
     node = RobotNode(RobotConfig(), Bus(), FakeClock())
     on = {s.topic: s.handler for s in node.subscriptions}
-    node.awaited = frozenset({"teacher"})
-    before = node.arrivals
+    node.inbox.awaited = frozenset({"teacher"})
+    before = node.inbox.arrivals
     on["ft/wrench"]({"seq": 7}, 1, b"")
-    assert node.arrivals == before and node.answered(["ft"], 7)
+    assert node.inbox.arrivals == before and node.answered(["ft"], 7)
     on["teacher/wrench"]({"seq": 7}, 2, b"")
-    assert node.arrivals == before + 1 and node.answered(["ft", "teacher"], 7)
+    assert node.inbox.arrivals == before + 1 and node.answered(["ft", "teacher"], 7)

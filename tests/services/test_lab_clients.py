@@ -16,8 +16,8 @@ from robot_sim.krc.krl import (KrlChannels, TB_EPISODE, TB_ESTIMATE_SEQ, TB_GOAL
                                TB_GRAVITY_COMPENSATION, TB_HOLD, TB_HOLDS)
 from robot_sim.wire.fri_datagrams import decode_command, encode_measurement, read_krl
 from robot_sim.wire.netft import NetFtBox
-from services.nodes.fri_remote import FriRemoteSocket
-from services.nodes.netft_client import NetFtStream
+from services.transport.lab.fri_remote import FriRemoteSocket
+from services.transport.lab.netft_client import NetFtStream
 
 POSE = np.array([1.0, 0, 0, 0.5, 0, -1.0, 0, 0.1, 0, 0, -1.0, 0.3])
 

@@ -10,6 +10,7 @@ import time
 import pytest
 
 from robot_sim.wire.fri_datagrams import decode_command, decode_measurement
+from services.transport.lab import edges
 from services.nodes.robot import RobotConfig, RobotNode
 from tests.robot_sim.fri_remote import Remote
 
@@ -48,8 +49,8 @@ def _answered(node: RobotNode, seconds: float = 2.0) -> bool:
 def served():
     with Remote("frilibrary", strategy=20) as remote:
         bus = Bus()
-        node = RobotNode(RobotConfig(wire="udp", fri_remote=f"127.0.0.1:{remote.port}"), bus, Clock(),
-                         mode="realtime")
+        config = RobotConfig(wire="udp", fri_remote=f"127.0.0.1:{remote.port}")
+        node = RobotNode(config, bus, Clock(), mode="realtime", **edges("robot", config, Clock()))
         try:
             node.reset({"start": [0.57, -0.05, 0.3], "kind": "served", "episode": 0})
             node.begin_episode()

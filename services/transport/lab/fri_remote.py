@@ -16,20 +16,16 @@ import socket
 import threading
 from collections.abc import Callable
 
-import numpy as np
-
-from robot_sim.cycle import FRI_CYCLE_NS
-from robot_sim.krc.krl import (KrlChannels, TB_EPISODE, TB_ESTIMATE_SEQ, TB_GOAL_REACHED,
-                               TB_GRAVITY_COMPENSATION, TB_HOLD, TB_HOLDS)
+from robot_sim.cycle import FRI_CYCLE_NS, FRI_RATE_HZ
+from robot_sim.krc.krl import TB_ESTIMATE_SEQ, TB_GOAL_REACHED, TB_HOLD, TB_HOLDS, KrlChannels
 from robot_sim.krc.packets import fri_order
-from robot_sim.wire.fri_datagrams import (CommandFlags, FriWireError, counter16, decode_measurement,
-                                          new_command, read_krl, unwrap, write_krl)
-from services.runtime.messages import ROBOT_STATE
-
-_CYCLES_PER_S = 1_000_000_000 // FRI_CYCLE_NS
-
+from robot_sim.wire.fri_datagrams import (CommandFlags, FriWireError, counter16, decode_measurement, new_command,
+                                          unwrap, write_krl)
+from services.runtime.fri_messages import state_from_datagram
 
 class FriRemoteSocket:
+    """The remote's socket and its reading thread (the module docstring)."""
+
     def __init__(self, bind: tuple[str, int], on_measurement: Callable, clock: Callable[[], int]):
         self.on_measurement = on_measurement
         self.clock = clock
@@ -88,23 +84,12 @@ class FriRemoteSocket:
             self.on_measurement(msg, packed, recv_ns)
 
     def _state(self, rec, recv_ns: int):
-        head, intf, stat, data = rec["head"], rec["intf"], rec["intf"]["stat"], rec["data"]
-        cycle = round(float(intf["timestamp"]) * _CYCLES_PER_S)  # float32 seconds: exact to the cycle for 70 min
+        cycle = round(float(rec["intf"]["timestamp"]) * FRI_RATE_HZ)  # float32 seconds: exact to the cycle for 70 min
         near = cycle + 1 if self._seq is None else self._seq + 1  # the KRC's cycle k is measurement k + 1
-        seq = self._seq = unwrap(int(head["sendSeqCount"]), near)
-        refl = int(head["reflSeqCount"])
-        krl = read_krl(rec)
-        packed = ROBOT_STATE.pack(
-            seq=seq, stamp_ns=cycle * FRI_CYCLE_NS, sent_ns=recv_ns,
-            reflected_seq=unwrap(refl, seq) if refl else -1,
-            fri_state=int(intf["state"]), fri_quality=int(intf["quality"]), control_mode=int(rec["robot"]["control"]),
-            msr_jnt_pos=np.asarray(data["msrJntPos"], dtype=np.float64),
-            msr_cart_pos=np.asarray(data["msrCartPos"], dtype=np.float64),
-            est_ext_tcp_ft=np.asarray(data["estExtTcpFT"], dtype=np.float64),
-            answer_rate=float(stat["answerRate"]), latency_s=float(stat["latency"]), jitter_s=float(stat["jitter"]),
-            miss_rate=float(stat["missRate"]), safety=int(rec["robot"]["error"]),
-            gravity_compensation=krl.flag(TB_GRAVITY_COMPENSATION),
-            episode=int(krl.ints[TB_EPISODE - 1]))
+        seq = self._seq = unwrap(int(rec["head"]["sendSeqCount"]), near)
+        refl = int(rec["head"]["reflSeqCount"])
+        packed = state_from_datagram(rec, seq=seq, stamp_ns=cycle * FRI_CYCLE_NS,
+                                     reflected_seq=unwrap(refl, seq) if refl else -1, sent_ns=recv_ns)
         return packed[1], packed
 
     def answer(self, state: dict, cart_pos, cart_stiffness, cart_damping, add_tcp_ft, *, goal_reached: bool,

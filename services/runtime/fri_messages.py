@@ -1,0 +1,53 @@
+"""The FRI measurement and command as the bus carries them, converted one way each, here
+only: a ``MeasurementPacket`` (the KRC's) or a measurement datagram (a remote's, over
+UDP) to the ``robot/state`` message, and a ``robot/command`` message to the
+``CommandPacket`` the KRC judges.  The datagrams' own bytes are ``robot_sim.wire``'s."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from robot_sim.krc.krl import TB_EPISODE, TB_GRAVITY_COMPENSATION
+from robot_sim.krc.packets import CommandPacket, ControlMode, MeasurementPacket
+from robot_sim.wire.fri_datagrams import read_krl
+from services.runtime.messages import ROBOT_STATE
+
+
+def state_message(m: MeasurementPacket, *, sent_ns: int, safety: int, gravity_compensation: bool,
+                  episode: int) -> tuple[bytes, dict]:
+    """``robot/state`` (payload, message) for the KRC's measurement ``m``."""
+    return ROBOT_STATE.pack(
+        seq=m.seq, stamp_ns=m.stamp_ns, sent_ns=sent_ns, reflected_seq=m.reflected_seq,
+        fri_state=int(m.state), fri_quality=int(m.quality), control_mode=int(m.control_mode),
+        msr_jnt_pos=m.msr_jnt_pos, msr_cart_pos=m.msr_cart_pos, est_ext_tcp_ft=m.est_ext_tcp_ft,
+        answer_rate=m.answer_rate, latency_s=m.latency_s, jitter_s=m.jitter_s, miss_rate=m.miss_rate,
+        safety=safety, gravity_compensation=gravity_compensation, episode=episode)
+
+
+def state_from_datagram(rec, *, seq: int, stamp_ns: int, reflected_seq: int, sent_ns: int) -> tuple[bytes, dict]:
+    """``robot/state`` (payload, message) for a decoded measurement datagram ``rec``, whose
+    16-bit counters the caller has unwrapped to ``seq`` and ``reflected_seq`` and whose time
+    it has rounded to its cycle (``stamp_ns``): the episode and gravity compensation from
+    the testbench's KRL channels, the KRC's error as ``safety``."""
+    intf, stat, data = rec["intf"], rec["intf"]["stat"], rec["data"]
+    krl = read_krl(rec)
+    m = MeasurementPacket(
+        seq=seq, reflected_seq=reflected_seq, stamp_ns=stamp_ns, state=int(intf["state"]),
+        quality=int(intf["quality"]), control_mode=int(rec["robot"]["control"]),
+        msr_jnt_pos=np.asarray(data["msrJntPos"], dtype=np.float64),
+        msr_cart_pos=np.asarray(data["msrCartPos"], dtype=np.float64),
+        est_ext_tcp_ft=np.asarray(data["estExtTcpFT"], dtype=np.float64),
+        answer_rate=float(stat["answerRate"]), latency_s=float(stat["latency"]), jitter_s=float(stat["jitter"]),
+        miss_rate=float(stat["missRate"]))
+    return state_message(m, sent_ns=sent_ns, safety=int(rec["robot"]["error"]),
+                         gravity_compensation=krl.flag(TB_GRAVITY_COMPENSATION), episode=int(krl.ints[TB_EPISODE - 1]))
+
+
+def command_packet(msg: dict) -> CommandPacket:
+    """The KRC's packet for a ``robot/command`` message, made from the message's lists in
+    float64 as the link's own copy would be (the link may keep it without copying)."""
+    return CommandPacket(seq=msg["seq"], cart_pos=np.array(msg["cart_pos"], dtype=np.float64),
+                         cart_stiffness=np.array(msg["cart_stiffness"], dtype=np.float64),
+                         cart_damping=np.array(msg["cart_damping"], dtype=np.float64),
+                         add_tcp_ft=np.array(msg["add_tcp_ft"], dtype=np.float64),
+                         requested_mode=ControlMode(msg["requested_mode"]))
