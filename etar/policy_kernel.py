@@ -24,6 +24,7 @@ from numba import njit
 from kernel_plumbing import blas
 from kernel_plumbing.addresses import JIT, HoldsAddresses, address, carray_at, entry
 from etar.policy import CONTACT_FORCE, MIN_SLIDE, PLACE_SPEED, STALL_SPEED, STALL_TIME, ReproductionPolicy
+from etar.policy import DT as CYCLE  # a step's default dt (DT below names its slot in the workspace)
 
 NONE = -(1 << 62)  # None where the Python policy holds an int or None (a phase)
 
@@ -391,7 +392,7 @@ class CompiledPolicy(HoldsAddresses):
         f[STATE:] = 0.0
         self.R_hold = None
 
-    def step(self, x: np.ndarray, R: np.ndarray, phase: int | None, dt: float = 0.001,
+    def step(self, x: np.ndarray, R: np.ndarray, phase: int | None, dt: float = CYCLE,
              force: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``ReproductionPolicy.step``: the same arguments, the same numbers."""
         f, s = self._f, self._s
@@ -407,7 +408,7 @@ class CompiledPolicy(HoldsAddresses):
         self._kernel(blas.DOT, blas.GEMV, *self._at, self._n)
         return f[F_OUT:F_OUT + 3].copy(), self.R_hold
 
-    def tool_step(self, pose, tool_force, phase: int | None, dt: float = 0.001):
+    def tool_step(self, pose, tool_force, phase: int | None, dt: float = CYCLE):
         """``ReproductionPolicy.tool_step``: the same arguments, the same numbers."""
         f, s = self._f, self._s
         f[POSE:POSE + 12] = pose
