@@ -11,11 +11,12 @@ E-step: forward-backward per demonstration (``etar.inference``; thesis 4.3.1,
 - Sigma_j: weighted residual covariance (eq. 63/76) under a weak
   inverse-Wishart prior (``sigma_weight`` pseudo-samples of covariance
   ``sigma_scale``), so that a phase with little data cannot collapse.
-- W: weighted softmax regression (eq. 67) by gradient descent with Armijo
-  backtracking (eq. 68, 73-74).  The gradient is preconditioned by Boehning's
-  bound on the softmax Hessian, so one step length suits every feature scale
-  (newtons next to a constant 1) and the first trial step always satisfies
-  Armijo.  ``solver="lbfgs"`` uses scipy's L-BFGS-B instead.
+- W: weighted softmax regression (eq. 67; its objective in
+  ``etar.softmax_regression``) by gradient descent with Armijo backtracking
+  (eq. 68, 73-74).  The gradient is preconditioned by Boehning's bound on the
+  softmax Hessian, so one step length suits every feature scale (newtons next
+  to a constant 1) and the first trial step always satisfies Armijo.
+  ``solver="lbfgs"`` uses scipy's L-BFGS-B instead.
 
 Every M-step is exact or a descent step on the penalised objective, so the
 objective (log-likelihood + log-prior) never decreases.
@@ -31,6 +32,7 @@ import numpy as np
 
 from etar import inference
 from etar.demonstrations import StepArrays
+from etar.softmax_regression import softmax_regression_at, softmax_regression_objective
 
 LOG_2PI = math.log(2.0 * math.pi)
 
@@ -257,7 +259,7 @@ def fit_softmax_blocks(w, features, targets, l2, solver="gd", max_steps=1, at_w=
     """Improve weight blocks w (R, K, d+1) of the softmax transition model.
 
     ``targets`` (N, R, K) are the expected transition counts of each step.
-    Minimises the weighted cross-entropy (``inference.softmax_regression_objective``)
+    Minimises the weighted cross-entropy (``etar.softmax_regression``)
     starting from ``w``; never returns a worse block than it was given.
     ``at_w``: (values, grads) at ``w`` if the caller already has them.
     """
@@ -272,7 +274,7 @@ def fit_softmax_blocks(w, features, targets, l2, solver="gd", max_steps=1, at_w=
             tr = np.ascontiguousarray(targets[:, r : r + 1, :])
 
             def fun(flat, tr=tr):
-                v, g = inference.softmax_regression_objective(flat.reshape(1, K, d1), features, tr, l2)
+                v, g = softmax_regression_objective(flat.reshape(1, K, d1), features, tr, l2)
                 return v[0], g.ravel()
 
             v0 = fun(w[r].ravel())[0]
@@ -286,7 +288,7 @@ def fit_softmax_blocks(w, features, targets, l2, solver="gd", max_steps=1, at_w=
     factors = _bohning_factors(features, targets, l2)
     w = w.copy()
     if at_w is None:
-        value, grad = inference.softmax_regression_objective(w, features, targets, l2)
+        value, grad = softmax_regression_objective(w, features, targets, l2)
     else:
         value, grad = (a.copy() for a in at_w)
     active = np.ones(R, dtype=bool)
@@ -312,7 +314,7 @@ def fit_softmax_blocks(w, features, targets, l2, solver="gd", max_steps=1, at_w=
         for _ in range(40):  # Armijo backtracking, per block
             todo = ~accepted
             cand_w[todo] = w[todo] - step[todo, None, None] * direction[todo]
-            cv, cg = inference.softmax_regression_objective(cand_w, features, targets, l2)
+            cv, cg = softmax_regression_objective(cand_w, features, targets, l2)
             ok = cv <= value - 1e-4 * step * slope
             newly = todo & ok
             accepted |= newly
@@ -343,8 +345,7 @@ def m_step(stacked: StackedSteps, ex: Expectations, W, priors: Priors, solver="g
         )
         at_w = None
         if ex.trans is not None:
-            at_w = inference.softmax_regression_at(W[1:], stacked.features, ex.xi, ex.trans, ex.log_trans,
-                                                   priors.w_l2)
+            at_w = softmax_regression_at(W[1:], stacked.features, ex.xi, ex.trans, ex.log_trans, priors.w_l2)
         W_new[1:] = fit_softmax_blocks(W[1:], stacked.features, ex.xi, priors.w_l2, solver, w_steps, at_w)
     return C, Sigma, W_new
 

@@ -104,6 +104,75 @@ def _stiffness(R: np.ndarray, n_compliant: int, stiff: float, soft: float) -> np
     return 0.5 * (K + K.T)
 
 
+def _in_place_impedance(v, f, fnorm, contact_force, min_contact_fraction, stiffness, compliant_stiffness,
+                        omega, where) -> PhaseImpedance:
+    """``derive_impedance`` of a phase done in place (pressing, turning): there is no
+    direction of motion to find, so the contact force's direction is the compliant
+    axis and the others are stiff."""
+    contact = fnorm > contact_force
+    if contact.sum() < max(3, min_contact_fraction * len(v)):
+        contact[:] = False
+    mean_f = f[contact].mean(axis=0) if contact.any() else np.zeros(3)
+    axes = np.zeros((0, 3))
+    if np.linalg.norm(mean_f) > contact_force:
+        n = mean_f / np.linalg.norm(mean_f)
+        axes = n[None, :]
+        R = _complete_basis(_complete_basis(n)[:, 1], n)
+    else:
+        R = np.eye(3)
+    return PhaseImpedance(
+        direction=R[:, 0].copy(), n_compliant=len(axes), compliant_axes=R[:, 1 : 1 + len(axes)].T.copy(),
+        rotation=R, stiffness=_stiffness(R, len(axes), stiffness, compliant_stiffness), mean_force=mean_f, mean_speed=0.0, n_samples=int(v.shape[0]),
+        n_contact_samples=int(contact.sum()), angular_velocity=omega, mean_position=where, in_place=True,
+    )
+
+
+def _direction_in_contact(v, f, speed, fnorm, contact, v_hat) -> np.ndarray:
+    """The desired direction d: the direction most orthogonal to every in-contact
+    sample's v x f, where the samples decide it; else the mean velocity ``v_hat``."""
+    d = v_hat
+    if contact.sum() >= 3:
+        vn = v[contact] / speed[contact, None]
+        fn = f[contact] / fnorm[contact, None]
+        normals = np.cross(vn, fn)
+        # thin: sv and vt are the full one's, bit for bit (LAPACK factors the same R), without
+        # the (samples x samples) U it would build and throw away (1.6 s of the valley's learning)
+        _, sv, vt = np.linalg.svd(normals, full_matrices=False)
+        sv = np.concatenate([sv, np.zeros(3 - len(sv))])
+        # when every sample spans (nearly) the same plane - straight sliding
+        # on one surface - d is only known to lie in that plane, and the
+        # smallest singular vector is decided by noise: keep the mean
+        # velocity, which lies in the plane.  The contact deflects the motion
+        # from d by less than 45 degrees in any task we can learn from, so a
+        # candidate further from the motion than that is noise too.
+        candidate = vt[2] if vt[2] @ v_hat >= 0 else -vt[2]
+        if sv[1] > 0.3 * max(sv[0], 1e-12) and candidate @ v_hat > np.cos(np.pi / 4):
+            d = candidate
+    return d
+
+
+def _compliant_axes(f, contact, d, contact_force, compliance_ratio) -> np.ndarray:
+    """(0, 1 or 2, 3): the contact force directions orthogonal to d, the first
+    pointing with the mean such force."""
+    axes = np.zeros((0, 3))
+    if contact.sum() >= 3:
+        fp = f[contact] - np.outer(f[contact] @ d, d)
+        fp_norm = np.linalg.norm(fp, axis=1)
+        keep = fp_norm > 0.25 * contact_force
+        if keep.sum() >= 3:
+            u = fp[keep] / fp_norm[keep, None]
+            _, sv, vt = np.linalg.svd(u, full_matrices=False)
+            k = 1 + int(len(sv) > 1 and sv[1] >= compliance_ratio * sv[0])
+            axes = vt[:k]
+            # orthogonalise against d (numerical hygiene; they already are)
+            axes = axes - np.outer(axes @ d, d)
+            axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+            mean_fp = fp[keep].mean(axis=0)
+            if axes[0] @ mean_fp < 0:
+                axes[0] = -axes[0]
+    return axes
+
+
 def derive_impedance(
     velocities,
     forces,
@@ -163,24 +232,8 @@ def derive_impedance(
     speed = np.linalg.norm(v, axis=1)
     fnorm = np.linalg.norm(f, axis=1)
     if np.linalg.norm(v.mean(axis=0)) < in_place_speed:
-        # done in place (pressing, turning): no direction of motion to find; the
-        # contact force's direction is the compliant axis, the others are stiff
-        contact = fnorm > contact_force
-        if contact.sum() < max(3, min_contact_fraction * len(v)):
-            contact[:] = False
-        mean_f = f[contact].mean(axis=0) if contact.any() else np.zeros(3)
-        axes = np.zeros((0, 3))
-        if np.linalg.norm(mean_f) > contact_force:
-            n = mean_f / np.linalg.norm(mean_f)
-            axes = n[None, :]
-            R = _complete_basis(_complete_basis(n)[:, 1], n)
-        else:
-            R = np.eye(3)
-        return PhaseImpedance(
-            direction=R[:, 0].copy(), n_compliant=len(axes), compliant_axes=R[:, 1 : 1 + len(axes)].T.copy(),
-            rotation=R, stiffness=_stiffness(R, len(axes), stiffness, compliant_stiffness), mean_force=mean_f, mean_speed=0.0, n_samples=int(v.shape[0]),
-            n_contact_samples=int(contact.sum()), angular_velocity=omega, mean_position=where, in_place=True,
-        )
+        return _in_place_impedance(v, f, fnorm, contact_force, min_contact_fraction, stiffness, compliant_stiffness,
+                                   omega, where)
     moving = speed > min_speed_fraction * max(np.median(speed), 1e-12)
     contact = (fnorm > contact_force) & moving
     if contact.sum() < min_contact_fraction * max(moving.sum(), 1):
@@ -189,41 +242,8 @@ def derive_impedance(
     if np.linalg.norm(mean_v) < 1e-12:
         raise ValueError("the phase does not move: no direction of motion can be derived")
     v_hat = mean_v / np.linalg.norm(mean_v)
-    d = v_hat
-    if contact.sum() >= 3:
-        vn = v[contact] / speed[contact, None]
-        fn = f[contact] / fnorm[contact, None]
-        normals = np.cross(vn, fn)
-        # thin: sv and vt are the full one's, bit for bit (LAPACK factors the same R), without
-        # the (samples x samples) U it would build and throw away (1.6 s of the valley's learning)
-        _, sv, vt = np.linalg.svd(normals, full_matrices=False)
-        sv = np.concatenate([sv, np.zeros(3 - len(sv))])
-        # when every sample spans (nearly) the same plane - straight sliding
-        # on one surface - d is only known to lie in that plane, and the
-        # smallest singular vector is decided by noise: keep the mean
-        # velocity, which lies in the plane.  The contact deflects the motion
-        # from d by less than 45 degrees in any task we can learn from, so a
-        # candidate further from the motion than that is noise too.
-        candidate = vt[2] if vt[2] @ v_hat >= 0 else -vt[2]
-        if sv[1] > 0.3 * max(sv[0], 1e-12) and candidate @ v_hat > np.cos(np.pi / 4):
-            d = candidate
-    # compliant axes: the contact force directions orthogonal to d
-    axes = np.zeros((0, 3))
-    if contact.sum() >= 3:
-        fp = f[contact] - np.outer(f[contact] @ d, d)
-        fp_norm = np.linalg.norm(fp, axis=1)
-        keep = fp_norm > 0.25 * contact_force
-        if keep.sum() >= 3:
-            u = fp[keep] / fp_norm[keep, None]
-            _, sv, vt = np.linalg.svd(u, full_matrices=False)
-            k = 1 + int(len(sv) > 1 and sv[1] >= compliance_ratio * sv[0])
-            axes = vt[:k]
-            # orthogonalise against d (numerical hygiene; they already are)
-            axes = axes - np.outer(axes @ d, d)
-            axes /= np.linalg.norm(axes, axis=1, keepdims=True)
-            mean_fp = fp[keep].mean(axis=0)
-            if axes[0] @ mean_fp < 0:
-                axes[0] = -axes[0]
+    d = _direction_in_contact(v, f, speed, fnorm, contact, v_hat)
+    axes = _compliant_axes(f, contact, d, contact_force, compliance_ratio)
     R = _complete_basis(d, axes[0] if len(axes) else None)
     return PhaseImpedance(
         direction=d, n_compliant=len(axes), compliant_axes=R[:, 1 : 1 + len(axes)].T.copy(), rotation=R,

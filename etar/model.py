@@ -1,8 +1,8 @@
 """The ETAR model: hyperparameters, parameters, and the calls that use them.
 
 The model only holds parameters and builds the arrays that the pure functions in
-``etar.inference`` and ``etar.em`` work on.  Parameters are plain, assignable
-attributes (shapes in ``../shared/DESIGN.md``):
+``etar.inference`` and ``etar.em`` work on; its file is ``etar.model_file``.
+Parameters are plain, assignable attributes (shapes in ``../shared/DESIGN.md``):
 
 - ``A``     (K, n, n)     state matrix of each phase
 - ``B``     (K, n, m+1)   effect-of-action matrix (last column: intercept)
@@ -17,7 +17,6 @@ dynamics still take [f_t; 1], only the transition features change.
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass
@@ -30,9 +29,8 @@ from threadpoolctl import threadpool_limits
 from etar import em, inference
 from etar.vocabulary import TRANSITIONS
 from etar.demonstrations import DemonstrationError, check_demonstration, check_demonstrations, step_arrays
+from etar.model_file import model_from_dict, model_to_dict, read_model_file, write_model_file
 
-FORMAT_NAME = "etar-model"
-FORMAT_VERSION = 1
 PROGRESS_EVERY = 50  # EM iterations between the progress lines of a long run
 
 
@@ -58,6 +56,35 @@ def _finite(value) -> bool:
         return math.isfinite(value)
     except OverflowError:
         return False
+
+
+def checked_parameters(A, B, Sigma, W, goal, n_phases: int, transitions: str):
+    """Validated float64 copies of a model's parameters: (C = [A B], Sigma, W, goal),
+    goal None but for STAR; a ``ValueError`` names the array that does not fit."""
+    K = n_phases
+    A = np.asarray(A, dtype=np.float64)
+    B = np.asarray(B, dtype=np.float64)
+    Sigma = np.asarray(Sigma, dtype=np.float64)
+    W = np.asarray(W, dtype=np.float64)
+    if A.ndim != 3 or A.shape[0] != K or A.shape[1] != A.shape[2]:
+        raise ValueError(f"A must have shape (K={K}, n, n), got {A.shape}")
+    n = A.shape[1]
+    if B.ndim != 3 or B.shape[:2] != (K, n) or B.shape[2] < 1:
+        raise ValueError(f"B must have shape (K={K}, n={n}, m+1), got {B.shape}")
+    if Sigma.shape != (K, n, n):
+        raise ValueError(f"Sigma must have shape ({K}, {n}, {n}), got {Sigma.shape}")
+    m = B.shape[2] - 1
+    d = n if transitions == "state" else m
+    if W.shape != (K + 1, K, d + 1):
+        raise ValueError(f"W must have shape (K+1={K + 1}, K={K}, d+1={d + 1}), got {W.shape}")
+    for name, arr in (("A", A), ("B", B), ("Sigma", Sigma), ("W", W)):
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"{name} contains non-finite values")
+    goal = None if transitions != "state" or goal is None else np.asarray(goal, dtype=np.float64)
+    if goal is not None and goal.shape != (n,):
+        raise ValueError(f"goal must have shape ({n},), got {goal.shape}")
+    C = np.ascontiguousarray(np.concatenate([A, B], axis=2))
+    return C, np.ascontiguousarray(Sigma), np.ascontiguousarray(W), goal
 
 
 class ETAR:
@@ -163,32 +190,7 @@ class ETAR:
     def _checked_parameters(self):
         """Validated float64 copies: (C = [A B], Sigma, W, goal)."""
         self._require_parameters()
-        K = self.n_phases
-        A = np.asarray(self.A, dtype=np.float64)
-        B = np.asarray(self.B, dtype=np.float64)
-        Sigma = np.asarray(self.Sigma, dtype=np.float64)
-        W = np.asarray(self.W, dtype=np.float64)
-        if A.ndim != 3 or A.shape[0] != K or A.shape[1] != A.shape[2]:
-            raise ValueError(f"A must have shape (K={K}, n, n), got {A.shape}")
-        n = A.shape[1]
-        if B.ndim != 3 or B.shape[:2] != (K, n) or B.shape[2] < 1:
-            raise ValueError(f"B must have shape (K={K}, n={n}, m+1), got {B.shape}")
-        if Sigma.shape != (K, n, n):
-            raise ValueError(f"Sigma must have shape ({K}, {n}, {n}), got {Sigma.shape}")
-        m = B.shape[2] - 1
-        d = n if self.transitions == "state" else m
-        if W.shape != (K + 1, K, d + 1):
-            raise ValueError(f"W must have shape (K+1={K + 1}, K={K}, d+1={d + 1}), got {W.shape}")
-        for name, arr in (("A", A), ("B", B), ("Sigma", Sigma), ("W", W)):
-            if not np.all(np.isfinite(arr)):
-                raise ValueError(f"{name} contains non-finite values")
-        goal = None
-        if self.transitions == "state" and self.goal is not None:
-            goal = np.asarray(self.goal, dtype=np.float64)
-            if goal.shape != (n,):
-                raise ValueError(f"goal must have shape ({n},), got {goal.shape}")
-        C = np.ascontiguousarray(np.concatenate([A, B], axis=2))
-        return C, np.ascontiguousarray(Sigma), np.ascontiguousarray(W), goal
+        return checked_parameters(self.A, self.B, self.Sigma, self.W, self.goal, self.n_phases, self.transitions)
 
     def _set_parameters(self, C, Sigma, W):
         n = C.shape[1]
@@ -203,17 +205,6 @@ class ETAR:
     # ------------------------------------------------------------------
     # learning
     # ------------------------------------------------------------------
-
-    def _priors(self, demos) -> em.Priors:
-        n = demos[0][0].shape[1]
-        if self.sigma_prior_scale is not None:
-            scale = self.sigma_prior_scale * np.eye(n)
-        else:
-            # a thousandth of the mean square one-step motion, per state dimension
-            msq = np.mean(np.vstack([np.diff(s, axis=0) ** 2 for s, _ in demos]), axis=0)
-            msq = np.where(msq > 0, msq, 1e-12)
-            scale = np.diag(1e-3 * msq)
-        return em.Priors(self.sigma_prior_weight, scale, self.ab_prior, self.w_l2)
 
     def fit(
         self,
@@ -258,7 +249,7 @@ class ETAR:
         if max_iter < 0:
             raise ValueError(f"max_iter must be >= 0, got {max_iter}")
         rng = np.random.default_rng(seed)
-        priors = self._priors(demos)
+        priors = _priors(demos, self.sigma_prior_weight, self.sigma_prior_scale, self.ab_prior, self.w_l2)
         stacked = em.StackedSteps.from_steps(self._steps(demos, None))
         K = self.n_phases
 
@@ -276,7 +267,7 @@ class ETAR:
                                     priors, self.solver, w_steps=30)
             mon = em.ConvergenceMonitor(tol, self.init_iter if restarts > 1 else max_iter,
                                         n_samples, self.window)
-            params = self._run_em(stacked, (C, Sigma, W), priors, mon, progress)
+            params = _run_em(stacked, (C, Sigma, W), priors, mon, self.solver, self.w_steps, progress)
             candidates.append((mon.history[-1], params, mon))
             say(f"restart {r + 1}/{restarts}: objective {mon.history[-1]:.3f} "
                 f"after {mon.n_iter} iterations")
@@ -287,7 +278,7 @@ class ETAR:
             history = mon.history[:-1]
             mon = em.ConvergenceMonitor(tol, max_iter + len(history), n_samples, self.window, list(history))
             say(f"restart {best + 1} continues, up to {mon.max_iter} EM iterations in all")
-            params = self._run_em(stacked, params, priors, mon, progress)
+            params = _run_em(stacked, params, priors, mon, self.solver, self.w_steps, progress)
         C, Sigma, W = params
         self._set_parameters(C, Sigma, W)
         if self.transitions == "state":
@@ -307,25 +298,6 @@ class ETAR:
         say(f"K={K}: log-likelihood {ll:.3f}, {mon.n_iter} iterations, "
             f"{'converged' if mon.converged else 'stopped at max_iter'}")
         return self
-
-    def _run_em(self, stacked, params, priors, monitor: em.ConvergenceMonitor, progress=None):
-        """Alternate E- and M-steps until the monitor is done; returns the last
-        parameters, which are also the ones the last reported objective scored.
-        ``progress`` hears every ``PROGRESS_EVERY``-th iteration of a longer run."""
-        C, Sigma, W = params
-        while True:
-            ex = em.e_step(stacked, C, Sigma, W)
-            if not math.isfinite(ex.log_likelihood):
-                raise FloatingPointError(
-                    f"log-likelihood became {ex.log_likelihood} at iteration {monitor.n_iter}; "
-                    "check for duplicated or constant data"
-                )
-            monitor.report(ex.log_likelihood + em.log_prior(C, Sigma, W, priors, stacked.center))
-            if monitor.done:
-                return C, Sigma, W
-            if progress is not None and monitor.n_iter and monitor.n_iter % PROGRESS_EVERY == 0:
-                progress(f"  EM iteration {monitor.n_iter}/{monitor.max_iter}: objective {monitor.history[-1]:.3f}")
-            C, Sigma, W = em.m_step(stacked, ex, W, priors, self.solver, self.w_steps)
 
     # ------------------------------------------------------------------
     # inference
@@ -386,98 +358,56 @@ class ETAR:
     # ------------------------------------------------------------------
 
     def to_dict(self) -> dict:
-        self._checked_parameters()
-        hyper = dict(
-            n_restarts=self.n_restarts, init_iter=self.init_iter, solver=self.solver, w_steps=self.w_steps,
-            w_l2=self.w_l2, sigma_prior_weight=self.sigma_prior_weight,
-            sigma_prior_scale=self.sigma_prior_scale, ab_prior=self.ab_prior, window=self.window,
-        )
-        out = {
-            "format": FORMAT_NAME,
-            "version": FORMAT_VERSION,
-            "transitions": self.transitions,
-            "n_phases": self.n_phases,
-            "n_state": self.n_state,
-            "n_force": self.n_force,
-            "hyperparameters": hyper,
-            "parameters": {
-                "A": np.asarray(self.A).tolist(),
-                "B": np.asarray(self.B).tolist(),
-                "Sigma": np.asarray(self.Sigma).tolist(),
-                "W": np.asarray(self.W).tolist(),
-                "goal": None if self.goal is None else np.asarray(self.goal).tolist(),
-            },
-        }
-        if self.fit_report_ is not None:
-            r = self.fit_report_
-            out["fit"] = dict(log_likelihood=r.log_likelihood, objective=r.objective, n_iter=r.n_iter,
-                              converged=r.converged, n_samples=r.n_samples, seconds=r.seconds, seed=r.seed)
-        if self.metadata:
-            out["metadata"] = self.metadata
-        return out
+        return model_to_dict(self)
 
     def save(self, path) -> None:
         """Write the model as JSON (format in docs/model-format.md)."""
-        Path(path).write_text(json.dumps(self.to_dict(), indent=1) + "\n")
+        write_model_file(path, self.to_dict())
 
     @classmethod
     def from_dict(cls, data: dict, source: str = "<dict>") -> "ETAR":
-        def need(key, where=data, prefix=""):
-            if key not in where:
-                raise ValueError(f"{source}: field '{prefix}{key}' is missing")
-            return where[key]
-
-        if data.get("format") != FORMAT_NAME:
-            raise ValueError(f"{source}: field 'format' is {data.get('format')!r}, expected {FORMAT_NAME!r}")
-        if need("version") != FORMAT_VERSION:
-            raise ValueError(f"{source}: field 'version' is {data['version']!r}; this library reads {FORMAT_VERSION}")
-        try:
-            model = cls(need("n_phases"), need("transitions"), **data.get("hyperparameters", {}))
-        except TypeError as exc:  # an unknown hyperparameter
-            raise ValueError(f"{source}: field 'hyperparameters': {exc}") from None
-        except ValueError as exc:  # a bad value: the message names its key
-            raise ValueError(f"{source}: {exc}") from None
-        params = need("parameters")
-        for key in ("A", "B", "Sigma", "W"):
-            try:
-                setattr(model, key, np.array(need(key, params, "parameters."), dtype=np.float64))
-            except (TypeError, ValueError, OverflowError) as exc:  # JSON's integers have no bound
-                raise ValueError(f"{source}: field 'parameters.{key}' is not a numeric array ({exc})") from None
-        goal = params.get("goal")
-        model.goal = None if goal is None else np.array(goal, dtype=np.float64)
-        model.metadata = dict(data.get("metadata", {}))
-        try:
-            _, Sigma, _, _ = model._checked_parameters()
-        except ValueError as exc:
-            raise ValueError(f"{source}: {exc}") from None
-        # the header must describe the arrays, and every covariance must be one
-        for key, actual in (("n_state", model.n_state), ("n_force", model.n_force)):
-            if key in data and data[key] != actual:
-                raise ValueError(f"{source}: field '{key}' is {data[key]!r}, but the parameters have {actual}")
-        for j, S in enumerate(Sigma):
-            if not np.allclose(S, S.T, rtol=1e-9, atol=1e-12):
-                raise ValueError(f"{source}: field 'parameters.Sigma[{j}]' is not symmetric")
-            try:
-                np.linalg.cholesky(S)
-            except np.linalg.LinAlgError:
-                raise ValueError(f"{source}: field 'parameters.Sigma[{j}]' is not positive definite "
-                                 f"(eigenvalues {np.round(np.linalg.eigvalsh(S), 12).tolist()})") from None
-        return model
+        return model_from_dict(cls, data, source)
 
     @classmethod
     def load(cls, path) -> "ETAR":
         path = Path(path)
-        try:
-            data = json.loads(path.read_text())
-        except FileNotFoundError:
-            raise ValueError(f"{path}: no such model file") from None
-        except (OSError, UnicodeDecodeError) as exc:
-            raise ValueError(f"{path}: cannot read the model file ({exc})") from None
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{path}: not a JSON model file ({exc})") from None
-        if not isinstance(data, dict):
-            raise ValueError(f"{path}: expected a JSON object (an etar-model file), got a {type(data).__name__}")
-        return cls.from_dict(data, str(path))
+        return cls.from_dict(read_model_file(path), str(path))
+
+
+def _priors(demos, sigma_prior_weight: float, sigma_prior_scale: float | None, ab_prior: float,
+            w_l2: float) -> em.Priors:
+    """The weak priors of a fit to ``demos``; without a ``sigma_prior_scale`` the
+    covariance prior's scale follows the demonstrations' motion."""
+    n = demos[0][0].shape[1]
+    if sigma_prior_scale is not None:
+        scale = sigma_prior_scale * np.eye(n)
+    else:
+        # a thousandth of the mean square one-step motion, per state dimension
+        msq = np.mean(np.vstack([np.diff(s, axis=0) ** 2 for s, _ in demos]), axis=0)
+        msq = np.where(msq > 0, msq, 1e-12)
+        scale = np.diag(1e-3 * msq)
+    return em.Priors(sigma_prior_weight, scale, ab_prior, w_l2)
+
+
+def _run_em(stacked, params, priors, monitor: em.ConvergenceMonitor, solver: str, w_steps: int,
+            progress=None):
+    """Alternate E- and M-steps until the monitor is done; returns the last
+    parameters, which are also the ones the last reported objective scored.
+    ``progress`` hears every ``PROGRESS_EVERY``-th iteration of a longer run."""
+    C, Sigma, W = params
+    while True:
+        ex = em.e_step(stacked, C, Sigma, W)
+        if not math.isfinite(ex.log_likelihood):
+            raise FloatingPointError(
+                f"log-likelihood became {ex.log_likelihood} at iteration {monitor.n_iter}; "
+                "check for duplicated or constant data"
+            )
+        monitor.report(ex.log_likelihood + em.log_prior(C, Sigma, W, priors, stacked.center))
+        if monitor.done:
+            return C, Sigma, W
+        if progress is not None and monitor.n_iter and monitor.n_iter % PROGRESS_EVERY == 0:
+            progress(f"  EM iteration {monitor.n_iter}/{monitor.max_iter}: objective {monitor.history[-1]:.3f}")
+        C, Sigma, W = em.m_step(stacked, ex, W, priors, solver, w_steps)
 
 
 def _step_labels(start_labels, demos, K: int) -> np.ndarray:

@@ -36,6 +36,8 @@ import numpy as np
 
 from etar.impedance import PhaseImpedance, impedance_from_file
 
+# s: one KRC cycle, a step's default dt.  The cycle's home is robot_sim.cycle.FRI_CYCLE_NS,
+# but etar imports neither robot_sim nor services: the commander passes the cycle it runs at
 DT = 0.001
 HOLD_STIFFNESS = 2000.0  # N/m on every axis: before any phase, at the goal, on the way to a place
 EFFECTIVE_MASS = 2.0  # kg, for the damping ratio of the commanded impedance

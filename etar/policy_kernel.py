@@ -24,6 +24,7 @@ from numba import njit
 from kernel_plumbing import blas
 from kernel_plumbing.addresses import JIT, HoldsAddresses, address, carray_at, entry
 from etar.policy import CONTACT_FORCE, MIN_SLIDE, PLACE_SPEED, STALL_SPEED, STALL_TIME, ReproductionPolicy
+from etar.policy import DT as CYCLE  # a step's default dt (DT below names its slot in the workspace)
 
 NONE = -(1 << 62)  # None where the Python policy holds an int or None (a phase)
 
@@ -86,7 +87,58 @@ def _law(dot_fn, gemv_fn, f_at, s_at, pf_at, pi_at, n_phases):
     dt = f[DT]
     lead = f[LEAD]
     phase = s[PHASE_IN]
-    # the velocity: v = 0.7 v + 0.3 (x - x_prev) / dt, in place, in that order
+    _track_velocity(f, s, dt)
+    law = phase if phase != NONE and 0 <= phase < n_phases and pq[phase, Q_VALID] else NONE
+    if phase != s[PHASE]:
+        _enter_phase(f, s, pf, pq, phase, law, lead)
+    if s[HANDED] != NONE:
+        phase = law = s[HANDED]
+    if law != NONE and s[HAS_FORCE] and not s[GOAL_REACHED]:
+        law, phase = _unless_blocked(dot_fn, f, f_at, s, pf, pq, law, phase, dt, lead, n_phases)
+    s[APPLIED] = NONE if s[GOAL_REACHED] or law == NONE else phase
+    if s[GOAL_REACHED] or law == NONE:
+        if not s[HAS_REF]:
+            for i in range(3):
+                f[REF + i] = f[X + i]
+            s[HAS_REF] = 1
+        _hold_force(gemv_fn, f, f_at)
+        return
+    for i in range(3):
+        f[D + i] = pf[law, P_DIR + i]
+    if pq[law, Q_HAS_AIM]:
+        _head_for_aim(dot_fn, f, f_at, pf, law, lead)
+    if pq[law, Q_FREE] and not pq[law, Q_HAS_AIM] and s[HAS_FORCE]:
+        _along_contact(dot_fn, f, f_at)
+    for i in range(3):
+        f[LAST_D + i] = f[D + i]
+    s[HAS_LAST_D] = 1
+    in_place = pq[law, Q_IN_PLACE]
+    if not in_place:
+        _advance_reference(dot_fn, f, f_at, pf, law, dt, lead)
+    elif pq[law, Q_HAS_PLACE]:
+        _reference_to_place(dot_fn, f, f_at, pf, law, dt, lead)
+    going = in_place and pq[law, Q_HAS_PLACE] and not s[AT_PLACE]
+    if going:
+        there = _at_place(dot_fn, f, f_at, pf, law, lead)
+        s[AT_PLACE] = 1 if there else 0
+        going = not there
+    if going:
+        _hold_force(gemv_fn, f, f_at)
+    else:
+        _spring(gemv_fn, f, f_at, pf_at + 8 * (law * P_FLOATS + P_K), pf_at + 8 * (law * P_FLOATS + P_D))
+        for i in range(3):
+            f[F_OUT + i] = f[T2 + i] + pf[law, P_FF + i] - f[T3 + i]
+    if s[HAS_GOAL]:
+        _check_goal(dot_fn, f, f_at, s, phase, in_place, n_phases)
+
+
+# _law's pieces, in the order it runs them; inlined like _law itself, so that _step stays
+# one body of machine code
+
+
+@njit(**JIT, inline="always")
+def _track_velocity(f, s, dt):
+    """The velocity: v = 0.7 v + 0.3 (x - x_prev) / dt, in place, in that order."""
     if s[HAS_PREV]:
         for i in range(3):
             d_x = f[X + i] - f[PREV + i]
@@ -99,170 +151,185 @@ def _law(dot_fn, gemv_fn, f_at, s_at, pf_at, pi_at, n_phases):
         for i in range(3):
             f[PREV + i] = f[X + i]
         s[HAS_PREV] = 1
-    law = phase if phase != NONE and 0 <= phase < n_phases and pq[phase, Q_VALID] else NONE
-    if phase != s[PHASE]:
-        s[PHASE] = phase
-        s[HANDED] = NONE
-        s[VISITED] = 0 if phase == NONE or not 0 <= phase < MAX_PHASES else (1 << phase)
+
+
+@njit(**JIT, inline="always")
+def _start_reference(f, pf, pq, law, lead):
+    """A law's first reference: half a lead along its direction, at the tool if in place."""
+    if law != NONE and not pq[law, Q_IN_PLACE]:
+        for i in range(3):
+            f[REF + i] = f[X + i] + pf[law, P_DIR + i] * 0.5 * lead
+    else:
+        for i in range(3):
+            f[REF + i] = f[X + i]
+
+
+@njit(**JIT, inline="always")
+def _enter_phase(f, s, pf, pq, phase, law, lead):
+    """A new estimated phase: its law starts afresh (``step``'s ``phase != self.phase``)."""
+    s[PHASE] = phase
+    s[HANDED] = NONE
+    s[VISITED] = 0 if phase == NONE or not 0 <= phase < MAX_PHASES else (1 << phase)
+    f[STALLED_FOR] = 0.0
+    s[HAS_STALL_FROM] = 0
+    s[HAS_LAST_D] = 0
+    s[AT_PLACE] = 0
+    _start_reference(f, pf, pq, law, lead)
+    s[HAS_REF] = 1
+
+
+@njit(**JIT, inline="always")
+def _unless_blocked(dot_fn, f, f_at, s, pf, pq, law, phase, dt, lead, n_phases):
+    """``ReproductionPolicy._unless_blocked``: (law, phase), the successor's if handed to it."""
+    touching = not pq[law, Q_IN_PLACE] and _dot(dot_fn, f_at, FORCE, FORCE) > CONTACT_FORCE ** 2
+    if not touching or not s[HAS_STALL_FROM]:
+        if touching:
+            for i in range(3):
+                f[STALL_FROM + i] = f[X + i]
+        s[HAS_STALL_FROM] = 1 if touching else 0
         f[STALLED_FOR] = 0.0
-        s[HAS_STALL_FROM] = 0
-        s[HAS_LAST_D] = 0
-        s[AT_PLACE] = 0
-        if law != NONE and not pq[law, Q_IN_PLACE]:
+    else:
+        f[STALLED_FOR] += dt
+        if not f[STALLED_FOR] < STALL_TIME:
+            d_at = LAST_D if s[HAS_LAST_D] else -1
             for i in range(3):
-                f[REF + i] = f[X + i] + pf[law, P_DIR + i] * 0.5 * lead
-        else:
+                f[T1 + i] = f[X + i] - f[STALL_FROM + i]
+                f[D + i] = pf[law, P_DIR + i] if d_at < 0 else f[LAST_D + i]
+            blocked = _dot(dot_fn, f_at, T1, D) < STALL_SPEED * pf[law, P_SPEED] * f[STALLED_FOR]
             for i in range(3):
-                f[REF + i] = f[X + i]
-        s[HAS_REF] = 1
-    if s[HANDED] != NONE:
-        phase = law = s[HANDED]
-    if law != NONE and s[HAS_FORCE] and not s[GOAL_REACHED]:
-        # _unless_blocked
-        touching = not pq[law, Q_IN_PLACE] and _dot(dot_fn, f_at, FORCE, FORCE) > CONTACT_FORCE ** 2
-        if not touching or not s[HAS_STALL_FROM]:
-            if touching:
-                for i in range(3):
-                    f[STALL_FROM + i] = f[X + i]
-            s[HAS_STALL_FROM] = 1 if touching else 0
+                f[STALL_FROM + i] = f[X + i]
+            s[HAS_STALL_FROM] = 1
             f[STALLED_FOR] = 0.0
-        else:
-            f[STALLED_FOR] += dt
-            if not f[STALLED_FOR] < STALL_TIME:
-                d_at = LAST_D if s[HAS_LAST_D] else -1
-                for i in range(3):
-                    f[T1 + i] = f[X + i] - f[STALL_FROM + i]
-                    f[D + i] = pf[law, P_DIR + i] if d_at < 0 else f[LAST_D + i]
-                blocked = _dot(dot_fn, f_at, T1, D) < STALL_SPEED * pf[law, P_SPEED] * f[STALLED_FOR]
-                for i in range(3):
-                    f[STALL_FROM + i] = f[X + i]
-                s[HAS_STALL_FROM] = 1
-                f[STALLED_FOR] = 0.0
-                nxt = pq[law, Q_SUCCESSOR]
-                if (blocked and nxt != NONE and 0 <= nxt < n_phases and pq[nxt, Q_VALID]
-                        and not (nxt < MAX_PHASES and s[VISITED] & (1 << nxt))):
-                    s[HANDED] = nxt
-                    if nxt < MAX_PHASES:
-                        s[VISITED] |= 1 << nxt
-                    s[HAS_LAST_D] = 0
-                    law = phase = nxt
-                    s[AT_PLACE] = 0
-                    if not pq[law, Q_IN_PLACE]:
-                        for i in range(3):
-                            f[REF + i] = f[X + i] + pf[law, P_DIR + i] * 0.5 * lead
-                    else:
-                        for i in range(3):
-                            f[REF + i] = f[X + i]
-    s[APPLIED] = NONE if s[GOAL_REACHED] or law == NONE else phase
-    if s[GOAL_REACHED] or law == NONE:
-        if not s[HAS_REF]:
-            for i in range(3):
-                f[REF + i] = f[X + i]
-            s[HAS_REF] = 1
-        for i in range(3):
-            f[T1 + i] = f[REF + i] - f[X + i]
-        _gemv(gemv_fn, f_at + 8 * HOLD_K, f_at + 8 * T1, f_at + 8 * T2)
-        _gemv(gemv_fn, f_at + 8 * HOLD_D, f_at + 8 * V, f_at + 8 * T3)
-        for i in range(3):
-            f[F_OUT + i] = f[T2 + i] - f[T3 + i]
-        return
-    for i in range(3):
-        f[D + i] = pf[law, P_DIR + i]
-    if pq[law, Q_HAS_AIM]:
-        for i in range(3):
-            f[T1 + i] = pf[law, P_AIM + i] - f[X + i]
-        if np.sqrt(_dot(dot_fn, f_at, T1, T1)) > lead:
-            norm = np.sqrt(_dot(dot_fn, f_at, T1, T1))
-            for i in range(3):
-                f[D + i] = f[T1 + i] / norm
-            for i in range(3):
-                f[T2 + i] = f[REF + i] - f[X + i]
-            along = _dot(dot_fn, f_at, T2, D)
-            if 0.0 > along:  # Python's max(along, 0.0)
-                along = 0.0
-            for i in range(3):
-                f[REF + i] = f[X + i] + along * f[D + i]
-    if pq[law, Q_FREE] and not pq[law, Q_HAS_AIM] and s[HAS_FORCE]:
-        # _along_contact
-        fn = np.sqrt(_dot(dot_fn, f_at, FORCE, FORCE))
-        if not fn <= CONTACT_FORCE:
-            for i in range(3):
-                f[T1 + i] = f[FORCE + i] / fn  # n
-            into = _dot(dot_fn, f_at, D, T1)
-            if not into >= 0.0:
-                for i in range(3):
-                    f[T2 + i] = f[D + i] - into * f[T1 + i]  # t
-                tn = np.sqrt(_dot(dot_fn, f_at, T2, T2))
-                if not tn < MIN_SLIDE:
-                    for i in range(3):
-                        f[D + i] = f[T2 + i] / tn
-    for i in range(3):
-        f[LAST_D + i] = f[D + i]
-    s[HAS_LAST_D] = 1
-    in_place = pq[law, Q_IN_PLACE]
-    if not in_place:
-        speed = pf[law, P_SPEED]
-        for i in range(3):
-            f[REF + i] = f[REF + i] + f[D + i] * speed * dt
-        for i in range(3):
-            f[T1 + i] = f[REF + i] - f[X + i]
-        ahead = _dot(dot_fn, f_at, T1, D)
-        if ahead > lead:
-            for i in range(3):
-                f[REF + i] -= f[D + i] * (ahead - lead)
-    elif pq[law, Q_HAS_PLACE]:
-        for i in range(3):
-            f[T1 + i] = pf[law, P_PLACE + i] - f[REF + i]  # to_place
-        norm = np.sqrt(_dot(dot_fn, f_at, T1, T1))
-        limit = PLACE_SPEED * dt
-        step = limit if limit < norm else norm  # Python's min(norm, limit)
-        if step > 0.0:
-            scale = step / np.sqrt(_dot(dot_fn, f_at, T1, T1))
-            for i in range(3):
-                f[REF + i] = f[REF + i] + f[T1 + i] * scale
-        for i in range(3):
-            f[T2 + i] = f[REF + i] - f[X + i]  # ahead
-        if np.sqrt(_dot(dot_fn, f_at, T2, T2)) > lead:
-            scale = lead / np.sqrt(_dot(dot_fn, f_at, T2, T2))
-            for i in range(3):
-                f[REF + i] = f[X + i] + f[T2 + i] * scale
-    going = in_place and pq[law, Q_HAS_PLACE] and not s[AT_PLACE]
-    if going:
-        for i in range(3):
-            f[T1 + i] = pf[law, P_PLACE + i] - f[REF + i]
-        there = np.sqrt(_dot(dot_fn, f_at, T1, T1)) < 1e-6
-        if there:
-            for i in range(3):
-                f[T2 + i] = pf[law, P_PLACE + i] - f[X + i]
-            there = np.sqrt(_dot(dot_fn, f_at, T2, T2)) < lead
-        s[AT_PLACE] = 1 if there else 0
-        going = not there
+            nxt = pq[law, Q_SUCCESSOR]
+            if (blocked and nxt != NONE and 0 <= nxt < n_phases and pq[nxt, Q_VALID]
+                    and not (nxt < MAX_PHASES and s[VISITED] & (1 << nxt))):
+                s[HANDED] = nxt
+                if nxt < MAX_PHASES:
+                    s[VISITED] |= 1 << nxt
+                s[HAS_LAST_D] = 0
+                law = phase = nxt
+                s[AT_PLACE] = 0
+                _start_reference(f, pf, pq, law, lead)
+    return law, phase
+
+
+@njit(**JIT, inline="always")
+def _spring(gemv_fn, f, f_at, k_at, d_at):
+    """T2 = K (ref - x) and T3 = D v, for the 3x3 K and D at addresses ``k_at``, ``d_at``."""
     for i in range(3):
         f[T1 + i] = f[REF + i] - f[X + i]
-    if going:
-        _gemv(gemv_fn, f_at + 8 * HOLD_K, f_at + 8 * T1, f_at + 8 * T2)
-        _gemv(gemv_fn, f_at + 8 * HOLD_D, f_at + 8 * V, f_at + 8 * T3)
+    _gemv(gemv_fn, k_at, f_at + 8 * T1, f_at + 8 * T2)
+    _gemv(gemv_fn, d_at, f_at + 8 * V, f_at + 8 * T3)
+
+
+@njit(**JIT, inline="always")
+def _hold_force(gemv_fn, f, f_at):
+    """The hold's force: K_hold (ref - x) - D_hold v."""
+    _spring(gemv_fn, f, f_at, f_at + 8 * HOLD_K, f_at + 8 * HOLD_D)
+    for i in range(3):
+        f[F_OUT + i] = f[T2 + i] - f[T3 + i]
+
+
+@njit(**JIT, inline="always")
+def _head_for_aim(dot_fn, f, f_at, pf, law, lead):
+    """Free motion into a phase done in place: D towards its aim, the reference keeping
+    only its lead along D."""
+    for i in range(3):
+        f[T1 + i] = pf[law, P_AIM + i] - f[X + i]
+    if np.sqrt(_dot(dot_fn, f_at, T1, T1)) > lead:
+        norm = np.sqrt(_dot(dot_fn, f_at, T1, T1))
         for i in range(3):
-            f[F_OUT + i] = f[T2 + i] - f[T3 + i]
-    else:
-        _gemv(gemv_fn, pf_at + 8 * (law * P_FLOATS + P_K), f_at + 8 * T1, f_at + 8 * T2)
-        _gemv(gemv_fn, pf_at + 8 * (law * P_FLOATS + P_D), f_at + 8 * V, f_at + 8 * T3)
+            f[D + i] = f[T1 + i] / norm
         for i in range(3):
-            f[F_OUT + i] = f[T2 + i] + pf[law, P_FF + i] - f[T3 + i]
-    if s[HAS_GOAL]:
+            f[T2 + i] = f[REF + i] - f[X + i]
+        along = _dot(dot_fn, f_at, T2, D)
+        if 0.0 > along:  # Python's max(along, 0.0)
+            along = 0.0
         for i in range(3):
-            f[T1 + i] = f[X + i] - f[GOAL + i]
-        near = np.sqrt(_dot(dot_fn, f_at, T1, T1)) < f[TOL]
-        if near or phase == n_phases - 1:
-            along = _dot(dot_fn, f_at, T1, D)
-            past = not in_place and along >= 0.0
+            f[REF + i] = f[X + i] + along * f[D + i]
+
+
+@njit(**JIT, inline="always")
+def _along_contact(dot_fn, f, f_at):
+    """``ReproductionPolicy._along_contact``: D turned into the surface's plane."""
+    fn = np.sqrt(_dot(dot_fn, f_at, FORCE, FORCE))
+    if not fn <= CONTACT_FORCE:
+        for i in range(3):
+            f[T1 + i] = f[FORCE + i] / fn  # n
+        into = _dot(dot_fn, f_at, D, T1)
+        if not into >= 0.0:
             for i in range(3):
-                f[T2 + i] = f[T1 + i] - along * f[D + i]
-            lateral = np.sqrt(_dot(dot_fn, f_at, T2, T2))
-            if near or (past and lateral < 3 * f[TOL]):
-                s[GOAL_REACHED] = 1
+                f[T2 + i] = f[D + i] - into * f[T1 + i]  # t
+            tn = np.sqrt(_dot(dot_fn, f_at, T2, T2))
+            if not tn < MIN_SLIDE:
                 for i in range(3):
-                    f[REF + i] = f[X + i]
+                    f[D + i] = f[T2 + i] / tn
+
+
+@njit(**JIT, inline="always")
+def _advance_reference(dot_fn, f, f_at, pf, law, dt, lead):
+    """A moving law's reference: on along D at the phase's speed, at most a lead ahead."""
+    speed = pf[law, P_SPEED]
+    for i in range(3):
+        f[REF + i] = f[REF + i] + f[D + i] * speed * dt
+    for i in range(3):
+        f[T1 + i] = f[REF + i] - f[X + i]
+    ahead = _dot(dot_fn, f_at, T1, D)
+    if ahead > lead:
+        for i in range(3):
+            f[REF + i] -= f[D + i] * (ahead - lead)
+
+
+@njit(**JIT, inline="always")
+def _reference_to_place(dot_fn, f, f_at, pf, law, dt, lead):
+    """A law done in place: its reference towards the place at PLACE_SPEED, at most a
+    lead from the tool."""
+    for i in range(3):
+        f[T1 + i] = pf[law, P_PLACE + i] - f[REF + i]  # to_place
+    norm = np.sqrt(_dot(dot_fn, f_at, T1, T1))
+    limit = PLACE_SPEED * dt
+    step = limit if limit < norm else norm  # Python's min(norm, limit)
+    if step > 0.0:
+        scale = step / np.sqrt(_dot(dot_fn, f_at, T1, T1))
+        for i in range(3):
+            f[REF + i] = f[REF + i] + f[T1 + i] * scale
+    for i in range(3):
+        f[T2 + i] = f[REF + i] - f[X + i]  # ahead
+    if np.sqrt(_dot(dot_fn, f_at, T2, T2)) > lead:
+        scale = lead / np.sqrt(_dot(dot_fn, f_at, T2, T2))
+        for i in range(3):
+            f[REF + i] = f[X + i] + f[T2 + i] * scale
+
+
+@njit(**JIT, inline="always")
+def _at_place(dot_fn, f, f_at, pf, law, lead):
+    """Whether the reference has arrived at the law's place and the tool is within a lead of it."""
+    for i in range(3):
+        f[T1 + i] = pf[law, P_PLACE + i] - f[REF + i]
+    there = np.sqrt(_dot(dot_fn, f_at, T1, T1)) < 1e-6
+    if there:
+        for i in range(3):
+            f[T2 + i] = pf[law, P_PLACE + i] - f[X + i]
+        there = np.sqrt(_dot(dot_fn, f_at, T2, T2)) < lead
+    return there
+
+
+@njit(**JIT, inline="always")
+def _check_goal(dot_fn, f, f_at, s, phase, in_place, n_phases):
+    """At the goal (near it, or past it in the last phase): GOAL_REACHED, the reference at the tool."""
+    for i in range(3):
+        f[T1 + i] = f[X + i] - f[GOAL + i]
+    near = np.sqrt(_dot(dot_fn, f_at, T1, T1)) < f[TOL]
+    if near or phase == n_phases - 1:
+        along = _dot(dot_fn, f_at, T1, D)
+        past = not in_place and along >= 0.0
+        for i in range(3):
+            f[T2 + i] = f[T1 + i] - along * f[D + i]
+        lateral = np.sqrt(_dot(dot_fn, f_at, T2, T2))
+        if near or (past and lateral < 3 * f[TOL]):
+            s[GOAL_REACHED] = 1
+            for i in range(3):
+                f[REF + i] = f[X + i]
 
 
 _STEP = []  # _step's machine code, compiled (or loaded from numba's cache) by the first policy
@@ -325,7 +392,7 @@ class CompiledPolicy(HoldsAddresses):
         f[STATE:] = 0.0
         self.R_hold = None
 
-    def step(self, x: np.ndarray, R: np.ndarray, phase: int | None, dt: float = 0.001,
+    def step(self, x: np.ndarray, R: np.ndarray, phase: int | None, dt: float = CYCLE,
              force: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``ReproductionPolicy.step``: the same arguments, the same numbers."""
         f, s = self._f, self._s
@@ -341,7 +408,7 @@ class CompiledPolicy(HoldsAddresses):
         self._kernel(blas.DOT, blas.GEMV, *self._at, self._n)
         return f[F_OUT:F_OUT + 3].copy(), self.R_hold
 
-    def tool_step(self, pose, tool_force, phase: int | None, dt: float = 0.001):
+    def tool_step(self, pose, tool_force, phase: int | None, dt: float = CYCLE):
         """``ReproductionPolicy.tool_step``: the same arguments, the same numbers."""
         f, s = self._f, self._s
         f[POSE:POSE + 12] = pose

@@ -181,14 +181,14 @@ def test_softmax_m_step_descends_and_lbfgs_reaches_at_least_the_same_objective()
     stacked = em.StackedSteps.from_steps([step_arrays(s, f, "effect") for s, f in demos])
     C = np.concatenate([model.A, model.B], axis=2)
     ex = em.e_step(stacked, C, model.Sigma, model.W)
-    from etar import inference
+    from etar.softmax_regression import softmax_regression_objective
 
     w0 = np.zeros_like(model.W[1:])
-    f0, _ = inference.softmax_regression_objective(w0, stacked.features, ex.xi, 1e-3)
+    f0, _ = softmax_regression_objective(w0, stacked.features, ex.xi, 1e-3)
     gd = em.fit_softmax_blocks(w0, stacked.features, ex.xi, 1e-3, "gd", max_steps=200)
     lb = em.fit_softmax_blocks(w0, stacked.features, ex.xi, 1e-3, "lbfgs", max_steps=200)
-    f_gd, _ = inference.softmax_regression_objective(gd, stacked.features, ex.xi, 1e-3)
-    f_lb, _ = inference.softmax_regression_objective(lb, stacked.features, ex.xi, 1e-3)
+    f_gd, _ = softmax_regression_objective(gd, stacked.features, ex.xi, 1e-3)
+    f_lb, _ = softmax_regression_objective(lb, stacked.features, ex.xi, 1e-3)
     assert np.all(f_gd < f0) and np.all(f_lb < f0)
     # the quasi-Newton option must reach at least the objective of gradient descent
     assert np.all(f_lb <= f_gd * (1 + 1e-9))
