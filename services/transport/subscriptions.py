@@ -60,6 +60,89 @@ class LinkCounters:
                 "duplicates": seq["duplicates"]}
 
 
+def _judged_delivery(counters: LinkCounters, message_type: MessageType | None, on_message):
+    """``deliver(raw, recv)``: decoded with ``message_type`` (None: not decoded), judged by its
+    ``seq`` (duplicates, replays and stale ones dropped and counted), then handed on; a bad
+    message is counted in ``counters``, never raised."""
+
+    def deliver(raw: bytes, recv: int) -> None:
+        counters.received += 1
+        msg = None
+        if message_type is not None:
+            try:
+                msg = message_type.decode(raw)
+            except MessageError as exc:
+                counters.bad += 1
+                counters.last_error = str(exc)
+                return
+            except Exception as exc:  # noqa: BLE001 - a decoder's own bug (tests/services/test_fuzz.py
+                # looks for them) must not end a latest subscriber's drain thread: counted, named
+                counters.bad += 1
+                counters.last_error = f"{type(exc).__name__} while decoding: {exc}"
+                return
+            counters.latency.add(recv - msg["sent_ns"])
+            verdict = counters.sequence.add(msg["seq"])
+            if verdict is STALE:
+                counters.stale_run += 1
+                if counters.stale_run >= RESYNC_AFTER:
+                    # this many older ones in a row are the stream itself: the newest
+                    # seen was forged far ahead, and would otherwise silence the link
+                    counters.sequence.resync(msg["seq"])
+                    counters.resyncs += 1
+                    verdict = FRESH
+            if verdict is not FRESH:
+                # a copy, or older than what was acted on: within a run every topic's
+                # seq only grows (one robot, its FRI cycles), so this is a replay or a
+                # duplicate from the network or a foreign peer; acting on it would
+                # answer a cycle twice or go back in time
+                counters.dropped += 1
+                return
+            counters.stale_run = 0
+        try:
+            on_message(msg, recv, raw)
+        except Exception as exc:  # a bad message must not kill the subscriber thread
+            counters.bad += 1
+            counters.last_error = f"{type(exc).__name__}: {exc}"
+
+
+    return deliver
+
+
+def _subscribe_newest(session, key: str, topic: str, deliver, counters: LinkCounters, *, every_tenth: bool,
+                      keep_tenth: bool):
+    """``subscribe``'s ``latest``: a ring Zenoh keeps the newest samples in, drained by one
+    thread that delivers the newest (and, with ``keep_tenth``, a tenth cycle's on the way)."""
+    sub = session.declare_subscriber(key, zenoh.handlers.RingChannel(
+        ESTIMATOR_STRIDE if every_tenth or keep_tenth else 1))
+    ring = sub.handler  # not the subscriber: undeclaring it while a thread waits in its recv() fails
+
+    def drain() -> None:
+        try:
+            while True:
+                raw = ring.recv().payload.to_bytes()
+                recv = now_ns()
+                if every_tenth and not tenth_cycle(raw):
+                    raw = None
+                while (sample := ring.try_recv()) is not None:
+                    newer = sample.payload.to_bytes()
+                    if every_tenth and not tenth_cycle(newer):
+                        continue
+                    if raw is not None:
+                        if keep_tenth and tenth_cycle(raw):
+                            deliver(raw, recv)
+                        else:
+                            counters.skipped += 1
+                    raw, recv = newer, now_ns()
+                if raw is not None:
+                    deliver(raw, recv)
+        except zenoh.ZError:
+            return  # undeclared: the ring is closed
+
+    # started from the thread that subscribes: under --sched-fifo it inherits the policy
+    threading.Thread(target=drain, name=f"latest {topic}", daemon=True).start()
+    return sub
+
+
 def subscribe(session, run_id: str, topic: str, on_message, links: dict, profile, *, decode: bool = True,
               every_tenth: bool = False, latest: bool = False, keep_tenth: bool = False):
     """Deliver (message dict, receive time ns, raw bytes) for every valid
@@ -97,77 +180,11 @@ def subscribe(session, run_id: str, topic: str, on_message, links: dict, profile
     stride = ESTIMATOR_STRIDE if every_tenth else STRIDES.get(topic, 1)
     counters = links.setdefault(topic, LinkCounters(sequence=SequenceTracker(stride=stride)))
 
-    def deliver(raw: bytes, recv: int) -> None:
-        counters.received += 1
-        msg = None
-        if decode and message_type is not None:
-            try:
-                msg = message_type.decode(raw)
-            except MessageError as exc:
-                counters.bad += 1
-                counters.last_error = str(exc)
-                return
-            except Exception as exc:  # noqa: BLE001 - a decoder's own bug (tests/services/test_fuzz.py
-                # looks for them) must not end a latest subscriber's drain thread: counted, named
-                counters.bad += 1
-                counters.last_error = f"{type(exc).__name__} while decoding: {exc}"
-                return
-            counters.latency.add(recv - msg["sent_ns"])
-            verdict = counters.sequence.add(msg["seq"])
-            if verdict is STALE:
-                counters.stale_run += 1
-                if counters.stale_run >= RESYNC_AFTER:
-                    # this many older ones in a row are the stream itself: the newest
-                    # seen was forged far ahead, and would otherwise silence the link
-                    counters.sequence.resync(msg["seq"])
-                    counters.resyncs += 1
-                    verdict = FRESH
-            if verdict is not FRESH:
-                # a copy, or older than what was acted on: within a run every topic's
-                # seq only grows (one robot, its FRI cycles), so this is a replay or a
-                # duplicate from the network or a foreign peer; acting on it would
-                # answer a cycle twice or go back in time
-                counters.dropped += 1
-                return
-            counters.stale_run = 0
-        try:
-            on_message(msg, recv, raw)
-        except Exception as exc:  # a bad message must not kill the subscriber thread
-            counters.bad += 1
-            counters.last_error = f"{type(exc).__name__}: {exc}"
-
+    deliver = _judged_delivery(counters, message_type if decode else None, on_message)
     key = topics.key(run_id, topic)
     if latest:
-        sub = session.declare_subscriber(key, zenoh.handlers.RingChannel(
-            ESTIMATOR_STRIDE if every_tenth or keep_tenth else 1))
-        deliver = profile.wrap(deliver)
-        ring = sub.handler  # not the subscriber: undeclaring it while a thread waits in its recv() fails
-
-        def drain() -> None:
-            try:
-                while True:
-                    raw = ring.recv().payload.to_bytes()
-                    recv = now_ns()
-                    if every_tenth and not tenth_cycle(raw):
-                        raw = None
-                    while (sample := ring.try_recv()) is not None:
-                        newer = sample.payload.to_bytes()
-                        if every_tenth and not tenth_cycle(newer):
-                            continue
-                        if raw is not None:
-                            if keep_tenth and tenth_cycle(raw):
-                                deliver(raw, recv)
-                            else:
-                                counters.skipped += 1
-                        raw, recv = newer, now_ns()
-                    if raw is not None:
-                        deliver(raw, recv)
-            except zenoh.ZError:
-                return  # undeclared: the ring is closed
-
-        # started from the thread that subscribes: under --sched-fifo it inherits the policy
-        threading.Thread(target=drain, name=f"latest {topic}", daemon=True).start()
-        return sub
+        return _subscribe_newest(session, key, topic, profile.wrap(deliver), counters, every_tenth=every_tenth,
+                                 keep_tenth=keep_tenth)
 
     def callback(sample: zenoh.Sample) -> None:
         recv = now_ns()
