@@ -9,6 +9,7 @@ from typing import Literal
 import numpy as np
 
 from robot_sim.ati.sensor import AtiConfig
+from robot_sim.cycle import FRI_CYCLE_NS
 
 
 class WrenchKalmanFilter:
@@ -38,7 +39,7 @@ class WrenchKalmanFilter:
         self,
         measurement_std: np.ndarray,
         process_std: np.ndarray,
-        dt: float = 1e-3,
+        dt: float = FRI_CYCLE_NS / 1e9,
         model: Literal["constant", "rate"] = "constant",
     ) -> None:
         r = np.array(measurement_std, dtype=np.float64)

@@ -117,7 +117,8 @@ import numpy as np
 from numba import njit
 
 from kernel_plumbing.addresses import JIT, HoldsAddresses, address, addresses, carray_at, entry
-from robot_sim.ati.rdt import AtiStatus, INT32_MAX, RdtRecord, SATURATION_BITS, UINT32_MASK
+from robot_sim.ati.rdt import INT32_MAX, SATURATION_BITS, UINT32_MASK, AtiStatus, RdtRecord
+from robot_sim.cycle import FRI_CYCLE_NS
 
 __all__ = [
     "AXES",
@@ -188,8 +189,9 @@ class AtiConfig:
     """Offset at the first reading (N, Nm), before any tare."""
     bias_drift_std: np.ndarray = field(default_factory=lambda: np.array(MINI45_DRIFT_STD))
     """Random-walk intensity of the offset (N/√s, Nm/√s); 0 disables drift."""
-    sample_period_s: float = 1e-3
-    """Period of the sensor's internal F/T samples (ft_sequence increments)."""
+    sample_period_s: float = FRI_CYCLE_NS / 1e9
+    """Period of the sensor's internal F/T samples (ft_sequence increments): one robot
+    cycle by default, the rate the cell samples it at."""
     saturation: Literal["clip", "flag"] = "clip"
     """'clip': saturated axes read full scale; 'flag': they keep the raw value."""
 
