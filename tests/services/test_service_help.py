@@ -12,6 +12,7 @@ import pytest
 
 from services.cli import roles
 from services.cli.version import add_version_argument
+from services.runtime.messages import HOLD_WATCH_S
 from services.runtime.provenance import _code, code, code_text
 from services.runtime.roles import ROLES
 
@@ -63,7 +64,7 @@ def test_the_numbers_the_help_states_are_the_code_s():
     assert impedance_commander.ESTIMATE_WAIT_S == 2.0 and "after 2 s" in impedance_commander.__doc__
     assert impedance_commander.STALE_ESTIMATE_CYCLES == 50 and "50 cycles" in impedance_commander.__doc__
     assert HOLD_STIFFNESS == 2000.0 and "2000 N/m" in impedance_commander.__doc__
-    assert robot.HOLD_WATCH_S == 1.0 and "lasted 1 s" in impedance_commander.__doc__
+    assert HOLD_WATCH_S == 1.0 and "lasted 1 s" in impedance_commander.__doc__
     assert MAX_PAYLOAD_BYTES == 64 * 1024 and "64 KiB" in recorder.__doc__
     assert MAX_VISUAL_RATE_HZ == 1000 and "(1000)" in help_of("recorder") and "(1000)" in help_of("foxglove_bridge")
 
