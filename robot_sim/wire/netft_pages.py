@@ -22,7 +22,7 @@ _FORCE_UNIT_N = 2
 _TORQUE_UNIT_NM = 3
 
 
-class NetFtBox(Protocol):
+class ServedBox(Protocol):
     """What the pages and servers read of the box (``robot_sim.wire.netft.NetFtBox``, which
     imports this module for its servers)."""
 
@@ -34,7 +34,7 @@ class NetFtBox(Protocol):
     def count(self, what: str) -> None: ...
 
 
-def netftapi2_xml(box: NetFtBox) -> str:
+def netftapi2_xml(box: ServedBox) -> str:
     """The body of ``/netftapi2.xml``."""
     c = box.config
     rate = round(1.0 / c.sample_period_s)
@@ -45,7 +45,7 @@ def netftapi2_xml(box: NetFtBox) -> str:
             f"<comrdtrate>{rate}</comrdtrate>\n<comrdtbsiz>{box.rdt_buffer_size}</comrdtbsiz>\n"
             "</netft>\n")
 
-def netftcalapi_xml(box: NetFtBox) -> str:
+def netftcalapi_xml(box: ServedBox) -> str:
     """The body of ``/netftcalapi.xml``."""
     c = box.config
     return ("<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n<netftCalibration>\n"
@@ -110,7 +110,7 @@ class _Connections:
 class PagesServer(_Connections, http.server.ThreadingHTTPServer):
     """The box's web server; requests are accepted by the box's I/O thread."""
 
-    def __init__(self, address, box: NetFtBox):
+    def __init__(self, address, box: ServedBox):
         self.box = box
         self._track()
         super().__init__(address, _XmlHandler)
@@ -149,7 +149,7 @@ class CalibrationServer(_Connections, socketserver.ThreadingTCPServer):
 
     allow_reuse_address = True
 
-    def __init__(self, address, box: NetFtBox):
+    def __init__(self, address, box: ServedBox):
         self.box = box
         self._track()
         super().__init__(address, _CalibrationHandler)
