@@ -119,6 +119,8 @@ class Runner:
         except BaseException as exc:
             if isinstance(exc, KeyboardInterrupt):
                 self._interrupted = True
+            # before the first line that says the run failed: a Ctrl-C after it escalates
+            self._escalate_on_next_interrupt()
             error = (f"interrupted ({str(exc) or 'SIGINT'})" if isinstance(exc, KeyboardInterrupt)
                      else f"{type(exc).__name__}: {exc}")
             self.say(f"run failed: {error}")
@@ -315,7 +317,8 @@ class Runner:
                          "services at once)")
                 return
             killed = self.cell.kill() if self.cell is not None else 0
-            self.say(f"{name} again: killing the {killed} service processes now")
+            self.say(f"{name} again: killing the {killed} service process{'' if killed == 1 else 'es'} "
+                     "still running now")
 
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, escalate)

@@ -58,7 +58,7 @@ class Cell(Protocol):
         """What the services that died left in their logs."""
 
     def kill(self) -> int:
-        """Kill every service process now (a second Ctrl-C); how many there were."""
+        """Kill every service process still running now (a second Ctrl-C); how many."""
 
     def stop(self, roles, before_report: bool) -> dict:
         """Before the report: stop the services (their exit codes); after it: let go of

@@ -258,13 +258,14 @@ class Supervisor:
                 for h in self.hosts.hosts]
 
     def kill(self) -> int:
-        """Every service process killed now (SIGKILL to its group)."""
-        for p in self.processes:
+        """Every service process still running killed now (SIGKILL to its group); how many."""
+        running = [p for p in self.processes if p.alive()]
+        for p in running:
             try:
                 os.killpg(p.popen.pid, signal.SIGKILL)
             except (ProcessLookupError, PermissionError):
                 pass
-        return len(self.processes)
+        return len(running)
 
     def post_mortem(self) -> list[str]:
         return [f"--- {p.name} exited with {p.popen.returncode}; end of its log:\n{p.tail()}"
