@@ -38,7 +38,7 @@ from services.run.options import RunOptions
 from services.run.preflight import preflight, start_problem
 from services.run.realtime_profile import Grant, parse_profile, placement, probe
 from services.run.serve import SERVED_TOPICS, served_start
-from services.scenario import Scenario, demonstration_starts, reproduction_starts
+from services.scenario import Scenario
 from services.scenario.starts import teacher_seed
 from services.runtime.files import write_file
 from services.runtime.provenance import provenance
@@ -113,8 +113,9 @@ class Runner:
             if self.options.serve is not None:
                 self.serve(self.options.serve)
             else:
-                for stage in sc.stages:
-                    getattr(self, f"stage_{stage.kind}")(stage)
+                for index, stage in enumerate(sc.stages):
+                    # the starts the preflight drew and found within reach, drawn once
+                    getattr(self, f"stage_{stage.kind}")(stage, self.preflight.stage_starts(index))
             self.episodes.event("run_end", "", -1, {})
         except BaseException as exc:
             if isinstance(exc, KeyboardInterrupt):
@@ -189,8 +190,7 @@ class Runner:
 
     # -------------------------------------------------------------- stages
 
-    def stage_demonstrate(self, stage):
-        starts = demonstration_starts(stage, self.scenario.world, stage.seed)
+    def stage_demonstrate(self, stage, starts):
         for i, (side, start) in enumerate(starts):
             index = len(self.record.demonstrations)
             label = f"demonstration {i + 1}/{len(starts)}"
@@ -203,16 +203,14 @@ class Runner:
                      f"{'recording unfinished' if rec is None else str(rec['messages']) + ' messages recorded'}")
             self.episodes.raise_if_lost()
 
-    def stage_learn(self, stage):
+    def stage_learn(self, stage, starts):  # a learn stage has no episodes: ``starts`` is empty
         self.record.learning = learn(stage, self.scenario, [d.path for d in self.record.demonstrations], self.out,
                                      workers=self.options.workers, threads=self.options.learn_threads, say=self.say)
 
-    def stage_reproduce(self, stage):
+    def stage_reproduce(self, stage, starts):
         learning = self.record.learning
         if learning.model is None:
             raise RuntimeError("reproduce needs a learned model")
-        demo_starts = [(d.side, tuple(d.start)) for d in self.record.demonstrations]
-        starts = reproduction_starts(stage, self.scenario.world, stage.seed, demo_starts)
         # the model(s) each start is reproduced with: the run's, or each listed transition model's
         models = ([learning.models[t] for t in stage.transitions] if stage.transitions is not None
                   else [None])
