@@ -161,7 +161,7 @@ def cmd_demo(args) -> int:
          f"{len(demo['states'])} samples at {1 / demo['dt']:.0f} Hz, steps per true phase {counts}; "
          f"recording {recording}")
     if args.png:
-        from services.results.figures import demonstration_figure
+        from services.results.figures.demonstrations import demonstration_figure
 
         demonstration_figure(demo, Path(args.png), f"{args.world} demonstration (seed {args.seed})",
                              LABELERS[args.world].names)

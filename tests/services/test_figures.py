@@ -62,7 +62,7 @@ def test_a_run_without_demonstrations_says_which_figures_it_skips(tmp_path):
     # the stored valley model keeps the BIC scores its learn stage chose by
     assert [p.name for p in written] == ["bic_by_phase_count.png", "reproduction_00_force_phase_alpha.png"]
     assert any("no demonstrations" in s for s in skipped) and not any("no selection scores" in s for s in skipped)
-    from services.results.figures import bic_figure
+    from services.results.figures.learning import bic_figure
     assert bic_figure({"criterion": "fixed"}, tmp_path) == "no selection scores (phase count fixed)"
 
 
@@ -74,17 +74,17 @@ def test_the_runs_figures_draw_its_world_and_name_its_phases_by_the_true_ones(ru
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     from robot_sim.labels import LABELERS
-    from services.results import figures
+    from services.results.figures import canvas, phases
 
     kept = {}
-    save = figures._save
-    monkeypatch.setattr(figures, "_save", lambda fig, path, *a, **k: kept.setdefault(Path(path).name, fig)
+    save = canvas.save
+    monkeypatch.setattr(canvas, "save", lambda fig, path, *a, **k: kept.setdefault(Path(path).name, fig)
                         and save(fig, path, *a, **k))
     written, _ = write_figures(run_dir)
     assert sorted(p.name for p in written) == sorted(FIGURES)
     meta = json.loads((run_dir / "model.json").read_text())["metadata"]
     k = json.loads((run_dir / "model.json").read_text())["n_phases"]
-    names = figures.phase_labels(k, meta["phase_to_truth"], LABELERS["valley"].names)
+    names = phases.phase_labels(k, meta["phase_to_truth"], LABELERS["valley"].names)
     assert any("=" in n for n in names), names  # the smoke run's phases were matched to true ones
     (ax,) = [a for a in kept["tool_path_by_phase.png"].axes if a.name == "3d"]
     assert any(isinstance(c, Poly3DCollection) for c in ax.collections)
