@@ -14,7 +14,8 @@ import json
 import time
 from pathlib import Path
 
-from services.results.figures import COMPARISON_FIGURE, FIGURES_DIR
+from services.results.figures import COMPARISON_FIGURE, FIGURES_DIR, write_figures
+from services.results.record import RunRecord
 from services.results.text import provenance_text
 from services.runtime.files import FileWriteError, write_file
 
@@ -139,12 +140,12 @@ def _note(path: Path, text: str) -> None:
         pass
 
 
-def write_figures_and_page(run_dir, progress=None) -> str:
+def write_figures_and_page(run_dir, progress=None, run: RunRecord | None = None) -> str:
     """The thesis' figures (``RUN_DIR/figures/``) and report.html after a run's report; one
-    line saying what was written.  A figure that cannot be drawn must not cost the run
-    its report: the reason goes in figures.error (figures.skipped: what was left out)."""
-    from services.results.figures import write_figures
-
+    line saying what was written.  ``run``: the record of the run just reported, whose
+    decoded recordings the figures are drawn from (None: the folder's).  A figure that
+    cannot be drawn must not cost the run its report: the reason goes in figures.error
+    (figures.skipped: what was left out)."""
     run_dir = Path(run_dir)
     t = time.monotonic()
     # the page embeds every figure in the folder: none may be left from an earlier drawing
@@ -154,7 +155,7 @@ def write_figures_and_page(run_dir, progress=None) -> str:
         if stale.name != COMPARISON_FIGURE:
             stale.unlink(missing_ok=True)
     try:
-        written, skipped = write_figures(run_dir, progress=progress)
+        written, skipped = write_figures(run_dir, progress=progress, run=run)
     except Exception as exc:
         _note(run_dir / "figures.error", f"{type(exc).__name__}: {exc}\n")
         written, skipped = [], [f"{type(exc).__name__}: {exc}"]

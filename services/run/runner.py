@@ -28,6 +28,7 @@ import time
 import uuid
 from pathlib import Path
 
+from services.results.decoding import LearnerView
 from services.results.folder import SCENARIO_FILE, check_run_folder, prepare_run_folder
 from services.results.record import EpisodeRecord, RunRecord
 from services.results.report import write_report
@@ -70,8 +71,12 @@ class Runner:
         self.run_id = options.run_id or f"{scenario.name}-{uuid.uuid4().hex[:8]}"
         self.record = RunRecord(scenario_name=scenario.name, source=scenario.source, clock=scenario.clock,
                                 run_id=self.run_id, out=self.out, transport=self.transport.name,
-                                wire="udp" if options.serve is not None else options.wire,
-                                workers=options.workers, provenance=provenance(options.command))
+                                wire="udp" if options.serve is not None else options.wire, world=scenario.world,
+                                workers=options.workers, provenance=provenance(options.command),
+                                # the scenario's view is its model's: the learn stage's, and a stored
+                                # model's too (the preflight checked it)
+                                figures=LearnerView(scenario.state, scenario.features, scenario.state_resolution)
+                                if options.figures else None)
         self.cell = None
         self.episodes = None
         self.ready = threading.Event()  # set once every service is up (tests and benches wait on it)
@@ -158,7 +163,7 @@ class Runner:
                 if self.options.figures:
                     from services.results.html import write_figures_and_page
 
-                    self.say(write_figures_and_page(self.out))
+                    self.say(write_figures_and_page(self.out, run=self.record))
             finally:
                 if self.cell is not None:
                     self.cell.stop(self.roles, before_report=False)

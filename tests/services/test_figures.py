@@ -23,12 +23,42 @@ PNG = b"\x89PNG\r\n\x1a\n"
 
 
 @pytest.fixture(scope="module")
-def run_dir(tmp_path_factory):
+def drawn_run(tmp_path_factory):
+    """The run's folder, and the recordings the results read while the report, the figures
+    and the page were made (by file name, once per read)."""
+    from services.results import decoding
+    from services.results.figures import phases
+
     out = tmp_path_factory.mktemp("figures")
     scenario = support.scenario("smoke", {"learn.phases": "auto", "learn.candidates": [2, 3]})
-    report = support.run(scenario, out / "run", figures=True, transport="inproc", run_id="figures")
+    reads = []
+    read = decoding.read_episode
+
+    def counted(path):
+        reads.append(Path(path).name)
+        return read(path)
+
+    def refused(path):
+        raise AssertionError(f"the figures read {path} again")
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(decoding, "read_episode", counted)
+        patch.setattr(phases, "read_episode", refused)
+        report = support.run(scenario, out / "run", figures=True, transport="inproc", run_id="figures")
     assert report["error"] is None, report["error"]
-    return out / "run"
+    return out / "run", reads
+
+
+@pytest.fixture(scope="module")
+def run_dir(drawn_run):
+    return drawn_run[0]
+
+
+def test_a_run_decodes_each_recording_once_for_its_report_and_figures(drawn_run):
+    run_dir, reads = drawn_run
+    recordings = sorted(p.name for p in (run_dir / "recordings").glob("*.mcap"))
+    assert sorted(reads) == recordings, reads
+    assert not (run_dir / "figures.error").exists() and (run_dir / "report.html").is_file()
 
 
 def test_every_run_writes_every_figure_as_a_png(run_dir):

@@ -15,6 +15,7 @@ from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 from etar.task import load_task
 from robot_sim.worlds import HoseCoupler, Valley
 from services.recordings.writer import EpisodeWriter
+from services.results.decoding import EpisodeReading, LearnerView, decode_episode
 from services.results.figures import canvas, demonstrations, learning, phases, reproduction, tool_paths
 from services.runtime.messages import (
     ESTIMATOR_PHASE,
@@ -202,6 +203,12 @@ def write_reproduction(path, n_cycles=400, lag=25, scenario="name: t\nworld: val
     return truth[seqs], truth[np.maximum(0, seqs - lag)]
 
 
+def trace_of(path):
+    """A reproduction's trace as the figures decode it, in the learner's position/force view."""
+    reading = EpisodeReading(str(path), measures=False, trace=LearnerView("position", "force"))
+    return decode_episode(reading).figure_data.trace
+
+
 def strip_axes(fig):
     (ax,) = [a for a in fig.axes if "true phase" in [t.get_text() for t in a.get_yticklabels()]]
     return ax
@@ -222,7 +229,7 @@ def test_the_reproduction_shows_the_estimated_beside_the_true_phase_it_is_scored
     path = tmp_path / "reproduction_00.mcap"
     true, est = write_reproduction(path)
     mapping = {0: 0, 1: 1, 2: 2}
-    out = reproduction.reproduction_figure(path, 0, task.model, "position", "force", tmp_path, phase_to_truth=mapping,
+    out = reproduction.reproduction_figure(trace_of(path), 0, task.model, tmp_path, phase_to_truth=mapping,
                                       true_names=VALLEY_NAMES)
     assert out == tmp_path / "reproduction_00_force_phase_alpha.png" and out.is_file()
     (fig,) = drawn
@@ -248,7 +255,7 @@ def test_the_reproduction_shows_the_estimated_beside_the_true_phase_it_is_scored
 def test_without_a_mapping_the_reproduction_names_phases_by_number_and_is_not_scored(task, drawn, tmp_path):
     path = tmp_path / "reproduction_00.mcap"
     write_reproduction(path, n_cycles=200)
-    reproduction.reproduction_figure(path, 0, task.model, "position", "force", tmp_path)
+    reproduction.reproduction_figure(trace_of(path), 0, task.model, tmp_path)
     (fig,) = drawn
     legend = figure_legend_texts(fig)
     assert "phase 0" in legend and not any("=" in t for t in legend), legend
@@ -270,7 +277,7 @@ def test_every_axis_label_carries_a_unit_and_every_phase_legend_names_the_true_p
     learning.bic_figure({"criterion": "bic", "best": 3, "scores": {"2": 10.0, "3": 5.0, "4": 7.0}}, tmp_path)
     path = tmp_path / "reproduction_00.mcap"
     write_reproduction(path, n_cycles=200)
-    reproduction.reproduction_figure(path, 0, task.model, "position", "force", tmp_path, phase_to_truth={0: 0, 1: 1, 2: 2},
+    reproduction.reproduction_figure(trace_of(path), 0, task.model, tmp_path, phase_to_truth={0: 0, 1: 1, 2: 2},
                                 true_names=VALLEY_NAMES)
     assert len(drawn) == 7
     missing = []

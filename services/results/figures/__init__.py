@@ -29,22 +29,25 @@ Data stay SI; a figure shows positions in mm (its axis says so), forces in N, ti
 (``canvas``).
 
 What a figure needs and the run does not have (no demonstrations, a fixed phase count:
-no selection scores) is skipped with the reason.  Reads the run's report.json,
-scenario.yaml, model.json and recordings; writes nothing else.
+no selection scores) is skipped with the reason.  Drawn right after a run's report from
+what the report decoded (the run's record), or from a finished run's folder: its
+report.json, scenario.yaml, model.json and recordings, each decoded as the report decodes
+them (``services.results.decoding``).  Writes nothing but the figures.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from etar.task import load_task
-from services.recordings.demonstrations import load_demonstration
+from etar.task import LearnedTask, load_task
+from services.results.decoding import EpisodeReading, FigureData, LearnerView, decode_episode
 from services.results.figures.demonstrations import demonstrations_figure
 from services.results.figures.learning import bic_figure, forward_figure, prediction_figures
 from services.results.figures.phases import phase_labels, true_phase_names, world_of_run
 from services.results.figures.reproduction import reproduction_figure
 from services.results.figures.tool_paths import path_figure
 from services.results.folder import RunFolderError, read_report
+from services.results.record import RunRecord
 
 FIGURES_DIR = "figures"
 # etar-bench compare's figure (services.results.compare), beside the run's own: not the run's to redraw
@@ -71,33 +74,53 @@ def read_run_report(run_dir: Path) -> dict:
     return report
 
 
-def write_figures(run_dir, progress=None) -> tuple[list[Path], list[str]]:
+def write_figures(run_dir, progress=None, run: RunRecord | None = None) -> tuple[list[Path], list[str]]:
     """Every figure the run has data for, into RUN_DIR/figures/: (files written, what was
-    skipped and why)."""
+    skipped and why).  ``run``: the record of the run just reported, whose report and
+    recordings, as the report decoded them, the figures draw; None: the folder's
+    report.json, and its recordings decoded here."""
     run_dir = Path(run_dir)
-    report = read_run_report(run_dir)
+    report = read_run_report(run_dir) if run is None else run.report
     out = run_dir / FIGURES_DIR
     out.mkdir(exist_ok=True)
-    say = progress or (lambda _m: None)
-    written, skipped = [], []
     model_path = report["learning"].get("model")
     if not model_path:
-        return written, ["no learned model in the run"]
+        return [], ["no learned model in the run"]
     task = load_task(in_run(run_dir, model_path))
-    model = task.model
-    recordings = [in_run(run_dir, e["path"]) for e in [*report.get("demonstrations", []),
-                                                        *(report.get("reproductions") or [])] if e.get("path")]
+    if run is not None and run.figures is not None:
+        first = run.reproductions[0].figure_data if run.reproductions else None
+        world, demos = run.world, [d.figure_data for d in run.demonstrations]
+    else:
+        world, demos, first = _decoded(run_dir, report, task)
+    return _draw(task, world, report, demos, first, out, progress or (lambda _m: None))
+
+
+def _decoded(run_dir: Path, report: dict, task: LearnedTask) -> tuple[str | None, list, FigureData | None]:
+    """What the figures draw of a finished run's folder: its world, each demonstration's
+    data and the first reproduction's, each recording decoded as the model sees it."""
+    view = LearnerView(task.state, task.features, task.state_resolution)
+    demonstrations, reproductions = report.get("demonstrations", []), report.get("reproductions") or []
+    recordings = [in_run(run_dir, e["path"]) for e in [*demonstrations, *reproductions] if e.get("path")]
     world = world_of_run(run_dir, recordings[:1])
+
+    def decoded(entry: dict, **what) -> FigureData:
+        return decode_episode(EpisodeReading(str(in_run(run_dir, entry["path"])), measures=False, **what)).figure_data
+
+    first = decoded(reproductions[0], trace=view) if reproductions else None
+    return world, [decoded(d, demonstration=view) for d in demonstrations], first
+
+
+def _draw(task: LearnedTask, world, report: dict, demos_data: list, first: FigureData | None, out: Path,
+          say) -> tuple[list[Path], list[str]]:
+    model = task.model
     names = true_phase_names(world)
     labels = phase_labels(model.n_phases, task.phase_to_truth, names)
-    demos = []
-    for d in report.get("demonstrations", []):
-        p = in_run(run_dir, d["path"])
-        try:
-            demos.append(load_demonstration(p, state=task.state, features=task.features,
-                                            state_resolution=task.state_resolution, allow_incomplete=True))
-        except (OSError, ValueError) as exc:
-            skipped.append(f"demonstration {p.name}: {exc}")
+    written, skipped, demos = [], [], []
+    for d, data in zip(report.get("demonstrations", []), demos_data):
+        if data.problem is None:
+            demos.append(data.arrays)
+        else:
+            skipped.append(f"demonstration {Path(d['path']).name}: {data.problem}")
     if demos:
         say(f"figures: {len(demos)} demonstrations")
         written.append(demonstrations_figure(demos, out))
@@ -110,10 +133,9 @@ def write_figures(run_dir, progress=None) -> tuple[list[Path], list[str]]:
     (written if isinstance(bic, Path) else skipped).append(bic)
     repro = report.get("reproductions") or []
     if repro:
-        p = in_run(run_dir, repro[0]["path"])
         # the mapping the report scored this reproduction with, else the model's
         mapping = (repro[0].get("phases") or {}).get("mapping") or task.phase_to_truth
-        fig = reproduction_figure(p, 0, model, task.state, task.features, out, phase_to_truth=mapping,
-                                  true_names=names)
+        fig = (f"reproduction 0: {first.problem}" if first.problem is not None else
+               reproduction_figure(first.trace, 0, model, out, phase_to_truth=mapping, true_names=names))
         (written if isinstance(fig, Path) else skipped).append(fig)
     return written, skipped

@@ -9,11 +9,9 @@ from pathlib import Path
 import numpy as np
 
 from etar.metrics import score_segmentation
-from services.recordings.demonstrations import load_demonstration
-from services.recordings.reader import read_episode
+from services.results.decoding import ReproductionTrace
 from services.results.figures import canvas
 from services.results.figures.phases import phase_labels, true_label
-from services.runtime.messages import loads
 
 
 def _runs(t: np.ndarray, v: np.ndarray, t_end: float) -> list[tuple[float, float, int]]:
@@ -25,57 +23,36 @@ def _runs(t: np.ndarray, v: np.ndarray, t_end: float) -> list[tuple[float, float
     return [(float(t[a]), float(e - t[a]), int(v[a])) for a, e in zip(cuts[:-1], ends)]
 
 
-def reproduction_figure(path: Path, index: int, model, state: str, features: str, out: Path,
-                        phase_to_truth=None, true_names=()) -> Path | str:
+def reproduction_figure(trace: ReproductionTrace, index: int, model, out: Path, phase_to_truth=None,
+                        true_names=()) -> Path | str:
     """Reproduction ``index``: the force feature, the estimated phase beside the true phase
     it is scored against (the simulator's label of the same robot cycle, ``/robot/contact``
     ``true_phase``, as the report scores it), and alpha; ``phase_to_truth``: which true phase
     each learned phase is (the demonstrations' matching, as the report uses it).  What
     cannot be drawn is returned as the reason."""
-    try:
-        d = load_demonstration(path, state=state, features=features, allow_incomplete=True)
-    except (OSError, ValueError) as exc:
-        return f"reproduction {index}: {exc}"
-    estimates, commanded, truth_by_seq = [], [], {}
-    for m in read_episode(path).messages:
-        if m.topic not in ("/estimator/phase", "/robot/command", "/robot/contact"):
-            continue
-        try:
-            msg = loads(m.payload)
-        except ValueError:
-            continue
-        try:
-            if m.topic == "/estimator/phase":
-                estimates.append((msg["stamp_ns"] / 1e9, msg["phase"], msg["posterior"], msg.get("seq")))
-            elif m.topic == "/robot/contact":
-                truth_by_seq.setdefault(msg["seq"], msg["true_phase"])
-            else:
-                commanded.append((msg["stamp_ns"] / 1e9, msg["phase"]))
-        except (KeyError, TypeError):
-            continue
+    estimates = trace.estimates
     if not estimates:
         return f"reproduction {index}: no phase estimates recorded"
-    estimates.sort(key=lambda e: e[0])
     K = model.n_phases
     mapping = {int(k): int(v) for k, v in (phase_to_truth or {}).items()}
     labels = phase_labels(K, mapping, true_names)
-    t0 = d["t"][0]
+    t0 = trace.t[0]
     colours = canvas.phase_colours(K)
     te = np.array([e[0] for e in estimates]) - t0
     est = np.array([e[1] for e in estimates], dtype=int)
-    t_end = float(max(te[-1], d["t"][-1] - t0))
+    t_end = float(max(te[-1], trace.t[-1] - t0))
     # the true phase of each estimate's robot cycle: the pairs the report scores
-    scored = [i for i, e in enumerate(estimates) if e[3] in truth_by_seq]
-    true = np.array([truth_by_seq[estimates[i][3]] for i in scored], dtype=int)
+    scored = [i for i, e in enumerate(estimates) if e[3] in trace.truth_by_seq]
+    true = np.array([trace.truth_by_seq[estimates[i][3]] for i in scored], dtype=int)
 
-    torque = d["forces"].shape[1] >= 6  # force_torque features: the torque panel too
+    torque = trace.forces.shape[1] >= 6  # force_torque features: the torque panel too
     ratios = [3, 2.2, 1.6, 3] if torque else [3, 1.6, 3]
     fig, axes = canvas.pyplot().subplots(len(ratios), 1, figsize=(10, 2 * len(ratios) + 1.5), sharex=True,
                                          gridspec_kw={"height_ratios": ratios})
-    _force_panels(axes, d["t"], d["forces"], t0, torque)
+    _force_panels(axes, trace.t, trace.forces, t0, torque)
     accuracy = _phase_strips(axes[-2], te, est, scored, true, t_end, mapping, colours, labels, true_names)
     _alpha_panel(axes[-1], te, np.array([e[2] for e in estimates]), colours, labels)
-    commanded.sort()
+    commanded = trace.commanded
     tc = np.array([c[0] for c in commanded]) - t0
     pc = np.array([c[1] for c in commanded])
     for i in np.flatnonzero(np.diff(pc)) + 1:
