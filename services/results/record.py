@@ -6,7 +6,7 @@ the end (the services' statistics, restarts, hosts, the realtime profile's grant
 ``services.results.report.write_report`` reads nothing else.  The report leaves in it
 what it wrote (report.json's content and report.txt's) and what the figures draw from
 each recording, decoded with the report (``services.results.decoding``): the figures
-drawn after it read no recording again.
+and the page drawn after it read neither the recordings nor the report again.
 """
 
 from __future__ import annotations

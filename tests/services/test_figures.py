@@ -24,8 +24,8 @@ PNG = b"\x89PNG\r\n\x1a\n"
 
 @pytest.fixture(scope="module")
 def drawn_run(tmp_path_factory):
-    """The run's folder, and the recordings the results read while the report, the figures
-    and the page were made (by file name, once per read)."""
+    """The run's folder, the recordings the results read while the report, the figures and
+    the page were made (by file name, once per read), and the page as the run wrote it."""
     from services.results import decoding
     from services.results.figures import phases
 
@@ -46,7 +46,7 @@ def drawn_run(tmp_path_factory):
         patch.setattr(phases, "read_episode", refused)
         report = support.run(scenario, out / "run", figures=True, transport="inproc", run_id="figures")
     assert report["error"] is None, report["error"]
-    return out / "run", reads
+    return out / "run", reads, (out / "run" / "report.html").read_text()
 
 
 @pytest.fixture(scope="module")
@@ -55,7 +55,7 @@ def run_dir(drawn_run):
 
 
 def test_a_run_decodes_each_recording_once_for_its_report_and_figures(drawn_run):
-    run_dir, reads = drawn_run
+    run_dir, reads, _ = drawn_run
     recordings = sorted(p.name for p in (run_dir / "recordings").glob("*.mcap"))
     assert sorted(reads) == recordings, reads
     assert not (run_dir / "figures.error").exists() and (run_dir / "report.html").is_file()
@@ -136,6 +136,18 @@ def test_the_html_report_embeds_every_figure(run_dir):
     first = page.index("data:image/png;base64,") + len("data:image/png;base64,")
     assert base64.b64decode(page[first:page.index('"', first)]).startswith(PNG)
     assert "smoke" in page and "Number of phases" in page and "Reproductions" in page
+
+
+def test_the_page_drawn_from_the_folder_is_the_page_the_run_wrote_from_its_report(drawn_run, tmp_path):
+    """The run hands the page its report and text; etar-bench figures reads them back."""
+    from services.results.html import write_html
+
+    run_dir, _, page = drawn_run
+    copy = tmp_path / "run"
+    shutil.copytree(run_dir, copy)
+    (copy / "report.html").unlink()
+    write_html(copy)
+    assert (copy / "report.html").read_text() == page
 
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
