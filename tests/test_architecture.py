@@ -1,7 +1,8 @@
 """The import rules of docs/architecture.md, read from the code: every import in services/
 and in robot_sim/ points down its list of wings (lazy imports inside functions count too),
 etar/ and robot_sim/ import neither services/ nor each other, kernel_plumbing/, which both
-import, imports none of the three, and no module imports itself back through others."""
+import, imports none of the three, no module imports itself back through others, and no
+module, class or function is past the sizes the document sets."""
 
 import ast
 import json
@@ -272,3 +273,48 @@ def test_the_zenoh_port_has_one_home_that_compose_follows():
                and p.name not in ("session.py",) and "7447" in "".join(
                    line for line in p.read_text().splitlines() if not line.lstrip().startswith(("#", "etar-bench")))]
     assert product == [], f"the Zenoh port written out beside its home: {product}"
+
+
+# docs/architecture.md "Sizes": past these a piece is doing more than one thing
+MAX_MODULE_LINES, MAX_CLASS_LINES, MAX_FUNCTION_LINES = 600, 300, 100
+# an argparse table, a list of flags read top to bottom, named in docs/architecture.md
+SIZE_EXCEPTIONS = {"services/cli/bench.py:build_parser"}
+
+
+def oversized(path: Path, text: str | None = None) -> list[str]:
+    """The module, classes and functions in ``path`` past the sizes, as 'path[:name] N lines'."""
+    text = path.read_text() if text is None else text
+    where = path.relative_to(ROOT).as_posix()
+    found = []
+    lines = len(text.splitlines())
+    if lines > MAX_MODULE_LINES:
+        found.append(f"{where} {lines} lines")
+    for node in ast.walk(ast.parse(text, str(path))):
+        limit = (MAX_CLASS_LINES if isinstance(node, ast.ClassDef) else
+                 MAX_FUNCTION_LINES if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) else None)
+        if limit is None:
+            continue
+        size = node.end_lineno - node.lineno + 1
+        if size > limit and f"{where}:{node.name}" not in SIZE_EXCEPTIONS:
+            found.append(f"{where}:{node.name} {size} lines")
+    return found
+
+
+def test_no_product_module_class_or_function_is_past_its_size():
+    found = [f for folder in ("etar", "robot_sim", "services", "kernel_plumbing") for path in sources(folder)
+             for f in oversized(path)]
+    assert found == [], "past the sizes of docs/architecture.md 'Sizes':\n" + "\n".join(found)
+
+
+def test_the_size_rule_catches_each_kind_and_names_its_exception_in_the_docs():
+    probe = ROOT / "services" / "run" / "probe.py"
+    long_function = "def f():\n" + "    x = 1\n" * MAX_FUNCTION_LINES
+    long_class = "class C:\n" + "    x = 1\n" * MAX_CLASS_LINES
+    assert oversized(probe, long_function) == ["services/run/probe.py:f 101 lines"]
+    assert oversized(probe, long_class) == ["services/run/probe.py:C 301 lines"]
+    assert oversized(probe, "x = 1\n" * (MAX_MODULE_LINES + 1)) == ["services/run/probe.py 601 lines"]
+    assert oversized(probe, "x = 1\n" * MAX_MODULE_LINES) == []
+    sizes = (ROOT / "docs" / "architecture.md").read_text().split("## Sizes", 1)[1].split("\n## ", 1)[0]
+    for exception in SIZE_EXCEPTIONS:
+        path, name = exception.split(":")
+        assert f"`{path}`" in sizes and f"`{name}`" in sizes, exception

@@ -51,7 +51,7 @@ def cmd_run(args) -> int:
         say(f"etar-bench run: interrupted ({str(exc) or 'SIGINT'}); services stopped; "
              + (f"partial report in {out}" if written else "no report was written"))
         return 130
-    print((Path(out) / "report.txt").read_text())
+    print(runner.record.report_text)
     say(f"report: {out}/report.json, {out}/report.txt; recordings in {out}/recordings")
     # the last line, for a newcomer: what came out and where to read more
     print(summary_line(report, out, page=not args.no_figures), flush=True)
@@ -90,7 +90,7 @@ def cmd_serve(args) -> int:
         say("etar-bench serve: interrupted; services stopped; "
              + (f"report in {args.out}" if written else "no report was written"))
         return 130
-    print((Path(args.out) / "report.txt").read_text(), flush=True)
+    print(runner.record.report_text, flush=True)
     say(f"report: {args.out}/report.json, {args.out}/report.txt; recording in {args.out}/recordings")
     return 0 if report["error"] is None else 1
 
@@ -161,7 +161,7 @@ def cmd_demo(args) -> int:
          f"{len(demo['states'])} samples at {1 / demo['dt']:.0f} Hz, steps per true phase {counts}; "
          f"recording {recording}")
     if args.png:
-        from services.results.figures import demonstration_figure
+        from services.results.figures.demonstrations import demonstration_figure
 
         demonstration_figure(demo, Path(args.png), f"{args.world} demonstration (seed {args.seed})",
                              LABELERS[args.world].names)

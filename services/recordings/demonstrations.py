@@ -12,7 +12,7 @@ import numpy as np
 from etar.features import force_vector, state_vector
 from etar.vocabulary import FEATURES, STATES
 from services.recordings.format import RecordingError
-from services.recordings.reader import read_episode
+from services.recordings.reader import Episode, read_episode
 from services.runtime.messages import FT_WRENCH, ROBOT_CONTACT, ROBOT_STATE, SAMPLE_RATE_HZ, MessageError
 
 _DEMONSTRATION_TOPICS = {"/robot/state": ROBOT_STATE, "/ft/wrench": FT_WRENCH, "/robot/contact": ROBOT_CONTACT}
@@ -39,13 +39,18 @@ def load_demonstration(path, *, state: str = "position", features: str = "force"
     cycle; ``complete`` and ``problem`` (``read_episode``'s); ``path``.  An
     incomplete recording raises unless ``allow_incomplete``.
     """
+    _sample_period(state, features, rate_hz)  # a wrong argument is said before the file is read
+    return demonstration_of(read_episode(path), path, state=state, features=features, rate_hz=rate_hz,
+                            allow_incomplete=allow_incomplete, state_resolution=state_resolution)
+
+
+def demonstration_of(episode: Episode, path, *, state: str = "position", features: str = "force",
+                     rate_hz: float = SAMPLE_RATE_HZ, allow_incomplete: bool = False,
+                     state_resolution: float = 0.0) -> dict:
+    """``load_demonstration``'s arrays from ``episode``, the recording at ``path`` already read
+    (by whoever reads it for more than the demonstration)."""
     path = Path(path)
-    if state not in STATES:
-        raise RecordingError(f"state must be one of {sorted(STATES)}, got {state!r}")
-    if features not in FEATURES:
-        raise RecordingError(f"features must be one of {sorted(FEATURES)}, got {features!r}")
-    period_ns = _sample_period_ns(rate_hz)
-    episode = read_episode(path)
+    period_ns = _sample_period(state, features, rate_hz)
     if not episode.complete and not allow_incomplete:
         raise RecordingError(f"{path}: incomplete recording: {episode.problem}; {len(episode.messages)} "
                              "message(s) recovered (load_demonstration(..., allow_incomplete=True) uses them)")
@@ -109,6 +114,15 @@ def load_demonstration(path, *, state: str = "position", features: str = "force"
     return dict(states=states, forces=forces, phases=true_phase[1:], dt=period_ns * 1e-9, t=stamp_ns * 1e-9,
                 seq=np.array(chosen, dtype=np.int64), skipped=skipped, gaps=gaps, complete=episode.complete,
                 problem=episode.problem, path=str(path))
+
+
+def _sample_period(state: str, features: str, rate_hz: float) -> int:
+    """The sample period in ns, once ``state``, ``features`` and ``rate_hz`` are known to be valid."""
+    if state not in STATES:
+        raise RecordingError(f"state must be one of {sorted(STATES)}, got {state!r}")
+    if features not in FEATURES:
+        raise RecordingError(f"features must be one of {sorted(FEATURES)}, got {features!r}")
+    return _sample_period_ns(rate_hz)
 
 
 def _sample_period_ns(rate_hz: float) -> int:

@@ -24,7 +24,7 @@ import numpy as np
 
 from etar.comparison import PARAMETERS, compare_transitions, separate_fits, spread, summarise
 from etar.task import load_task
-from services.results.figures import COMPARISON_FIGURE, FIGURES_DIR, FiguresError, _plt, _save, in_run, read_run_report
+from services.results.figures import COMPARISON_FIGURE, FIGURES_DIR, FiguresError, canvas, in_run, read_run_report
 from services.recordings.demonstrations import load_demonstration
 from services.runtime.files import write_file
 
@@ -230,7 +230,7 @@ def compare_run(run_dir, seeds=(0, 1, 2), progress=None, pair=(0, 1)) -> dict:
 
 def _figure(run_dir: Path, demo: dict, truth, K: int, evals) -> Path:
     """Demonstration 0 under the first seed's two models, their phases matched to the truth."""
-    plt = _plt()
+    plt = canvas.pyplot()
     t = demo["t"][1:] - demo["t"][0]
     fig, axes = plt.subplots(3, 1, figsize=(10, 6), sharex=True)
     axes[0].step(t, truth, where="post", color="black")
@@ -247,4 +247,4 @@ def _figure(run_dir: Path, demo: dict, truth, K: int, evals) -> Path:
                  f"demonstration 0, seed {evals[0].seed}\n(thesis fig. 26; phases matched to the truth)")
     out = run_dir / FIGURES_DIR
     out.mkdir(exist_ok=True)
-    return _save(fig, out / COMPARISON_FIGURE)
+    return canvas.save(fig, out / COMPARISON_FIGURE)

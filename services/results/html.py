@@ -3,18 +3,21 @@
 The scenario, the error if the run failed, the phase-count selection, the
 reproductions, the timing, and every figure (``services.results.figures`` and the
 timing plot) embedded as data: URIs, so the one file can be mailed, committed
-or opened from anywhere.  Written from report.json and the PNGs beside it.
+or opened from anywhere.  Written from the report and its text as the run hands them
+over, or as a finished run's folder holds them (report.json, report.txt), and the PNGs
+beside them.
 """
 
 from __future__ import annotations
 
 import base64
 import html
-import json
 import time
 from pathlib import Path
 
-from services.results.figures import COMPARISON_FIGURE, FIGURES_DIR
+from services.results.figures import COMPARISON_FIGURE, FIGURES_DIR, write_figures
+from services.results.folder import read_report
+from services.results.record import RunRecord
 from services.results.text import provenance_text
 from services.runtime.files import FileWriteError, write_file
 
@@ -54,9 +57,9 @@ def _fmt(x, spec=".3f"):
     return "-" if x is None else format(x, spec)
 
 
-def render_html(run_dir) -> str:
-    run_dir = Path(run_dir)
-    r = json.loads((run_dir / "report.json").read_text())
+def render_html(r: dict, text: str | None, images: list[Path]) -> str:
+    """The page of the report ``r`` (report.json's content), with its ``text`` (report.txt's;
+    None: left out) and the PNG files ``images`` embedded."""
     s = r["summary"]
     parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>ETAR run {_e(r['run_id'])}</title>"
              f"<style>{STYLE}</style></head><body>",
@@ -110,14 +113,11 @@ def render_html(run_dir) -> str:
         else:
             parts.append(f"<p>robot loop: {loop.get('cycles')} cycles, {loop.get('deadline_misses')} deadline misses, "
                          f"longest run {loop.get('longest_miss_run')}</p>")
-    figures = sorted((run_dir / FIGURES_DIR).glob("*.png")) if (run_dir / FIGURES_DIR).is_dir() else []
-    extra = [run_dir / "timing.png"] if (run_dir / "timing.png").is_file() else []
-    if figures or extra:
+    if images:
         parts.append("<h2>Figures</h2>")
-        parts += [_img(p) for p in figures + extra]
-    text = run_dir / "report.txt"
-    if text.is_file():
-        parts.append(f"<h2>Full text report</h2><pre>{_e(text.read_text())}</pre>")
+        parts += [_img(p) for p in images]
+    if text is not None:
+        parts.append(f"<h2>Full text report</h2><pre>{_e(text)}</pre>")
     # a browser says whether every figure decoded: body[data-images] = "loaded/all" after load
     parts.append("<script>window.addEventListener('load', function () { var im = document.images, ok = 0; "
                  "for (var i = 0; i < im.length; i++) { if (im[i].complete && im[i].naturalWidth > 0) ok++; } "
@@ -126,8 +126,17 @@ def render_html(run_dir) -> str:
     return "\n".join(parts)
 
 
-def write_html(run_dir) -> Path:
-    return write_file(Path(run_dir) / "report.html", render_html(run_dir))
+def write_html(run_dir, report: dict | None = None, text: str | None = None) -> Path:
+    """report.html in ``run_dir``: the run's ``report`` and ``text`` as the run just wrote
+    them, or (``report`` None) as its folder holds them; every figure in the folder embedded."""
+    run_dir = Path(run_dir)
+    if report is None:
+        report = read_report(run_dir)
+        written = run_dir / "report.txt"
+        text = written.read_text() if written.is_file() else None
+    figures = sorted((run_dir / FIGURES_DIR).glob("*.png")) if (run_dir / FIGURES_DIR).is_dir() else []
+    extra = [run_dir / "timing.png"] if (run_dir / "timing.png").is_file() else []
+    return write_file(run_dir / "report.html", render_html(report, text, figures + extra))
 
 
 def _note(path: Path, text: str) -> None:
@@ -139,12 +148,12 @@ def _note(path: Path, text: str) -> None:
         pass
 
 
-def write_figures_and_page(run_dir, progress=None) -> str:
+def write_figures_and_page(run_dir, progress=None, run: RunRecord | None = None) -> str:
     """The thesis' figures (``RUN_DIR/figures/``) and report.html after a run's report; one
-    line saying what was written.  A figure that cannot be drawn must not cost the run
-    its report: the reason goes in figures.error (figures.skipped: what was left out)."""
-    from services.results.figures import write_figures
-
+    line saying what was written.  ``run``: the record of the run just reported, whose
+    report, text and decoded recordings they are drawn from (None: the folder's).  A
+    figure that cannot be drawn must not cost the run its report: the reason goes in
+    figures.error (figures.skipped: what was left out)."""
     run_dir = Path(run_dir)
     t = time.monotonic()
     # the page embeds every figure in the folder: none may be left from an earlier drawing
@@ -154,14 +163,17 @@ def write_figures_and_page(run_dir, progress=None) -> str:
         if stale.name != COMPARISON_FIGURE:
             stale.unlink(missing_ok=True)
     try:
-        written, skipped = write_figures(run_dir, progress=progress)
+        written, skipped = write_figures(run_dir, progress=progress, run=run)
     except Exception as exc:
         _note(run_dir / "figures.error", f"{type(exc).__name__}: {exc}\n")
         written, skipped = [], [f"{type(exc).__name__}: {exc}"]
     if skipped:
         _note(run_dir / "figures.skipped", "".join(f"{why}\n" for why in skipped))
     try:
-        write_html(run_dir)
+        if run is None:
+            write_html(run_dir)
+        else:
+            write_html(run_dir, run.report, run.report_text)
     except Exception as exc:
         _note(run_dir / "report.html.error", f"{type(exc).__name__}: {exc}\n")
     page = "report.html" if (run_dir / "report.html").is_file() and not (run_dir / "report.html.error").exists() \

@@ -3,13 +3,20 @@
 The runner fills one ``RunRecord`` as it walks the stages (each episode's recording,
 start and the robot's summary; what the learn stage fitted) and adds what it knows at
 the end (the services' statistics, restarts, hosts, the realtime profile's grant);
-``services.results.report.write_report`` reads nothing else.
+``services.results.report.write_report`` reads nothing else.  The report leaves in it
+what it wrote (report.json's content and report.txt's) and what the figures draw from
+each recording, decoded with the report (``services.results.decoding``): the figures
+and the page drawn after it read neither the recordings nor the report again.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from services.results.decoding import FigureData, LearnerView
 
 
 @dataclass
@@ -25,6 +32,8 @@ class EpisodeRecord:
     max_contact_force: float | None = None
     model: str | None = None
     phase_to_truth: dict | None = None
+    # what the figures draw from its recording, decoded with the report (None: not asked for)
+    figure_data: FigureData | None = None
 
 
 @dataclass
@@ -76,7 +85,11 @@ class RunRecord:
     transport: str
     # zenoh: FRI and the wrench over the bus; udp: over FRI 1.0/UDP and Net F/T (--wire udp, serve)
     wire: str = "zenoh"
+    world: str | None = None  # the task world: its surfaces and its phases' names in the figures
     workers: int | None = None  # processes for reading the recordings (None: one per CPU)
+    # the figures are drawn after the report: it decodes their data too, as the learner takes
+    # a recording (None: no figures)
+    figures: LearnerView | None = None
     demonstrations: list[EpisodeRecord] = field(default_factory=list)
     reproductions: list[EpisodeRecord] = field(default_factory=list)
     learning: LearningRecord = field(default_factory=LearningRecord)
@@ -91,3 +104,4 @@ class RunRecord:
     # (services.runtime.provenance)
     provenance: dict = field(default_factory=dict)
     report: dict | None = None  # report.json's content, once written
+    report_text: str | None = None  # report.txt's, once written

@@ -23,106 +23,17 @@ from pathlib import Path
 
 import numpy as np
 
-from etar.metrics import score_segmentation
 from robot_sim.cycle import FRI_CYCLE_NS
-from services.recordings.reader import read_episode
+from services.results.decoding import DecodedEpisode, EpisodeReading, decode_episodes
 from services.results.folder import strict_json
 from services.results.record import EpisodeRecord, RunRecord
-from services.runtime.messages import BY_TOPIC, ESTIMATOR_PERIOD_NS, HOLD_WATCH_S, INT_MAX, INT_MIN, STRIDES, loads
-from services.runtime.threads import process_map
+from services.runtime.messages import HOLD_WATCH_S
 from services.results.text import pooled_histogram, histograms_text, render_text
 from services.runtime.files import FileWriteError, write_file, write_via
-from services.runtime.timing import SequenceTracker, percentiles
-
-
-# what the report reads of each topic: every one an integer (counts, sequence numbers, clocks, labels)
-REPORT_FIELDS = {"robot/state": ("seq", "sent_ns", "stamp_ns", "fri_quality", "fri_state"),
-                 "robot/contact": ("seq", "sent_ns", "true_phase"),
-                 "estimator/phase": ("seq", "sent_ns", "phase")}
-_HEADER = ("seq", "sent_ns")
-# optional text fields the report counts, with the values it knows (any other is not read)
-REPORT_TEXT = {"estimator/phase": {"unconditioned": ("arm_held", "gap")}}
-
-
-def decoded_messages(ep) -> tuple[dict, int]:
-    """What the report reads of one recorded episode, each message parsed once: per
-    topic, (log time ns, {field: int}), with the known values of the optional text
-    fields in ``REPORT_TEXT`` where a message has one.  A message that is not JSON, not an object, or
-    lacks one of those fields as an integer (garbage from a foreign peer, ``"seq":
-    Infinity``, a wrong schema) is counted, never read: one bad message must not cost a
-    run its report."""
-    per: dict[str, list] = {}
-    bad = 0
-    for msg in ep.messages:
-        topic = msg.topic.lstrip("/")
-        if topic not in BY_TOPIC:
-            continue
-        names = REPORT_FIELDS.get(topic, _HEADER)
-        try:
-            d = loads(msg.payload)
-            values = {k: d[k] for k in names}
-        except (ValueError, TypeError, KeyError, UnicodeDecodeError):
-            bad += 1
-            continue
-        if not all(type(v) is int and INT_MIN <= v <= INT_MAX for v in values.values()):
-            bad += 1  # the wire's integers are 64-bit; a bigger one would overflow the arrays below
-            continue
-        for name, known in REPORT_TEXT.get(topic, {}).items():
-            if d.get(name) in known:
-                values[name] = d[name]
-        per.setdefault(topic, []).append((msg.log_time_ns, values))
-    return per, bad
-
-
-def episode_links(decoded: dict) -> dict:
-    """Per topic of one recorded episode: publish -> recorder latency percentiles,
-    and lost / out-of-order messages judged from the sequence numbers."""
-    out = {}
-    for topic, items in decoded.items():
-        tracker = SequenceTracker(stride=STRIDES.get(topic, 1))
-        lat = []
-        for log_time, d in items:
-            lat.append(log_time - d["sent_ns"])
-            tracker.add(d["seq"])
-        out[topic] = dict(percentiles(lat), lost=tracker.lost, out_of_order=tracker.out_of_order)
-    return out
-
-
-def reproduction_phases(decoded: dict, phase_to_truth: dict, dt: float = ESTIMATOR_PERIOD_NS / 1e9) -> dict:
-    """Accuracy and transition-time error of the online estimate in one recorded reproduction."""
-    truth_by_seq = {d["seq"]: d["true_phase"] for _, d in decoded.get("robot/contact", ())}
-    est_by_seq = {d["seq"]: d for _, d in decoded.get("estimator/phase", ())}
-    seqs = sorted(s for s in est_by_seq if s in truth_by_seq)
-    if not seqs:
-        return {"updates": 0, "accuracy": None, "unconditioned": {"arm_held": 0, "gap": 0}}
-    truth = np.array([truth_by_seq[s] for s in seqs])
-    est = np.array([est_by_seq[s]["phase"] for s in seqs])
-    score = score_segmentation(truth, est, dt=dt, mapping={int(k): int(v) for k, v in phase_to_truth.items()})
-    # scored estimates whose step the filter did not condition on (a KRC hold, a missing
-    # sample), once per cycle as the accuracy counts them (a replayed copy is not another)
-    unconditioned = {"arm_held": 0, "gap": 0}
-    for s in seqs:
-        why = est_by_seq[s].get("unconditioned")
-        if why in unconditioned:
-            unconditioned[why] += 1
-    return dict(updates=len(seqs), correct=int(round(score.accuracy * len(seqs))), **score.to_dict(),
-                unconditioned=unconditioned)
-
 
 QUALITY_NAMES = ("UNACCEPTABLE", "BAD", "OK", "PERFECT")
 STATE_NAMES = ("OFF", "MON", "CMD")
 MAX_TRANSITIONS = 200  # per episode in report.json; a flapping link gets its count, not a list of thousands
-
-
-def fri_quality_series(decoded: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(simulated time s, FRI quality, FRI state) of every robot_state in one recorded episode."""
-    t, q, st = [], [], []
-    for _, d in decoded.get("robot/state", ()):
-        t.append(d["stamp_ns"] / 1e9)
-        q.append(d["fri_quality"])
-        st.append(d["fri_state"])
-    order = np.argsort(t, kind="stable")
-    return np.asarray(t)[order], np.asarray(q, dtype=np.int64)[order], np.asarray(st, dtype=np.int64)[order]
 
 
 def _changes(t, v) -> list:
@@ -237,42 +148,6 @@ def _in_run(path, run_dir: Path) -> str | None:
         return str(p)
 
 
-# recordings read at ~15 MB/s in one process: below this, a pool's start costs more than it saves
-PARALLEL_READ_BYTES = 32 << 20
-
-
-def _size(path) -> int:
-    try:
-        return os.path.getsize(path)
-    except OSError:
-        return 0
-
-
-def recording_figures(job: tuple):
-    """What the report takes from one recording, (path, phase_to_truth or None for no
-    phase scoring): (per-topic links, the reproduction's phase scores or None, the FRI
-    quality series, undecodable messages); None if it cannot be read.  Each recording
-    is read once, for every figure taken from it, and let go (a valley run's
-    recordings do not fit in memory together)."""
-    path, phase_to_truth, *more = job
-    parts = more[0] if more else ()  # further parts (a recorder restarted mid-episode), in order
-    decoded, bad = {}, 0
-    for i, part in enumerate([path, *parts]):
-        try:
-            ep = read_episode(part)
-        except (OSError, ValueError):
-            if i == 0:
-                return None
-            continue
-        part_decoded, part_bad = decoded_messages(ep)
-        del ep
-        for topic, items in part_decoded.items():
-            decoded.setdefault(topic, []).extend(items)
-        bad += part_bad
-    phases = reproduction_phases(decoded, phase_to_truth) if phase_to_truth else None
-    return episode_links(decoded), phases, fri_quality_series(decoded), bad
-
-
 def _parts_of(episode: EpisodeRecord, run_dir: Path) -> dict:
     """An episode recorded in parts (its recorder restarted): the further files and the
     cycles no part holds."""
@@ -303,30 +178,44 @@ def by_model(repro: list) -> dict:
     return {name: reproduction_figures([r for r in repro if r.get("model") == name]) for name in names}
 
 
-def write_report(run: RunRecord, exit_codes: dict, error: str | None, wall_seconds: float) -> dict:
-    """report.json, report.txt, timing.txt and timing.png in the run's folder; the report."""
+def episode_readings(run: RunRecord) -> list[EpisodeReading]:
+    """What the report takes from each recording, demonstrations, reproductions and served
+    episodes in that order: every one's measures, and when the run draws its figures (with
+    a model to draw them with) what they draw: the demonstrations' arrays, the first
+    reproduction's trace."""
     learning = run.learning
-    out = Path(run.out)
-    links, phases_of, quality, undecodable = {}, {}, {}, {}
+    view = run.figures if learning.model is not None else None
+
+    def reading(e: EpisodeRecord, **what) -> EpisodeReading:
+        return EpisodeReading(e.path, tuple((e.recording or {}).get("parts", ())), **what)
+
     # each reproduction is judged by the phase mapping of the model that drove it
-    truth_maps = {r.path: r.phase_to_truth or learning.phase_to_truth for r in run.reproductions}
-    jobs = [(e.path, truth_maps.get(e.path), tuple((e.recording or {}).get("parts", ())))
-            for e in run.demonstrations + run.reproductions + run.served]
-    # the recordings are independent: read on every CPU the run may use (a sweep's run: in
-    # this process), once they are worth a pool's start (~1.4 s of imports per process)
-    workers = run.workers
-    if sum(_size(path) for path, _, _ in jobs) < PARALLEL_READ_BYTES:
-        workers = 1
-    with process_map(workers) as read_map:
-        for (path, _, _), read in zip(jobs, read_map(recording_figures, jobs)):
-            if read is None:
-                continue
-            episode_links_, phases, quality[path], undecodable[path] = read
-            for topic, v in episode_links_.items():
-                links.setdefault(topic, []).append(v)
-            if phases is not None:
-                phases_of[path] = phases
-    timelines = {path: fri_quality_timeline(*series) for path, series in quality.items()}
+    return ([reading(d, demonstration=view) for d in run.demonstrations]
+            + [reading(r, phase_to_truth=r.phase_to_truth or learning.phase_to_truth, trace=None if i else view)
+               for i, r in enumerate(run.reproductions)]
+            + [reading(e) for e in run.served])
+
+
+def _gathered(run: RunRecord, decoded: list[DecodedEpisode]) -> tuple[dict, dict, dict, dict]:
+    """The decoded recordings as the report reads them: per topic every episode's links;
+    by recording its reproduction's phase scores, FRI quality series and undecodable
+    messages.  What the figures draw goes into each episode's record."""
+    links, phases_of, quality, undecodable = {}, {}, {}, {}
+    for episode, d in zip(run.demonstrations + run.reproductions + run.served, decoded):
+        episode.figure_data = d.figure_data
+        if not d.readable:
+            continue
+        quality[d.path], undecodable[d.path] = d.fri_quality, d.undecodable
+        for topic, v in d.links.items():
+            links.setdefault(topic, []).append(v)
+        if d.phases is not None:
+            phases_of[d.path] = d.phases
+    return links, phases_of, quality, undecodable
+
+
+def _reproductions(run: RunRecord, phases_of: dict, timelines: dict, undecodable: dict) -> list[dict]:
+    """report.json's entry of each reproduction: its result, and its phases as scored."""
+    out = Path(run.out)
     repro = []
     for r in run.reproductions:
         s = r.summary
@@ -344,27 +233,102 @@ def write_report(run: RunRecord, exit_codes: dict, error: str | None, wall_secon
                           fri_quality=timelines.get(r.path, {}),
                           undecodable_messages=undecodable.get(r.path, 0),
                           **_parts_of(r, out)))
-    overall = reproduction_figures(repro)
-    episodes = ([d.summary for d in run.demonstrations] + [r.summary for r in run.reproductions]
-                + [e.summary for e in run.served])
-    loops = [e["loop"] for e in episodes if e.get("loop")]
+    return repro
+
+
+def _demonstrations(run: RunRecord, timelines: dict, undecodable: dict) -> list[dict]:
+    out = Path(run.out)
+    return [dict(path=_in_run(d.path, out), side=d.side, start=d.start, reason=d.summary["reason"],
+                 sim_seconds=d.summary["sim_seconds"], wall_seconds=d.summary["wall_seconds"],
+                 fri=d.summary.get("fri"), fri_quality=timelines.get(d.path, {}),
+                 undecodable_messages=undecodable.get(d.path, 0), **_parts_of(d, out))
+            for d in run.demonstrations]
+
+
+def _served(run: RunRecord, timelines: dict, undecodable: dict) -> dict:
+    """etar-bench serve: what the lab's remote did (the KRL program's events, the link's
+    states, time in command mode, the datagrams, any refusal or safety stop)."""
+    if not run.served:
+        return {}
+    out = Path(run.out)
+    return {"served": [dict(path=_in_run(e.path, out), start=e.start, reason=e.summary["reason"],
+                            sim_seconds=e.summary["sim_seconds"], wall_seconds=e.summary["wall_seconds"],
+                            peak_contact_force=e.summary["peak_contact_force"], safety=e.summary["safety"],
+                            final_position=e.summary["final_position"], fri=e.summary.get("fri"),
+                            wire=e.summary.get("wire"), fri_quality=timelines.get(e.path, {}),
+                            undecodable_messages=undecodable.get(e.path, 0), **_parts_of(e, out))
+                       for e in run.served]}
+
+
+def _learning(run: RunRecord) -> dict:
+    learning, out = run.learning, Path(run.out)
+    return {"model": _in_run(learning.model_path, out), "seconds": learning.seconds,
+            "selection": learning.selection,
+            "phase_to_truth": learning.phase_to_truth, "goal": learning.goal,
+            "models": {m.name: dict(asdict(m), path=_in_run(m.path, out)) for m in learning.models.values()},
+            # every model against the demonstrations' true phases (with more than one)
+            "offline": list(learning.offline),
+            "demonstrations_read": [dict(path=_in_run(d["path"], out), samples=d["samples"])
+                                    for d in learning.learned_from]}
+
+
+def _received(run: RunRecord) -> dict:
+    """Every link as its receiver measured it, named "topic -> role"."""
+    received = {}
+    for role, st_ in run.service_stats.items():
+        for topic, v in (st_.get("links") or {}).items():
+            received[f"{topic} -> {role}"] = v
+    return received
+
+
+def _timing(run: RunRecord, episodes: list, loops: list, links: dict, received: dict) -> dict:
+    """report.json's timing: the robot loop, the links, the closed loop, FRI, the services."""
     link_summary = {t: {"p50_us": float(np.median([v["p50_us"] for v in vs])),
                         "p99_us": float(max(v["p99_us"] for v in vs)),
                         "max_us": float(max(v["max_us"] for v in vs)),
                         "lost": sum(v["lost"] for v in vs), "out_of_order": sum(v["out_of_order"] for v in vs)}
                     for t, vs in links.items() if vs and "p50_us" in vs[0]}
-    received = {}
-    for role, st_ in run.service_stats.items():
-        for topic, v in (st_.get("links") or {}).items():
-            received[f"{topic} -> {role}"] = v
     closed = [lp.get("closed_loop_latency", {}) for lp in loops if lp.get("closed_loop_latency", {}).get("count")]
+    return {
+        # lockstep: simulated time waits for every answer, so every deadline is met by
+        # construction and what follows is measured on the host's wall clock, not the
+        # system's timing; realtime: the 1 kHz loop's own deadlines on the wall clock
+        "basis": "host wall clock (lockstep)" if run.clock == "lockstep" else "wall clock (realtime)",
+        "robot_loop": {"cycles": sum(lp["cycles"] for lp in loops),
+                       "deadline_misses": sum(lp["misses"] for lp in loops),
+                       "longest_miss_run": max((lp["longest_miss_run"] for lp in loops), default=0),
+                       "per_episode": loops},
+        "links_publish_to_recorder": link_summary,
+        "links_received": received,
+        "closed_loop": {"per_episode": closed,
+                        "p99_us_max": max((c["p99_us"] for c in closed), default=None)},
+        "fri": [e["fri"] for e in episodes],
+        # what each service said about itself at the end (counters, the commander's sections)
+        "services": {role: {k: v for k, v in (st_ or {}).items() if k not in ("links", "ok")}
+                     for role, st_ in run.service_stats.items()},
+    }
+
+
+def write_report(run: RunRecord, exit_codes: dict, error: str | None, wall_seconds: float) -> dict:
+    """report.json, report.txt, timing.txt and timing.png in the run's folder; the report.
+    Each recording is decoded once (``episode_readings``); the report, its text and what the
+    figures draw from each recording are left in ``run`` for the figures and the page."""
+    decoded = decode_episodes(episode_readings(run), run.workers)
+    links, phases_of, quality, undecodable = _gathered(run, decoded)
+    timelines = {path: fri_quality_timeline(*series) for path, series in quality.items()}
+    repro = _reproductions(run, phases_of, timelines, undecodable)
+    overall = reproduction_figures(repro)
+    episodes = ([d.summary for d in run.demonstrations] + [r.summary for r in run.reproductions]
+                + [e.summary for e in run.served])
+    loops = [e["loop"] for e in episodes if e.get("loop")]
+    received = _received(run)
     sim_total = sum(e["sim_seconds"] for e in episodes)
     wall_total = sum(e["wall_seconds"] for e in episodes)
     if run.clock == "realtime" and error is None and loops:
         error = clock_not_held(run.demonstrations, repro, loops, received)
     if error is None:  # after the clock: a machine that could not hold it also starves the estimator
         error = commander_held(repro)
-    report = {
+    report = strict_json({
         "scenario": run.scenario_name,
         "source": run.source,
         "run_id": run.run_id,
@@ -378,32 +342,12 @@ def write_report(run: RunRecord, exit_codes: dict, error: str | None, wall_secon
         "environment": environment(run.clock, any(loop.get("sched_fifo") for loop in loops), run.realtime_profile,
                                    run.service_stats),
         "paths": "relative to the folder of this report, unless absolute",
-        "demonstrations": [dict(path=_in_run(d.path, out), side=d.side, start=d.start, reason=d.summary["reason"],
-                                sim_seconds=d.summary["sim_seconds"], wall_seconds=d.summary["wall_seconds"],
-                                fri=d.summary.get("fri"), fri_quality=timelines.get(d.path, {}),
-                                undecodable_messages=undecodable.get(d.path, 0), **_parts_of(d, out))
-                           for d in run.demonstrations],
-        "learning": {"model": _in_run(learning.model_path, out), "seconds": learning.seconds,
-                     "selection": learning.selection,
-                     "phase_to_truth": learning.phase_to_truth, "goal": learning.goal,
-                     "models": {m.name: dict(asdict(m), path=_in_run(m.path, out))
-                                for m in learning.models.values()},
-                     # every model against the demonstrations' true phases (with more than one)
-                     "offline": list(learning.offline),
-                     "demonstrations_read": [dict(path=_in_run(d["path"], out), samples=d["samples"])
-                                             for d in learning.learned_from]},
+        "demonstrations": _demonstrations(run, timelines, undecodable),
+        "learning": _learning(run),
         "reproductions": repro,
-        # etar-bench serve: what the lab's remote did (the KRL program's events, the link's
-        # states, time in command mode, the datagrams, any refusal or safety stop)
-        **({"served": [dict(path=_in_run(e.path, out), start=e.start, reason=e.summary["reason"],
-                            sim_seconds=e.summary["sim_seconds"], wall_seconds=e.summary["wall_seconds"],
-                            peak_contact_force=e.summary["peak_contact_force"], safety=e.summary["safety"],
-                            final_position=e.summary["final_position"], fri=e.summary.get("fri"),
-                            wire=e.summary.get("wire"), fri_quality=timelines.get(e.path, {}),
-                            undecodable_messages=undecodable.get(e.path, 0), **_parts_of(e, out))
-                       for e in run.served]} if run.served else {}),
+        **_served(run, timelines, undecodable),
         "summary": {
-            "phases_chosen": (learning.selection or {}).get("best"),
+            "phases_chosen": (run.learning.selection or {}).get("best"),
             "reproductions": len(repro),
             "successes": overall["successes"],
             "online_phase_accuracy": overall["online_phase_accuracy"],
@@ -414,38 +358,27 @@ def write_report(run: RunRecord, exit_codes: dict, error: str | None, wall_secon
             # the same starts reproduced with each model (reproduce.transitions)
             "by_model": by_model(repro),
         },
-        "timing": {
-            # lockstep: simulated time waits for every answer, so every deadline is met by
-            # construction and what follows is measured on the host's wall clock, not the
-            # system's timing; realtime: the 1 kHz loop's own deadlines on the wall clock
-            "basis": "host wall clock (lockstep)" if run.clock == "lockstep" else "wall clock (realtime)",
-            "robot_loop": {"cycles": sum(lp["cycles"] for lp in loops),
-                           "deadline_misses": sum(lp["misses"] for lp in loops),
-                           "longest_miss_run": max((lp["longest_miss_run"] for lp in loops), default=0),
-                           "per_episode": loops},
-            "links_publish_to_recorder": link_summary,
-            "links_received": received,
-            "closed_loop": {"per_episode": closed,
-                            "p99_us_max": max((c["p99_us"] for c in closed), default=None)},
-            "fri": [e["fri"] for e in episodes],
-            # what each service said about itself at the end (counters, the commander's sections)
-            "services": {role: {k: v for k, v in (st_ or {}).items() if k not in ("links", "ok")}
-                         for role, st_ in run.service_stats.items()},
-        },
+        "timing": _timing(run, episodes, loops, links, received),
         "exit_codes": exit_codes,
         # services lost and started again by their restart policy (scenario 'restart:')
         "restarts": list(run.restarts),
         # where each service ran (services.transport.hosts), when the run was split across hosts
         "hosts": list(run.hosts),
-    }
-    report = strict_json(report)
+    })
+    text = render_text(report)
+    _write(Path(run.out), report, text, loops, quality, run.clock)
+    run.report, run.report_text = report, text
+    return report
+
+
+def _write(out: Path, report: dict, text: str, loops: list, quality: dict, clock: str) -> None:
     # report.json last: its presence says the report is whole (FileWriteError: none of it was)
-    write_file(out / "report.txt", render_text(report))
+    write_file(out / "report.txt", text)
     write_file(out / "timing.txt", histograms_text(loops))
     write_file(out / "report.json", json.dumps(report, indent=1, allow_nan=False) + "\n")
     for stale in ("timing.png", "timing.png.error"):
         (out / stale).unlink(missing_ok=True)
-    if run.clock == "realtime":  # in lockstep its histograms are the host's, not the loop's timing
+    if clock == "realtime":  # in lockstep its histograms are the host's, not the loop's timing
         try:
             write_via(out / "timing.png", lambda tmp: plot_timing(report, loops, quality, tmp))
         except Exception as exc:  # a picture must not cost the run its report
@@ -453,7 +386,6 @@ def write_report(run: RunRecord, exit_codes: dict, error: str | None, wall_secon
                 write_file(out / "timing.png.error", f"{type(exc).__name__}: {exc}\n")
             except FileWriteError:
                 pass
-    return report
 
 
 def plot_timing(report, loops, quality: dict, path) -> None:

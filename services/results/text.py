@@ -30,7 +30,6 @@ def histograms_text(loops) -> str:
     return "\n".join(parts)
 
 
-
 def provenance_text(p: dict) -> str:
     """One line: the code, the date and the command line that made a run."""
     return f"made by etar-testbench {describe_code(p)} on {p.get('date')}: {p.get('command')}"
@@ -81,7 +80,14 @@ def netft_text(r: dict) -> list[str]:
 
 
 def render_text(r: dict) -> str:
-    s = r["summary"]
+    """report.txt: the report ``r`` (report.json's content) for people."""
+    lines = (_header(r) + _episodes(r) + _selection(r["learning"]["selection"]) + _reproductions(r)
+             + _comparison(r) + _timing(r))
+    return "\n".join(lines) + "\n"
+
+
+def _header(r: dict) -> list[str]:
+    """The run, where and by what it ran, and whatever went wrong with it."""
     lines = [f"ETAR testbench run {r['run_id']} - scenario {r['scenario']} ({r['source']})",
              f"clock {r['environment']['clock']}, transport {r.get('transport', '-')}"
              + (", FRI 1.0 and Net F/T over UDP" if r.get("wire") == "udp" else "") + ", SCHED_FIFO "
@@ -111,61 +117,87 @@ def render_text(r: dict) -> str:
                             f"({g['cycles_missing']} cycles)")
                 lines.append(f"{kind[:-1]} {i}: the recorder restarted; the recording goes on in "
                              f"{g['next_part']}: {what}")
-    lines.append("")
-    lines.append(f"demonstrations: {len(r['demonstrations'])}")
+    return lines
+
+
+def _episodes(r: dict) -> list[str]:
+    """The demonstrations, a served episode and the Net F/T box."""
+    lines = ["", f"demonstrations: {len(r['demonstrations'])}"]
     for i, d in enumerate(r["demonstrations"]):
         lines.append(f"  {i:2d} {d['side']:>5}  {d['reason']:<13} {d['sim_seconds']:6.1f} s sim  "
                      f"{d['wall_seconds']:6.1f} s wall")
     for e in r.get("served") or []:
         lines += served_text(e)
     lines += netft_text(r)
-    sel = r["learning"]["selection"]
-    if sel:
-        lines.append("")
-        method = sel.get("method", "pooled")
-        lines.append(f"phases chosen: {sel['best']} ({sel['criterion']}"
-                     f"{', per demonstration' if method == 'per_demonstration' else ''})")
-        for i, d in enumerate(sel.get("per_demonstration", [])):
-            lines.append(f"  demo {i:2d}: " + "  ".join(
-                f"K={k} {d['scores'][k]:.0f}{'*' if int(k) == d['best'] else ''}" for k in sorted(d["scores"], key=int))
-                + f"  -> {d['best']}")
-        if "votes" in sel:
-            lines.append("  votes: " + ", ".join(f"{k} phases: {v}" for k, v in sel["votes"].items()))
-        for k in sorted(sel.get("scores", {}), key=int):
-            lines.append(f"  K={k}: score {sel['scores'][k]:.1f}, log-likelihood {sel['log_likelihoods'][k]:.1f}, "
-                         f"{sel['n_parameters'][k]} parameters{'  <-' if int(k) == sel['best'] else ''}")
-    if r["reproductions"]:
-        lines.append("")
-        lines.append(f"reproductions: {s['successes']} of {s['reproductions']} reached the goal with bounded force")
-        models = any(rp.get("model") for rp in r["reproductions"])
-        lines.append("   #  side  " + ("model " if models else "") +
-                     "result                 peak F [N]  phase acc  trans. err [s]  sim [s]  wall [s]")
-        for rp in r["reproductions"]:
-            ph = rp["phases"]
-            acc = ph.get("accuracy")
-            te = ph.get("mean_transition_error_s")
-            lines.append(f"  {rp['index']:2d} {rp['side']:>5}  " + (f"{rp.get('model') or '-':<5} " if models else "")
-                         + f"{rp['reason']:<22} {rp['peak_contact_force']:10.1f}  "
-                         f"{'-' if acc is None else f'{acc:9.3f}'}  "
-                         f"{'-' if te is None or te != te else f'{te:14.3f}'}  {rp['sim_seconds']:7.1f}  "
-                         f"{rp['wall_seconds']:8.1f}")
-        acc = s["online_phase_accuracy"]
-        te = s["mean_transition_error_s"]
-        lines.append(f"online phase accuracy overall: {'-' if acc is None else f'{acc:.4f}'}; mean transition "
-                     f"error: {'-' if te is None else f'{te:.3f} s'}")
-        held = gap = scored = 0
-        for rp in r["reproductions"]:
-            unconditioned = rp["phases"].get("unconditioned") or {}
-            held, gap = held + unconditioned.get("arm_held", 0), gap + unconditioned.get("gap", 0)
-            scored += rp["phases"].get("updates", 0)
-        if held or gap:
-            lines.append(f"estimates that did not condition on their step: arm held by the KRC {held}, "
-                         f"sample missing {gap}, of {scored}")
-    if r["learning"].get("offline") or s.get("by_model"):
-        from services.results.compare import comparison_text
+    return lines
 
-        lines.append("")
-        lines += comparison_text(r)
+
+def _selection(sel: dict | None) -> list[str]:
+    """How the number of phases was chosen."""
+    if not sel:
+        return []
+    lines = [""]
+    method = sel.get("method", "pooled")
+    lines.append(f"phases chosen: {sel['best']} ({sel['criterion']}"
+                 f"{', per demonstration' if method == 'per_demonstration' else ''})")
+    for i, d in enumerate(sel.get("per_demonstration", [])):
+        lines.append(f"  demo {i:2d}: " + "  ".join(
+            f"K={k} {d['scores'][k]:.0f}{'*' if int(k) == d['best'] else ''}" for k in sorted(d["scores"], key=int))
+            + f"  -> {d['best']}")
+    if "votes" in sel:
+        lines.append("  votes: " + ", ".join(f"{k} phases: {v}" for k, v in sel["votes"].items()))
+    for k in sorted(sel.get("scores", {}), key=int):
+        lines.append(f"  K={k}: score {sel['scores'][k]:.1f}, log-likelihood {sel['log_likelihoods'][k]:.1f}, "
+                     f"{sel['n_parameters'][k]} parameters{'  <-' if int(k) == sel['best'] else ''}")
+    return lines
+
+
+def _reproductions(r: dict) -> list[str]:
+    """Each reproduction's result and phase scores, and their totals."""
+    s = r["summary"]
+    if not r["reproductions"]:
+        return []
+    lines = ["", f"reproductions: {s['successes']} of {s['reproductions']} reached the goal with bounded force"]
+    models = any(rp.get("model") for rp in r["reproductions"])
+    lines.append("   #  side  " + ("model " if models else "") +
+                 "result                 peak F [N]  phase acc  trans. err [s]  sim [s]  wall [s]")
+    for rp in r["reproductions"]:
+        ph = rp["phases"]
+        acc = ph.get("accuracy")
+        te = ph.get("mean_transition_error_s")
+        lines.append(f"  {rp['index']:2d} {rp['side']:>5}  " + (f"{rp.get('model') or '-':<5} " if models else "")
+                     + f"{rp['reason']:<22} {rp['peak_contact_force']:10.1f}  "
+                     f"{'-' if acc is None else f'{acc:9.3f}'}  "
+                     f"{'-' if te is None or te != te else f'{te:14.3f}'}  {rp['sim_seconds']:7.1f}  "
+                     f"{rp['wall_seconds']:8.1f}")
+    acc = s["online_phase_accuracy"]
+    te = s["mean_transition_error_s"]
+    lines.append(f"online phase accuracy overall: {'-' if acc is None else f'{acc:.4f}'}; mean transition "
+                 f"error: {'-' if te is None else f'{te:.3f} s'}")
+    held = gap = scored = 0
+    for rp in r["reproductions"]:
+        unconditioned = rp["phases"].get("unconditioned") or {}
+        held, gap = held + unconditioned.get("arm_held", 0), gap + unconditioned.get("gap", 0)
+        scored += rp["phases"].get("updates", 0)
+    if held or gap:
+        lines.append(f"estimates that did not condition on their step: arm held by the KRC {held}, "
+                     f"sample missing {gap}, of {scored}")
+    return lines
+
+
+def _comparison(r: dict) -> list[str]:
+    """ETAR against STAR, when the run learned both."""
+    if not (r["learning"].get("offline") or r["summary"].get("by_model")):
+        return []
+    from services.results.compare import comparison_text
+
+    return ["", *comparison_text(r)]
+
+
+def _timing(r: dict) -> list[str]:
+    """The robot loop, FRI per episode, the real-time factor, the closed loop and the links."""
+    s = r["summary"]
+    lines = []
     t = r["timing"]
     lockstep = r["environment"]["clock"] == "lockstep"
     host = "host " if lockstep else ""
@@ -222,7 +254,7 @@ def render_text(r: dict) -> str:
     for topic, v in sorted(t["links_publish_to_recorder"].items()):
         lines.append(f"  {topic:<22} {v['p50_us']:9.0f} {v['p99_us']:8.0f} {v['max_us']:8.0f} {v['lost']:6d} "
                      f"{v['out_of_order']:6d}")
-    return "\n".join(lines) + "\n"
+    return lines
 
 
 def summary_line(report: dict, out, page: bool = True) -> str:

@@ -4,7 +4,8 @@ start is one the arm can reach with the tool pointing down, above the floor.  A
 scenario that passes here fails, if at all, for reasons the run is meant to measure.
 
 ``preflight(scenario)`` raises a ScenarioError naming the field and the value; the runner
-calls it before anything starts and ``etar-bench check`` without running."""
+calls it before anything starts, and its stages run the starts it drew; ``etar-bench
+check`` calls it without running."""
 
 from __future__ import annotations
 
@@ -26,6 +27,10 @@ class Preflight:
 
     model: LearnedTask | None
     starts: tuple  # (stage index, kind, episode within the stage, side, (x, y, z) m)
+
+    def stage_starts(self, index: int) -> list:
+        """(side, (x, y, z) m) of each episode of stage ``index``, in the order it runs them."""
+        return [(side, xyz) for i, _, _, side, xyz in self.starts if i == index]
 
 
 def preflight(scenario: Scenario) -> Preflight:
@@ -57,7 +62,7 @@ def _stored_model(scenario: Scenario) -> LearnedTask:
 
 
 def _starts(scenario: Scenario) -> list:
-    """Every episode's start as the runner will draw it (the same functions, the same seeds)."""
+    """Every episode's start, drawn once (the stages run these)."""
     out, demos = [], []
     for i, stage in enumerate(scenario.stages):
         if stage.kind == "demonstrate":

@@ -28,6 +28,7 @@ import time
 import uuid
 from pathlib import Path
 
+from services.results.decoding import LearnerView
 from services.results.folder import SCENARIO_FILE, check_run_folder, prepare_run_folder
 from services.results.record import EpisodeRecord, RunRecord
 from services.results.report import write_report
@@ -38,7 +39,7 @@ from services.run.options import RunOptions
 from services.run.preflight import preflight, start_problem
 from services.run.realtime_profile import Grant, parse_profile, placement, probe
 from services.run.serve import SERVED_TOPICS, served_start
-from services.scenario import Scenario, demonstration_starts, reproduction_starts
+from services.scenario import Scenario
 from services.scenario.starts import teacher_seed
 from services.runtime.files import write_file
 from services.runtime.provenance import provenance
@@ -70,8 +71,12 @@ class Runner:
         self.run_id = options.run_id or f"{scenario.name}-{uuid.uuid4().hex[:8]}"
         self.record = RunRecord(scenario_name=scenario.name, source=scenario.source, clock=scenario.clock,
                                 run_id=self.run_id, out=self.out, transport=self.transport.name,
-                                wire="udp" if options.serve is not None else options.wire,
-                                workers=options.workers, provenance=provenance(options.command))
+                                wire="udp" if options.serve is not None else options.wire, world=scenario.world,
+                                workers=options.workers, provenance=provenance(options.command),
+                                # the scenario's view is its model's: the learn stage's, and a stored
+                                # model's too (the preflight checked it)
+                                figures=LearnerView(scenario.state, scenario.features, scenario.state_resolution)
+                                if options.figures else None)
         self.cell = None
         self.episodes = None
         self.ready = threading.Event()  # set once every service is up (tests and benches wait on it)
@@ -113,8 +118,9 @@ class Runner:
             if self.options.serve is not None:
                 self.serve(self.options.serve)
             else:
-                for stage in sc.stages:
-                    getattr(self, f"stage_{stage.kind}")(stage)
+                for index, stage in enumerate(sc.stages):
+                    # the starts the preflight drew and found within reach, drawn once
+                    getattr(self, f"stage_{stage.kind}")(stage, self.preflight.stage_starts(index))
             self.episodes.event("run_end", "", -1, {})
         except BaseException as exc:
             if isinstance(exc, KeyboardInterrupt):
@@ -159,7 +165,7 @@ class Runner:
                 if self.options.figures:
                     from services.results.html import write_figures_and_page
 
-                    self.say(write_figures_and_page(self.out))
+                    self.say(write_figures_and_page(self.out, run=self.record))
             finally:
                 if self.cell is not None:
                     self.cell.stop(self.roles, before_report=False)
@@ -191,8 +197,7 @@ class Runner:
 
     # -------------------------------------------------------------- stages
 
-    def stage_demonstrate(self, stage):
-        starts = demonstration_starts(stage, self.scenario.world, stage.seed)
+    def stage_demonstrate(self, stage, starts):
         for i, (side, start) in enumerate(starts):
             index = len(self.record.demonstrations)
             label = f"demonstration {i + 1}/{len(starts)}"
@@ -205,16 +210,14 @@ class Runner:
                      f"{'recording unfinished' if rec is None else str(rec['messages']) + ' messages recorded'}")
             self.episodes.raise_if_lost()
 
-    def stage_learn(self, stage):
+    def stage_learn(self, stage, starts):  # a learn stage has no episodes: ``starts`` is empty
         self.record.learning = learn(stage, self.scenario, [d.path for d in self.record.demonstrations], self.out,
                                      workers=self.options.workers, threads=self.options.learn_threads, say=self.say)
 
-    def stage_reproduce(self, stage):
+    def stage_reproduce(self, stage, starts):
         learning = self.record.learning
         if learning.model is None:
             raise RuntimeError("reproduce needs a learned model")
-        demo_starts = [(d.side, tuple(d.start)) for d in self.record.demonstrations]
-        starts = reproduction_starts(stage, self.scenario.world, stage.seed, demo_starts)
         # the model(s) each start is reproduced with: the run's, or each listed transition model's
         models = ([learning.models[t] for t in stage.transitions] if stage.transitions is not None
                   else [None])

@@ -23,12 +23,42 @@ PNG = b"\x89PNG\r\n\x1a\n"
 
 
 @pytest.fixture(scope="module")
-def run_dir(tmp_path_factory):
+def drawn_run(tmp_path_factory):
+    """The run's folder, the recordings the results read while the report, the figures and
+    the page were made (by file name, once per read), and the page as the run wrote it."""
+    from services.results import decoding
+    from services.results.figures import phases
+
     out = tmp_path_factory.mktemp("figures")
     scenario = support.scenario("smoke", {"learn.phases": "auto", "learn.candidates": [2, 3]})
-    report = support.run(scenario, out / "run", figures=True, transport="inproc", run_id="figures")
+    reads = []
+    read = decoding.read_episode
+
+    def counted(path):
+        reads.append(Path(path).name)
+        return read(path)
+
+    def refused(path):
+        raise AssertionError(f"the figures read {path} again")
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(decoding, "read_episode", counted)
+        patch.setattr(phases, "read_episode", refused)
+        report = support.run(scenario, out / "run", figures=True, transport="inproc", run_id="figures")
     assert report["error"] is None, report["error"]
-    return out / "run"
+    return out / "run", reads, (out / "run" / "report.html").read_text()
+
+
+@pytest.fixture(scope="module")
+def run_dir(drawn_run):
+    return drawn_run[0]
+
+
+def test_a_run_decodes_each_recording_once_for_its_report_and_figures(drawn_run):
+    run_dir, reads, _ = drawn_run
+    recordings = sorted(p.name for p in (run_dir / "recordings").glob("*.mcap"))
+    assert sorted(reads) == recordings, reads
+    assert not (run_dir / "figures.error").exists() and (run_dir / "report.html").is_file()
 
 
 def test_every_run_writes_every_figure_as_a_png(run_dir):
@@ -62,7 +92,7 @@ def test_a_run_without_demonstrations_says_which_figures_it_skips(tmp_path):
     # the stored valley model keeps the BIC scores its learn stage chose by
     assert [p.name for p in written] == ["bic_by_phase_count.png", "reproduction_00_force_phase_alpha.png"]
     assert any("no demonstrations" in s for s in skipped) and not any("no selection scores" in s for s in skipped)
-    from services.results.figures import bic_figure
+    from services.results.figures.learning import bic_figure
     assert bic_figure({"criterion": "fixed"}, tmp_path) == "no selection scores (phase count fixed)"
 
 
@@ -74,17 +104,17 @@ def test_the_runs_figures_draw_its_world_and_name_its_phases_by_the_true_ones(ru
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     from robot_sim.world.labels import LABELERS
-    from services.results import figures
+    from services.results.figures import canvas, phases
 
     kept = {}
-    save = figures._save
-    monkeypatch.setattr(figures, "_save", lambda fig, path, *a, **k: kept.setdefault(Path(path).name, fig)
+    save = canvas.save
+    monkeypatch.setattr(canvas, "save", lambda fig, path, *a, **k: kept.setdefault(Path(path).name, fig)
                         and save(fig, path, *a, **k))
     written, _ = write_figures(run_dir)
     assert sorted(p.name for p in written) == sorted(FIGURES)
     meta = json.loads((run_dir / "model.json").read_text())["metadata"]
     k = json.loads((run_dir / "model.json").read_text())["n_phases"]
-    names = figures.phase_labels(k, meta["phase_to_truth"], LABELERS["valley"].names)
+    names = phases.phase_labels(k, meta["phase_to_truth"], LABELERS["valley"].names)
     assert any("=" in n for n in names), names  # the smoke run's phases were matched to true ones
     (ax,) = [a for a in kept["tool_path_by_phase.png"].axes if a.name == "3d"]
     assert any(isinstance(c, Poly3DCollection) for c in ax.collections)
@@ -106,6 +136,18 @@ def test_the_html_report_embeds_every_figure(run_dir):
     first = page.index("data:image/png;base64,") + len("data:image/png;base64,")
     assert base64.b64decode(page[first:page.index('"', first)]).startswith(PNG)
     assert "smoke" in page and "Number of phases" in page and "Reproductions" in page
+
+
+def test_the_page_drawn_from_the_folder_is_the_page_the_run_wrote_from_its_report(drawn_run, tmp_path):
+    """The run hands the page its report and text; etar-bench figures reads them back."""
+    from services.results.html import write_html
+
+    run_dir, _, page = drawn_run
+    copy = tmp_path / "run"
+    shutil.copytree(run_dir, copy)
+    (copy / "report.html").unlink()
+    write_html(copy)
+    assert (copy / "report.html").read_text() == page
 
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")

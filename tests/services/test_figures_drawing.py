@@ -15,7 +15,8 @@ from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 from etar.task import load_task
 from robot_sim.world.tasks import HoseCoupler, Valley
 from services.recordings.writer import EpisodeWriter
-from services.results import figures
+from services.results.decoding import EpisodeReading, LearnerView, decode_episode
+from services.results.figures import canvas, demonstrations, learning, phases, reproduction, tool_paths
 from services.runtime.messages import (
     ESTIMATOR_PHASE,
     FT_WRENCH,
@@ -38,13 +39,13 @@ def task():
 def drawn(monkeypatch):
     """Every figure the module saves, kept for inspection (still written and closed)."""
     kept = []
-    save = figures._save
+    save = canvas.save
 
     def keep(fig, path, *args, **kwargs):
         kept.append(fig)
         return save(fig, path, *args, **kwargs)
 
-    monkeypatch.setattr(figures, "_save", keep)
+    monkeypatch.setattr(canvas, "save", keep)
     return kept
 
 
@@ -83,23 +84,23 @@ def marker_collection(ax, label):
 
 
 def test_a_phase_is_named_by_the_true_phase_it_was_matched_to_else_by_its_number():
-    assert figures.phase_labels(3, {0: 0, 1: 1, 2: 2}, VALLEY_NAMES) == [
+    assert phases.phase_labels(3, {0: 0, 1: 1, 2: 2}, VALLEY_NAMES) == [
         "phase 0 = free motion", "phase 1 = sliding along a plate", "phase 2 = sliding along the groove"]
     # a permutation, string keys (model.json), an unmatched phase, a true phase the world does not name
-    assert figures.phase_labels(4, {"0": 2, "2": 0, "3": 7}, VALLEY_NAMES) == [
+    assert phases.phase_labels(4, {"0": 2, "2": 0, "3": 7}, VALLEY_NAMES) == [
         "phase 0 = sliding along the groove", "phase 1", "phase 2 = free motion", "phase 3"]
-    assert figures.phase_labels(2, None, VALLEY_NAMES) == ["phase 0", "phase 1"]
-    assert figures.phase_labels(2, {0: 0, 1: 1}, ()) == ["phase 0", "phase 1"]
-    assert figures.true_phase_names("hose_coupler") == ("approach", "coupling")
-    assert figures.true_phase_names("free_space") == () and figures.true_phase_names(None) == ()
+    assert phases.phase_labels(2, None, VALLEY_NAMES) == ["phase 0", "phase 1"]
+    assert phases.phase_labels(2, {0: 0, 1: 1}, ()) == ["phase 0", "phase 1"]
+    assert phases.true_phase_names("hose_coupler") == ("approach", "coupling")
+    assert phases.true_phase_names("free_space") == () and phases.true_phase_names(None) == ()
 
 
 def test_the_world_comes_from_the_runs_scenario(tmp_path):
-    assert figures.world_of_scenario("name: x\nworld: hose_coupler\nstages: []\n") == "hose_coupler"
-    assert figures.world_of_scenario("name: x\n") is None and figures.world_of_scenario(": [") is None
+    assert phases.world_of_scenario("name: x\nworld: hose_coupler\nstages: []\n") == "hose_coupler"
+    assert phases.world_of_scenario("name: x\n") is None and phases.world_of_scenario(": [") is None
     (tmp_path / "scenario.yaml").write_text("name: x\nworld: valley\n")
-    assert figures.world_of_run(tmp_path) == "valley"
-    assert figures.world_of_run(tmp_path / "nowhere") is None
+    assert phases.world_of_run(tmp_path) == "valley"
+    assert phases.world_of_run(tmp_path / "nowhere") is None
 
 
 # ------------------------------------------------------------------ the 3-D tool path
@@ -107,8 +108,8 @@ def test_the_world_comes_from_the_runs_scenario(tmp_path):
 
 def test_the_tool_path_lies_on_the_valleys_plates_with_start_end_goal_and_equal_axes(task, drawn, tmp_path):
     demos = [valley_demo(0), valley_demo(1)]
-    labels = figures.phase_labels(3, task.phase_to_truth, VALLEY_NAMES)
-    figures.path_figure(task.model, demos, tmp_path, labels, world="valley", goal=task.goal)
+    labels = phases.phase_labels(3, task.phase_to_truth, VALLEY_NAMES)
+    tool_paths.path_figure(task.model, demos, tmp_path, labels, world="valley", goal=task.goal)
     (fig,) = drawn
     ax = next(a for a in fig.axes if a.name == "3d")
 
@@ -137,12 +138,12 @@ def test_the_tool_path_lies_on_the_valleys_plates_with_start_end_goal_and_equal_
 
 
 def test_the_coupler_path_shows_the_socket_and_a_world_without_a_task_no_surfaces(task, drawn, tmp_path):
-    plt = figures._plt()  # headless (Agg)
+    plt = canvas.pyplot()  # headless (Agg)
     c = np.array(HoseCoupler().center)
     path = np.linspace([0.62, -0.08, 0.36], c + [0, 0, 0.01], 50)
     fig = plt.figure()
     ax = fig.add_subplot(projection="3d")
-    figures.draw_paths_3d(ax, [path], [np.r_[np.zeros(40), np.ones(10)].astype(int)], figures._phase_colors(2),
+    tool_paths.draw_paths_3d(ax, [path], [np.r_[np.zeros(40), np.ones(10)].astype(int)], canvas.phase_colours(2),
                           ["phase 0 = approach", "phase 1 = coupling"], world="hose_coupler")
     fig.canvas.draw()
     (socket,) = [col for col in ax.collections if isinstance(col, Poly3DCollection)]
@@ -150,12 +151,12 @@ def test_the_coupler_path_shows_the_socket_and_a_world_without_a_task_no_surface
     assert ax.get_zlim3d()[0] <= c[2] * 1e3  # the socket's floor is in view
     plt.close(fig)
     # the socket where the world has it: floor at the centre's height, the bore's wall up to its depth
-    corners = np.vstack(figures.task_surfaces("hose_coupler", None, None, 0.0))
+    corners = np.vstack(tool_paths.task_surfaces("hose_coupler", None, None, 0.0))
     radius = np.hypot(corners[:, 0] - c[0], corners[:, 1] - c[1])
     assert np.isclose(corners[:, 2].min(), c[2]) and np.isclose(corners[:, 2].max(), c[2] + HoseCoupler().depth)
     assert np.isclose(radius.min(), HoseCoupler().bore_radius)
 
-    figures.path_figure(task.model, [valley_demo(2)], tmp_path, world=None)
+    tool_paths.path_figure(task.model, [valley_demo(2)], tmp_path, world=None)
     ax = next(a for a in drawn[-1].axes if a.name == "3d")
     assert not [col for col in ax.collections if isinstance(col, Poly3DCollection)]
     assert {"phase 0", "phase 1", "phase 2", "start", "end"} <= set(figure_legend_texts(drawn[-1]))
@@ -202,6 +203,12 @@ def write_reproduction(path, n_cycles=400, lag=25, scenario="name: t\nworld: val
     return truth[seqs], truth[np.maximum(0, seqs - lag)]
 
 
+def trace_of(path):
+    """A reproduction's trace as the figures decode it, in the learner's position/force view."""
+    reading = EpisodeReading(str(path), measures=False, trace=LearnerView("position", "force"))
+    return decode_episode(reading).figure_data.trace
+
+
 def strip_axes(fig):
     (ax,) = [a for a in fig.axes if "true phase" in [t.get_text() for t in a.get_yticklabels()]]
     return ax
@@ -222,14 +229,14 @@ def test_the_reproduction_shows_the_estimated_beside_the_true_phase_it_is_scored
     path = tmp_path / "reproduction_00.mcap"
     true, est = write_reproduction(path)
     mapping = {0: 0, 1: 1, 2: 2}
-    out = figures.reproduction_figure(path, 0, task.model, "position", "force", tmp_path, phase_to_truth=mapping,
+    out = reproduction.reproduction_figure(trace_of(path), 0, task.model, tmp_path, phase_to_truth=mapping,
                                       true_names=VALLEY_NAMES)
     assert out == tmp_path / "reproduction_00_force_phase_alpha.png" and out.is_file()
     (fig,) = drawn
     ax = strip_axes(fig)
     ticks = [t.get_text() for t in ax.get_yticklabels()]
     assert "estimated phase" in ticks and "true phase" in ticks
-    colours = figures._phase_colors(3)
+    colours = canvas.phase_colours(3)
     estimated = strip_colours(ax, 2.0, 3.0)
     truth = strip_colours(ax, 1.0, 2.0)
     assert [c for _, _, c in estimated] == [tuple(np.round(colours[k][:3], 3)) for k in (0, 1, 2)]
@@ -248,7 +255,7 @@ def test_the_reproduction_shows_the_estimated_beside_the_true_phase_it_is_scored
 def test_without_a_mapping_the_reproduction_names_phases_by_number_and_is_not_scored(task, drawn, tmp_path):
     path = tmp_path / "reproduction_00.mcap"
     write_reproduction(path, n_cycles=200)
-    figures.reproduction_figure(path, 0, task.model, "position", "force", tmp_path)
+    reproduction.reproduction_figure(trace_of(path), 0, task.model, tmp_path)
     (fig,) = drawn
     legend = figure_legend_texts(fig)
     assert "phase 0" in legend and not any("=" in t for t in legend), legend
@@ -262,15 +269,15 @@ def test_without_a_mapping_the_reproduction_names_phases_by_number_and_is_not_sc
 
 def test_every_axis_label_carries_a_unit_and_every_phase_legend_names_the_true_phase(task, drawn, tmp_path):
     demos = [valley_demo(0), valley_demo(1)]
-    labels = figures.phase_labels(3, task.phase_to_truth, VALLEY_NAMES)
-    figures.demonstrations_figure(demos, tmp_path)
-    figures.forward_figure(task.model, demos, tmp_path, labels)
-    figures.path_figure(task.model, demos, tmp_path, labels, world="valley", goal=task.goal)
-    figures.prediction_figures(task.model, demos, tmp_path, labels)
-    figures.bic_figure({"criterion": "bic", "best": 3, "scores": {"2": 10.0, "3": 5.0, "4": 7.0}}, tmp_path)
+    labels = phases.phase_labels(3, task.phase_to_truth, VALLEY_NAMES)
+    demonstrations.demonstrations_figure(demos, tmp_path)
+    learning.forward_figure(task.model, demos, tmp_path, labels)
+    tool_paths.path_figure(task.model, demos, tmp_path, labels, world="valley", goal=task.goal)
+    learning.prediction_figures(task.model, demos, tmp_path, labels)
+    learning.bic_figure({"criterion": "bic", "best": 3, "scores": {"2": 10.0, "3": 5.0, "4": 7.0}}, tmp_path)
     path = tmp_path / "reproduction_00.mcap"
     write_reproduction(path, n_cycles=200)
-    figures.reproduction_figure(path, 0, task.model, "position", "force", tmp_path, phase_to_truth={0: 0, 1: 1, 2: 2},
+    reproduction.reproduction_figure(trace_of(path), 0, task.model, tmp_path, phase_to_truth={0: 0, 1: 1, 2: 2},
                                 true_names=VALLEY_NAMES)
     assert len(drawn) == 7
     missing = []

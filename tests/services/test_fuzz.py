@@ -19,7 +19,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from services.results import report
+from services.results import decoding, report
 from services.recordings.writer import EpisodeWriter
 from services.recordings.reader import RecordedMessage, read_episode
 from services.recordings.format import RecordingError
@@ -115,14 +115,14 @@ def test_the_report_reads_any_recorded_episode_without_failing(cases):
     for spec in cases:
         ep = SimpleNamespace(messages=[RecordedMessage("/" + m.topic, k * 1_000_000, payload(m, spec), k)
                                        for k, m in enumerate(TYPES)])
-        decoded, bad = report.decoded_messages(ep)
+        decoded, bad = decoding.decoded_messages(ep)
         assert bad + sum(len(v) for v in decoded.values()) == len(ep.messages)
         for items in decoded.values():
             for _, values in items:
                 assert all(type(v) is int for v in values.values())
-        report.episode_links(decoded)
-        assert report.reproduction_phases(decoded, {"0": 0, "1": 1, "2": 2})["updates"] >= 0
-        timeline = report.fri_quality_timeline(*report.fri_quality_series(decoded))
+        decoding.episode_links(decoded)
+        assert decoding.reproduction_phases(decoded, {"0": 0, "1": 1, "2": 2})["updates"] >= 0
+        timeline = report.fri_quality_timeline(*decoding.fri_quality_series(decoded))
         assert timeline["cycles"] == len(decoded.get("robot/state", ()))
 
 

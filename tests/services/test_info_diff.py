@@ -1,5 +1,5 @@
 """``etar-bench info`` and ``etar-bench diff`` as functions: a recording and a run folder
-described (services/results/info.py), two runs compared (services/results/diff.py).
+described (services/results/info/), two runs compared (services/results/diff.py).
 
 Fast: small recordings written here with the recorder's writer, with a known gap, a known
 episode summary and known code metadata.  Slow: three smoke runs in one process, two of

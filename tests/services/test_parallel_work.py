@@ -10,7 +10,7 @@ import pytest
 
 from etar.selection import vote_order
 from etar.synthetic import make_task, sample_demonstrations
-from services.results.report import recording_figures
+from services.results.decoding import EpisodeReading, decode_episode
 from services.runtime.threads import process_map
 from tests.services.test_recording import mixed_messages, write_episode
 
@@ -69,22 +69,20 @@ def test_the_per_demonstration_vote_is_the_same_in_a_pool():
 
 
 def test_the_report_reads_recordings_in_a_pool_as_in_one_process(tmp_path, rng):
-    jobs = []
+    readings = []
     for i in range(3):
         path = tmp_path / f"reproduction_{i:02d}.mcap"
         write_episode(path, mixed_messages(80 + 20 * i, rng))
-        jobs.append((str(path), {0: 0, 1: 1}))
-    jobs.append((str(tmp_path / "missing.mcap"), None))
-    here = list(map(recording_figures, jobs))
+        readings.append(EpisodeReading(str(path), phase_to_truth={0: 0, 1: 1}))
+    readings.append(EpisodeReading(str(tmp_path / "missing.mcap")))
+    here = list(map(decode_episode, readings))
     with process_map(2) as pool_map:
-        pooled = list(pool_map(recording_figures, jobs))
-    assert here[-1] is None and pooled[-1] is None
+        pooled = list(pool_map(decode_episode, readings))
+    assert not here[-1].readable and not pooled[-1].readable
     for a, b in zip(here[:-1], pooled[:-1]):
-        links_a, phases_a, (t_a, q_a, s_a), bad_a = a
-        links_b, phases_b, (t_b, q_b, s_b), bad_b = b
-        assert links_a == links_b and bad_a == bad_b
+        assert a.links == b.links and a.undecodable == b.undecodable
         # NaN where no transition was seen: compared as JSON writes them
-        assert json.dumps(phases_a, sort_keys=True) == json.dumps(phases_b, sort_keys=True)
-        assert phases_a["updates"] > 0
-        np.testing.assert_array_equal(t_a, t_b)
-        np.testing.assert_array_equal(q_a, q_b)
+        assert json.dumps(a.phases, sort_keys=True) == json.dumps(b.phases, sort_keys=True)
+        assert a.phases["updates"] > 0
+        for series_a, series_b in zip(a.fri_quality, b.fri_quality):
+            np.testing.assert_array_equal(series_a, series_b)

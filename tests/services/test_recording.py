@@ -492,7 +492,7 @@ def test_the_report_reads_past_garbage_in_a_recording_and_counts_it(tmp_path, rn
     """What a foreign peer could publish into a run (random bytes, a seq of Infinity, a
     wrong schema) is recorded as received, and the report's reader skips it: it once
     crashed the report of a run that had reached its goal."""
-    from services.results.report import decoded_messages, episode_links, fri_quality_series, reproduction_phases
+    from services.results.decoding import decoded_messages, episode_links, fri_quality_series, reproduction_phases
 
     messages = mixed_messages(60, rng)
     garbage = [os.urandom(11), b'{"seq": Infinity, "stamp_ns": 0, "sent_ns": 0}', b'{"seq": 3}', b"[1, 2]",
@@ -510,7 +510,7 @@ def test_the_report_reads_past_garbage_in_a_recording_and_counts_it(tmp_path, rn
 
 
 def test_the_report_counts_each_unconditioned_estimate_once_and_only_the_values_it_knows():
-    from services.results.report import reproduction_phases
+    from services.results.decoding import reproduction_phases
 
     truth = [(0, {"seq": s, "sent_ns": 0, "true_phase": 0}) for s in (10, 20, 30, 40)]
     estimates = [(0, {"seq": 10, "sent_ns": 0, "phase": 0}),

@@ -1,0 +1,268 @@
+"""A recorded episode decoded once, for the report and for the figures.
+
+``decode_episode(reading)`` reads one recording (and the further parts of one whose
+recorder restarted) and takes from it what the ``EpisodeReading`` asks for:
+
+- the report's measures: per topic the publish -> recorder latency and the messages lost
+  or out of order, the FRI quality and state over the episode, the messages it could not
+  read, and for a reproduction its online phase estimate scored against the true phase;
+- the figures' data: a demonstration as the learner takes it (``demonstration_of``'s
+  arrays), a reproduction's trace (its force feature and its estimated, commanded and
+  true phases over time).
+
+The run's report asks for both and leaves the figures' data in the run's record, so the
+figures drawn after it read no recording again; ``etar-bench figures RUN_DIR`` asks for
+the figures' data alone.  Each recording is read once and let go: a valley run's
+recordings do not fit in memory together.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from etar.metrics import score_segmentation
+from services.recordings.demonstrations import demonstration_of
+from services.recordings.reader import Episode, read_episode
+from services.runtime.messages import BY_TOPIC, ESTIMATOR_PERIOD_NS, INT_MAX, INT_MIN, STRIDES, loads
+from services.runtime.threads import process_map
+from services.runtime.timing import SequenceTracker, percentiles
+
+# what the report reads of each topic: every one an integer (counts, sequence numbers, clocks, labels)
+REPORT_FIELDS = {"robot/state": ("seq", "sent_ns", "stamp_ns", "fri_quality", "fri_state"),
+                 "robot/contact": ("seq", "sent_ns", "true_phase"),
+                 "estimator/phase": ("seq", "sent_ns", "phase")}
+_HEADER = ("seq", "sent_ns")
+# optional text fields the report counts, with the values it knows (any other is not read)
+REPORT_TEXT = {"estimator/phase": {"unconditioned": ("arm_held", "gap")}}
+# the topics a reproduction's trace is taken from
+TRACE_TOPICS = ("/estimator/phase", "/robot/command", "/robot/contact")
+
+# recordings read at ~15 MB/s in one process: below this, a pool's start costs more than it saves
+PARALLEL_READ_BYTES = 32 << 20
+
+
+@dataclass(frozen=True)
+class LearnerView:
+    """How the learner takes a demonstration (a model's ``state``, ``features`` and
+    ``state_resolution``): the figures' arrays are decoded as the model saw its data."""
+
+    state: str
+    features: str
+    state_resolution: float = 0.0
+
+
+@dataclass(frozen=True)
+class EpisodeReading:
+    """What to take from one recording (``parts``: the further files of an episode whose
+    recorder restarted, in order; the report reads them too, the figures the first only)."""
+
+    path: str
+    parts: tuple = ()
+    measures: bool = True  # the report's measures
+    phase_to_truth: dict | None = None  # a reproduction's: its online estimate scored with this mapping
+    demonstration: LearnerView | None = None  # the learner's arrays, for the demonstrations' figures
+    trace: LearnerView | None = None  # the reproduction's trace, for its figure
+
+
+@dataclass
+class ReproductionTrace:
+    """What a reproduction's figure draws: the force feature at the learner's sample
+    instants, and in time order the estimator's phases and posteriors, the commander's
+    phases and the true phase of each robot cycle."""
+
+    t: np.ndarray  # (T,) s, simulated
+    forces: np.ndarray  # (T, 3) N, or (T, 6) N and N m, base axes
+    estimates: list  # (stamp s, phase, posterior, the robot cycle it estimated), by stamp
+    commanded: list  # (stamp s, phase), in order
+    truth_by_seq: dict  # robot cycle -> its true phase (the first message of a cycle)
+
+
+@dataclass
+class FigureData:
+    """What the figures draw from one recording: a demonstration's arrays, a
+    reproduction's trace, or why there are none (the message says the file)."""
+
+    arrays: dict | None = None
+    trace: ReproductionTrace | None = None
+    problem: str | None = None
+
+
+@dataclass
+class DecodedEpisode:
+    """One recording as ``decode_episode`` took it; a measure not asked for is None."""
+
+    path: str
+    readable: bool = True  # False: its first file did not read, and there are no measures
+    links: dict | None = None  # topic -> latency percentiles, lost, out_of_order
+    phases: dict | None = None  # a reproduction's online phase scores
+    fri_quality: tuple | None = None  # (simulated time s, FRI quality, FRI state) of every robot cycle
+    undecodable: int = 0  # messages that did not decode
+    figure_data: FigureData | None = None
+
+
+def decode_episode(reading: EpisodeReading) -> DecodedEpisode:
+    """``reading``'s recording decoded once for what it asks (module docstring)."""
+    decoded, bad = {}, 0
+    out = DecodedEpisode(reading.path)
+    for i, part in enumerate([reading.path, *reading.parts]):
+        try:
+            ep = read_episode(part)
+        except (OSError, ValueError) as exc:
+            if i == 0:
+                out.readable = False
+                if reading.demonstration is not None or reading.trace is not None:
+                    out.figure_data = FigureData(problem=str(exc))
+                return out
+            continue
+        if i == 0 and (reading.demonstration is not None or reading.trace is not None):
+            out.figure_data = _figure_data(ep, reading)
+        if not reading.measures:
+            return out
+        part_decoded, part_bad = decoded_messages(ep)
+        del ep
+        for topic, items in part_decoded.items():
+            decoded.setdefault(topic, []).extend(items)
+        bad += part_bad
+    out.links, out.fri_quality, out.undecodable = episode_links(decoded), fri_quality_series(decoded), bad
+    if reading.phase_to_truth:
+        out.phases = reproduction_phases(decoded, reading.phase_to_truth)
+    return out
+
+
+def decode_episodes(readings: list[EpisodeReading], workers: int | None = 1) -> list[DecodedEpisode]:
+    """``decode_episode`` of each reading, in order; on ``workers`` processes (None: every
+    CPU) once the recordings are worth a pool's start (~1.4 s of imports per process)."""
+    if sum(_size(r.path) for r in readings) < PARALLEL_READ_BYTES:
+        workers = 1
+    with process_map(workers) as read_map:
+        return list(read_map(decode_episode, readings))
+
+
+def _size(path) -> int:
+    try:
+        return os.path.getsize(path)
+    except OSError:
+        return 0
+
+
+# ------------------------------------------------------------------ for the figures
+
+
+def _figure_data(ep: Episode, reading: EpisodeReading) -> FigureData:
+    view = reading.demonstration or reading.trace
+    try:
+        # as the learner takes it; a reproduction's states are not drawn, its forces are
+        arrays = demonstration_of(ep, reading.path, state=view.state, features=view.features,
+                                  state_resolution=view.state_resolution, allow_incomplete=True)
+    except (OSError, ValueError) as exc:
+        return FigureData(problem=str(exc))
+    if reading.demonstration is not None:
+        return FigureData(arrays=arrays)
+    return FigureData(trace=reproduction_trace(ep, arrays))
+
+
+def reproduction_trace(ep: Episode, arrays: dict) -> ReproductionTrace:
+    """A reproduction's trace from its recording and its arrays (``demonstration_of``'s):
+    the estimates, the commands and the true phases as their messages say them (one that
+    does not decode, or lacks a field, is left out)."""
+    estimates, commanded, truth_by_seq = [], [], {}
+    for m in ep.messages:
+        if m.topic not in TRACE_TOPICS:
+            continue
+        try:
+            msg = loads(m.payload)
+        except ValueError:
+            continue
+        try:
+            if m.topic == "/estimator/phase":
+                estimates.append((msg["stamp_ns"] / 1e9, msg["phase"], msg["posterior"], msg.get("seq")))
+            elif m.topic == "/robot/contact":
+                truth_by_seq.setdefault(msg["seq"], msg["true_phase"])
+            else:
+                commanded.append((msg["stamp_ns"] / 1e9, msg["phase"]))
+        except (KeyError, TypeError):
+            continue
+    return ReproductionTrace(t=arrays["t"], forces=arrays["forces"], estimates=sorted(estimates, key=lambda e: e[0]),
+                             commanded=sorted(commanded), truth_by_seq=truth_by_seq)
+
+
+# ------------------------------------------------------------------ for the report
+
+
+def decoded_messages(ep) -> tuple[dict, int]:
+    """What the report reads of one recorded episode, each message parsed once: per
+    topic, (log time ns, {field: int}), with the known values of the optional text
+    fields in ``REPORT_TEXT`` where a message has one.  A message that is not JSON, not an object, or
+    lacks one of those fields as an integer (garbage from a foreign peer, ``"seq":
+    Infinity``, a wrong schema) is counted, never read: one bad message must not cost a
+    run its report."""
+    per: dict[str, list] = {}
+    bad = 0
+    for msg in ep.messages:
+        topic = msg.topic.lstrip("/")
+        if topic not in BY_TOPIC:
+            continue
+        names = REPORT_FIELDS.get(topic, _HEADER)
+        try:
+            d = loads(msg.payload)
+            values = {k: d[k] for k in names}
+        except (ValueError, TypeError, KeyError, UnicodeDecodeError):
+            bad += 1
+            continue
+        if not all(type(v) is int and INT_MIN <= v <= INT_MAX for v in values.values()):
+            bad += 1  # the wire's integers are 64-bit; a bigger one would overflow the arrays below
+            continue
+        for name, known in REPORT_TEXT.get(topic, {}).items():
+            if d.get(name) in known:
+                values[name] = d[name]
+        per.setdefault(topic, []).append((msg.log_time_ns, values))
+    return per, bad
+
+
+def episode_links(decoded: dict) -> dict:
+    """Per topic of one recorded episode: publish -> recorder latency percentiles,
+    and lost / out-of-order messages judged from the sequence numbers."""
+    out = {}
+    for topic, items in decoded.items():
+        tracker = SequenceTracker(stride=STRIDES.get(topic, 1))
+        lat = []
+        for log_time, d in items:
+            lat.append(log_time - d["sent_ns"])
+            tracker.add(d["seq"])
+        out[topic] = dict(percentiles(lat), lost=tracker.lost, out_of_order=tracker.out_of_order)
+    return out
+
+
+def reproduction_phases(decoded: dict, phase_to_truth: dict, dt: float = ESTIMATOR_PERIOD_NS / 1e9) -> dict:
+    """Accuracy and transition-time error of the online estimate in one recorded reproduction."""
+    truth_by_seq = {d["seq"]: d["true_phase"] for _, d in decoded.get("robot/contact", ())}
+    est_by_seq = {d["seq"]: d for _, d in decoded.get("estimator/phase", ())}
+    seqs = sorted(s for s in est_by_seq if s in truth_by_seq)
+    if not seqs:
+        return {"updates": 0, "accuracy": None, "unconditioned": {"arm_held": 0, "gap": 0}}
+    truth = np.array([truth_by_seq[s] for s in seqs])
+    est = np.array([est_by_seq[s]["phase"] for s in seqs])
+    score = score_segmentation(truth, est, dt=dt, mapping={int(k): int(v) for k, v in phase_to_truth.items()})
+    # scored estimates whose step the filter did not condition on (a KRC hold, a missing
+    # sample), once per cycle as the accuracy counts them (a replayed copy is not another)
+    unconditioned = {"arm_held": 0, "gap": 0}
+    for s in seqs:
+        why = est_by_seq[s].get("unconditioned")
+        if why in unconditioned:
+            unconditioned[why] += 1
+    return dict(updates=len(seqs), correct=int(round(score.accuracy * len(seqs))), **score.to_dict(),
+                unconditioned=unconditioned)
+
+
+def fri_quality_series(decoded: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(simulated time s, FRI quality, FRI state) of every robot_state in one recorded episode."""
+    t, q, st = [], [], []
+    for _, d in decoded.get("robot/state", ()):
+        t.append(d["stamp_ns"] / 1e9)
+        q.append(d["fri_quality"])
+        st.append(d["fri_state"])
+    order = np.argsort(t, kind="stable")
+    return np.asarray(t)[order], np.asarray(q, dtype=np.int64)[order], np.asarray(st, dtype=np.int64)[order]

@@ -1,0 +1,141 @@
+"""The thesis' figures (section 6) of a run: ``etar-bench figures RUN_DIR``.
+
+Every run writes them into ``RUN_DIR/figures/`` too.  One PNG per figure, titled,
+axes labelled with units, named after what it shows, drawn by the module of its family:
+
+- ``demonstrations_position_and_force.png`` (``demonstrations``): each demonstration's
+  tool position and contact force over time (thesis fig. 13, 21);
+- ``bic_by_phase_count.png`` (``learning``): the selection criterion against the number
+  of phases, per demonstration and pooled (fig. 14, 22);
+- ``forward_variable_demonstrations.png`` (``learning``): the normalised forward variable
+  alpha over each demonstration, the true phase boundaries dashed (fig. 15a, 23, 24a);
+- ``tool_path_by_phase.png`` (``tool_paths``): the tool path in 3-D coloured by the
+  estimated (Viterbi) phase, on the task's surfaces (the valley's plates, the coupler's
+  socket), each path's start (circle) and end (cross), the learned goal (star), equal
+  axes, seen across its motion (fig. 15b, 24b);
+- ``prediction_error_by_step.png`` (``learning``): per step of the first demonstration,
+  the one-step prediction error of every phase's parameters, true boundaries dashed
+  (fig. 16-19, 28b/c);
+- ``prediction_error_by_phase.png`` (``learning``): the K x K bars E_rho_i(theta_j)
+  (fig. 20, 29);
+- ``reproduction_NN_force_phase_alpha.png`` (``reproduction``; the first reproduction):
+  the force feature, the estimated phase beside the true phase it is scored against,
+  and alpha over time, with the commanded phase switches (fig. 25).
+
+Phases are named by what they are where the run knows it (``phases``): a learned phase k
+that the demonstrations matched to a true phase (the model's ``phase_to_truth``) is
+"phase k = <the labeller's name of that true phase>" (robot_sim.labels), else "phase k".
+Data stay SI; a figure shows positions in mm (its axis says so), forces in N, time in s
+(``canvas``).
+
+What a figure needs and the run does not have (no demonstrations, a fixed phase count:
+no selection scores) is skipped with the reason.  Drawn right after a run's report from
+what the report decoded (the run's record), or from a finished run's folder: its
+report.json, scenario.yaml, model.json and recordings, each decoded as the report decodes
+them (``services.results.decoding``).  Writes nothing but the figures.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from etar.task import LearnedTask, load_task
+from services.results.decoding import EpisodeReading, FigureData, LearnerView, decode_episode
+from services.results.figures.demonstrations import demonstrations_figure
+from services.results.figures.learning import bic_figure, forward_figure, prediction_figures
+from services.results.figures.phases import phase_labels, true_phase_names, world_of_run
+from services.results.figures.reproduction import reproduction_figure
+from services.results.figures.tool_paths import path_figure
+from services.results.folder import RunFolderError, read_report
+from services.results.record import RunRecord
+
+FIGURES_DIR = "figures"
+# etar-bench compare's figure (services.results.compare), beside the run's own: not the run's to redraw
+COMPARISON_FIGURE = "etar_vs_star_phases.png"
+
+
+class FiguresError(ValueError):
+    """A run directory the figures cannot be drawn from (names the file)."""
+
+
+def in_run(run_dir: Path, path) -> Path:
+    """A path report.json names: relative to the run's folder unless absolute."""
+    return Path(path) if Path(path).is_absolute() else run_dir / path
+
+
+def read_run_report(run_dir: Path) -> dict:
+    """A finished run's report.json; FiguresError naming the file if there is none."""
+    try:
+        report = read_report(run_dir)
+    except RunFolderError as exc:
+        raise FiguresError(str(exc)) from None
+    if "learning" not in report:
+        raise FiguresError(f"{Path(run_dir) / 'report.json'}: not a run report (no 'learning')")
+    return report
+
+
+def write_figures(run_dir, progress=None, run: RunRecord | None = None) -> tuple[list[Path], list[str]]:
+    """Every figure the run has data for, into RUN_DIR/figures/: (files written, what was
+    skipped and why).  ``run``: the record of the run just reported, whose report and
+    recordings, as the report decoded them, the figures draw; None: the folder's
+    report.json, and its recordings decoded here."""
+    run_dir = Path(run_dir)
+    report = read_run_report(run_dir) if run is None else run.report
+    out = run_dir / FIGURES_DIR
+    out.mkdir(exist_ok=True)
+    model_path = report["learning"].get("model")
+    if not model_path:
+        return [], ["no learned model in the run"]
+    task = load_task(in_run(run_dir, model_path))
+    if run is not None and run.figures is not None:
+        first = run.reproductions[0].figure_data if run.reproductions else None
+        world, demos = run.world, [d.figure_data for d in run.demonstrations]
+    else:
+        world, demos, first = _decoded(run_dir, report, task)
+    return _draw(task, world, report, demos, first, out, progress or (lambda _m: None))
+
+
+def _decoded(run_dir: Path, report: dict, task: LearnedTask) -> tuple[str | None, list, FigureData | None]:
+    """What the figures draw of a finished run's folder: its world, each demonstration's
+    data and the first reproduction's, each recording decoded as the model sees it."""
+    view = LearnerView(task.state, task.features, task.state_resolution)
+    demonstrations, reproductions = report.get("demonstrations", []), report.get("reproductions") or []
+    recordings = [in_run(run_dir, e["path"]) for e in [*demonstrations, *reproductions] if e.get("path")]
+    world = world_of_run(run_dir, recordings[:1])
+
+    def decoded(entry: dict, **what) -> FigureData:
+        return decode_episode(EpisodeReading(str(in_run(run_dir, entry["path"])), measures=False, **what)).figure_data
+
+    first = decoded(reproductions[0], trace=view) if reproductions else None
+    return world, [decoded(d, demonstration=view) for d in demonstrations], first
+
+
+def _draw(task: LearnedTask, world, report: dict, demos_data: list, first: FigureData | None, out: Path,
+          say) -> tuple[list[Path], list[str]]:
+    model = task.model
+    names = true_phase_names(world)
+    labels = phase_labels(model.n_phases, task.phase_to_truth, names)
+    written, skipped, demos = [], [], []
+    for d, data in zip(report.get("demonstrations", []), demos_data):
+        if data.problem is None:
+            demos.append(data.arrays)
+        else:
+            skipped.append(f"demonstration {Path(d['path']).name}: {data.problem}")
+    if demos:
+        say(f"figures: {len(demos)} demonstrations")
+        written.append(demonstrations_figure(demos, out))
+        written.append(forward_figure(model, demos, out, labels))
+        written.append(path_figure(model, demos, out, labels, world=world, goal=task.goal))
+        written += prediction_figures(model, demos, out, labels)
+    else:
+        skipped.append("no demonstrations: their figures are not drawn")
+    bic = bic_figure(report["learning"].get("selection") or {}, out)
+    (written if isinstance(bic, Path) else skipped).append(bic)
+    repro = report.get("reproductions") or []
+    if repro:
+        # the mapping the report scored this reproduction with, else the model's
+        mapping = (repro[0].get("phases") or {}).get("mapping") or task.phase_to_truth
+        fig = (f"reproduction 0: {first.problem}" if first.problem is not None else
+               reproduction_figure(first.trace, 0, model, out, phase_to_truth=mapping, true_names=names))
+        (written if isinstance(fig, Path) else skipped).append(fig)
+    return written, skipped
