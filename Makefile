@@ -63,7 +63,7 @@ foxglove-schemas:
 
 # Foxglove Studio 1.48, the last open-source release, as the app @foxglove/studio-base ships
 # prebuilt, with React 17 and playwright-core, for the test that opens a recording in it
-# (tests/services/test_foxglove_studio.py; chromium from `browser`); elsewhere it is skipped
+# (tests/services/foxglove/test_foxglove_studio.py; chromium from `browser`); elsewhere it is skipped
 FOXGLOVE_STUDIO := .cache/foxglove-studio
 foxglove-studio: foxglove-schemas
 	@test -f $(FOXGLOVE_STUDIO)/READY || { \

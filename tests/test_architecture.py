@@ -318,3 +318,42 @@ def test_the_size_rule_catches_each_kind_and_names_its_exception_in_the_docs():
     for exception in SIZE_EXCEPTIONS:
         path, name = exception.split(":")
         assert f"`{path}`" in sizes and f"`{name}`" in sizes, exception
+
+
+def topic_literals(path: Path, text: str | None = None) -> list[str]:
+    """Every string in ``path`` that is a message's topic (``robot/state``) or its recorded
+    channel (``/robot/state``), docstrings aside, as 'path:line 'topic''."""
+    from services.runtime.messages import MESSAGES
+
+    topics = {m.topic for m in MESSAGES.values()} | {m.channel for m in MESSAGES.values()}
+    tree = ast.parse(path.read_text() if text is None else text, str(path))
+    docstrings = {id(node.body[0].value) for node in ast.walk(tree)
+                  if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
+                  and node.body and isinstance(node.body[0], ast.Expr)}
+    where = path.relative_to(ROOT).as_posix()
+    return [f"{where}:{node.lineno} {node.value!r}" for node in ast.walk(tree)
+            if isinstance(node, ast.Constant) and node.value in topics and id(node) not in docstrings]
+
+
+def test_topics_are_named_only_through_their_message_types():
+    """A topic is written once, in services/runtime/messages.py; everywhere else it is
+    ``ROBOT_STATE.topic`` (on the bus) or ``ROBOT_STATE.channel`` (in a recording)."""
+    registry = ROOT / "services" / "runtime" / "messages.py"
+    found = [f for folder in ("etar", "robot_sim", "services", "kernel_plumbing") for path in sources(folder)
+             if path != registry for f in topic_literals(path)]
+    assert found == [], "topic names written out of their message types:\n" + "\n".join(found)
+
+
+def test_the_topic_rule_catches_a_literal_and_leaves_prose_alone():
+    probe = ROOT / "services" / "nodes" / "probe.py"
+    assert topic_literals(probe, 'x = "robot/state"\n') == ["services/nodes/probe.py:1 'robot/state'"]
+    assert topic_literals(probe, 'if topic == "/ft/wrench":\n    pass\n') == ["services/nodes/probe.py:1 '/ft/wrench'"]
+    assert topic_literals(probe, '"""Reads robot/state."""\nx = "robot/state and more"\n') == []
+    assert topic_literals(probe, "from services.runtime.messages import ROBOT_STATE\nx = ROBOT_STATE.topic\n") == []
+
+
+def test_the_services_tests_are_in_the_wings_they_test():
+    top = ROOT / "tests" / "services"
+    assert sorted(p.name for p in top.glob("test_*.py")) == [], "a test at tests/services/'s top: move it to its wing"
+    folders = {p.name for p in top.iterdir() if p.is_dir() and p.name != "__pycache__"}
+    assert folders <= set(WINGS), folders - set(WINGS)

@@ -43,6 +43,8 @@ import numpy as np
 from robot_sim.cycle import FRI_RATE_HZ
 from services.runtime.visual_topics import (TOPIC_GEOMETRY, TOPIC_LOG, TOPIC_SCENE, TOPIC_STATUS, TOPIC_TF,
                                             VISUAL_RATE_HZ, check_visual_rate)
+from services.runtime.messages import (EPISODE_SUMMARY, ESTIMATOR_PHASE, FT_WRENCH, ROBOT_COMMAND,
+                                       ROBOT_CONTACT, ROBOT_STATE, RUNNER_EVENT, SERVICE_LOG)
 
 FRAMES = ("link1", "link2", "link3", "link4", "link5", "link6", "link7", "flange", "ati_sensor", "tool", "tcp")
 ARROW_M_PER_N = 0.01  # the force arrow: 1 cm per newton, at most MAX_ARROW_M
@@ -196,32 +198,32 @@ class VisualScene:
     def take(self, topic: str, msg: dict) -> list[tuple[str, dict]]:
         """The visual messages ``msg`` (of run topic ``topic``, e.g. ``robot/state``) brings:
         none, or at the visual rate's cycles the transforms, the scene and the status."""
-        if topic == "ft/wrench":
+        if topic == FT_WRENCH.topic:
             self._wrench = msg["wrench"]
-        elif topic == "estimator/phase":
+        elif topic == ESTIMATOR_PHASE.topic:
             self._estimate = msg
-        elif topic == "robot/contact":
+        elif topic == ROBOT_CONTACT.topic:
             self._true_phase = int(msg["true_phase"])
-        elif topic == "robot/command":
+        elif topic == ROBOT_COMMAND.topic:
             self._command = msg
             if msg["hold"] != self._hold:
                 was, self._hold = self._hold, msg["hold"]
                 text = f"commander holds the arm: {msg['hold']}" if msg["hold"] else f"commander resumes after {was}"
                 return [(TOPIC_LOG, self.log_line(msg["stamp_ns"], text, "impedance_commander",
                                                   LOG_WARNING if msg["hold"] else LOG_INFO))]
-        elif topic == "robot/episode":
+        elif topic == EPISODE_SUMMARY.topic:
             return [(TOPIC_LOG, self.log_line(msg["stamp_ns"], f"{msg['kind']} {msg['episode']} ended: "
                                               f"{msg['reason']}, peak contact {msg['peak_contact_force']:.1f} N",
                                               "robot", LOG_INFO))]
-        elif topic == "service/log":
+        elif topic == SERVICE_LOG.topic:
             # a service's line has no simulation time: it sits where the run is now
             level = msg["level"] if msg["level"] in (1, 2, 3, 4, 5) else LOG_INFO
             return [(TOPIC_LOG, self.log_line(self._stamp, msg["text"], msg["role"], level))]
-        elif topic == "runner/event":
+        elif topic == RUNNER_EVENT.topic:
             what = " ".join(str(x) for x in (msg["event"], msg["stage"], msg["episode"] if msg["episode"] >= 0
                                              else "") if x != "")
             return [(TOPIC_LOG, self.log_line(msg["stamp_ns"], what, "runner", LOG_INFO))]
-        elif topic == "robot/state" and msg["seq"] % self.every == 0:
+        elif topic == ROBOT_STATE.topic and msg["seq"] % self.every == 0:
             return self._frame(msg)
         return []
 

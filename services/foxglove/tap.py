@@ -4,7 +4,9 @@ from __future__ import annotations
 
 from services.foxglove.scene import VisualScene, world_of_scenario
 from services.recordings.writer import EpisodeWriter
-from services.runtime.messages import BY_TOPIC, SEQ_PREFIX, MessageError, dumps
+from services.runtime.messages import (BY_TOPIC, EPISODE_SUMMARY, ESTIMATOR_PHASE, FT_WRENCH, MessageError,
+                                       ROBOT_COMMAND, ROBOT_CONTACT, ROBOT_STATE, RUNNER_EVENT, SEQ_PREFIX,
+                                       SERVICE_LOG, dumps)
 
 
 def encode(message: dict) -> bytes:
@@ -16,8 +18,9 @@ def encode(message: dict) -> bytes:
     return dumps(message)
 
 
-LATEST_TOPICS = ("ft/wrench", "estimator/phase", "robot/contact", "robot/command")  # only the newest counts
-EVENT_TOPICS = ("runner/event", "robot/episode", "service/log")
+# only the newest counts
+LATEST_TOPICS = (FT_WRENCH.topic, ESTIMATOR_PHASE.topic, ROBOT_CONTACT.topic, ROBOT_COMMAND.topic)
+EVENT_TOPICS = (RUNNER_EVENT.topic, EPISODE_SUMMARY.topic, SERVICE_LOG.topic)
 
 
 class VisualTap:
@@ -71,11 +74,11 @@ class VisualTap:
             msg = self._decode(topic, raw if message is None else message)
             if msg is None:
                 return []
-            if topic == "runner/event" and msg["event"] == "episode_begin":
+            if topic == RUNNER_EVENT.topic and msg["event"] == "episode_begin":
                 # a reproduction's start names its model: the stiffness its commands apply
                 self.reset(self._model(msg["info"].get("model") or self.default_model))
             return self.scene.take(topic, msg)
-        if topic != "robot/state":
+        if topic != ROBOT_STATE.topic:
             return []
         if message is None:
             m = SEQ_PREFIX.match(raw)
@@ -92,7 +95,7 @@ class VisualTap:
             if msg is not None:
                 out += self.scene.take(t, msg)
         self._latest.clear()
-        return out + self.scene.take("robot/state", state)
+        return out + self.scene.take(ROBOT_STATE.topic, state)
 
 
 class VisualRecordings:

@@ -39,7 +39,7 @@ from robot_sim.ati.sensor import AtiConfig, AtiSensor
 from robot_sim.wire.netft import CALIBRATION_PORT, HTTP_PORT, RDT_PORT, RDT_RECORD
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import option
-from services.runtime.messages import FT_WRENCH, NETFT_RDT
+from services.runtime.messages import FT_WRENCH, NETFT_RDT, ROBOT_CONTACT
 
 SENSOR_FAULTS = ("none", "stop", "saturate", "nan")
 # what a saturating load is: ten times the Mini45's largest range on every axis
@@ -113,18 +113,18 @@ class FtSensorNode(Node):
         self.fault_after_ns = int(config.fault_after * 1e9)
         self._episode, self._episode_t0 = None, 0
         self.faulted = 0  # records the injected fault changed (or, stopped, never sent)
-        self.publications = [Publication("ft/wrench")]
+        self.publications = [Publication(FT_WRENCH.topic)]
         self.box = None
         if config.netft:
             if config.netft_topic:
-                self.publications.append(Publication("netft/rdt", drop_when_congested=True))
+                self.publications.append(Publication(NETFT_RDT.topic, drop_when_congested=True))
             if netft_box is None:
                 raise ValueError("netft: the service process brings the Net F/T box (services.transport.lab)")
             self.box = netft_box(self.ati_config, self._netft_bias, self._netft_sent if config.netft_topic else None)
         self._stamp = (0, 0)  # the cycle of the record the box is sending (seq, stamp_ns)
         # keep_tenth: realtime takes the newest contact but never skips a tenth cycle's,
         # whose wrench the estimator needs (it lost half of them on a crowded CPU)
-        self.subscriptions = [Subscription("robot/contact", self.on_contact, latest=True, keep_tenth=True)]
+        self.subscriptions = [Subscription(ROBOT_CONTACT.topic, self.on_contact, latest=True, keep_tenth=True)]
 
     def _injected(self, msg) -> bool:
         """Whether the injected fault acts on this record (episodes of the run only)."""
@@ -151,7 +151,7 @@ class FtSensorNode(Node):
             # outside the lock: a client's bias request (the box's thread) takes it
             self._stamp = (msg["seq"], msg["stamp_ns"])
             self.box.publish(rec)
-        self.bus.publish("ft/wrench", *FT_WRENCH.pack(
+        self.bus.publish(FT_WRENCH.topic, *FT_WRENCH.pack(
             seq=msg["seq"], stamp_ns=msg["stamp_ns"], sent_ns=self.clock.now_ns(),
             rdt_sequence=int(rec.rdt_sequence), ft_sequence=int(rec.ft_sequence), status=int(rec.status),
             counts=rec.counts.tolist(), counts_per_force=self._cpf, counts_per_torque=self._cpt,
@@ -180,7 +180,7 @@ class FtSensorNode(Node):
 
     def _netft_sent(self, peer, data: bytes) -> None:
         seq, stamp = self._stamp
-        self.bus.publish("netft/rdt", *NETFT_RDT.pack(seq=seq, stamp_ns=stamp, sent_ns=self.clock.now_ns(),
+        self.bus.publish(NETFT_RDT.topic, *NETFT_RDT.pack(seq=seq, stamp_ns=stamp, sent_ns=self.clock.now_ns(),
                                                       client=f"{peer[0]}:{peer[1]}", **rdt_fields(data)))
 
     def tare(self, p: dict) -> None:

@@ -64,7 +64,8 @@ from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import option
 from services.runtime.loop import Sections
 from robot_sim.cycle import FRI_CYCLE_NS
-from services.runtime.messages import ESTIMATOR_STRIDE, ROBOT_COMMAND, estimator_instant
+from services.runtime.messages import (ESTIMATOR_PHASE, ESTIMATOR_STRIDE, ROBOT_COMMAND, ROBOT_STATE,
+                                       estimator_instant)
 from services.runtime.timing import Histogram
 
 ROT_STIFFNESS = 150.0
@@ -128,19 +129,19 @@ class ImpedanceCommanderNode(Node):
         self._recv_ns = 0
         self._cart_pos = np.empty((3, 4))  # the setpoint pose [R | p], packed into each command
         self.task = load_task(config.model) if config.model else None
-        self.publications = [Publication("robot/command", drop_when_congested=True)]
-        self.subscriptions = [Subscription("estimator/phase", self.on_phase, latest=True)]
+        self.publications = [Publication(ROBOT_COMMAND.topic, drop_when_congested=True)]
+        self.subscriptions = [Subscription(ESTIMATOR_PHASE.topic, self.on_phase, latest=True)]
         self.fri = None
         if config.fri_listen:
             if self.lockstep:
                 raise ValueError("fri_listen needs the realtime clock: the KRC sends on its own clock")
-            self.publications.append(Publication("robot/state", drop_when_congested=True))
+            self.publications.append(Publication(ROBOT_STATE.topic, drop_when_congested=True))
             if fri_remote is None:
                 raise ValueError("fri_listen: the service process brings the FRI remote's socket "
                                  "(services.transport.lab)")
             self.fri = fri_remote(self._on_datagram)
         else:
-            self.subscriptions.append(Subscription("robot/state", self.on_state, latest=True))
+            self.subscriptions.append(Subscription(ROBOT_STATE.topic, self.on_state, latest=True))
 
     @property
     def listening(self) -> bool:
@@ -191,7 +192,7 @@ class ImpedanceCommanderNode(Node):
                 self._recv_ns = recv_ns
                 self._answer(msg)
         # after the answer: the KRC waits for that, the estimator's copy does not
-        self.bus.publish("robot/state", *packed)
+        self.bus.publish(ROBOT_STATE.topic, *packed)
 
     def _drain(self, give_up: bool = False):
         for seq in sorted(self._pending):
@@ -265,7 +266,7 @@ class ImpedanceCommanderNode(Node):
             self.fri.answer(state, cart.reshape(12), CART_STIFFNESS, CART_DAMPING, add,
                             goal_reached=bool(self.policy.goal_reached), hold=self.hold["reason"] if self.hold else "",
                             estimate_seq=self._latest_phase_seq)
-        self.bus.publish("robot/command", *packed)
+        self.bus.publish(ROBOT_COMMAND.topic, *packed)
         t3 = now()
         sec = self.sections
         sec.add("law", t1 - t0)

@@ -38,7 +38,8 @@ from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import option
 from robot_sim.krc.packets import FriState
 from robot_sim.ati.rdt import AtiStatus
-from services.runtime.messages import ESTIMATOR_PERIOD_NS, ESTIMATOR_PHASE, estimator_instant
+from services.runtime.messages import (ESTIMATOR_PERIOD_NS, ESTIMATOR_PHASE, FT_WRENCH, ROBOT_STATE,
+                                       estimator_instant)
 
 _SATURATED = int(AtiStatus.FT_OUT_OF_RANGE)
 _COMMAND_MODE = int(FriState.CMD)
@@ -89,8 +90,8 @@ class PhaseEstimatorNode(Node):
         self._lock = threading.Lock()
         self._states: dict[int, dict] = {}
         self._wrenches: dict[int, dict] = {}
-        self.publications = [Publication("estimator/phase")]
-        self.subscriptions = [Subscription("robot/state", self.on_state, every_tenth=True, latest=True)]
+        self.publications = [Publication(ESTIMATOR_PHASE.topic)]
+        self.subscriptions = [Subscription(ROBOT_STATE.topic, self.on_state, every_tenth=True, latest=True)]
         self.netft = None
         if config.netft:
             if mode == "lockstep":
@@ -99,7 +100,7 @@ class PhaseEstimatorNode(Node):
                 raise ValueError("netft: the service process brings the Net F/T client (services.transport.lab)")
             self.netft = netft_stream(lambda msg, recv_ns: self.on_wrench(msg, recv_ns, None))
         else:
-            self.subscriptions.append(Subscription("ft/wrench", self.on_wrench, every_tenth=True, latest=True))
+            self.subscriptions.append(Subscription(FT_WRENCH.topic, self.on_wrench, every_tenth=True, latest=True))
 
     @property
     def listening(self) -> bool:
@@ -175,7 +176,7 @@ class PhaseEstimatorNode(Node):
         if self.mute_after_ns and state["stamp_ns"] - self._t0 >= self.mute_after_ns:
             self.muted += 1
             return
-        self.bus.publish("estimator/phase", *ESTIMATOR_PHASE.pack(
+        self.bus.publish(ESTIMATOR_PHASE.topic, *ESTIMATOR_PHASE.pack(
             seq=seq, stamp_ns=state["stamp_ns"], sent_ns=self.clock.now_ns(), posterior=alpha,
             phase=int(np.argmax(alpha)), input_seq=seq, ft_seq=wrench["seq"], episode=self.episode,
             **({"input_fault": fault} if fault else {}),

@@ -48,7 +48,7 @@ from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import nested, option
 from services.runtime.cycle import EpisodePlan
 from services.runtime.fri_messages import command_packet, state_message
-from services.runtime.messages import EPISODE_SUMMARY, ROBOT_CONTACT
+from services.runtime.messages import EPISODE_SUMMARY, FRI_DATAGRAM, ROBOT_CONTACT, ROBOT_STATE
 from services.runtime.roles import PARTICIPANTS, ROLES
 
 LOCKSTEP_LATENCY_NS = 100_000
@@ -153,11 +153,11 @@ class RobotNode(Node):
         self._episode_after = None
         self._m = None
         self._sent = 0
-        self.publications = [Publication("robot/state", drop_when_congested=True),
-                             Publication("robot/contact", drop_when_congested=True),
-                             Publication("robot/episode", express=False)]
+        self.publications = [Publication(ROBOT_STATE.topic, drop_when_congested=True),
+                             Publication(ROBOT_CONTACT.topic, drop_when_congested=True),
+                             Publication(EPISODE_SUMMARY.topic, express=False)]
         if self.udp is not None and self.udp.wire_topic:
-            self.publications.append(Publication("fri/datagram", drop_when_congested=True))
+            self.publications.append(Publication(FRI_DATAGRAM.topic, drop_when_congested=True))
         # realtime needs only what it applies; lockstep also waits on the sensor and the estimator;
         # over UDP the commands come on the FRI socket
         applied = ("teacher",) if self.udp is not None else ("command", "teacher")
@@ -257,7 +257,7 @@ class RobotNode(Node):
                 self.episode, self._episode_after = self._episode_after, None
 
     def publish_summary(self, summary: dict) -> None:
-        self.bus.publish("robot/episode", EPISODE_SUMMARY.encode(**summary))
+        self.bus.publish(EPISODE_SUMMARY.topic, EPISODE_SUMMARY.encode(**summary))
 
     # --------------------------------------------------------------- cycles
 
@@ -275,7 +275,7 @@ class RobotNode(Node):
                               gravity_compensation=bool(cell.krc.gravity_compensation), episode=self.episode)
         t1 = now()
         if not self.relayed:
-            self.bus.publish("robot/state", *state)
+            self.bus.publish(ROBOT_STATE.topic, *state)
         t2 = now()
         sec.add("encode", t1 - sent)
         sec.add("publish", t2 - t1)
@@ -288,7 +288,7 @@ class RobotNode(Node):
             touching=touching, true_phase=true_phase, tcp_pose=cell.true_tcp_pose, tcp_twist=cell.true_tcp_twist,
             episode=self.episode)
         t4 = now()
-        self.bus.publish("robot/contact", *contact_msg)
+        self.bus.publish(ROBOT_CONTACT.topic, *contact_msg)
         sec.add("measure", t3 - t2)
         sec.add("encode", t4 - t3)
         sec.add("publish", now() - t4)

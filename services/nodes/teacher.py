@@ -20,7 +20,7 @@ from robot_sim.world.teacher import HoseCouplerTeacher, ValleyTeacher
 from robot_sim.world.tasks import HoseCoupler, TASK_WORLDS, Valley
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import option
-from services.runtime.messages import TEACHER_WRENCH
+from services.runtime.messages import ROBOT_CONTACT, ROBOT_STATE, TEACHER_WRENCH
 
 DT = FRI_CYCLE_NS / 1e9  # the hand answers every FRI cycle
 
@@ -46,10 +46,10 @@ class TeacherNode(Node):
         self._states: dict[int, dict] = {}
         self._contacts: dict[int, dict] = {}
         self._prev = None  # (seq, position, rotation)
-        self.publications = [Publication("teacher/wrench")]
+        self.publications = [Publication(TEACHER_WRENCH.topic)]
         # realtime: a hand reacts to the arm as it is now, not to a backlog
-        self.subscriptions = [Subscription("robot/state", self.on_state, latest=True),
-                              Subscription("robot/contact", self.on_contact, latest=True)]
+        self.subscriptions = [Subscription(ROBOT_STATE.topic, self.on_state, latest=True),
+                              Subscription(ROBOT_CONTACT.topic, self.on_contact, latest=True)]
 
     def on_state(self, msg, recv_ns, raw):
         with self._lock:
@@ -94,7 +94,7 @@ class TeacherNode(Node):
         done = bool(self.teacher.done)
         if isinstance(self.teacher, HoseCouplerTeacher):
             done = self.teacher.phase == 1 and self.teacher.rotation_done(R)
-        self.bus.publish("teacher/wrench", *TEACHER_WRENCH.pack(
+        self.bus.publish(TEACHER_WRENCH.topic, *TEACHER_WRENCH.pack(
             seq=seq, stamp_ns=state["stamp_ns"], sent_ns=self.clock.now_ns(), wrench=hand,
             script_phase=int(self.teacher.phase), done=done, episode=self.episode))
 

@@ -13,9 +13,9 @@ from etar.features import force_vector, state_vector
 from etar.vocabulary import FEATURES, STATES
 from services.recordings.format import RecordingError
 from services.recordings.reader import Episode, read_episode
-from services.runtime.messages import FT_WRENCH, ROBOT_CONTACT, ROBOT_STATE, SAMPLE_RATE_HZ, MessageError
+from services.runtime.messages import FT_WRENCH, MessageError, ROBOT_CONTACT, ROBOT_STATE, SAMPLE_RATE_HZ
 
-_DEMONSTRATION_TOPICS = {"/robot/state": ROBOT_STATE, "/ft/wrench": FT_WRENCH, "/robot/contact": ROBOT_CONTACT}
+_DEMONSTRATION_TOPICS = {m.channel: m for m in (ROBOT_STATE, FT_WRENCH, ROBOT_CONTACT)}
 
 
 def load_demonstration(path, *, state: str = "position", features: str = "force", rate_hz: float = SAMPLE_RATE_HZ,

@@ -18,6 +18,8 @@ there is a scenario): mcap's default writer emits summary offsets for empty
 groups, which MCAP validators flag.
 """
 
+from services.runtime.messages import EPISODE_SUMMARY, RUNNER_EVENT, SERVICE_LOG
+
 # bytes of uncompressed records per chunk: what a killed recorder can lose.  A
 # reproduction records 1.94 MB per simulated second, a demonstration 1.60 MB
 # (smoke scenario over Zenoh), so a chunk holds 84 ms or 102 ms of the episode
@@ -34,4 +36,4 @@ class RecordingError(ValueError):
 
 # topics whose payloads carry wall-clock durations and loop timing, and the services' log lines
 # (when a service logs is the machine's doing): not what a seed determines
-WALL_CLOCK_TOPICS = frozenset({"/robot/episode", "/runner/event", "/service/log"})
+WALL_CLOCK_TOPICS = frozenset({EPISODE_SUMMARY.channel, RUNNER_EVENT.channel, SERVICE_LOG.channel})

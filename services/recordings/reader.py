@@ -29,7 +29,7 @@ from mcap.records import Attachment, Channel, Chunk, DataEnd, Footer, Header, Me
 from mcap.stream_reader import StreamReader, breakup_chunk
 
 from services.recordings.format import MAGIC, METADATA_NAME, SCENARIO_ATTACHMENT, WALL_CLOCK_TOPICS, RecordingError
-from services.runtime.messages import SEQ_PREFIX, loads
+from services.runtime.messages import ROBOT_STATE, SEQ_PREFIX, loads
 from services.runtime.visual_topics import SCHEMA_NAMES as VISUAL_SCHEMA_NAMES
 
 
@@ -263,7 +263,7 @@ def recording_gaps(paths) -> list:
         except RecordingError as exc:
             ranges.append((str(path), None, None, str(exc)))
             continue
-        seqs = [int(m.group(1)) for msg in ep.messages if msg.topic == "/robot/state"
+        seqs = [int(m.group(1)) for msg in ep.messages if msg.topic == ROBOT_STATE.channel
                 for m in [SEQ_PREFIX.match(msg.payload)] if m]
         ranges.append((str(path), min(seqs, default=None), max(seqs, default=None), ep.problem or ""))
     gaps = []

@@ -20,7 +20,7 @@ from mcap.writer import CompressionType, IndexType, Writer
 
 from services.recordings.format import CHUNK_SIZE, METADATA_NAME, SCENARIO_ATTACHMENT, SCENARIO_MEDIA_TYPE, RecordingError
 from services.recordings.reader import read_episode
-from services.runtime.messages import loads
+from services.runtime.messages import ROBOT_STATE, loads
 from services.runtime.visual_topics import DERIVED_BY
 
 
@@ -68,7 +68,7 @@ def recover(source, out=None, *, overwrite: bool = False) -> Recovered:
                what="recovered")
     last_seq = None
     for m in episode.messages:
-        if m.topic == "/robot/state":
+        if m.topic == ROBOT_STATE.channel:
             try:
                 msg = loads(m.payload)
             except ValueError:

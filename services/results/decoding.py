@@ -26,19 +26,20 @@ import numpy as np
 from etar.metrics import score_segmentation
 from services.recordings.demonstrations import demonstration_of
 from services.recordings.reader import Episode, read_episode
-from services.runtime.messages import BY_TOPIC, ESTIMATOR_PERIOD_NS, INT_MAX, INT_MIN, STRIDES, loads
+from services.runtime.messages import (BY_TOPIC, ESTIMATOR_PERIOD_NS, ESTIMATOR_PHASE, INT_MAX, INT_MIN,
+                                       ROBOT_COMMAND, ROBOT_CONTACT, ROBOT_STATE, STRIDES, loads)
 from services.runtime.threads import process_map
 from services.runtime.timing import SequenceTracker, percentiles
 
 # what the report reads of each topic: every one an integer (counts, sequence numbers, clocks, labels)
-REPORT_FIELDS = {"robot/state": ("seq", "sent_ns", "stamp_ns", "fri_quality", "fri_state"),
-                 "robot/contact": ("seq", "sent_ns", "true_phase"),
-                 "estimator/phase": ("seq", "sent_ns", "phase")}
+REPORT_FIELDS = {ROBOT_STATE.topic: ("seq", "sent_ns", "stamp_ns", "fri_quality", "fri_state"),
+                 ROBOT_CONTACT.topic: ("seq", "sent_ns", "true_phase"),
+                 ESTIMATOR_PHASE.topic: ("seq", "sent_ns", "phase")}
 _HEADER = ("seq", "sent_ns")
 # optional text fields the report counts, with the values it knows (any other is not read)
-REPORT_TEXT = {"estimator/phase": {"unconditioned": ("arm_held", "gap")}}
+REPORT_TEXT = {ESTIMATOR_PHASE.topic: {"unconditioned": ("arm_held", "gap")}}
 # the topics a reproduction's trace is taken from
-TRACE_TOPICS = ("/estimator/phase", "/robot/command", "/robot/contact")
+TRACE_TOPICS = (ESTIMATOR_PHASE.channel, ROBOT_COMMAND.channel, ROBOT_CONTACT.channel)
 
 # recordings read at ~15 MB/s in one process: below this, a pool's start costs more than it saves
 PARALLEL_READ_BYTES = 32 << 20
@@ -177,9 +178,9 @@ def reproduction_trace(ep: Episode, arrays: dict) -> ReproductionTrace:
         except ValueError:
             continue
         try:
-            if m.topic == "/estimator/phase":
+            if m.topic == ESTIMATOR_PHASE.channel:
                 estimates.append((msg["stamp_ns"] / 1e9, msg["phase"], msg["posterior"], msg.get("seq")))
-            elif m.topic == "/robot/contact":
+            elif m.topic == ROBOT_CONTACT.channel:
                 truth_by_seq.setdefault(msg["seq"], msg["true_phase"])
             else:
                 commanded.append((msg["stamp_ns"] / 1e9, msg["phase"]))
@@ -238,8 +239,8 @@ def episode_links(decoded: dict) -> dict:
 
 def reproduction_phases(decoded: dict, phase_to_truth: dict, dt: float = ESTIMATOR_PERIOD_NS / 1e9) -> dict:
     """Accuracy and transition-time error of the online estimate in one recorded reproduction."""
-    truth_by_seq = {d["seq"]: d["true_phase"] for _, d in decoded.get("robot/contact", ())}
-    est_by_seq = {d["seq"]: d for _, d in decoded.get("estimator/phase", ())}
+    truth_by_seq = {d["seq"]: d["true_phase"] for _, d in decoded.get(ROBOT_CONTACT.topic, ())}
+    est_by_seq = {d["seq"]: d for _, d in decoded.get(ESTIMATOR_PHASE.topic, ())}
     seqs = sorted(s for s in est_by_seq if s in truth_by_seq)
     if not seqs:
         return {"updates": 0, "accuracy": None, "unconditioned": {"arm_held": 0, "gap": 0}}
@@ -260,7 +261,7 @@ def reproduction_phases(decoded: dict, phase_to_truth: dict, dt: float = ESTIMAT
 def fri_quality_series(decoded: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(simulated time s, FRI quality, FRI state) of every robot_state in one recorded episode."""
     t, q, st = [], [], []
-    for _, d in decoded.get("robot/state", ()):
+    for _, d in decoded.get(ROBOT_STATE.topic, ()):
         t.append(d["stamp_ns"] / 1e9)
         q.append(d["fri_quality"])
         st.append(d["fri_state"])

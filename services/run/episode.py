@@ -19,14 +19,15 @@ from services.recordings.format import RecordingError
 from services.recordings.reader import recording_gaps
 from services.run.progress import EpisodeProgress
 from services.runtime.cycle import LOCKSTEP_GIVE_UP
-from services.runtime.messages import RUNNER_EVENT
+from services.runtime.messages import (FT_WRENCH, ROBOT_COMMAND, ROBOT_CONTACT, ROBOT_STATE, RUNNER_EVENT,
+                                       TEACHER_WRENCH)
 from services.runtime.roles import PARTICIPANTS
 from services.transport.cell import Cell, ServiceLost
 from services.transport.subscriptions import now_ns
 
 # what the recorder waits for before it closes an episode's file
-DEMONSTRATION_TOPICS = ("robot/state", "robot/contact", "ft/wrench", "teacher/wrench")
-REPRODUCTION_TOPICS = ("robot/state", "robot/contact", "ft/wrench", "robot/command")
+DEMONSTRATION_TOPICS = (ROBOT_STATE.topic, ROBOT_CONTACT.topic, FT_WRENCH.topic, TEACHER_WRENCH.topic)
+REPRODUCTION_TOPICS = (ROBOT_STATE.topic, ROBOT_CONTACT.topic, FT_WRENCH.topic, ROBOT_COMMAND.topic)
 SETTLE_CYCLES = 200  # the arm at rest before an episode, the sensor tared over its last ...
 TARE_SAMPLES = 100
 SETTLE_TIMEOUT_S = 120.0
@@ -207,7 +208,7 @@ class Episodes:
 
     def event(self, event: str, stage: str, episode: int, info: dict) -> None:
         """A runner event (``runner/event``): recorded, and drawn in the log of the visual topics."""
-        self.cell.publish("runner/event", RUNNER_EVENT.encode(
+        self.cell.publish(RUNNER_EVENT.topic, RUNNER_EVENT.encode(
             seq=0, stamp_ns=0, sent_ns=now_ns(), event=event, stage=stage, episode=episode, info=info))
 
     def request(self, role: str, cmd: str, timeout: float = 30.0, **args) -> dict:

@@ -24,9 +24,10 @@ from robot_sim.wire.fri_datagrams import REMOTE_PORT
 from robot_sim.krc.krl import LAB_CONVENTIONS
 from services.scenario import Scenario
 from services.scenario.starts import reproduction_starts
+from services.runtime.messages import FT_WRENCH, ROBOT_CONTACT, ROBOT_STATE
 
 # what the recorder waits for before it closes the served episode's file
-SERVED_TOPICS = ("robot/state", "robot/contact", "ft/wrench")
+SERVED_TOPICS = (ROBOT_STATE.topic, ROBOT_CONTACT.topic, FT_WRENCH.topic)
 
 
 @dataclass(frozen=True)

@@ -149,6 +149,7 @@ class MessageType:
     def __init__(self, name: str, topic: str, doc: str, fields: tuple, period_ns: int | None = None):
         self.name = name
         self.topic = topic  # relative to the run prefix etar/<run_id>/
+        self.channel = "/" + topic  # its channel's topic in a recording (MCAP)
         self.doc = doc
         self.period_ns = period_ns  # how often it is published, simulated time (None: on events)
         self.fields = tuple(Field(*h) for h in HEADER) + tuple(f if isinstance(f, Field) else Field(*f) for f in fields)

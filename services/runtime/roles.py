@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from services.runtime.messages import ESTIMATOR_PHASE, FT_WRENCH, ROBOT_COMMAND, TEACHER_WRENCH
+
 
 @dataclass(frozen=True)
 class Role:
@@ -42,13 +44,13 @@ class Role:
 
 ROLES: dict[str, Role] = {r.name: r for r in (
     Role("robot", "the LWR4+ behind its KRC: physics, FRI, the 1 kHz cycle", fifo_priority=60),
-    Role("ft_sensor", "the ATI force/torque sensor", answers="ft", answer_topic="ft/wrench", fifo_priority=50),
+    Role("ft_sensor", "the ATI force/torque sensor", answers="ft", answer_topic=FT_WRENCH.topic, fifo_priority=50),
     Role("teacher", "the simulated teacher's hand (demonstrations)", answers="teacher",
-         answer_topic="teacher/wrench", fifo_priority=55, subscribes_when_listening=True),
-    Role("phase_estimator", "the online ETAR filter (100 Hz)", answers="phase", answer_topic="estimator/phase",
+         answer_topic=TEACHER_WRENCH.topic, fifo_priority=55, subscribes_when_listening=True),
+    Role("phase_estimator", "the online ETAR filter (100 Hz)", answers="phase", answer_topic=ESTIMATOR_PHASE.topic,
          fifo_priority=45, restartable=True),
     Role("impedance_commander", "the per-phase Cartesian impedance command (1 kHz)", answers="command",
-         answer_topic="robot/command", fifo_priority=55),
+         answer_topic=ROBOT_COMMAND.topic, fifo_priority=55),
     Role("recorder", "one MCAP file per episode", restartable=True),
     Role("foxglove_bridge", "the live view over Foxglove's WebSocket protocol"),
 )}

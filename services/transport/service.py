@@ -21,7 +21,7 @@ import time
 import zenoh
 
 from services.runtime import topics
-from services.runtime.messages import loads
+from services.runtime.messages import SERVICE_LOG, loads
 from services.transport.profiling import ProcessProfile
 from services.transport.session import ZenohOptions, open_session
 from services.transport.subscriptions import LinkCounters, subscribe, subscribe_all
@@ -84,10 +84,8 @@ class Service:
         self._log(msg)
         if self.session is None:
             return
-        from services.runtime.messages import SERVICE_LOG
-
         try:
-            pub = self._publishers.get("service/log") or self.publisher("service/log", realtime=False)
+            pub = self._publishers.get(SERVICE_LOG.topic) or self.publisher(SERVICE_LOG.topic, realtime=False)
             self._log_seq += 1
             pub.put(SERVICE_LOG.encode(seq=self._log_seq, stamp_ns=0, sent_ns=time.monotonic_ns(), role=self.name,
                                        level=int(level), text=str(msg)))

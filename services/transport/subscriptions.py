@@ -75,7 +75,7 @@ def _judged_delivery(counters: LinkCounters, message_type: MessageType | None, o
                 counters.bad += 1
                 counters.last_error = str(exc)
                 return
-            except Exception as exc:  # noqa: BLE001 - a decoder's own bug (tests/services/test_fuzz.py
+            except Exception as exc:  # noqa: BLE001 - a decoder's own bug (tests/services/recordings/test_fuzz.py
                 # looks for them) must not end a latest subscriber's drain thread: counted, named
                 counters.bad += 1
                 counters.last_error = f"{type(exc).__name__} while decoding: {exc}"

@@ -57,7 +57,7 @@ class ZenohCell:
         self._codes = {}
         self._wake = threading.Event()  # an episode's summary came, or a service was lost
         try:
-            self._sub = self.session.declare_subscriber(topics.key(run_id, "robot/episode"), self._on_episode)
+            self._sub = self.session.declare_subscriber(topics.key(run_id, EPISODE_SUMMARY.topic), self._on_episode)
             self.supervisor = Supervisor(self.session, run_id, start.log_dir, hosts=hosts, attach=attach,
                                          restartable=start.restartable, on_restart=start.on_restart,
                                          wake=self._wake)

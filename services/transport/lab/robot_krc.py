@@ -86,7 +86,7 @@ class RobotKrcOverUdp:
         if not self._datagrams:
             return False
         for seq, stamp_ns, sent_ns, direction, data in self._datagrams:
-            bus.publish("fri/datagram", *FRI_DATAGRAM.pack(
+            bus.publish(FRI_DATAGRAM.topic, *FRI_DATAGRAM.pack(
                 seq=seq, stamp_ns=stamp_ns, sent_ns=sent_ns, direction=direction,
                 **datagram_fields(data, direction)))
         self._datagrams.clear()

@@ -13,6 +13,7 @@ from robot_sim.wire.fri_datagrams import decode_command, decode_measurement
 from services.transport.lab import edges
 from services.nodes.robot import RobotConfig, RobotNode
 from tests.robot_sim.fri_remote import Remote
+from tests.support import wait_until
 
 
 class Bus:
@@ -36,13 +37,8 @@ class Clock:
         time.sleep(seconds)
 
 
-def _answered(node: RobotNode, seconds: float = 2.0) -> bool:
-    end = time.monotonic() + seconds
-    while time.monotonic() < end:
-        if node.udp.answered():
-            return True
-        time.sleep(0.0005)
-    return False
+def _answered(node: RobotNode) -> None:
+    wait_until(node.udp.answered, 2.0, "the remote's answer to this cycle", poll_s=0.0005)
 
 
 @pytest.fixture
@@ -65,7 +61,7 @@ def test_a_cycles_datagrams_are_recorded_after_its_step_measurement_first(served
         seq, _ = node.open_cycle()
         # measured and sent; its copy for the recording waits until the cycle has stepped
         assert bus.datagrams() == []
-        assert _answered(node), "the remote did not answer"
+        _answered(node)
         node.close_cycle(None)
         measurement, command = bus.datagrams()
         assert (measurement["direction"], command["direction"]) == ("measurement", "command")
@@ -80,7 +76,7 @@ def test_a_cycles_datagrams_are_recorded_after_its_step_measurement_first(served
 def test_a_step_that_fails_still_records_what_crossed_the_wire(served, monkeypatch):
     node, bus = served
     seq, _ = node.open_cycle()
-    assert _answered(node)
+    _answered(node)
 
     def fails(*a, **k):
         raise RuntimeError("the step failed")
@@ -97,6 +93,6 @@ def test_a_cycle_left_open_by_a_failed_episode_is_not_recorded_in_the_next(serve
     node.begin_episode()
     node.cell.end_cycle()  # the KRC's own bookkeeping, as a restarted episode would find it
     seq, _ = node.open_cycle()
-    assert _answered(node)
+    _answered(node)
     node.close_cycle(None)
     assert [(d["direction"], d["seq"]) for d in bus.datagrams()] == [("measurement", seq), ("command", seq)]

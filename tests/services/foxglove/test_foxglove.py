@@ -19,7 +19,7 @@ from services.foxglove.scene import ARM_ALPHA, ARROW_M_PER_N, ELLIPSOID_M_PER_N_
 from services.runtime.visual_topics import SCHEMA_DIR, SCHEMA_NAMES, schema_bytes
 from services.foxglove.tap import VisualTap, encode
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 NPM_SCHEMAS = ROOT / ".cache" / "foxglove-schemas" / "jsonschema"  # `make foxglove-schemas`
 
 

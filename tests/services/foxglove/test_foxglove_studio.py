@@ -34,7 +34,7 @@ from services.runtime.visual_topics import SCHEMA_NAMES
 # a browser with software WebGL and fixed waits: serial (make test runs these after the rest)
 pytestmark = [pytest.mark.serial]
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 STUDIO = ROOT / ".cache" / "foxglove-studio"
 PAGE = ROOT / "tests" / "foxglove" / "studio"
 ARTIFACTS = ROOT / "out" / "foxglove-studio"

@@ -12,7 +12,7 @@ from etar.selection import vote_order
 from etar.synthetic import make_task, sample_demonstrations
 from services.results.decoding import EpisodeReading, decode_episode
 from services.runtime.threads import process_map
-from tests.services.test_recording import mixed_messages, write_episode
+from tests.services.recordings.test_recording import mixed_messages, write_episode
 
 
 def _pid_and_square(x):

@@ -17,7 +17,7 @@ from tests.support import assert_a_stall, realtime_attempts, require_realtime_ma
 # a realtime run over FRI/UDP: serial (make test runs these after the rest)
 pytestmark = [pytest.mark.serial]
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 
 
 @pytest.mark.slow

@@ -9,7 +9,7 @@ from services.scenario.loading import load_scenario
 from services.run.sweep import by_model_rows, comparison_over_seeds
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 
 
 def figures(**values):

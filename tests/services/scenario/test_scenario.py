@@ -11,7 +11,7 @@ from services.scenario.checks import MAX_START_DRAWS, ScenarioError
 from services.scenario.starts import demonstration_starts, reproduction_starts
 from services.scenario.loading import load_scenario
 
-SCENARIOS = Path(__file__).resolve().parents[2] / "scenarios"
+SCENARIOS = Path(__file__).resolve().parents[3] / "scenarios"
 SCENARIO_FILES = sorted(SCENARIOS.glob("*.yaml"))
 
 MINIMAL = """\

@@ -15,7 +15,7 @@ from tests import support
 # whole runs in one process (seconds each): the slow lane
 pytestmark = [pytest.mark.slow]
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 FIGURES = ["demonstrations_position_and_force.png", "bic_by_phase_count.png", "forward_variable_demonstrations.png",
            "tool_path_by_phase.png", "prediction_error_by_step.png", "prediction_error_by_phase.png",
            "reproduction_00_force_phase_alpha.png"]

@@ -30,22 +30,17 @@ from tests.support import (assert_a_stall, popen_as_from_a_terminal, realtime_at
 # the served cell on the realtime clock, at 1 kHz over UDP: serial (make test runs these after the rest)
 pytestmark = [pytest.mark.serial]
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 BOX_LINE = re.compile(r"Net F/T box on ([\d.]+) \(RDT UDP (\d+), HTTP (\d+), calibration TCP (\d+)\)")
 
 
 def reached(predicate, seconds: float) -> bool:
-    end = time.monotonic() + seconds
-    while time.monotonic() < end:
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return False
-
-
-def wait_for(predicate, seconds: float, what: str):
-    if not reached(predicate, seconds):
-        raise AssertionError(f"timed out after {seconds} s waiting for {what}")
+    """Whether ``predicate()`` holds within ``seconds`` (where not holding is an outcome, not a failure)."""
+    try:
+        wait_until(predicate, seconds, "")
+    except AssertionError:
+        return False
+    return True
 
 
 def fri_fell_back(served: dict, commanded: bool) -> str | None:
@@ -90,7 +85,7 @@ def _serve_a_lab_remote_and_a_net_ft_client(pynetft, out: Path) -> str | None:
         proc, box = _start_serve_with_box(out, remote.port, 14)
         try:
             address, rdt, http = box.group(1), int(box.group(2)), int(box.group(3))
-            wait_for(lambda: remote.received > 200, 10, "measurement datagrams")
+            wait_until(lambda: remote.received > 200, 10, "measurement datagrams")
             assert int(remote.last["intf"]["state"]) == FriState.MON and remote.krl_state == 10
             config = pynetft.Config(sensor_host=address, rdt_port=rdt, http_port=http)
             with pynetft.Client(config, queue_size=100_000) as client:
@@ -103,9 +98,9 @@ def _serve_a_lab_remote_and_a_net_ft_client(pynetft, out: Path) -> str | None:
                 commanded = reached(lambda: int(remote.last["intf"]["state"]) == FriState.CMD, 8)
                 time.sleep(2.0 if commanded else 0.0)
                 remote.request = "stop"
-                wait_for(lambda: int(remote.last["intf"]["state"]) == FriState.MON, 3, "monitor mode again")
+                wait_until(lambda: int(remote.last["intf"]["state"]) == FriState.MON, 3, "monitor mode again")
                 remote.request = "close"
-                wait_for(lambda: int(remote.last["intf"]["state"]) == FriState.OFF, 3, "OFF after the close")
+                wait_until(lambda: int(remote.last["intf"]["state"]) == FriState.OFF, 3, "OFF after the close")
             stdout, stderr = proc.communicate(timeout=60)
         finally:
             if proc.poll() is None:
