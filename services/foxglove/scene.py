@@ -129,39 +129,19 @@ def _entity(stamp_ns: int, frame_id: str, entity_id: str, **primitives) -> dict:
     return e
 
 
+# Foxglove's primitive for each of the world's shapes
+PRIMITIVES = {"box": "cubes", "sphere": "spheres", "cylinder": "cylinders"}
+
+
 @lru_cache(maxsize=None)
 def world_geometry(world: str) -> tuple:
-    """(frame_id, kind, pose, size, rgba) of every geom the physics has, from the MuJoCo
-    model of the world (``robot_sim.world.tasks``): the task's on ``base``, the arm's on the
-    frame of their link (MuJoCo's bodies carry the URDF's link names).  Planes (the
-    floor) are left to Foxglove's grid."""
-    import mujoco
+    """(frame_id, primitive, pose, size, rgba) of every geom the physics has
+    (``robot_sim.world.geometry``): the task's on ``base``, the arm's on the frame of
+    their link."""
+    from robot_sim.world.geometry import world_geoms
 
-    from robot_sim.world.tasks import WORLDS
-
-    if world not in WORLDS:
-        raise ValueError(f"unknown world {world!r}: expected one of {', '.join(WORLDS)}")
-    m = mujoco.MjModel.from_xml_string(WORLDS[world]().xml)
-    out = []
-    for g in range(m.ngeom):
-        kind = int(m.geom_type[g])
-        body = m.body(int(m.geom_bodyid[g])).name
-        frame = "base" if int(m.geom_bodyid[g]) == 0 else body
-        size = m.geom_size[g]
-        if kind == mujoco.mjtGeom.mjGEOM_BOX:
-            prim, dims = "cubes", [2 * size[0], 2 * size[1], 2 * size[2]]
-        elif kind == mujoco.mjtGeom.mjGEOM_SPHERE:
-            prim, dims = "spheres", [2 * size[0]] * 3
-        elif kind == mujoco.mjtGeom.mjGEOM_CYLINDER:
-            prim, dims = "cylinders", [2 * size[0], 2 * size[0], 2 * size[1]]
-        elif kind == mujoco.mjtGeom.mjGEOM_CAPSULE:
-            # a cylinder as long as the capsule with its caps: near enough to see the link
-            prim, dims = "cylinders", [2 * size[0], 2 * size[0], 2 * size[1] + 2 * size[0]]
-        else:
-            continue
-        pose = _pose(m.geom_pos[g], _quaternion(*m.geom_quat[g]))
-        out.append((frame, prim, pose, tuple(float(d) for d in dims), tuple(float(c) for c in m.geom_rgba[g])))
-    return tuple(out)
+    return tuple((g.frame, PRIMITIVES[g.shape], _pose(g.position, _quaternion(*g.quaternion)), g.size, g.rgba)
+                 for g in world_geoms(world))
 
 
 class VisualScene:
