@@ -18,7 +18,7 @@ from services.runtime.roles import ROLES
 ROOT = Path(__file__).resolve().parents[1]
 
 # lowest first: a wing may import the wings before it, never one after it
-WINGS = ("runtime", "scenario", "recordings", "foxglove", "nodes", "transport", "results", "run", "cli")
+WINGS = ("runtime", "scenario", "recordings", "foxglove", "ros2", "nodes", "transport", "results", "run", "cli")
 
 
 # robot_sim/: each part and what of robot_sim it may import.  The wire is bytes and sockets:

@@ -1,9 +1,10 @@
 """``etar-bench``: run scenarios and read their reports.
 
     etar-bench run SCENARIO [--out DIR] [--clock realtime|lockstep] [--transport zenoh|inproc] [--foxglove [PORT]]
+                   [--ros2 [DOMAIN]]
     etar-bench check SCENARIO
     etar-bench serve SCENARIO --out DIR [--fri-remote HOST:PORT] [--krl frilibrary|lwr_hw] [--netft HOST]
-                     [--start X,Y,Z] [--max-seconds S]
+                     [--start X,Y,Z] [--max-seconds S] [--ros2 [DOMAIN]]
     etar-bench demo [--world valley|hose_coupler] [--side left|right] [--png FILE] [--npz FILE]
     etar-bench sweep SCENARIO --param PATH=V1,V2,... [--repeats N] --out DIR [--cluster ADDRESS]
     etar-bench report RUN_DIR [--json]
@@ -13,6 +14,7 @@
     etar-bench figures RUN_DIR
     etar-bench compare RUN_DIR [--seeds N] [--pair I,J]
     etar-bench export RUN_DIR --foxglove [--visual-rate-hz HZ]
+    etar-bench export RUN_DIR --rosbag2 [--out DIR]
     etar-bench certs DIR [--host IP]
     etar-bench router [--listen tcp/0.0.0.0:7447]
 """
@@ -56,6 +58,22 @@ def _xyz(text: str) -> tuple:
     if len(values) != 3 or not all(np.isfinite(values)):
         raise argparse.ArgumentTypeError(f"expected three numbers X,Y,Z in m, e.g. 0.5,0.0,0.3; got {text!r}")
     return values
+
+
+def add_ros2_arguments(p, live: bool) -> None:
+    """``--ros2 [DOMAIN]`` (``live``: a run or a serve) and the rates of the ROS 2 topics."""
+    from services.ros2.convert import Ros2Rates
+
+    if live:
+        p.add_argument("--ros2", nargs="?", const=0, type=int, metavar="DOMAIN",
+                       help="the cell on ROS 2's Zenoh wire (rmw_zenoh, Jazzy >= 0.2.4, Kilted, Rolling) as node "
+                            "/etar_cell in ROS 2 domain DOMAIN (default 0): /joint_states, /tf, /robot_description, "
+                            "/tcp_pose, /ft_sensor/wrench, /etar/phase, /clock (docs/ros2.md); --transport zenoh")
+    for name, what in (("state", "/joint_states, /tf and /tcp_pose"), ("wrench", "/ft_sensor/wrench"),
+                       ("clock", "/clock")):
+        p.add_argument(f"--ros2-{name}-rate-hz", type=float, default=getattr(Ros2Rates, f"{name}_rate_hz"),
+                       metavar="HZ", help=f"rate of {what}, Hz, dividing 1000 (default "
+                                          f"{getattr(Ros2Rates, f'{name}_rate_hz'):g})")
 
 
 def build_parser() -> OneLineErrorParser:
@@ -116,6 +134,7 @@ def build_parser() -> OneLineErrorParser:
                         f"over Foxglove's WebSocket protocol on PORT (default {FOXGLOVE_PORT}; 0: any free port, "
                         "printed); "
                         "connect Foxglove to ws://localhost:PORT")
+    add_ros2_arguments(p, live=True)
     p.add_argument("--wire", choices=WIRES, default=RunOptions.wire,
                    help="zenoh (default): the nodes talk over Zenoh; udp: over the lab's protocols, the KRC and "
                         "the commander FRI 1.0 over UDP, the estimator reading the sensor's Net F/T box (realtime "
@@ -163,6 +182,7 @@ def build_parser() -> OneLineErrorParser:
     p.add_argument("--robot-flag", action="append", metavar="FLAG",
                    help="a further flag for the robot, e.g. --robot-flag=--fri-packet-loss=0.01 (repeatable): the "
                         "link's faults apply to the UDP link too")
+    add_ros2_arguments(p, live=True)
     p.set_defaults(func=cmd_serve)
     p = sub.add_parser("check", help="validate a scenario without running it (the model file, every start) and "
                                      "print it with every default filled in")
@@ -244,9 +264,13 @@ def build_parser() -> OneLineErrorParser:
                        description=export.__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("run_dir", help="a finished run's folder (recordings/*.mcap)")
-    p.add_argument("--foxglove", action="store_true", help="the visual topics for Foxglove (required)")
+    p.add_argument("--foxglove", action="store_true", help="add the visual topics for Foxglove to the recordings")
     p.add_argument("--visual-rate-hz", type=float, default=VISUAL_RATE_HZ, metavar="HZ",
                    help=f"visual frames per second of simulated time (default {VISUAL_RATE_HZ:g})")
+    p.add_argument("--rosbag2", action="store_true",
+                   help="a ROS 2 bag (rosbag2, MCAP, CDR) of each recording, the topics of --ros2 (docs/ros2.md)")
+    p.add_argument("--out", metavar="DIR", help="--rosbag2: the folder for the bags (default RUN_DIR/rosbag2)")
+    add_ros2_arguments(p, live=False)
     p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("compare", help="ETAR against STAR (thesis 6.3) on a finished run's demonstrations: both "

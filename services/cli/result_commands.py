@@ -116,12 +116,19 @@ def cmd_figures(args) -> int:
 def cmd_export(args) -> int:
     from services.foxglove.export import export_foxglove
     from services.recordings.format import RecordingError
+    from services.cli.run_commands import ros2_rates
+    from services.ros2.bag import export_rosbag2
 
-    if not args.foxglove:
-        say("etar-bench export: error: say what to add: --foxglove (the only export so far)")
+    if not (args.foxglove or args.rosbag2):
+        say("etar-bench export: error: say what to export: --foxglove (visual topics added to the recordings) "
+            "and/or --rosbag2 (ROS 2 bags beside them)")
+        return 2
+    if args.out is not None and not args.rosbag2:
+        say("etar-bench export: error: --out is where --rosbag2 writes its bags; --foxglove adds to the recordings")
         return 2
     try:
         check_visual_rate(args.visual_rate_hz, "--visual-rate-hz")
+        rates = ros2_rates(args)
     except ValueError as exc:
         say(f"etar-bench export: error: {exc}")
         return 2
@@ -129,12 +136,20 @@ def cmd_export(args) -> int:
         say(f"etar-bench export: error: {args.run_dir}: no recordings/ folder: not a run's folder")
         return 2
     try:
-        results = export_foxglove(args.run_dir, args.visual_rate_hz, progress=print)
-    except RecordingError as exc:
+        if args.foxglove:
+            results = export_foxglove(args.run_dir, args.visual_rate_hz, progress=print)
+            added = sum(1 for r in results if r.added)
+            say(f"etar-bench export: visual topics added to {added} of {len(results)} recording(s)")
+        if args.rosbag2:
+            bags = export_rosbag2(args.run_dir, args.out, rates, progress=print)
+            made = [b for b in bags if b.bag is not None]
+            where = made[0].bag.parent if made else args.out
+            say(f"etar-bench export: {len(made)} ROS 2 bag(s) of {len(bags)} recording(s) in {where}")
+            if len(made) < len(bags):
+                return 1
+    except (RecordingError, OSError) as exc:
         say(f"etar-bench export: error: {exc}")
         return 1
-    added = sum(1 for r in results if r.added)
-    say(f"etar-bench export: visual topics added to {added} of {len(results)} recording(s)")
     return 0
 
 

@@ -1,4 +1,4 @@
-"""The seven service programs (``etar-robot``, ``etar-ft-sensor``, ...): one node in its own
+"""The eight service programs (``etar-robot``, ``etar-ft-sensor``, ...): one node in its own
 process over Zenoh.  Each program's flags are the ones every service shares
 (``--run-id``, ``--clock``, the Zenoh flags, ``--sched-fifo``, ``--cpus``) and its
 node's own, from the node's config dataclass (``services.runtime.config``); its help
@@ -96,6 +96,7 @@ phase_estimator = functools.partial(main, "phase_estimator")
 impedance_commander = functools.partial(main, "impedance_commander")
 recorder = functools.partial(main, "recorder")
 foxglove_bridge = functools.partial(main, "foxglove_bridge")
+ros2 = functools.partial(main, "ros2")
 
 
 if __name__ == "__main__":

@@ -14,6 +14,23 @@ from services.cli.zenoh_flags import zenoh_options
 from services.results.text import summary_line
 
 
+def ros2_rates(args):
+    """The ROS 2 topics' rates the command line gives (ValueError naming the flag)."""
+    from services.ros2.convert import Ros2Rates, every_nth
+
+    rates = {f"{name}_rate_hz": getattr(args, f"ros2_{name}_rate_hz") for name in ("state", "wrench", "clock")}
+    for field, value in rates.items():
+        every_nth(value, f"--ros2-{field.replace('_', '-')}")
+    return Ros2Rates(**rates)
+
+
+def ros2_rate_flags(args) -> tuple:
+    """The ROS 2 node's flags for the rates given on the command line."""
+    rates = ros2_rates(args)
+    return tuple(part for name in ("state", "wrench", "clock")
+                 for part in (f"--{name}-rate-hz", repr(getattr(rates, f"{name}_rate_hz"))))
+
+
 def cmd_run(args) -> int:
     from etar.task import TaskError
     from services.run.options import RunOptions
@@ -32,7 +49,8 @@ def cmd_run(args) -> int:
                              transport=args.transport, attach=args.attach, ready_timeout=args.ready_timeout,
                              sched_fifo=args.sched_fifo_ends, realtime_profile=args.realtime_profile, tls=args.tls,
                              hosts=args.hosts, figures=not args.no_figures, foxglove=args.foxglove,
-                             replace=args.replace, command=args.command_line, wire=args.wire)
+                             replace=args.replace, command=args.command_line, wire=args.wire, ros2=args.ros2,
+                             ros2_args=ros2_rate_flags(args))
         runner = Runner(scenario, options, progress=say)
     except (ScenarioError, TaskError, CredentialsError, HostsError, ValueError) as exc:
         # every option refused before anything started (services.run.options)
@@ -77,7 +95,8 @@ def cmd_serve(args) -> int:
                              start=args.start, max_seconds=args.max_seconds, fri_cycle_ms=args.fri_cycle_ms)
         options = RunOptions(out=args.out, run_id=args.run_id, realtime_profile=args.realtime_profile,
                              figures=False, replace=args.replace, command=args.command_line, serve=serve,
-                             robot_args=tuple(args.robot_flag or ()))
+                             robot_args=tuple(args.robot_flag or ()), ros2=args.ros2,
+                             ros2_args=ros2_rate_flags(args))
         runner = Runner(scenario, options, progress=say)
     except (ScenarioError, ValueError) as exc:
         say(f"etar-bench serve: error: {exc}")

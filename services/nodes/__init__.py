@@ -28,6 +28,7 @@ _CLASSES = {
     "impedance_commander": ("ImpedanceCommanderNode", "CommanderConfig"),
     "recorder": ("RecorderNode", "RecorderConfig"),
     "foxglove_bridge": ("FoxgloveBridgeNode", "FoxgloveBridgeConfig"),
+    "ros2": ("Ros2Node", "Ros2Config"),
 }
 assert _CLASSES.keys() == ROLES.keys(), "every role of services.runtime.roles has its node, and no other"
 _MODULE_OF = {cls: role for role, classes in _CLASSES.items() for cls in classes}

@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from services.nodes import (CommanderConfig, EstimatorConfig, FoxgloveBridgeConfig, FtSensorConfig, RecorderConfig,
-                            RobotConfig, TeacherConfig)
+                            RobotConfig, Ros2Config, TeacherConfig)
 from services.run.wire import udp_wiring
 from services.runtime.config import with_flags
 from services.scenario import Scenario
@@ -26,6 +26,7 @@ def node_configs(scenario: Scenario, options, roles, recordings: Path, offload_r
         "phase_estimator": EstimatorConfig(),
         "impedance_commander": CommanderConfig(),
         "foxglove_bridge": FoxgloveBridgeConfig(world=sc.world, port=options.foxglove or 0),
+        "ros2": Ros2Config(world=sc.world, domain=options.ros2 or 0),
     }
     serve = options.serve
     # the lab's protocols: etar-bench serve (a lab's remote) or --wire udp (the run's own nodes)
@@ -33,8 +34,8 @@ def node_configs(scenario: Scenario, options, roles, recordings: Path, offload_r
     if serve:
         wire = {"robot": serve.robot_flags(), "ft_sensor": serve.sensor_flags()}
     given = {"robot": options.robot_args, "impedance_commander": options.commander_args,
-             "ft_sensor": options.sensor_args, "recorder": options.recorder_args}
-    for role in ("robot", "impedance_commander", "ft_sensor", "recorder", "phase_estimator"):
+             "ft_sensor": options.sensor_args, "recorder": options.recorder_args, "ros2": options.ros2_args}
+    for role in ("robot", "impedance_commander", "ft_sensor", "recorder", "phase_estimator", "ros2"):
         flags = tuple(wire.get(role, ())) + tuple(given.get(role, ()))
         if flags:
             configs[role] = with_flags(configs[role], flags)

@@ -11,6 +11,7 @@ import math
 import socket
 from dataclasses import dataclass
 
+from services.ros2.wire import check_domain
 from services.run.realtime_profile import parse_profile
 from services.runtime import topics
 from services.runtime.roles import CELL_ROLES, FIFO_CHAIN
@@ -46,6 +47,10 @@ class RunOptions:
     # the visual topics live over Foxglove's WebSocket protocol on this port (services.nodes.
     # foxglove_bridge, one more service); None: no live view (recordings have them regardless)
     foxglove: int | None = None
+    # the cell on ROS 2's rmw_zenoh wire in this domain (services.nodes.ros2, one more service);
+    # None: not on ROS 2's wire (etar-bench export --rosbag2 makes bags of any run)
+    ros2: int | None = None
+    ros2_args: tuple = ()  # flags for the ros2 node (its topics' rates)
     attach: bool = False  # the services are already running (docker-compose): do not spawn them
     # SCHED_FIFO (where permitted) for the two ends of the FRI link, the robot above the
     # commander; the others stay ordinary processes.  All six at one priority starve
@@ -89,6 +94,11 @@ class RunOptions:
                 raise ValueError("--foxglove cannot be combined with --tls, --hosts or --attach yet: the bridge "
                                  "would need credentials and a host of its own")
         in_process = self.transport == "inproc"
+        if self.ros2 is not None:
+            check_domain(self.ros2, "--ros2 DOMAIN")
+            if in_process or self.tls is not None or self.hosts is not None or self.attach:
+                raise ValueError("--ros2 puts the cell on ROS 2's Zenoh wire beside the services' own: it needs "
+                                 "--transport zenoh and cannot be combined with --tls, --hosts or --attach yet")
         if self.attach and in_process:
             raise ValueError("--attach drives services already running over Zenoh; it cannot be combined with "
                              "--transport inproc")
@@ -115,10 +125,11 @@ class RunOptions:
 
 
     def roles(self, scenario: Scenario) -> list[str]:
-        """The services this run needs: the scenario's (serving: the cell alone), and the
-        live view's bridge."""
+        """The services this run needs: the scenario's (serving: the cell alone), the live
+        view's bridge and the cell's ROS 2 node."""
         roles = list(CELL_ROLES) if self.serve is not None else list(scenario.roles)
-        return roles + (["foxglove_bridge"] if self.foxglove is not None else [])
+        return (roles + (["foxglove_bridge"] if self.foxglove is not None else [])
+                + (["ros2"] if self.ros2 is not None else []))
 
     def carrier(self, scenario: Scenario):
         """The transport (``services.transport.carriers``), checked against the scenario's clock

@@ -178,6 +178,8 @@ class Runner:
         restartable = {role for role, policy in self.scenario.restart if policy == "on_failure"}
         if o.foxglove is not None:
             restartable.add("foxglove_bridge")  # a view of the run: losing it must not cost the run
+        if o.ros2 is not None:
+            restartable.add("ros2")  # ROS 2's view of the run, likewise
         start = Start(clock=self.scenario.clock, log_dir=self.out / "logs", ready_timeout=o.ready_timeout,
                       restartable=frozenset(restartable), on_restart=self._on_restart,
                       placement=lambda role: placement(role, self.profile, sched_fifo=o.sched_fifo,
@@ -194,6 +196,10 @@ class Runner:
         if o.foxglove is not None:
             port = self.cell.request("foxglove_bridge", "status").get("port")
             self.say(f"live view: connect Foxglove to ws://127.0.0.1:{port} (docs/foxglove/README.md)")
+        if o.ros2 is not None:
+            through = getattr(self.cell, "endpoint", "") or ", ".join(o.zenoh.connect if o.zenoh else ())
+            self.say(f"ROS 2: the cell is node /etar_cell in domain {o.ros2}, on the Zenoh session at {through} "
+                     "(rmw_zenoh in client mode connects there; docs/ros2.md)")
 
     # -------------------------------------------------------------- stages
 

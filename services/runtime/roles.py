@@ -53,6 +53,7 @@ ROLES: dict[str, Role] = {r.name: r for r in (
          answer_topic=ROBOT_COMMAND.topic, fifo_priority=55),
     Role("recorder", "one MCAP file per episode", restartable=True),
     Role("foxglove_bridge", "the live view over Foxglove's WebSocket protocol"),
+    Role("ros2", "the cell as a ROS 2 node on rmw_zenoh's wire"),
 )}
 
 # the cell every run has (a serve has only these), and the roles each kind of stage adds
@@ -66,7 +67,8 @@ RESTARTABLE = tuple(r.name for r in ROLES.values() if r.restartable)
 FIFO_CHAIN = tuple(sorted(((r.name, r.fifo_priority) for r in ROLES.values() if r.fifo_priority is not None),
                           key=lambda rp: -rp[1]))
 # the identity a credential is issued to: the runner beside the roles
-CREDENTIAL_NAMES = ("runner", *(r for r in ROLES if r != "foxglove_bridge"))
+# (the live view and the ROS 2 node do not run under credentials: --tls refuses them)
+CREDENTIAL_NAMES = ("runner", *(r for r in ROLES if r not in ("foxglove_bridge", "ros2")))
 
 
 def role(name: str) -> Role:

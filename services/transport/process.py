@@ -101,7 +101,7 @@ def run_node(role: str, node_config, process: ProcessConfig) -> int:
     with Service(role, process.run_id, process.zenoh, sched_fifo=process.sched_fifo, cpus=process.cpus) as svc:
         bus = ZenohBus(svc, realtime)
         node = node_cls(node_config, bus, clock, run_id=process.run_id, mode=process.clock,
-                        sched_fifo=svc.sched_fifo, **edges(role, node_config, clock))
+                        sched_fifo=svc.sched_fifo, **edges(role, node_config, clock, svc.session))
         bus.declare(node.publications)
         collector = PausedCollector()
         inputs = NodeInputs(node, svc, realtime, collector)

@@ -1,17 +1,19 @@
 """The lab's wire at the edge of the nodes: what a service process hands its node when the
 node's config asks to speak a lab protocol (``edges``).  The nodes decide; these carry:
 the robot's KRC over FRI/UDP (``robot_krc``, ``krc_udp``), the commander's FRI remote
-socket (``fri_remote``), the sensor's Net F/T box (``robot_sim.wire.netft``) and the
-estimator's Net F/T client (``netft_client``)."""
+socket (``fri_remote``), the sensor's Net F/T box (``robot_sim.wire.netft``), the
+estimator's Net F/T client (``netft_client``) and the cell's ROS 2 node on rmw_zenoh's
+wire (``ros2_wire``)."""
 
 from __future__ import annotations
 
 from robot_sim.wire.fri_udp import host_port
 
 
-def edges(role: str, config, clock) -> dict:
+def edges(role: str, config, clock, session=None) -> dict:
     """The keyword arguments that give ``role``'s node its lab links for ``config``: each a
-    factory the node calls with what the link hands back to it."""
+    factory the node calls with what the link hands back to it.  ``session``: the service's
+    Zenoh session (None in one process), which ROS 2's wire shares."""
     if role == "robot" and config.wire == "udp":
         from services.transport.lab.robot_krc import RobotKrcOverUdp
 
@@ -26,6 +28,10 @@ def edges(role: str, config, clock) -> dict:
 
         return {"netft_stream": lambda on_wrench: NetFtStream(host_port(config.netft, "netft"),
                                                               config.netft_http_port, on_wrench, clock.now_ns)}
+    if role == "ros2" and session is not None:
+        from services.transport.lab.ros2_wire import RosNodeOverZenoh
+
+        return {"ros2_link": lambda domain: RosNodeOverZenoh(session, domain)}
     if role == "ft_sensor" and config.netft:
         return {"netft_box": lambda ati_config, on_bias, tap: served_box(config, ati_config, on_bias, tap)}
     return {}
