@@ -1,7 +1,7 @@
 """The realtime closed loop under the full service set, against a bare 1 kHz loop in the same run.
 
     python bench/realtime_load.py [--seconds 60] [--sched-fifo-ends] [--isolate-robot] [--wire zenoh|udp|both]
-                                  [--out DIR]
+                                  [--foxglove] [--ros2] [--out DIR]
 
 Runs scenarios/hold.yaml for ``--seconds``: the robot on absolute 1 ms
 deadlines in FRI command mode (once the link is PERFECT), answered every cycle
@@ -97,6 +97,9 @@ def main():
                         help="the recorder's visual topics, Hz (0: none; default 50, as a run has them)")
     parser.add_argument("--foxglove", action="store_true",
                         help="with the live view (etar-bench run --foxglove) and a viewer subscribed to it")
+    parser.add_argument("--ros2", action="store_true",
+                        help="with the cell on ROS 2's wire (etar-bench run --ros2): the ros2 node publishing its "
+                             "topics at their default rates")
     parser.add_argument("--wire", choices=("zenoh", "udp", "both"), default="zenoh",
                         help="how FRI and the wrench travel: zenoh, udp (FRI 1.0 and Net F/T), or both one after "
                              "the other (default zenoh)")
@@ -151,6 +154,7 @@ def main():
                                               sched_fifo=args.sched_fifo_ends, isolate_robot=args.isolate_robot,
                                               fifo_priorities=priorities, realtime_profile=args.profile,
                                               foxglove=0 if args.foxglove else None, wire=wire,
+                                              ros2=0 if args.ros2 else None,
                                               recorder_args=("--visual-rate-hz", str(args.visual_rate_hz)),
                                               figures=False),
                          progress=progress)
@@ -217,6 +221,9 @@ def table(args, wire, out, report, wall, priorities, qos, watch, wakes, late, fi
          f"foxglove_bridge sent {report['timing']['services'].get('foxglove_bridge', {}).get('sent', 0)} visual "
          f"messages; the viewer received {viewers[0].messages if viewers else 0} "
          f"({(viewers[0].bytes if viewers else 0) / 1e6:.1f} MB){'; viewer: ' + viewers[0].error if viewers and viewers[0].error else ''}"),
+        ("ROS 2", "none" if not args.ros2 else
+         "ros2 node sent " + ", ".join(f"{topic} {n}" for topic, n in
+                                      report["timing"]["services"].get("ros2", {}).get("sent", {}).items())),
         ("reproduction", f"{rp['reason']}, goal reached after {rp['goal_reached_at_s']:.2f} s, "
                          f"peak contact {rp['peak_contact_force']:.1f} N"),
         ("FRI answered in time", f"{fri['answered']} of {fri['answered'] + fri['missed']} cycles = "
