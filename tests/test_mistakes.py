@@ -39,6 +39,12 @@ CASES = [
     ("etar-bench run LOW.yaml", 2, "LOW.yaml: stages[0].demonstrate.start: demonstration 1 (left side) would start "
                                    "at z = -0.101 m, at or below the floor"),
     ("etar-bench run scenarios/smoke.yaml --bogus", 2, "--bogus: not a flag of this program"),
+    ("etar-bench run scenarios/smoke.yaml --ros2 300", 2,
+     "--ros2 DOMAIN: a ROS 2 domain id is an integer in 0..232, got 300"),
+    ("etar-bench run scenarios/smoke.yaml --transport inproc --ros2", 2,
+     "--ros2 puts the cell on ROS 2's Zenoh wire beside the services' own: it needs --transport zenoh"),
+    ("etar-bench run scenarios/smoke.yaml --ros2 --ros2-clock-rate-hz 300", 2,
+     "--ros2-clock-rate-hz must divide the FRI rate 1000 Hz"),
     ("etar-bench run scenarios/smoke.yaml --wire udp", 2, "scenarios/smoke.yaml: clock: --wire udp needs the "
                                                          "realtime clock (--clock realtime)"),
     # etar-bench serve
@@ -75,6 +81,9 @@ CASES = [
                                          "--replace"),
     ("etar-bench recover DIR/nosuch.mcap", 2, "DIR/nosuch.mcap: no such file"),
     ("etar-bench export DIR --foxglove", 2, "DIR: no recordings/ folder: not a run's folder"),
+    ("etar-bench export RUN_DIR", 2, "say what to export: --foxglove (visual topics added to the recordings) "
+                                     "and/or --rosbag2"),
+    ("etar-bench export RUN_DIR --rosbag2 --ros2-wrench-rate-hz 0", 2, "--ros2-wrench-rate-hz must divide"),
     ("etar-bench demo --max-seconds -1", 2, "--max-seconds: expected a finite number > 0, got -1.0"),
     ("etar-bench demo --spread nan", 2, "--spread: expected a finite number >= 0, got nan"),
     ("etar-bench demo --png DIR/missing/demo.png", 2, "--png DIR/missing/demo.png: the folder DIR/missing does not "
