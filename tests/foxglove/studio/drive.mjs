@@ -2,6 +2,11 @@
 // headless chromium and says what the app shows: its topics with their schemas, the
 // problems it reports, and screenshots of its panels paused at a time, after a seek while
 // paused, and while playing.  node drive.mjs '{"url": ..., "seek": "...", "out": DIR}'
+// Optional: "settingsOf": a panel id (e.g. "3D!arm"): at the end, that panel's settings
+// opened, every node expanded, and the errors the panel shows on them (a URDF that does not
+// parse, a missing transform, ...) listed in "settingsErrors" as {node, error}.  The app's
+// console warnings and errors are in "warnings" (a 3D panel logs each of its layer errors
+// once, as "[path > to > node] message", even when it later clears it).
 // playwright-core comes from make foxglove-studio's node_modules (STUDIO_NODE_MODULES).
 import { createRequire } from "module";
 import fs from "fs";
@@ -21,6 +26,7 @@ try {
   const page = await browser.newPage({ viewport: { width: 1600, height: 1000 } });
   page.on("console", (m) => log.push(`[${m.type()}] ${m.text()}`));
   page.on("pageerror", (e) => log.push(`[pageerror] ${e}`));
+  page.on("response", (r) => { if (r.status() >= 400) log.push(`[http ${r.status()}] ${r.url()}`); });
   await page.goto(args.url, { waitUntil: "load" });
   const panel = (id) => page.locator(`[data-testid="panel-mouseenter-container ${id}"]`);
   const shots = async (tag, panels = [["3d", "3D!arm"], ["plot", "Plot!wrench"], ["phase", "StateTransitions!phase"]]) => {
@@ -89,7 +95,39 @@ try {
     await shots("playing");
     await page.click('button[title="Pause"]').catch(() => {});
   }
+  if (args.settingsOf) {
+    // the panel's own settings button (its toolbar shows on hover) selects it and opens the
+    // "Panel settings" sidebar; an error shows as a red icon on its node, its text in a tooltip
+    await page.mouse.click(5, 995);
+    await panel(args.settingsOf).hover();
+    await panel(args.settingsOf).locator('button[aria-label="Settings"]').first().click();
+    await page.waitForSelector('[data-testid="settings-filter-field"]', { timeout: 10000 });
+    const tree = page.locator(".MuiPaper-root").filter({ has: page.locator('[data-testid="settings-filter-field"]') }).last();
+    for (let i = 0; i < 200; i++) {  // expand every collapsed node, the ones each reveals too
+      const collapsed = tree.locator('[data-testid="ArrowRightIcon"]');
+      if (!(await collapsed.count())) break;
+      await collapsed.first().click();
+      await page.waitForTimeout(50);
+    }
+    await page.waitForTimeout(500);
+    result.settingsErrors = [];
+    const icons = tree.locator("button.MuiIconButton-colorError");
+    for (let i = 0; i < (await icons.count()); i++) {
+      const icon = icons.nth(i);
+      await icon.scrollIntoViewIfNeeded();
+      await icon.hover();
+      const tip = page.locator('[role="tooltip"]').last();
+      const error = await tip.textContent({ timeout: 3000 }).catch(() => "(no tooltip)");
+      const node = await icon.evaluate((b) => b.parentElement?.parentElement?.firstElementChild?.textContent ?? "");
+      result.settingsErrors.push({ node, error });
+      await page.mouse.move(5, 500);
+      await page.waitForTimeout(300);
+    }
+    await page.screenshot({ path: `${args.out}/settings-page.png` });
+    result.shots.settings = `${args.out}/settings-page.png`;
+  }
 } finally {
+  result.warnings = log.filter((l) => /^\[(warning|error|pageerror|http \d+)\]/.test(l)).slice(0, 200).map((l) => l.slice(0, 600));
   fs.writeFileSync(`${args.out}/console.log`, log.join("\n"));
   fs.writeFileSync(`${args.out}/result.json`, JSON.stringify(result, null, 1));
   await browser.close();
