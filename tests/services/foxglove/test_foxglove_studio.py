@@ -160,6 +160,21 @@ def drive(args: dict) -> subprocess.Popen:
                             env=dict(os.environ, STUDIO_NODE_MODULES=str(STUDIO / "node_modules"), CHROMIUM=CHROMIUM))
 
 
+def open_in_studio(files: dict, args_at) -> dict:
+    """Serve ``files``, drive the app with ``args_at(base_url)`` (its screenshots' folder
+    emptied first) and return what it showed."""
+    server, base = serve(files)
+    args = args_at(base)
+    shutil.rmtree(args["out"], ignore_errors=True)
+    try:
+        proc = drive(args)
+        stdout, stderr = proc.communicate(timeout=300)
+    finally:
+        server.shutdown()
+    assert proc.returncode == 0, stderr[-3000:]
+    return json.loads(stdout.strip().splitlines()[-1])
+
+
 @pytest.mark.slow
 def test_foxglove_studio_shows_a_reproduction_paused_after_a_seek_and_playing(reproduction):
     need_studio()
@@ -169,18 +184,9 @@ def test_foxglove_studio_shows_a_reproduction_paused_after_a_seek_and_playing(re
     recorded = {m.topic for m in episode.messages}
     files = _files()
     files["/data/reproduction_00.mcap"] = reproduction
-    server, base = serve(files)
-    shutil.rmtree(ARTIFACTS / "recording", ignore_errors=True)
-    args = {"url": f"{base}/?ds=remote-file&ds.url={base}/data/reproduction_00.mcap&layoutId=etar"
-                   f"&time={rfc3339(middle)}",
-            "seek": f"{later / 1e9:.3f}", "out": str(ARTIFACTS / "recording")}
-    try:
-        proc = drive(args)
-        stdout, stderr = proc.communicate(timeout=300)
-    finally:
-        server.shutdown()
-    assert proc.returncode == 0, stderr[-3000:]
-    shown = json.loads(stdout.strip().splitlines()[-1])
+    shown = open_in_studio(files, lambda base: {
+        "url": f"{base}/?ds=remote-file&ds.url={base}/data/reproduction_00.mcap&layoutId=etar&time={rfc3339(middle)}",
+        "seek": f"{later / 1e9:.3f}", "out": str(ARTIFACTS / "recording")})
     listed = {t["topic"]: t["schema"] for t in shown["topics"]}
     # every topic recorded is listed, the visual ones with the schema Foxglove draws them by
     assert recorded <= set(listed), recorded - set(listed)

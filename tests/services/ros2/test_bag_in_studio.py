@@ -26,8 +26,6 @@ parse URDF: ... <visual> must have geometry"), the problem list empty both times
 
 from __future__ import annotations
 
-import json
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -36,8 +34,8 @@ import pytest
 from services.cli import bench as bench_cli
 from services.ros2.types import TOPICS
 from tests.services.foxglove.test_foxglove_studio import (
-    ARTIFACTS, ROOT, _files, coloured_share, drive, grey_share, label_share, need_studio, orange_share, rfc3339,
-    serve)
+    ARTIFACTS, ROOT, _files, coloured_share, grey_share, label_share, need_studio, open_in_studio, orange_share,
+    rfc3339)
 
 # a browser with software WebGL and fixed waits, after a smoke run: serial and slow
 pytestmark = [pytest.mark.serial, pytest.mark.slow]
@@ -81,18 +79,10 @@ def test_foxglove_studio_draws_the_arm_of_an_exported_ros2_bag(foxglove_run_dir,
     files = _files()
     files["/layout.json"] = LAYOUT
     files["/data/reproduction_00.mcap"] = bag
-    server, base = serve(files)
-    shutil.rmtree(OUT, ignore_errors=True)
-    args = {"url": f"{base}/?ds=remote-file&ds.url={base}/data/reproduction_00.mcap&layoutId=ros2"
-                   f"&layoutName=ros2&time={rfc3339(middle)}",
-            "seek": f"{later / 1e9:.3f}", "out": str(OUT), "settingsOf": "3D!arm"}
-    try:
-        proc = drive(args)
-        stdout, stderr = proc.communicate(timeout=300)
-    finally:
-        server.shutdown()
-    assert proc.returncode == 0, stderr[-3000:]
-    shown = json.loads(stdout.strip().splitlines()[-1])
+    shown = open_in_studio(files, lambda base: {
+        "url": f"{base}/?ds=remote-file&ds.url={base}/data/reproduction_00.mcap&layoutId=ros2&layoutName=ros2"
+               f"&time={rfc3339(middle)}",
+        "seek": f"{later / 1e9:.3f}", "out": str(OUT), "settingsOf": "3D!arm"})
     print("app's console warnings and errors:", *shown["warnings"], sep="\n  ")
 
     # every topic of the bag listed, with its ROS 2 type as the schema
