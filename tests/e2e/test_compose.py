@@ -22,8 +22,9 @@ from services.runtime.roles import ROLES as ALL_ROLES
 ROOT = Path(__file__).resolve().parents[2]
 PARSERS = {"etar-bench": bench_cli.build_parser,
            **{r.program: (lambda name=name: roles.build_parser(name)) for name, r in ALL_ROLES.items()}}
-# every role of a run but the live view's bridge (compose runs no live view)
-ROLES = set(ALL_ROLES) - {"foxglove_bridge"}
+# every role of a run but the live view's bridge and the ROS 2 node: the runner attaches to
+# compose's services, and --attach refuses --foxglove and --ros2
+ROLES = set(ALL_ROLES) - {"foxglove_bridge", "ros2"}
 
 
 def expand(text: str) -> str:

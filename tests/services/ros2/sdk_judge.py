@@ -18,6 +18,7 @@ import signal
 import sys
 import tempfile
 import threading
+import time
 from pathlib import Path
 
 TYPES = ("sensor_msgs/msg/JointState", "geometry_msgs/msg/WrenchStamped", "std_msgs/msg/String")
@@ -73,8 +74,17 @@ def main(port: int, domain: int, out: Path) -> None:
             got["wrench"].append([ns(m.header), m.header.frame_id, [f.x, f.y, f.z, t.x, t.y, t.z]])
 
     common = dict(domain_id=domain, router_ip="127.0.0.1", router_port=port)
-    subs = [ROS2Subscriber("/joint_states", TYPES[0], on_joints, **common),
-            ROS2Subscriber("/ft_sensor/wrench", TYPES[1], on_wrench, **common)]
+    # the SDK's client makes one connection attempt (connect/timeout_ms 0): a session not
+    # yet listening, or a slow accept on a loaded machine, fails it; a client tries again
+    for attempt in range(5):
+        try:
+            first = ROS2Subscriber("/joint_states", TYPES[0], on_joints, **common)
+            break
+        except Exception:  # noqa: BLE001 - zenoh.ZError "Unable to connect", the last one raised
+            if attempt == 4:
+                raise
+            time.sleep(1.0)
+    subs = [first, ROS2Subscriber("/ft_sensor/wrench", TYPES[1], on_wrench, **common)]
     print("subscribed", flush=True)
     done = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: done.set())
