@@ -189,10 +189,10 @@ def _start_serve_with_box(out: Path, remote_port: int, seconds: int):
     raise AssertionError(f"serve never said where its Net F/T box is: {proc.communicate()}")
 
 
-def _start_serve(out: Path, remote_port: int, seconds: int) -> subprocess.Popen:
+def _start_serve(out: Path, remote_port: int, seconds: int, *flags: str) -> subprocess.Popen:
     proc = popen_as_from_a_terminal(
         [sys.executable, "-m", "services.cli.bench", "serve", "scenarios/smoke.yaml", "--out", str(out),
-         "--fri-remote", f"127.0.0.1:{remote_port}", "--netft", "none", "--max-seconds", str(seconds)],
+         "--fri-remote", f"127.0.0.1:{remote_port}", "--netft", "none", "--max-seconds", str(seconds), *flags],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     for line in proc.stderr:
         if "serving FRI 1.0 over UDP" in line:
@@ -239,11 +239,12 @@ def test_ctrl_c_ends_serving_with_the_report_of_what_was_served(tmp_path):
 
 @pytest.mark.slow
 def test_services_stop_when_their_runner_is_killed_outright(tmp_path):
-    """kill -9 cannot be passed on: each service notices its runner is gone and stops."""
+    """kill -9 cannot be passed on: each service notices its runner is gone and stops (the
+    cell on ROS 2's wire too)."""
     with Remote("frilibrary") as remote:
-        proc = _start_serve(tmp_path / "served", remote.port, 60)
+        proc = _start_serve(tmp_path / "served", remote.port, 60, "--ros2")
         children = _children(proc.pid)
-        assert len(children) >= 3, children  # robot, ft_sensor, recorder
+        assert len(children) >= 4, children  # robot, ft_sensor, recorder, ros2
         proc.kill()
         proc.communicate()
         try:
