@@ -14,12 +14,15 @@ from pathlib import Path
 
 import numpy as np
 
+from services.ros2.bag import BAGS_DIR
+
 SCENARIO_FILE = "scenario.yaml"  # the scenario as run, every default filled in
-# everything a run, `etar-bench figures` and `etar-bench compare` write into the folder
+# everything a run, `etar-bench figures`, `etar-bench compare` and `etar-bench export --rosbag2`
+# (its default folder) write into the folder
 RUN_PRODUCTS = ("report.json", "report.txt", "report.html", "report.html.error", "timing.txt", "timing.png",
                 "timing.png.error", "figures", "figures.error", "figures.skipped", "recordings", "logs",
                 "model.json", "model-ETAR.json", "model-STAR.json", SCENARIO_FILE, "comparison.txt",
-                "comparison.json")
+                "comparison.json", BAGS_DIR)
 # the files that say a folder holds a run
 RUN_MARKERS = ("report.json", SCENARIO_FILE, "recordings", "model.json")
 

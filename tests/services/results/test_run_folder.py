@@ -126,10 +126,12 @@ def test_a_replaced_run_never_shows_a_figure_of_the_run_before(tmp_path, capsys)
     assert "bic_by_phase_count.png" in page_images(out)
     stale = out / "figures" / "reproduction_07_force_phase_alpha.png"  # as a longer earlier run would leave
     shutil.copy(out / "figures" / "bic_by_phase_count.png", stale)
+    old_bag = out / "rosbag2" / "reproduction_00"  # as `etar-bench export --rosbag2` of it would leave
+    old_bag.mkdir(parents=True)
     assert cli_run(out, "--replace") == 0
     capsys.readouterr()
     drawn = sorted(p.name for p in (out / "figures").glob("*.png"))
-    assert "bic_by_phase_count.png" not in drawn and not stale.exists()
+    assert "bic_by_phase_count.png" not in drawn and not stale.exists() and not old_bag.parent.exists()
     assert page_images(out) == drawn
     assert json.loads((out / "report.json").read_text())["learning"]["selection"]["best"] == 3
     if CHROMIUM:
