@@ -46,6 +46,8 @@ from pathlib import Path
 
 import numpy as np
 
+from services.runtime.messages import FT_WRENCH, ROBOT_COMMAND, ROBOT_CONTACT, ROBOT_STATE
+
 SLIDING_MPS = 0.005  # above: the tip slides
 STUCK_MPS = 0.001  # below: it sticks
 MIN_NORMAL_N = 1.0
@@ -145,16 +147,16 @@ def read(path: Path) -> Episode:
     try:
         episode = read_episode(path)
         # a foreign peer's garbage is not the physics: left out
-        arrays = recording_arrays(path, skip_bad=True, topics=("/robot/contact", "/robot/state", "/ft/wrench",
-                                                               "/robot/command"))
+        arrays = recording_arrays(path, skip_bad=True, topics=tuple(m.channel for m in (
+            ROBOT_CONTACT, ROBOT_STATE, FT_WRENCH, ROBOT_COMMAND)))
     except RecordingError as exc:
         raise StudyError(str(exc)) from None
-    if "/robot/contact" not in arrays:
+    if ROBOT_CONTACT.channel not in arrays:
         raise StudyError(f"{path}: no /robot/contact in this recording: the physics' truth is what is judged")
     text = episode.attachments.get("scenario.yaml")
     scenario = yaml.safe_load(text) if text else {}
     world, mu, normals = _surfaces(scenario if isinstance(scenario, dict) else {})
-    c = arrays["/robot/contact"]
+    c = arrays[ROBOT_CONTACT.channel]
     seq = c["seq"]
     order = np.argsort(seq, kind="stable")
     seq = seq[order]
@@ -165,7 +167,7 @@ def read(path: Path) -> Episode:
         velocity, angular, source = c["tcp_twist"][order, :3], c["tcp_twist"][order, 3:], "true, at the contact point"
         position = c["tcp_pose"][order].reshape(-1, 3, 4)[:, :, 3]
     else:
-        state = arrays.get("/robot/state")
+        state = arrays.get(ROBOT_STATE.channel)
         if state is None:
             raise StudyError(f"{path}: neither a true tcp velocity nor /robot/state to difference")
         by_seq = dict(zip(state["seq"].tolist(), state["msr_cart_pos"].reshape(-1, 3, 4)[:, :, 3]))
@@ -177,12 +179,12 @@ def read(path: Path) -> Episode:
         angular = np.full_like(position, np.nan)
         source = f"the tcp's, measured pose differenced over {k} ms"
     ati = None
-    ft = arrays.get("/ft/wrench")
+    ft = arrays.get(FT_WRENCH.channel)
     if ft is not None:
         by_seq = dict(zip(ft["seq"].tolist(), ft["wrench"][:, :3]))
         ati = np.array([by_seq.get(int(s), (np.nan,) * 3) for s in seq])
     commanded = None
-    command = arrays.get("/robot/command")
+    command = arrays.get(ROBOT_COMMAND.channel)
     if command is not None and len(command["seq"]):
         by_seq = dict(zip(command["seq"].tolist(), np.linalg.norm(command["add_tcp_ft"][:, :3], axis=1)))
         commanded = np.array([by_seq.get(int(s), np.nan) for s in seq])

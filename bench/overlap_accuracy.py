@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from services.runtime.messages import ESTIMATOR_PHASE, ROBOT_CONTACT
+
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
@@ -60,7 +62,7 @@ def study(run: Path, ap: argparse.ArgumentParser) -> int:
     by_side: dict[str, list] = {}
     for rp in report["reproductions"]:
         path = run / rp["path"]
-        estimates, contact = topic_arrays(path, "estimator/phase"), topic_arrays(path, "robot/contact")
+        estimates, contact = topic_arrays(path, ESTIMATOR_PHASE.topic), topic_arrays(path, ROBOT_CONTACT.topic)
         truth = dict(zip(contact["seq"].tolist(), contact["true_phase"].tolist()))
         scored = [many_to_one[int(p)] == truth[s] for s, p in zip(estimates["seq"].tolist(),
                                                                    estimates["phase"].tolist()) if s in truth]

@@ -31,22 +31,22 @@ def payloads(cycles):
     out = []
     for k in range(cycles):
         h = dict(seq=k, stamp_ns=k * 1_000_000, sent_ns=k)
-        out.append(("robot/state", ROBOT_STATE.encode(
+        out.append((ROBOT_STATE.topic, ROBOT_STATE.encode(
             **h, reflected_seq=k, fri_state=2, fri_quality=3, control_mode=2, msr_jnt_pos=rng.normal(size=7),
             msr_cart_pos=rng.normal(size=12), est_ext_tcp_ft=rng.normal(size=6), answer_rate=1.0, latency_s=1e-4,
             jitter_s=1e-5, miss_rate=0.0, safety=0, gravity_compensation=False, episode=0)))
-        out.append(("robot/contact", ROBOT_CONTACT.encode(**h, wrench=rng.normal(size=6), contact_force=rng.normal(
+        out.append((ROBOT_CONTACT.topic, ROBOT_CONTACT.encode(**h, wrench=rng.normal(size=6), contact_force=rng.normal(
             size=3), touching=["plate_left"], true_phase=1, episode=0)))
-        out.append(("ft/wrench", FT_WRENCH.encode(**h, rdt_sequence=k, ft_sequence=k, status=0,
+        out.append((FT_WRENCH.topic, FT_WRENCH.encode(**h, rdt_sequence=k, ft_sequence=k, status=0,
                                                    counts=[int(x) for x in rng.integers(-10**6, 10**6, 6)],
                                                    counts_per_force=1e6, counts_per_torque=1e6,
                                                    wrench=rng.normal(size=6))))
-        out.append(("robot/command", ROBOT_COMMAND.encode(
+        out.append((ROBOT_COMMAND.topic, ROBOT_COMMAND.encode(
             **h, cart_pos=rng.normal(size=12), cart_stiffness=np.zeros(6), cart_damping=np.full(6, 0.7),
             add_tcp_ft=rng.normal(size=6), requested_mode=2, phase=1, estimate_seq=k, goal_reached=False, hold="",
             episode=0)))
         if k % 10 == 0:
-            out.append(("estimator/phase", ESTIMATOR_PHASE.encode(**h, posterior=[0.1, 0.8, 0.1], phase=1,
+            out.append((ESTIMATOR_PHASE.topic, ESTIMATOR_PHASE.encode(**h, posterior=[0.1, 0.8, 0.1], phase=1,
                                                                   input_seq=k, ft_seq=k, episode=0)))
     return out
 

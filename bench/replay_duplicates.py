@@ -31,8 +31,10 @@ from services.run.runner import run  # noqa: E402
 from services.scenario import load_scenario  # noqa: E402
 from services.runtime import topics  # noqa: E402
 from services.transport.session import ZenohOptions, open_session  # noqa: E402
+from services.runtime.messages import (  # noqa: E402
+    ESTIMATOR_PHASE, FT_WRENCH, ROBOT_COMMAND, ROBOT_CONTACT, ROBOT_STATE)
 
-TOPICS = ("robot/state", "robot/contact", "ft/wrench", "estimator/phase", "robot/command")
+TOPICS = (ROBOT_STATE.topic, ROBOT_CONTACT.topic, FT_WRENCH.topic, ESTIMATOR_PHASE.topic, ROBOT_COMMAND.topic)
 
 
 class Replayer:

@@ -32,6 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
+from services.runtime.messages import ROBOT_COMMAND, ROBOT_STATE
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
@@ -63,10 +65,10 @@ def per_minute(path: Path, t_start_ns: int) -> list:
 
     sent_state, sent_cmd = {}, {}
     for m in read_episode(path).messages:
-        if m.topic in ("/robot/state", "/robot/command"):
+        if m.topic in (ROBOT_STATE.channel, ROBOT_COMMAND.channel):
             g = SEQ_SENT.match(m.payload)
             if g:
-                (sent_state if m.topic == "/robot/state" else sent_cmd)[int(g.group(1))] = int(g.group(2))
+                (sent_state if m.topic == ROBOT_STATE.channel else sent_cmd)[int(g.group(1))] = int(g.group(2))
     rows = []
     seqs = np.array(sorted(sent_state))
     t_state = np.array([sent_state[s] for s in seqs])

@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from services.runtime.messages import ESTIMATOR_PHASE, ROBOT_CONTACT
+
 
 def transitions(run: Path) -> list[dict]:
     from services.recordings.arrays import recording_arrays
@@ -31,8 +33,8 @@ def transitions(run: Path) -> list[dict]:
         if not rp.get("phases") or not path.exists():
             continue
         mapping = {int(k): v for k, v in rp["phases"]["mapping"].items()}
-        a = recording_arrays(path, skip_bad=True, topics=("/robot/contact", "/estimator/phase"))
-        c, e = a["/robot/contact"], a["/estimator/phase"]
+        a = recording_arrays(path, skip_bad=True, topics=(ROBOT_CONTACT.channel, ESTIMATOR_PHASE.channel))
+        c, e = a[ROBOT_CONTACT.channel], a[ESTIMATOR_PHASE.channel]
         true_seq, true_phase = c["seq"], c["true_phase"]
         est_seq = e["input_seq"]
         est = np.array([mapping.get(int(p), -1) for p in e["phase"]])

@@ -35,19 +35,20 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import zenoh  # noqa: E402
 
 from robot_sim.cycle import FRI_CYCLE_NS
-from services.runtime.messages import estimator_instant  # noqa: E402
+from services.runtime.messages import (  # noqa: E402
+    ESTIMATOR_PHASE, FT_WRENCH, ROBOT_COMMAND, ROBOT_CONTACT, ROBOT_STATE, TEACHER_WRENCH, estimator_instant)
 from services.transport.launch import free_port  # noqa: E402
 from services.transport.session import ZenohOptions, open_session  # noqa: E402
 from services.transport.subscriptions import tenth_cycle  # noqa: E402
 
 # bytes per message of a smoke run's recordings (demonstration_00, reproduction_00)
-SIZES = {"robot/state": 800, "robot/contact": 307, "ft/wrench": 270, "teacher/wrench": 231,
-         "robot/command": 602, "estimator/phase": 161}
+SIZES = {ROBOT_STATE.topic: 800, ROBOT_CONTACT.topic: 307, FT_WRENCH.topic: 270, TEACHER_WRENCH.topic: 231,
+         ROBOT_COMMAND.topic: 602, ESTIMATOR_PHASE.topic: 161}
 ROLES = ("robot", "ft_sensor", "teacher", "phase_estimator", "impedance_commander", "recorder")
 # who works in which episode; the others are idle
 WORKING = {"demonstration": {"robot", "ft_sensor", "teacher", "recorder"},
            "reproduction": {"robot", "ft_sensor", "phase_estimator", "impedance_commander", "recorder"}}
-ANSWER = {"demonstration": "teacher/wrench", "reproduction": "robot/command"}
+ANSWER = {"demonstration": TEACHER_WRENCH.topic, "reproduction": ROBOT_COMMAND.topic}
 
 
 def payload(topic: str, seq: int) -> bytes:
@@ -88,10 +89,10 @@ def role_main(role: str, endpoint: str, run: str, episode: str, subscribed: bool
                 last[0] = max(last[0], seq_of(raw))
                 answered.notify()
         sub(ANSWER[episode], on_answer)
-        sub("ft/wrench", lambda raw: None)
-        sub("estimator/phase" if episode == "reproduction" else "robot/command", lambda raw: None)
+        sub(FT_WRENCH.topic, lambda raw: None)
+        sub(ESTIMATOR_PHASE.topic if episode == "reproduction" else ROBOT_COMMAND.topic, lambda raw: None)
     elif role == "ft_sensor":
-        sub("robot/contact", lambda raw: pubs["ft/wrench"].put(payload("ft/wrench", seq_of(raw))))
+        sub(ROBOT_CONTACT.topic, lambda raw: pubs[FT_WRENCH.topic].put(payload(FT_WRENCH.topic, seq_of(raw))))
     elif working or subscribed:
         pending: dict = {}
 
@@ -108,18 +109,18 @@ def role_main(role: str, endpoint: str, run: str, episode: str, subscribed: bool
                         pubs[answer].put(payload(answer, seq))
             return on
         if role == "teacher":
-            for t in ("robot/state", "robot/contact"):
-                sub(t, pair(t, "teacher/wrench", lambda s: {"robot/state", "robot/contact"}))
+            for t in (ROBOT_STATE.topic, ROBOT_CONTACT.topic):
+                sub(t, pair(t, TEACHER_WRENCH.topic, lambda s: {ROBOT_STATE.topic, ROBOT_CONTACT.topic}))
         elif role == "phase_estimator":
-            for t in ("robot/state", "ft/wrench"):
+            for t in (ROBOT_STATE.topic, FT_WRENCH.topic):
                 # the real estimator skips the nine of ten from the raw bytes, in the callback
                 sub(t, (lambda f: lambda raw: tenth_cycle(raw) and f(raw))(
-                    pair(t, "estimator/phase", lambda s: {"robot/state", "ft/wrench"})))
+                    pair(t, ESTIMATOR_PHASE.topic, lambda s: {ROBOT_STATE.topic, FT_WRENCH.topic})))
         elif role == "impedance_commander":
-            need = lambda s: ({"robot/state", "estimator/phase"} if estimator_instant(s * FRI_CYCLE_NS)  # noqa: E731
-                              else {"robot/state"})
-            for t in ("robot/state", "estimator/phase"):
-                sub(t, pair(t, "robot/command", need))
+            need = lambda s: ({ROBOT_STATE.topic, ESTIMATOR_PHASE.topic}  # noqa: E731
+                              if estimator_instant(s * FRI_CYCLE_NS) else {ROBOT_STATE.topic})
+            for t in (ROBOT_STATE.topic, ESTIMATOR_PHASE.topic):
+                sub(t, pair(t, ROBOT_COMMAND.topic, need))
         elif role == "recorder":
             everything = session.declare_subscriber(f"{run}/**", zenoh.handlers.FifoChannel(50_000))
             subs.append(everything)  # the subscriber itself: dropping it undeclares it
@@ -145,8 +146,8 @@ def role_main(role: str, endpoint: str, run: str, episode: str, subscribed: bool
         cycles = int(os.environ["FLOOR_CYCLES"])
         done = session.declare_publisher(key("bench/done"))
         for k in range(cycles + 1):
-            pubs["robot/state"].put(payload("robot/state", k))
-            pubs["robot/contact"].put(payload("robot/contact", k))
+            pubs[ROBOT_STATE.topic].put(payload(ROBOT_STATE.topic, k))
+            pubs[ROBOT_CONTACT.topic].put(payload(ROBOT_CONTACT.topic, k))
             with answered:
                 if not answered.wait_for(lambda: last[0] >= k, timeout=5.0):
                     done.put(b"timeout %d" % k)

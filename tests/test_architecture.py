@@ -339,7 +339,7 @@ def test_topics_are_named_only_through_their_message_types():
     """A topic is written once, in services/runtime/messages.py; everywhere else it is
     ``ROBOT_STATE.topic`` (on the bus) or ``ROBOT_STATE.channel`` (in a recording)."""
     registry = ROOT / "services" / "runtime" / "messages.py"
-    found = [f for folder in ("etar", "robot_sim", "services", "kernel_plumbing") for path in sources(folder)
+    found = [f for folder in ("etar", "robot_sim", "services", "kernel_plumbing", "bench") for path in sources(folder)
              if path != registry for f in topic_literals(path)]
     assert found == [], "topic names written out of their message types:\n" + "\n".join(found)
 
