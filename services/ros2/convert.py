@@ -17,18 +17,25 @@ Stamps are simulated time (``stamp_ns``).  Pure: no messaging and no files.
 
 from __future__ import annotations
 
+import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 
 import numpy as np
 
+from robot_sim.arm.description import LWR4
 from robot_sim.cycle import FRI_RATE_HZ
+from services.ros2.types import PHASE_ESTIMATE, make
 from services.runtime.messages import ESTIMATOR_PHASE, FT_WRENCH, ROBOT_STATE
 
-# the URDF's tree, child: parent (robot_sim.arm.description)
-TF_PARENTS = {"link1": "base", "link2": "link1", "link3": "link2", "link4": "link3", "link5": "link4",
-              "link6": "link5", "link7": "link6", "flange": "link7", "ati_sensor": "flange", "tool": "ati_sensor",
-              "tcp": "tool"}
-JOINT_NAMES = tuple(f"joint{i}" for i in range(1, 8))
+
+def _urdf_tree() -> tuple[dict, tuple]:
+    """The arm's URDF tree (child link: parent link, parents first) and its moving joints' names."""
+    joints = list(ET.fromstring(LWR4.to_urdf()).iter("joint"))
+    return ({j.find("child").get("link"): j.find("parent").get("link") for j in joints},
+            tuple(j.get("name") for j in joints if j.get("type") == "revolute"))
+
+
+TF_PARENTS, JOINT_NAMES = _urdf_tree()
 BASE_FRAME, SENSOR_FRAME = "base", "ati_sensor"
 
 
@@ -56,20 +63,16 @@ def every_nth(rate_hz: float, name: str) -> int:
 
 
 def stamp(ns: int):
-    from services.ros2.types import make
-
     ns = max(int(ns), 0)
     return make("builtin_interfaces/msg/Time", sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
 
 
 def header(ns: int, frame_id: str):
-    from services.ros2.types import make
-
     return make("std_msgs/msg/Header", stamp=stamp(ns), frame_id=frame_id)
 
 
 class RosView:
-    """The ROS 2 messages of a run's messages; ``reset`` between episodes."""
+    """The ROS 2 messages of a run's messages, for one world at ``rates``."""
 
     def __init__(self, world: str, rates: Ros2Rates = Ros2Rates()):
         from robot_sim.arm.kinematics import ArmKinematics
@@ -82,13 +85,16 @@ class RosView:
         model = self.kinematics.model
         self._frames = [(child, parent, model.getFrameId(child), model.getFrameId(parent))
                         for child, parent in TF_PARENTS.items()]
+        self._description = None
 
     def description(self):
-        """``/robot_description``: the arm and the task's surfaces as URDF."""
-        from robot_sim.world.geometry import viewer_urdf
-        from services.ros2.types import make
+        """``/robot_description``: the arm and the task's surfaces as URDF (built once: it reads
+        the world's MuJoCo model)."""
+        if self._description is None:
+            from robot_sim.world.geometry import viewer_urdf
 
-        return make("std_msgs/msg/String", data=viewer_urdf(self.world))
+            self._description = make("std_msgs/msg/String", data=viewer_urdf(self.world))
+        return self._description
 
     def take(self, topic: str, msg: dict) -> list[tuple[str, object]]:
         """The ROS 2 messages (topic name, message) that ``msg`` of run topic ``topic`` brings."""
@@ -101,8 +107,6 @@ class RosView:
         return []
 
     def _state(self, msg: dict) -> list:
-        from services.ros2.types import make
-
         out = []
         ns, seq = msg["stamp_ns"], msg["seq"]
         if seq % self._every["clock_rate_hz"] == 0:
@@ -119,8 +123,6 @@ class RosView:
         return out
 
     def _tf(self, ns: int, q: np.ndarray):
-        from services.ros2.types import make
-
         kin = self.kinematics
         kin.update_frames(q)
         transforms = []
@@ -133,37 +135,28 @@ class RosView:
         return make("tf2_msgs/msg/TFMessage", transforms=transforms)
 
     def _wrench(self, msg: dict):
-        from services.ros2.types import make
-
         w = msg["wrench"]
         return make("geometry_msgs/msg/WrenchStamped", header=header(msg["stamp_ns"], SENSOR_FRAME),
                     wrench=make("geometry_msgs/msg/Wrench", force=_vector3(w[:3]), torque=_vector3(w[3:])))
 
     def _phase(self, msg: dict):
-        from services.ros2.types import PHASE_ESTIMATE, make
-
         return make(PHASE_ESTIMATE, header=header(msg["stamp_ns"], ""), phase=int(msg["phase"]),
                     posterior=np.asarray(msg["posterior"], dtype=np.float64),
                     input_fault=msg.get("input_fault", ""), unconditioned=msg.get("unconditioned", ""))
 
 
 def _vector3(v):
-    from services.ros2.types import make
-
     return make("geometry_msgs/msg/Vector3", x=float(v[0]), y=float(v[1]), z=float(v[2]))
 
 
 def _quaternion(R: np.ndarray):
     import pinocchio as pin
 
-    from services.ros2.types import make
 
     q = pin.Quaternion(np.asarray(R, dtype=np.float64))
     return make("geometry_msgs/msg/Quaternion", x=float(q.x), y=float(q.y), z=float(q.z), w=float(q.w))
 
 
 def _pose(R: np.ndarray, p: np.ndarray):
-    from services.ros2.types import make
-
     return make("geometry_msgs/msg/Pose", position=make("geometry_msgs/msg/Point", x=float(p[0]), y=float(p[1]),
                                                         z=float(p[2])), orientation=_quaternion(R))
