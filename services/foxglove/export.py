@@ -33,10 +33,12 @@ class Exported:
         return f"{self.path}: {self.why}"
 
 
-def _world(episode, path: Path) -> str:
+def world_of_episode(episode, path: Path) -> str:
+    """The world a recorded episode ran in, from the scenario it carries; RecordingError
+    naming the file and the attachment otherwise."""
     text = episode.attachments.get(SCENARIO_ATTACHMENT)
     if text is None:
-        raise RecordingError(f"{path}: no {SCENARIO_ATTACHMENT!r} attachment: the world to draw is unknown")
+        raise RecordingError(f"{path}: no {SCENARIO_ATTACHMENT!r} attachment: the world it ran in is unknown")
     try:
         return world_of_scenario(text)
     except ValueError as exc:
@@ -50,7 +52,7 @@ def add_visual_topics(path, rate_hz: float = VISUAL_RATE_HZ, scenes: dict | None
         return Exported(path, 0, "has the visual topics already: left as it is")
     if not episode.complete:
         return Exported(path, 0, f"truncated ({episode.problem}): left as it is; `etar-bench recover` it first")
-    world = _world(episode, path)
+    world = world_of_episode(episode, path)
     scenes = {} if scenes is None else scenes
     if (world, rate_hz) not in scenes:
         scenes[world, rate_hz] = VisualScene(world, rate_hz)

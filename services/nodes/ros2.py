@@ -18,8 +18,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from robot_sim.world.tasks import TASK_WORLDS
-from services.ros2.convert import Ros2Rates, RosView, every_nth
-from services.ros2.wire import MAX_DOMAIN_ID, check_domain
+from services.ros2.convert import Ros2Rates, RosView
+from services.ros2.wire import FULL_NODE_NAME, MAX_DOMAIN_ID, check_domain
 from services.runtime.bus import Node, Subscription
 from services.runtime.config import option
 from services.runtime.messages import ESTIMATOR_PHASE, FT_WRENCH, ROBOT_STATE
@@ -38,8 +38,7 @@ class Ros2Config:
 
     def __post_init__(self):
         check_domain(self.domain, "domain")
-        for name in ("state_rate_hz", "wrench_rate_hz", "clock_rate_hz"):
-            every_nth(getattr(self, name), name)
+        self.rates  # Ros2Rates refuses a rate that does not divide the FRI rate, naming its field
 
     @property
     def rates(self) -> Ros2Rates:
@@ -78,7 +77,8 @@ class Ros2Node(Node):
         self._take(ESTIMATOR_PHASE.topic, msg)
 
     def status(self) -> dict:
-        return {"domain": self.link.domain, "node": "/etar_cell", "sent": dict(self.link.sent), "errors": self.errors}
+        return {"domain": self.link.domain, "node": FULL_NODE_NAME, "sent": dict(self.link.sent),
+                "errors": self.errors}
 
     def close(self) -> None:
         self.link.close()

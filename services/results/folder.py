@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services.ros2.bag import BAGS_DIR
+from services.ros2 import BAGS_DIR
 
 SCENARIO_FILE = "scenario.yaml"  # the scenario as run, every default filled in
 # everything a run, `etar-bench figures`, `etar-bench compare` and `etar-bench export --rosbag2`

@@ -23,13 +23,14 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
-from services.recordings.format import SCENARIO_ATTACHMENT, RecordingError
+from services.foxglove.export import world_of_episode
+from services.recordings.format import RecordingError
 from services.recordings.reader import read_episode
+from services.ros2 import BAGS_DIR
 from services.ros2.convert import Ros2Rates, RosView
 from services.ros2.types import BY_NAME, TOPICS, to_cdr, type_hash, typestore
 from services.runtime.messages import BY_TOPIC, MessageError
 
-BAGS_DIR = "rosbag2"  # the default: RUN_DIR/rosbag2/
 
 
 @dataclass(frozen=True)
@@ -58,19 +59,11 @@ def bag_of_recording(path, out_dir, rates: Ros2Rates = Ros2Rates(), views: dict 
     """The bag of the recording at ``path``, written to ``out_dir/<its name>/`` (replaced if there)."""
     from rosbags.rosbag2 import StoragePlugin, Writer
 
-    from services.foxglove.scene import world_of_scenario
-
     path = Path(path)
     episode = read_episode(path)
     if not episode.complete:
         return Bagged(path, None, 0, f"truncated ({episode.problem}): no bag; `etar-bench recover` it first")
-    scenario = episode.attachments.get(SCENARIO_ATTACHMENT)
-    try:
-        world = world_of_scenario(scenario) if scenario is not None else None
-    except ValueError as exc:
-        raise RecordingError(f"{path}: attachment {SCENARIO_ATTACHMENT!r}: {exc}") from None
-    if world is None:
-        raise RecordingError(f"{path}: no {SCENARIO_ATTACHMENT!r} attachment: the world to describe is unknown")
+    world = world_of_episode(episode, path)
     views = {} if views is None else views
     view = views.get((world, rates)) or views.setdefault((world, rates), RosView(world, rates))
     bag = Path(out_dir) / path.stem

@@ -15,6 +15,9 @@ from __future__ import annotations
 import struct
 
 ADMIN_SPACE = "@ros2_lv"
+# the cell as one ROS 2 node: /etar_cell in the root namespace
+NODE_NAME, NAMESPACE = "etar_cell", "/"
+FULL_NODE_NAME = NAMESPACE + NODE_NAME
 DEFAULT_ENCLAVE = "/"  # rcl's
 MAX_DOMAIN_ID = 232  # ROS 2's domain ids: 0..232 (REP 2005's range for DDS ports, kept by every RMW)
 

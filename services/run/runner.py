@@ -32,6 +32,7 @@ from services.results.decoding import LearnerView
 from services.results.folder import SCENARIO_FILE, check_run_folder, prepare_run_folder
 from services.results.record import EpisodeRecord, RunRecord
 from services.results.report import write_report
+from services.ros2.wire import FULL_NODE_NAME
 from services.run.configs import node_configs
 from services.run.episode import Episodes, Recording
 from services.run.learn import learn, stored_model
@@ -198,7 +199,7 @@ class Runner:
             self.say(f"live view: connect Foxglove to ws://127.0.0.1:{port} (docs/foxglove/README.md)")
         if o.ros2 is not None:
             through = getattr(self.cell, "endpoint", "") or ", ".join(o.zenoh.connect if o.zenoh else ())
-            self.say(f"ROS 2: the cell is node /etar_cell in domain {o.ros2}, on the Zenoh session at {through} "
+            self.say(f"ROS 2: the cell is node {FULL_NODE_NAME} in domain {o.ros2}, on the Zenoh session at {through} "
                      "(rmw_zenoh in client mode connects there; docs/ros2.md)")
 
     # -------------------------------------------------------------- stages

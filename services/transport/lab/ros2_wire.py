@@ -17,9 +17,8 @@ import time
 
 from services.ros2 import types as ros_types
 from services.ros2 import wire
+from services.ros2.wire import NAMESPACE, NODE_NAME
 
-NODE_NAME = "etar_cell"
-NAMESPACE = "/"
 HEARTBEAT_S = 0.5  # rmw_zenoh's SAMPLE_MISS_DETECTION_HEARTBEAT_PERIOD
 
 
