@@ -15,11 +15,6 @@ $(STAMP): pyproject.toml setup.py robot_sim/arm/native/pinocchio_inplace.cpp
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade "pip>=24,<27"
 	$(BIN)/python -m pip install --quiet -e ".[test,cluster]"
-	@# numba compiles a kernel on its first call and caches the machine code beside its
-	@# source: one in-process smoke run calls them all, so runs and test workers load
-	@# them instead of each compiling the same ones (about 40 s of CPU per process)
-	@echo "compiling the numba kernels (an in-process smoke run, about 45 s)"
-	$(BIN)/etar-bench run scenarios/smoke.yaml --transport inproc --no-figures --out .cache/kernels --replace >/dev/null
 	touch $(STAMP)
 
 venv: $(STAMP)
