@@ -31,8 +31,8 @@ class Role:
     restartable: bool = False
     # over Zenoh its subscriptions are declared only while it listens, in lockstep too:
     # every input it has comes from the robot, which waits for its listening token
-    # (topics.listening) before an episode's first cycle.  Idle, its messages cost a
-    # lockstep run's CPU ~10 % (docs/benchmarks.md); a role fed by another (the commander
+    # (topics.listening) before an episode's first cycle.  Idle, its messages would still
+    # cost a lockstep run CPU (docs/benchmarks.md says how much); a role fed by another (the commander
     # by the estimator) would need that one to wait as well
     subscribes_when_listening: bool = False
 
