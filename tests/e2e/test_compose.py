@@ -68,12 +68,9 @@ def _podman_ready() -> tuple[bool, str]:
     return True, ""
 
 
-# serial: seven containers beside another test took 130-190 s of the lane shared two at a
-# time; alone they take about 75-100 s, and the other lane's tests run faster without them
 @pytest.mark.compose
 @pytest.mark.slow
 @pytest.mark.zenoh
-@pytest.mark.serial
 def test_smoke_scenario_on_docker_compose_with_podman(tmp_path):
     ok, why = _podman_ready()
     if not ok:
