@@ -10,7 +10,7 @@ did not; 2: numpy's library cannot be reached here (the loop column alone is pri
 
 The cell's recorded values pass through such products (the external-wrench estimate's
 J J^T and J tau, the commander's matvecs, the teacher's rotations), so compiling them
-changes recordings unless the counts are zero.  Issue 27's measurements (2026-12-03,
+changes recordings unless the counts are zero.  The measurements (2026-12-03,
 this VM, OpenBLAS 0.3.31 DYNAMIC_ARCH): docs/benchmarks.md.
 """
 

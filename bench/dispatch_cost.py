@@ -11,7 +11,7 @@ a kernel the rest of the cycle (Python, numpy, MuJoCo, Pinocchio, the other node
 pushed the dispatcher's code and data out of the caches.  Both ways call the same
 compiled code, so the recordings are the same.
 
-Measured 2026-12-03 (smoke, this 2-core VM): see docs/benchmarks.md, issue 27.
+Measured 2026-12-03 (smoke, this 2-core VM): see docs/benchmarks.md.
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@
 
 Fits 6 demonstrations x 3000 samples (n=3 state, m=3 force, K=3 phases) for
 exactly 50 EM iterations (one initialisation, no early stop) and times the
-online filter's ``update``.  Targets (issue 2): < 10 ms per EM iteration,
+online filter's ``update``.  Targets: < 10 ms per EM iteration,
 < 10 us per update, on a 2-core machine.  Compilation is timed apart.
 """
 

@@ -20,7 +20,7 @@ Guard: the in-process cycle may cost at most 1.5 times the multiple of the floor
 docs/benchmarks.md states (its line "cycle-to-floor ratio N"); above that the bench
 says so and exits 3, so that a change cannot quietly lose the speed.
 
-Targets (issue 27): in one process >= 10x real time over the valley's episodes and the
+Targets: in one process >= 10x real time over the valley's episodes and the
 cycle within 8x of the floor; over Zenoh lockstep >= 1x.
 """
 
@@ -194,7 +194,7 @@ def main():
         print(f"{t:<10} cycle {row['per_cycle_us']:7.0f} us = {row['per_cycle_us'] / floor:5.1f}x the floor")
     if "inproc" in rows:
         i = rows["inproc"]
-        print(f"targets (issue 27): in one process >= 10x real time over the episodes ({i['rtf']:.2f}x), "
+        print(f"targets: in one process >= 10x real time over the episodes ({i['rtf']:.2f}x), "
               f"the cycle <= 8x the floor ({i['per_cycle_us'] / floor:.1f}x)"
               + (f"; over Zenoh >= 1x real time ({rows['zenoh']['rtf']:.2f}x)" if "zenoh" in rows else ""))
         stated = stated_ratio()

@@ -34,7 +34,7 @@ commander FRI 1.0 over UDP, the estimator reading the Net F/T box; ``etar-bench 
 --wire udp``), or both, one after the other in the same invocation with the same bare
 loop running throughout, and a table of the two side by side.
 
-Targets (issue "Timing you can trust"): FRI answered in time >= 99.99 % of the
+Targets: FRI answered in time >= 99.99 % of the
 cycles, or no more missed cycles than the bare loop misses in the same run;
 closed-loop latency (measurement -> sensor -> estimator -> commander -> robot)
 p99 < 1 ms.

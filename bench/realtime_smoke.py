@@ -8,7 +8,7 @@ learning, one reproduction, over Zenoh with every service in its own process.  O
 row per run: exit code, whether the reproduction reached the goal, FRI cycles
 answered in time, when FRI entered command mode after the reproduction's start, the
 robot loop's deadline misses, the closed loop's p99; then how many runs reached the
-goal (target, issue 12: >= 9 of 10, FRI in command mode within 1 s).
+goal (target: >= 9 of 10, FRI in command mode within 1 s).
 """
 
 from __future__ import annotations

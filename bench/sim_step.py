@@ -5,7 +5,7 @@
 Times, per 1 ms step: MuJoCo alone; MuJoCo + the KRC's Cartesian impedance law
 (Pinocchio); and the whole cell cycle (FRI link bookkeeping, impedance law,
 physics, ATI sensor), arm pressed against a valley plate (one contact).
-Target (issue 3): under 100 us per step with the impedance law, i.e. the
+Target: under 100 us per step with the impedance law, i.e. the
 simulation runs at least 10x faster than real time.
 
 Then the control step alone (read q, qd; krc.compute; apply; step) in each of

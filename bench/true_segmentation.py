@@ -1,4 +1,4 @@
-"""Does EM find the best model of the two-sided valley?  (issue 28; thesis 6.2)
+"""Does EM find the best model of the two-sided valley?  (thesis 6.2)
 
 For each folder of recorded demonstrations (a run or a sweep's run with ``--record
 full``), pooled over its demonstrations:
