@@ -21,10 +21,10 @@ from pathlib import Path
 
 import numpy as np
 
-from services.runtime.messages import ESTIMATOR_PHASE, ROBOT_CONTACT
-
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+
+from services.runtime.messages import ESTIMATOR_PHASE, ROBOT_CONTACT  # noqa: E402
 
 
 def main(argv=None) -> int:

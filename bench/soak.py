@@ -32,10 +32,10 @@ from pathlib import Path
 
 import numpy as np
 
-from services.runtime.messages import ROBOT_COMMAND, ROBOT_STATE
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from services.runtime.messages import ROBOT_COMMAND, ROBOT_STATE  # noqa: E402
 
 SEQ_SENT = re.compile(rb'^\{"seq":(\d+),"stamp_ns":\d+,"sent_ns":(\d+)')
 

@@ -32,7 +32,6 @@ from services.ros2.types import BY_NAME, TOPICS, to_cdr, type_hash, typestore
 from services.runtime.messages import BY_TOPIC, MessageError
 
 
-
 @dataclass(frozen=True)
 class Bagged:
     recording: Path

@@ -152,7 +152,6 @@ def _vector3(v):
 def _quaternion(R: np.ndarray):
     import pinocchio as pin
 
-
     q = pin.Quaternion(np.asarray(R, dtype=np.float64))
     return make("geometry_msgs/msg/Quaternion", x=float(q.x), y=float(q.y), z=float(q.z), w=float(q.w))
 

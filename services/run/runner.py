@@ -199,8 +199,8 @@ class Runner:
             self.say(f"live view: connect Foxglove to ws://127.0.0.1:{port} (docs/foxglove/README.md)")
         if o.ros2 is not None:
             through = getattr(self.cell, "endpoint", "") or ", ".join(o.zenoh.connect if o.zenoh else ())
-            self.say(f"ROS 2: the cell is node {FULL_NODE_NAME} in domain {o.ros2}, on the Zenoh session at {through} "
-                     "(rmw_zenoh in client mode connects there; docs/ros2.md)")
+            self.say(f"ROS 2: the cell is node {FULL_NODE_NAME} in domain {o.ros2}, on the Zenoh session at "
+                     f"{through} (rmw_zenoh in client mode connects there; docs/ros2.md)")
 
     # -------------------------------------------------------------- stages
 
