@@ -59,15 +59,37 @@ def addresses(n: int) -> str:
     return ", ".join(["int64"] * n)
 
 
-@intrinsic
-def _float64_pointer(typingctx, addr):
-    if not isinstance(addr, types.Integer):
-        return None
+def _pointer_to(element):
+    """A numba intrinsic that turns an integer address into a pointer to ``element``s."""
 
-    def codegen(context, builder, signature, args):
-        return builder.inttoptr(args[0], context.get_value_type(signature.return_type))
+    def pointer(typingctx, addr):
+        if not isinstance(addr, types.Integer):
+            return None
 
-    return types.CPointer(types.float64)(addr), codegen
+        def codegen(context, builder, signature, args):
+            return builder.inttoptr(args[0], context.get_value_type(signature.return_type))
+
+        return types.CPointer(element)(addr), codegen
+
+    return intrinsic(pointer)
+
+
+_float64_pointer = _pointer_to(types.float64)
+_int64_pointer = _pointer_to(types.int64)
+
+
+@njit(**JIT, inline="always")
+def int64_array_at(addr, n):
+    """The int64 vector of ``n`` entries at ``addr`` (a view, in a kernel): a kernel's state
+    between calls, or a table of addresses."""
+    return carray(_int64_pointer(addr), (n,))
+
+
+def int64_address(a: np.ndarray) -> int:
+    """Where the int64 data of ``a`` starts, for ``int64_array_at``."""
+    if a.dtype != np.int64 or not a.flags.c_contiguous:
+        raise ValueError(f"need a contiguous int64 array, got {a.dtype} with strides {a.strides}")
+    return a.ctypes.data
 
 
 @njit(**JIT, inline="always")

@@ -22,14 +22,14 @@ from numba import njit
 
 from kernel_plumbing import blas
 from kernel_plumbing.addresses import JIT, HoldsAddresses, address, addresses, carray_at, entry
-from robot_sim.arm.kinematics import READY, ArmKinematics
+from robot_sim.arm.kinematics import COMPUTE_ALL_TERMS, READY, ArmKinematics
 from robot_sim.ati.rdt import RdtRecord
 from robot_sim.ati.sensor import AtiConfig, AtiSensor
 from robot_sim.krc.faults import LinkFaults
 from robot_sim.krc.link import CycleOutcome, FriConfig, FriLink
 from robot_sim.krc.packets import CommandPacket, ControlMode, FriState, MeasurementExtras, MeasurementPacket, fri_order
-from robot_sim.krc.law import ImpedanceCommand, KrcConfig, KrcController
-from robot_sim.world.physics import Simulation
+from robot_sim.krc.law import LAW_DONE, ImpedanceCommand, KrcConfig, KrcController, law_cycle_at
+from robot_sim.world.physics import MJ_STEP, PhysicsError, Simulation, step_at
 from robot_sim.world.tasks import TIMESTEP, WorldSpec
 
 # Noise of the measured joint positions FRI reports (rad, per joint, white).
@@ -139,6 +139,40 @@ class ExternalWrenchScratch(HoldsAddresses):
 _EXTERNAL_WRENCH, EXTERNAL_WRENCH_WHY = _external_wrench_kernel()
 
 
+@njit(**JIT)
+def _copy7(src_at, dst_at):
+    src, dst = carray_at(src_at, (7,)), carray_at(dst_at, (7,))
+    for i in range(7):
+        dst[i] = src[i]
+
+
+@njit(**JIT)
+def _physics_cycle_at(steps, law_state_at, law_table_at, q_at, qd_at, arm_qpos_at, arm_qvel_at, force_at, has_force,
+                      force_limit, hold, has_command, dynamics_fn, model_at, data_at, sim_table_at, nv, arm_dof, hand,
+                      step_fn, tau_at, sim_tau_at):
+    """The physics of one FRI cycle in one call: ``steps`` times the measured joint state,
+    the KRC's law (robot_sim.krc.law.law_cycle_at, Pinocchio through ``dynamics_fn``) into
+    ``tau_at``, the torques and the hand applied and MuJoCo stepped
+    (robot_sim.world.physics.step_at through ``step_fn``): ``RobotCell.end_cycle``'s loop.
+    Returns the steps done; fewer than ``steps``: the law (Pinocchio) or the step failed at
+    the next one (-1 - steps done: the step diverged)."""
+    for step in range(steps):
+        _copy7(arm_qpos_at, q_at)
+        _copy7(arm_qvel_at, qd_at)
+        if law_cycle_at(law_state_at, law_table_at, q_at, qd_at, force_at, has_force, force_limit, hold, has_command,
+                        dynamics_fn, model_at, data_at) != LAW_DONE:
+            return step
+        _copy7(tau_at, sim_tau_at)
+        if not step_at(sim_table_at, nv, arm_dof, hand, step_fn):
+            return -1 - step
+    return steps
+
+
+_PHYSICS_CYCLE = entry(_physics_cycle_at, f"int64, {addresses(7)}, boolean, float64, boolean, boolean, "
+                                          f"{addresses(6)}, boolean, {addresses(3)}") \
+    if MJ_STEP and COMPUTE_ALL_TERMS else None
+
+
 @dataclass
 class CycleResult:
     outcome: CycleOutcome
@@ -147,6 +181,29 @@ class CycleResult:
     touching: list  # geom names the tip touches
     tau: np.ndarray  # (7,) joint torques applied
     t_ns: int  # simulation time after the step
+
+
+def first_command_jump(krc: KrcController, cmd: CommandPacket, m: MeasurementPacket | None) -> str:
+    """Why the first command of a command-mode session jumps too far from the measured
+    state ``m`` to be applied ('' if it does not): its pose (CART_IMP) or its joints."""
+    if m is None:
+        return ""
+    limits = krc.config
+    if krc.mode == ControlMode.CART_IMP:
+        cmd_pose, msr = np.asarray(cmd.cart_pos).reshape(3, 4), np.asarray(m.msr_cart_pos).reshape(3, 4)
+        dist = float(np.linalg.norm(cmd_pose[:, 3] - msr[:, 3]))
+        angle = float(np.linalg.norm(pin.log3(msr[:, :3].T @ cmd_pose[:, :3])))
+        if dist > limits.first_command_max_jump_m or angle > limits.first_command_max_jump_rad:
+            return (f"first command {dist * 1e3:.1f} mm and {np.rad2deg(angle):.1f} deg from the measured pose "
+                    f"(limits {limits.first_command_max_jump_m * 1e3:.0f} mm, "
+                    f"{np.rad2deg(limits.first_command_max_jump_rad):.1f} deg)")
+    elif cmd.jnt_pos is not None:
+        step = np.abs(np.asarray(cmd.jnt_pos) - m.msr_jnt_pos)
+        j = int(np.argmax(step))
+        if step[j] > limits.first_command_max_jump_rad:
+            return (f"first command's joint {j + 1} {np.rad2deg(step[j]):.1f} deg from the measured one "
+                    f"(limit {np.rad2deg(limits.first_command_max_jump_rad):.1f} deg)")
+    return ""
 
 
 class RobotCell(HoldsAddresses):
@@ -181,6 +238,7 @@ class RobotCell(HoldsAddresses):
         if not (np.isfinite(joint_noise) and joint_noise >= 0.0):
             raise ValueError(f"joint_noise must be a standard deviation >= 0 rad, got {joint_noise!r}")
         self.joint_noise = float(joint_noise)
+        self._q_at, self._qd_at = address(self._q), address(self._qd)
         self._q_msr = np.zeros(7)
         self._joint_rng = np.random.default_rng([seed, 1])  # its own stream: the ATI's draws stay as they were
         self._tau_ext = np.zeros(7)
@@ -350,7 +408,7 @@ class RobotCell(HoldsAddresses):
             self._first_commands = 2
         if self.remote_checks and cmd is not None and self._first_commands and not outcome.bridged:
             self._first_commands -= 1
-            jump = self._first_command_jump(cmd)
+            jump = first_command_jump(self.krc, cmd, self._last_measurement)
             if jump:
                 # as a KRC does with a first command far from where the arm is: not applied,
                 # back to monitor mode, the arm held
@@ -369,43 +427,43 @@ class RobotCell(HoldsAddresses):
         force_estimate = None
         if self._last_measurement is not None:
             force_estimate = fri_to_standard(self._last_measurement.est_ext_tcp_ft)[:3]
-        for step in range(self.steps_per_cycle):
-            if step:
-                self.sim.joint_positions(self._q)
-                self.sim.joint_velocities(self._qd)
-            tau = self.krc.compute(self._q, self._qd, impedance, hold=impedance is None,
-                                   external_force=force_estimate)
-            if self.remote_checks and self.krc.safety and self.fri.state == FriState.CMD:
-                self.fri.request_monitor_mode()  # the arm is held where it stopped: the remote is told so
-            self.sim.apply(tau, hand_wrench)
-            self.sim.step()
+        if _PHYSICS_CYCLE is not None and not self.remote_checks and self.krc.mode != ControlMode.JNT_IMP:
+            self._physics_cycle(impedance, force_estimate, hand_wrench)
+        else:
+            for step in range(self.steps_per_cycle):
+                if step:
+                    self.sim.joint_positions(self._q)
+                    self.sim.joint_velocities(self._qd)
+                tau = self.krc.compute(self._q, self._qd, impedance, hold=impedance is None,
+                                       external_force=force_estimate)
+                if self.remote_checks and self.krc.safety and self.fri.state == FriState.CMD:
+                    self.fri.request_monitor_mode()  # the arm is held where it stopped: the remote is told so
+                self.sim.apply(tau, hand_wrench)
+                self.sim.step()
+        tau = self.krc.torques
         self.cycle += 1
         self._sense()
         record = self.ati.read(self._true_wrench, self.t_ns) if self.ati is not None else None
         return CycleResult(outcome, record, self._contact_force.copy(), list(self._touching), tau.copy(), self.t_ns)
 
-    def _first_command_jump(self, cmd: CommandPacket) -> str:
-        """Why the first command of a command-mode session jumps too far from the measured
-        state to be applied ('' if it does not): its pose (CART_IMP) or its joints."""
-        m = self._last_measurement
-        if m is None:
-            return ""
-        limits = self.krc.config
-        if self.krc.mode == ControlMode.CART_IMP:
-            cmd_pose, msr = np.asarray(cmd.cart_pos).reshape(3, 4), np.asarray(m.msr_cart_pos).reshape(3, 4)
-            dist = float(np.linalg.norm(cmd_pose[:, 3] - msr[:, 3]))
-            angle = float(np.linalg.norm(pin.log3(msr[:, :3].T @ cmd_pose[:, :3])))
-            if dist > limits.first_command_max_jump_m or angle > limits.first_command_max_jump_rad:
-                return (f"first command {dist * 1e3:.1f} mm and {np.rad2deg(angle):.1f} deg from the measured pose "
-                        f"(limits {limits.first_command_max_jump_m * 1e3:.0f} mm, "
-                        f"{np.rad2deg(limits.first_command_max_jump_rad):.1f} deg)")
-        elif cmd.jnt_pos is not None:
-            step = np.abs(np.asarray(cmd.jnt_pos) - m.msr_jnt_pos)
-            j = int(np.argmax(step))
-            if step[j] > limits.first_command_max_jump_rad:
-                return (f"first command's joint {j + 1} {np.rad2deg(step[j]):.1f} deg from the measured one "
-                        f"(limit {np.rad2deg(limits.first_command_max_jump_rad):.1f} deg)")
-        return ""
+    def _physics_cycle(self, impedance, force_estimate, hand_wrench) -> None:
+        """The loop of ``end_cycle`` in one kernel call (``_physics_cycle_at``): the same
+        law, the same steps, the same numbers."""
+        krc, sim = self.krc, self.sim
+        has_command, has_force, hand = impedance is not None, force_estimate is not None, hand_wrench is not None
+        krc.load(impedance, force_estimate)
+        if hand:
+            sim.load_hand(hand_wrench)
+        steps = self.steps_per_cycle
+        model_at, data_at = self.kin.native
+        done = _PHYSICS_CYCLE(steps, krc.state_at, krc.table_at, self._q_at, self._qd_at, sim.arm_qpos_at,
+                              sim.arm_qvel_at, krc.force_at, has_force, krc.config.cartesian_force_limit,
+                              not has_command, has_command, COMPUTE_ALL_TERMS, model_at, data_at, sim.table_at,
+                              sim.nv, sim.arm_dof, hand, MJ_STEP, krc.tau_at, sim.tau_at)
+        if done < 0:
+            raise PhysicsError(f"simulation diverged at t={sim.time:.3f} s (bad acceleration)")
+        if done < steps:
+            raise RuntimeError("Pinocchio's computeAllTerms failed in the KRC's step")
 
     def _sense(self) -> None:
         """The physics' truth of the current state, read once per step: the tool

@@ -20,7 +20,9 @@ import os
 
 import numpy as np
 import pinocchio as pin
+from numba import types
 
+from kernel_plumbing.blas import foreign
 from robot_sim.arm.description import ArmDescription, LWR4
 
 log = logging.getLogger(__name__)
@@ -48,6 +50,13 @@ def _load_pinocchio_inplace():
 PINOCCHIO_INPLACE, PINOCCHIO_INPLACE_MISSING = _load_pinocchio_inplace()
 # an extension built before it had this function (an older install) is still used for the rest
 _MEASURED_KINEMATICS = getattr(PINOCCHIO_INPLACE, "measured_kinematics", None)
+# the same two updates as C functions, for the cell's compiled cycle (0: an extension without them):
+# int (model, data, q, v) and int (model, data, q, frame, J), every argument an address
+COMPUTE_ALL_TERMS = getattr(PINOCCHIO_INPLACE, "COMPUTE_ALL_TERMS", 0)
+MEASURED_KINEMATICS = getattr(PINOCCHIO_INPLACE, "MEASURED_KINEMATICS", 0)
+# in a kernel: call_compute_all_terms(COMPUTE_ALL_TERMS, model, data, q, v) -> 0 on success
+call_compute_all_terms = foreign(types.int32, types.int64, types.int64, types.int64, types.int64)
+call_measured_kinematics = foreign(types.int32, types.int64, types.int64, types.int64, types.int64, types.int64)
 
 FRAMES = ("flange", "ati_sensor", "tool", "tcp")
 
@@ -78,6 +87,8 @@ class ArmKinematics:
         # inertia (nv, nv; its upper triangle is what the CRBA guarantees), and
         # the nonlinear effects (nv,)
         self.views = {"J": d.J, "M": d.M, "nle": d.nle}
+        # where the C++ Model and Data are, for COMPUTE_ALL_TERMS and MEASURED_KINEMATICS ((0, 0): not here)
+        self.native = PINOCCHIO_INPLACE.model_and_data(self.model, self.data) if COMPUTE_ALL_TERMS else (0, 0)
         self._frame_views = {name: (d.oMf[fid].rotation, d.oMf[fid].translation)
                              for name, fid in self.frame_ids.items()}
 

@@ -26,12 +26,13 @@ until ``reset_safety()``; a non-finite measurement commands zero torque.
 ``compute`` is the 1 kHz step and allocates nothing
 (tests/robot_sim/test_allocation.py): Pinocchio fills its ``data`` in place
 (``ArmKinematics.update_dynamics``) and the laws are numba kernels over
-preallocated buffers, passed by address (kernel_plumbing.addresses).
+preallocated buffers, passed by address (kernel_plumbing.addresses): their
+arithmetic in robot_sim.krc.law_arithmetic, the step's logic here (which law,
+the holds, the safety stops), its state between steps in one int64 array.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from enum import IntEnum
 
@@ -41,13 +42,14 @@ from numba import njit
 
 from robot_sim.cycle import FRI_CYCLE_NS
 from robot_sim.krc.packets import ControlMode
-from kernel_plumbing.addresses import JIT, HoldsAddresses, address, addresses, carray_at, entry, farray_at
-from robot_sim.arm.kinematics import ArmKinematics
+from kernel_plumbing.addresses import (JIT, HoldsAddresses, address, addresses, carray_at, entry, int64_address,
+                                       int64_array_at)
+from robot_sim.arm.kinematics import COMPUTE_ALL_TERMS, ArmKinematics, call_compute_all_terms
+from robot_sim.krc.law_arithmetic import (impedance_at, impedance_work_size, joint_spring_at, pose_at, rate_limit_at,
+                                          saturate_at, state_problem_at)
 
 POSITION, CART_IMP, JNT_IMP = ControlMode.POSITION, ControlMode.CART_IMP, ControlMode.JNT_IMP
 
-_EPS = np.finfo(np.float64).eps
-_PREC2 = _EPS ** (1.0 / 3.0)  # Pinocchio's TaylorSeriesExpansion<double>::precision<2>()
 
 
 class SafetyReason(IntEnum):
@@ -94,261 +96,159 @@ def pose_to_cart_pos(oMtcp: pin.SE3) -> np.ndarray:
     return np.hstack([oMtcp.rotation, oMtcp.translation[:, None]]).ravel()
 
 
-# --------------------------------------------------------------------------
-# kernels: the arithmetic of one cycle (array versions, then the per-step
-# entry points that take buffer addresses)
-# --------------------------------------------------------------------------
+# The controller's state between steps (``KrcController._state``, int64), by index: the
+# cycle within inertia_period, the latched SafetyReason, the cycles of saturated torque,
+# the holds and targets in force, the control mode, gravity compensation; then three
+# settings the kernels read.
+(_PHASE, _SAFETY, _SATURATED, _HOLDING_JOINTS, _HOLDING_POSE, _HAS_TARGET, _INTERPOLATING, _MODE, _GRAVITY,
+ _HAS_JOINT_COMMAND, _INERTIA_PERIOD, _REFRESH_PHASE, _SATURATION_CYCLES) = range(13)
+_STATE_SIZE = 13
+# The buffers the kernels reach, in the controller's address table (``KrcController._table``)
+BUFFERS = ("J", "M", "nle", "R", "p", "support", "q", "qd", "force", "low", "high", "pose", "k", "d", "ft",
+           "hold_pose", "hold_k", "hold_d", "no_wrench", "lam", "work", "wrench_tcp", "tau", "last_tau", "tau_max",
+           "kp", "kd", "q_hold", "q_target", "q_interp", "step")
+(_J, _M, _NLE, _R, _P, _SUPPORT, _Q, _QD, _FORCE, _LOW, _HIGH, _POSE, _K, _D, _FT, _HOLD_POSE, _HOLD_K, _HOLD_D,
+ _NO_WRENCH, _LAM, _WORK, _WRENCH_TCP, _TAU, _LAST_TAU, _TAU_MAX, _KP, _KD, _Q_HOLD, _Q_TARGET, _Q_INTERP,
+ _STEP) = range(len(BUFFERS))
+_NV = 7
+# what law_cycle_at returns: the torques are in tau; JNT_IMP's law is the caller's (numpy),
+# then law_end_at; Pinocchio failed (the torques are not computed)
+LAW_DONE, LAW_JOINT_IMPEDANCE, LAW_DYNAMICS_FAILED = 0, 1, 2
 
 
 @njit(**JIT)
-def frame_jacobian(J_world, rotation, translation, support, local, out):
-    """A frame's (6, nv) Jacobian [linear; angular] from Pinocchio's joint
-    Jacobians (``data.J``: world frame, about the world origin), the frame's
-    pose and its ``support`` mask (``ArmKinematics.support``):
-    LOCAL_WORLD_ALIGNED  [J_lin - p x J_ang; J_ang],  LOCAL  R^T times that."""
-    p, R = translation, rotation
-    for j in range(J_world.shape[1]):
-        s = support[j]
-        wx, wy, wz = J_world[3, j] * s, J_world[4, j] * s, J_world[5, j] * s
-        vx = J_world[0, j] * s - (p[1] * wz - p[2] * wy)
-        vy = J_world[1, j] * s - (p[2] * wx - p[0] * wz)
-        vz = J_world[2, j] * s - (p[0] * wy - p[1] * wx)
-        if local:
-            for i in range(3):
-                out[i, j] = R[0, i] * vx + R[1, i] * vy + R[2, i] * vz
-                out[3 + i, j] = R[0, i] * wx + R[1, i] * wy + R[2, i] * wz
-        else:
-            out[0, j], out[1, j], out[2, j] = vx, vy, vz
-            out[3, j], out[4, j], out[5, j] = wx, wy, wz
+def _copy(src_at, dst_at, n):
+    src, dst = carray_at(src_at, (n,)), carray_at(dst_at, (n,))
+    for i in range(n):
+        dst[i] = src[i]
 
 
 @njit(**JIT)
-def _theta_axis(i0, val, R, axis):
-    """Pinocchio's internal::compute_theta_axis: log3 near theta = pi."""
-    i1, i2 = (i0 + 1) % 3, (i0 + 2) % 3
-    s = math.sqrt(val + _EPS + _EPS * _EPS) * (1.0 if R[i2, i1] >= R[i1, i2] else -1.0)
-    axis[i0] = s / 2.0
-    axis[i1] = 1.0 / (2.0 * s) * (R[i1, i0] + R[i0, i1])
-    axis[i2] = 1.0 / (2.0 * s) * (R[i2, i0] + R[i0, i2])
-    w = 1.0 / (2.0 * s) * (R[i2, i1] - R[i1, i2])
-    norm = math.sqrt(axis[0] * axis[0] + axis[1] * axis[1] + axis[2] * axis[2])
-    axis[0] /= norm
-    axis[1] /= norm
-    axis[2] /= norm
-    return 2.0 * math.atan2(norm, w)
+def _stop_at(s, at, reason):
+    """Latch a safety stop: the arm held by stiff joint springs where it is now."""
+    s[_SAFETY] = reason
+    _copy(at[_Q], at[_Q_HOLD], _NV)
+    s[_HOLDING_JOINTS] = 1
 
 
 @njit(**JIT)
-def log3(R, work, out):
-    """out = pin.log3(R) without the allocations, Pinocchio's algorithm
-    (log3_impl) including its renormalisation of R.  ``work``: (4, 3) scratch."""
-    # renormalize_rotation_matrix: c0, c1 normalised, c2 = c0 x c1, c0 = c1 x c2
-    n0 = math.sqrt(R[0, 0] * R[0, 0] + R[1, 0] * R[1, 0] + R[2, 0] * R[2, 0])
-    n1 = math.sqrt(R[0, 1] * R[0, 1] + R[1, 1] * R[1, 1] + R[2, 1] * R[2, 1])
-    x0, y0, z0 = R[0, 0] / n0, R[1, 0] / n0, R[2, 0] / n0
-    x1, y1, z1 = R[0, 1] / n1, R[1, 1] / n1, R[2, 1] / n1
-    x2, y2, z2 = y0 * z1 - z0 * y1, z0 * x1 - x0 * z1, x0 * y1 - y0 * x1
-    x0, y0, z0 = y1 * z2 - z1 * y2, z1 * x2 - x1 * z2, x1 * y2 - y1 * x2
-    tr = x0 + y1 + z2
-    cos_value = (tr - 1.0) / 2.0
-    if cos_value < -1.0 + _PREC2:  # theta near pi: the axis from the largest diagonal entry
-        Rn, axis = work[:3], work[3]
-        Rn[0, 0], Rn[0, 1], Rn[0, 2] = x0, x1, x2
-        Rn[1, 0], Rn[1, 1], Rn[1, 2] = y0, y1, y2
-        Rn[2, 0], Rn[2, 1], Rn[2, 2] = z0, z1, z2
-        v0, v1, v2 = 2.0 * x0 - tr + 1.0, 2.0 * y1 - tr + 1.0, 2.0 * z2 - tr + 1.0
-        if v0 >= v1:
-            i0, val = (0, v0) if v0 >= v2 else (2, v2)
-        else:
-            i0, val = (1, v1) if v1 >= v2 else (2, v2)
-        theta = _theta_axis(i0, val, Rn, axis)
-        out[0], out[1], out[2] = theta * axis[0], theta * axis[1], theta * axis[2]
-        return
-    acos_expansion = math.sqrt(2.0 * (1.0 - cos_value) + _EPS * _EPS)
-    if tr <= 3.0 - _PREC2:
-        theta = math.acos(cos_value) if tr >= -1.0 + _PREC2 else math.pi - acos_expansion
-    else:
-        theta = acos_expansion
-    a0, a1, a2 = 0.5 * (z1 - y2), 0.5 * (x2 - z0), 0.5 * (y0 - x1)  # unSkew
-    n2 = a0 * a0 + a1 * a1 + a2 * a2
-    t = theta / math.sin(theta) if theta >= _PREC2 else 1.0 + n2 / 6.0 + n2 * n2 * 3.0 / 40.0
-    out[0], out[1], out[2] = t * a0, t * a1, t * a2
-
-
-@njit(**JIT)
-def _cholesky(A, L, upper):
-    """L lower triangular with L L^T = A, from A's upper (or lower) triangle."""
-    n = A.shape[0]
-    for j in range(n):
-        for i in range(j):
-            L[i, j] = 0.0
-        for i in range(j, n):
-            acc = A[j, i] if upper else A[i, j]
-            for k in range(j):
-                acc -= L[i, k] * L[j, k]
-            L[i, j] = math.sqrt(acc) if i == j else acc / L[j, j]
-
-
-@njit(**JIT)
-def lambda_diagonal(M, J, L, X, A, La, y, out):
-    """out = max(diag(Lambda), 1e-3) with Lambda = (J M^-1 J^T + 1e-9 I)^-1
-    the operational-space inertia in J's axes, through Cholesky factors
-    (M's upper triangle is read).  Scratch: L (nv, nv), X (nv, 6), A and La
-    (6, 6), y (6,)."""
-    nv = M.shape[0]
-    _cholesky(M, L, True)
-    for c in range(6):  # X = M^-1 J^T: L z = J^T, then L^T x = z
-        for i in range(nv):
-            acc = J[c, i]
-            for k in range(i):
-                acc -= L[i, k] * X[k, c]
-            X[i, c] = acc / L[i, i]
-        for i in range(nv - 1, -1, -1):
-            acc = X[i, c]
-            for k in range(i + 1, nv):
-                acc -= L[k, i] * X[k, c]
-            X[i, c] = acc / L[i, i]
-    for r in range(6):
-        for c in range(6):
-            acc = 0.0
-            for k in range(nv):
-                acc += J[r, k] * X[k, c]
-            A[r, c] = acc
-        A[r, r] += 1e-9
-    _cholesky(A, La, False)
-    for i in range(6):  # (A^-1)_ii = |La^-1 e_i|^2
-        for r in range(6):
-            acc = 1.0 if r == i else 0.0
-            for k in range(r):
-                acc -= La[r, k] * y[k]
-            y[r] = acc / La[r, r]
-        acc = 0.0
-        for r in range(6):
-            acc += y[r] * y[r]
-        out[i] = max(acc, 1e-3)
-
-
-def _impedance_work_size(nv: int) -> int:
-    """Floats of scratch ``_impedance_at`` carves up: J, error, R_err, log3's,
-    then lambda_diagonal's L, X, A, La, y."""
-    return 6 * nv + 6 + 9 + 12 + nv * nv + 6 * nv + 36 + 36 + 6
-
-
-@njit(**JIT)
-def _impedance_at(nv, jw_at, rot_at, pos_at, support_at, nle_at, mass_at, qd_at, pose_at, k_at, d_at, ft_at,
-                  refresh, lambda_at, work_at, wrench_at, tau_at):
-    """Eq. 79 in the tcp frame: the wrench F (into wrench) and tau = J^T F + nle."""
-    R, p = farray_at(rot_at, (3, 3)), carray_at(pos_at, (3,))
-    pose = carray_at(pose_at, (12,))
-    qd, nle = carray_at(qd_at, (nv,)), carray_at(nle_at, (nv,))
-    k, d, ft = carray_at(k_at, (6,)), carray_at(d_at, (6,)), carray_at(ft_at, (6,))
-    lam, F, tau = carray_at(lambda_at, (6,)), carray_at(wrench_at, (6,)), carray_at(tau_at, (nv,))
-    at = work_at  # bytes
-    J = carray_at(at, (6, nv))  # maps qd to the tcp's twist in tcp axes
-    at += 8 * 6 * nv
-    error = carray_at(at, (6,))
-    at += 8 * 6
-    R_err = carray_at(at, (3, 3))
-    at += 8 * 9
-    log_work = carray_at(at, (4, 3))
-    at += 8 * 12
-    L = carray_at(at, (nv, nv))
-    at += 8 * nv * nv
-    X = carray_at(at, (nv, 6))
-    at += 8 * 6 * nv
-    A = carray_at(at, (6, 6))
-    at += 8 * 36
-    La = carray_at(at, (6, 6))
-    at += 8 * 36
-    y = carray_at(at, (6,))
-    frame_jacobian(farray_at(jw_at, (6, nv)), R, p, carray_at(support_at, (nv,)), True, J)
-    # the commanded pose seen from the measured one: R^T (p_cmd - p), log(R^T R_cmd)
-    for i in range(3):
-        error[i] = R[0, i] * (pose[3] - p[0]) + R[1, i] * (pose[7] - p[1]) + R[2, i] * (pose[11] - p[2])
-        for j in range(3):
-            R_err[i, j] = R[0, i] * pose[j] + R[1, i] * pose[4 + j] + R[2, i] * pose[8 + j]
-    log3(R_err, log_work, error[3:])
-    if refresh:
-        lambda_diagonal(farray_at(mass_at, (nv, nv)), J, L, X, A, La, y, lam)
-    for i in range(6):
-        twist = 0.0
-        for j in range(nv):
-            twist += J[i, j] * qd[j]
-        F[i] = k[i] * error[i] - 2.0 * d[i] * math.sqrt(k[i] * lam[i]) * twist + ft[i]
-    for j in range(nv):
-        acc = 0.0
-        for i in range(6):
-            acc += J[i, j] * F[i]
-        tau[j] = acc + nle[j]
-
-
-@njit(**JIT)
-def _pose_at(rot_at, pos_at, out_at):
-    """out = the FRI 12 numbers (3x4 row-major) of the pose (R, p)."""
-    R, p, out = farray_at(rot_at, (3, 3)), carray_at(pos_at, (3,)), carray_at(out_at, (12,))
-    for i in range(3):
-        out[4 * i], out[4 * i + 1], out[4 * i + 2], out[4 * i + 3] = R[i, 0], R[i, 1], R[i, 2], p[i]
-
-
-@njit(**JIT)
-def _joint_spring_at(nv, q_at, qd_at, nle_at, goal_at, kp_at, kd_at, tau_at):
-    q, qd, nle = carray_at(q_at, (nv,)), carray_at(qd_at, (nv,)), carray_at(nle_at, (nv,))
-    goal, tau = carray_at(goal_at, (nv,)), carray_at(tau_at, (nv,))
-    kp, kd = carray_at(kp_at, (nv,)), carray_at(kd_at, (nv,))
-    for i in range(nv):
-        tau[i] = kp[i] * (goal[i] - q[i]) - kd[i] * qd[i] + nle[i]
-
-
-@njit(**JIT)
-def _rate_limit_at(nv, interp_at, target_at, step_at):
-    interp, target, step = carray_at(interp_at, (nv,)), carray_at(target_at, (nv,)), carray_at(step_at, (nv,))
-    for i in range(nv):
-        interp[i] += min(max(target[i] - interp[i], -step[i]), step[i])
-
-
-@njit(**JIT)
-def _saturate_at(nv, tau_at, max_at, last_at):
-    """Clip tau to +-max (into tau and last); True if any joint is at its limit."""
-    tau, tau_max, last = carray_at(tau_at, (nv,)), carray_at(max_at, (nv,)), carray_at(last_at, (nv,))
-    saturated = False
-    for i in range(nv):
-        tau[i] = min(max(tau[i], -tau_max[i]), tau_max[i])
-        last[i] = tau[i]
-        saturated |= abs(tau[i]) >= tau_max[i] * 0.999
-    return saturated
-
-
-@njit(**JIT)
-def _state_problem_at(nv, q_at, qd_at, low_at, high_at, check_limits, force_at, has_force, force_limit):
-    """The SafetyReason the measured state calls for (NONE = 0)."""
-    q, qd = carray_at(q_at, (nv,)), carray_at(qd_at, (nv,))
-    for i in range(nv):
-        if not (np.isfinite(q[i]) and np.isfinite(qd[i])):
-            return 4  # NON_FINITE
-    if not check_limits:
-        return 0
-    low, high = carray_at(low_at, (nv,)), carray_at(high_at, (nv,))
-    for i in range(nv):
-        if (q[i] < low[i] and qd[i] < 0) or (q[i] > high[i] and qd[i] > 0):
-            return 1  # JOINT_LIMIT
+def law_begin_at(state_at, table_at, q_at, qd_at, force_at, has_force, force_limit):
+    """The step's start: the inertia phase advances, the measured state (and the estimated
+    external force) is copied in and checked.  False: the state is not finite, the drives
+    get zero torque and the step is over."""
+    s, at = int64_array_at(state_at, _STATE_SIZE), int64_array_at(table_at, len(BUFFERS))
+    s[_PHASE] = 0 if s[_PHASE] + 1 == s[_INERTIA_PERIOD] else s[_PHASE] + 1
+    _copy(q_at, at[_Q], _NV)
+    _copy(qd_at, at[_QD], _NV)
     if has_force:
-        f = carray_at(force_at, (3,))
-        if math.sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2]) > force_limit:
-            return 2  # CARTESIAN_FORCE
-    return 0
+        _copy(force_at, at[_FORCE], 3)
+    problem = state_problem_at(_NV, at[_Q], at[_QD], at[_LOW], at[_HIGH], s[_SAFETY] == 0, at[_FORCE], has_force,
+                                force_limit)
+    if problem == 4:  # NON_FINITE: nothing can be computed from a broken measurement
+        s[_SAFETY] = 4
+        last, tau = carray_at(at[_LAST_TAU], (_NV,)), carray_at(at[_TAU], (_NV,))
+        last[:] = 0.0
+        tau[:] = 0.0
+        return False
+    if problem:
+        _stop_at(s, at, problem)
+    return True
+
+
+@njit(**JIT)
+def _impedance_with(s, at, pose_at, k_at, d_at, ft_at):
+    impedance_at(_NV, at[_J], at[_R], at[_P], at[_SUPPORT], at[_NLE], at[_M], at[_QD], pose_at, k_at, d_at, ft_at,
+                  s[_PHASE] == s[_REFRESH_PHASE], at[_LAM], at[_WORK], at[_WRENCH_TCP], at[_TAU])
+
+
+@njit(**JIT)
+def _position_with(s, at):
+    """POSITION: a stiff joint PD towards the rate-limited target (the arm's own pose if none)."""
+    if not s[_INTERPOLATING]:
+        _copy(at[_Q], at[_Q_INTERP], _NV)
+        s[_INTERPOLATING] = 1
+    if not s[_HAS_TARGET]:
+        _copy(at[_Q], at[_Q_TARGET], _NV)
+        s[_HAS_TARGET] = 1
+    rate_limit_at(_NV, at[_Q_INTERP], at[_Q_TARGET], at[_STEP])
+    joint_spring_at(_NV, at[_Q], at[_QD], at[_NLE], at[_Q_INTERP], at[_KP], at[_KD], at[_TAU])
+
+
+@njit(**JIT)
+def law_torques_at(state_at, table_at, hold, has_command):
+    """The torques of the law in force, into tau, once Pinocchio's dynamics terms are
+    current.  ``hold``: no usable FRI command; ``has_command``: the command's pose,
+    stiffness, damping and wrench are in their buffers.  True: JNT_IMP with a command,
+    whose law the caller computes."""
+    s, at = int64_array_at(state_at, _STATE_SIZE), int64_array_at(table_at, len(BUFFERS))
+    mode = s[_MODE]
+    if s[_SAFETY] != 0:
+        if not s[_HOLDING_JOINTS]:
+            _copy(at[_Q], at[_Q_HOLD], _NV)
+            s[_HOLDING_JOINTS] = 1
+        joint_spring_at(_NV, at[_Q], at[_QD], at[_NLE], at[_Q_HOLD], at[_KP], at[_KD], at[_TAU])
+    elif s[_GRAVITY]:
+        _copy(at[_NLE], at[_TAU], _NV)
+        wrench = carray_at(at[_WRENCH_TCP], (6,))
+        wrench[:] = 0.0
+    elif mode == 1:  # POSITION
+        _position_with(s, at)
+    elif mode == 3:  # JNT_IMP: monitor mode holds where it is, as in POSITION
+        if hold or not s[_HAS_JOINT_COMMAND]:
+            _position_with(s, at)
+        else:
+            return True
+    elif hold or not has_command:  # CART_IMP, held at the pose where the hold began
+        if not s[_HOLDING_POSE]:
+            pose_at(at[_R], at[_P], at[_HOLD_POSE])
+            s[_HOLDING_POSE] = 1
+        _impedance_with(s, at, at[_HOLD_POSE], at[_HOLD_K], at[_HOLD_D], at[_NO_WRENCH])
+    else:
+        s[_HOLDING_POSE] = 0
+        _impedance_with(s, at, at[_POSE], at[_K], at[_D], at[_FT])
+    return False
+
+
+@njit(**JIT)
+def law_end_at(state_at, table_at):
+    """The step's end: tau clipped to the drives' limits (into last_tau too); torques
+    saturated for torque_saturation_cycles latch a stop."""
+    s, at = int64_array_at(state_at, _STATE_SIZE), int64_array_at(table_at, len(BUFFERS))
+    if saturate_at(_NV, at[_TAU], at[_TAU_MAX], at[_LAST_TAU]):
+        s[_SATURATED] = min(s[_SATURATED] + 1, s[_SATURATION_CYCLES])
+    else:
+        s[_SATURATED] = 0
+    if s[_SATURATED] >= s[_SATURATION_CYCLES] and s[_SAFETY] == 0:
+        _stop_at(s, at, 3)  # TORQUE_SATURATION
+
+
+@njit(**JIT)
+def law_cycle_at(state_at, table_at, q_at, qd_at, force_at, has_force, force_limit, hold, has_command,
+                 dynamics_fn, model_at, data_at):
+    """One step of the law in one call, Pinocchio's dynamics terms included
+    (robot_sim.arm.kinematics.COMPUTE_ALL_TERMS at ``dynamics_fn``): law_begin_at, the
+    dynamics at the copied state, law_torques_at, law_end_at.  Returns LAW_DONE,
+    LAW_JOINT_IMPEDANCE (then the caller's law and law_end_at) or LAW_DYNAMICS_FAILED."""
+    if not law_begin_at(state_at, table_at, q_at, qd_at, force_at, has_force, force_limit):
+        return LAW_DONE
+    at = int64_array_at(table_at, len(BUFFERS))
+    if call_compute_all_terms(dynamics_fn, model_at, data_at, at[_Q], at[_QD]) != 0:
+        return LAW_DYNAMICS_FAILED
+    if law_torques_at(state_at, table_at, hold, has_command):
+        return LAW_JOINT_IMPEDANCE
+    law_end_at(state_at, table_at)
+    return LAW_DONE
 
 
 # the step's kernels, called as machine code (kernel_plumbing.addresses.entry)
-_state_problem = entry(_state_problem_at, f"{addresses(5)}, boolean, int64, boolean, float64")
-_impedance_law = entry(_impedance_at, f"{addresses(12)}, boolean, {addresses(4)}")
-_pose = entry(_pose_at, addresses(3))
-_joint_spring = entry(_joint_spring_at, addresses(8))
-_rate_limit = entry(_rate_limit_at, addresses(4))
-_saturate = entry(_saturate_at, addresses(4))
+_law_begin = entry(law_begin_at, f"{addresses(5)}, boolean, float64")
+_law_torques = entry(law_torques_at, f"{addresses(2)}, boolean, boolean")
+_law_end = entry(law_end_at, addresses(2))
+_law_cycle = entry(law_cycle_at, f"{addresses(5)}, boolean, float64, boolean, boolean, {addresses(3)}") \
+    if COMPUTE_ALL_TERMS else None
 
-_STOP_REASONS = tuple(SafetyReason)  # indexed by _state_problem_at's result
-# for the step: in Python 3.11 looking a member up on its Enum class allocates
-_SAFE, _NON_FINITE, _TORQUE_SATURATION = SafetyReason.NONE, SafetyReason.NON_FINITE, SafetyReason.TORQUE_SATURATION
+_SAFETY_REASONS = tuple(SafetyReason)  # indexed by the state's value: looking a member up allocates
+_MODES = {int(m): m for m in ControlMode}
 
 
 class KrcController(HoldsAddresses):
@@ -369,23 +269,21 @@ class KrcController(HoldsAddresses):
         self._q_high = self.q_max - config.joint_limit_margin
         self.kp = np.array(config.position_kp)
         self.kd = np.array(config.position_kd)
-        self.mode = CART_IMP
-        self.gravity_compensation = False
-        self.safety = SafetyReason.NONE
-        self._saturated_cycles = 0
-        # the cycle within inertia_period; Lambda is refreshed at phase 1 (and
-        # every cycle when the period is 1).  Small ints: CPython caches those
-        # up to 256, so counting allocates nothing.
-        self._phase = 0
-        self._refresh_phase = 1 % config.inertia_period
+        # what the kernels keep between steps (the _PHASE ... indices); Lambda is refreshed
+        # at phase 1 of inertia_period (and every cycle when the period is 1)
+        self._state = np.zeros(_STATE_SIZE, dtype=np.int64)
+        self._state[_MODE] = CART_IMP
+        self._state[_INERTIA_PERIOD] = config.inertia_period
+        self._state[_REFRESH_PHASE] = 1 % config.inertia_period
+        self._state[_SATURATION_CYCLES] = config.torque_saturation_cycles
         self._lambda_diag = np.ones(6)
         self.last_tau = np.zeros(7)
         self.last_wrench_tcp = np.zeros(6)
-        # states that used to be None until set: buffers plus a flag
-        self._q_hold, self._holding_joints = np.zeros(7), False
-        self._x_hold, self._holding_pose = np.zeros(12), False  # FRI's 12 numbers
-        self._q_target, self._has_target = np.zeros(7), False
-        self._q_interp, self._interpolating = np.zeros(7), False
+        # the holds and targets, each a buffer and a flag in the state
+        self._q_hold = np.zeros(7)
+        self._x_hold = np.zeros(12)  # FRI's 12 numbers
+        self._q_target = np.zeros(7)
+        self._q_interp = np.zeros(7)
         # how far the interpolated position target may move per cycle: towards a target set
         # once, a fraction of the joint speed limit; following a target streamed every cycle
         # (FRI's POSITION mode), the limit itself
@@ -395,7 +293,6 @@ class KrcController(HoldsAddresses):
         # JNT_IMP's command: setpoint, stiffness, damping ratio, added torque
         self._jnt_cmd, self._jnt_k = np.zeros(7), np.array(config.joint_stiffness, dtype=np.float64)
         self._jnt_d, self._jnt_trq = np.full(7, config.joint_damping), np.zeros(7)
-        self._has_joint_command = False
         self._hold_stiffness = np.array(config.hold_stiffness, dtype=np.float64)
         self._hold_damping = np.full(6, config.hold_damping)
         self._no_wrench = np.zeros(6)
@@ -406,7 +303,7 @@ class KrcController(HoldsAddresses):
         self._stiffness, self._damping, self._wrench = np.zeros(6), np.zeros(6), np.zeros(6)
         self._tau = np.zeros(7)
         nv = kinematics.model.nv
-        self._work = np.zeros(_impedance_work_size(nv))
+        self._work = np.zeros(impedance_work_size(nv))
         self._support = kinematics.support("tcp")
         views = kinematics.views
         rotation, translation = kinematics.frame_views("tcp")
@@ -421,19 +318,39 @@ class KrcController(HoldsAddresses):
                    "tau_max": self.tau_max, "kp": self.kp, "kd": self.kd, "q_hold": self._q_hold,
                    "q_target": self._q_target, "q_interp": self._q_interp, "step": self._position_step}
         self._at = {name: address(a) for name, a in buffers.items()}
+        self._table = np.array([self._at[name] for name in BUFFERS], dtype=np.int64)
         self._buffers = buffers  # what the addresses point into, kept alive
+        self.state_at, self.table_at = int64_address(self._state), int64_address(self._table)
+        self.force_at, self.tau_at = self._at["force"], self._at["tau"]
+        self._model_at, self._data_at = kinematics.native  # the C++ Model and Data, for _law_cycle
+
+    # ------------------------------------------------------------- the state
+
+    @property
+    def safety(self) -> SafetyReason:
+        return _SAFETY_REASONS[self._state[_SAFETY]]
+
+    @property
+    def mode(self) -> ControlMode:
+        return _MODES[int(self._state[_MODE])]
+
+    @property
+    def gravity_compensation(self) -> bool:
+        """Ignore commands and compensate gravity only (kinesthetic teaching)."""
+        return bool(self._state[_GRAVITY])
+
+    @gravity_compensation.setter
+    def gravity_compensation(self, on: bool) -> None:
+        self._state[_GRAVITY] = bool(on)
 
     # ------------------------------------------------------------- commands
 
     def switch_mode(self, mode: int) -> None:
         if mode not in (POSITION, CART_IMP, JNT_IMP):
             raise ValueError(f"control mode {mode} not supported (POSITION=1, CART_IMP=2, JNT_IMP=3)")
-        self.mode = ControlMode(mode)
-        self._holding_joints = False
-        self._holding_pose = False
-        self._interpolating = False
-        self._has_target = False
-        self._has_joint_command = False
+        s = self._state
+        s[_MODE] = ControlMode(mode)
+        s[_HOLDING_JOINTS] = s[_HOLDING_POSE] = s[_INTERPOLATING] = s[_HAS_TARGET] = s[_HAS_JOINT_COMMAND] = 0
 
     def set_joint_target(self, q_target, streamed: bool = False) -> None:
         """POSITION mode target.  Set once (``streamed=False``) the KRC moves there at
@@ -445,7 +362,7 @@ class KrcController(HoldsAddresses):
         np.clip(q_target, self.q_min + self.config.joint_limit_margin * 2,
                 self.q_max - self.config.joint_limit_margin * 2, out=self._q_target)
         self._position_step[...] = self._stream_step if streamed else self._ptp_step
-        self._has_target = True
+        self._state[_HAS_TARGET] = 1
 
     def set_joint_impedance(self, q_cmd, stiffness=None, damping=None, add_torque=None) -> None:
         """JNT_IMP's command for this cycle (FRI's jntPos, jntStiffness, jntDamping,
@@ -456,13 +373,11 @@ class KrcController(HoldsAddresses):
         self._jnt_k[...] = self.config.joint_stiffness if stiffness is None else stiffness
         self._jnt_d[...] = self.config.joint_damping if damping is None else damping
         self._jnt_trq[...] = 0.0 if add_torque is None else add_torque
-        self._has_joint_command = True
+        self._state[_HAS_JOINT_COMMAND] = 1
 
     def reset_safety(self) -> None:
-        self.safety = SafetyReason.NONE
-        self._saturated_cycles = 0
-        self._holding_joints = False
-        self._holding_pose = False
+        s = self._state
+        s[_SAFETY] = s[_SATURATED] = s[_HOLDING_JOINTS] = s[_HOLDING_POSE] = 0
 
     # ---------------------------------------------------------------- cycle
 
@@ -475,107 +390,66 @@ class KrcController(HoldsAddresses):
 
         Returns the controller's own (7,) buffer, overwritten by the next call:
         copy it to keep it.  Allocates nothing."""
-        self._phase = 0 if self._phase + 1 == self.config.inertia_period else self._phase + 1
-        at = self._at
+        has_force, has_command = external_force is not None, command is not None
+        self.load(command, external_force)
         self._q[...] = q
         self._qd[...] = qd
-        has_force = external_force is not None
-        if has_force:
+        self.step_at(self._at["q"], self._at["qd"], has_force, hold, has_command)
+        return self._tau
+
+    def load(self, command: ImpedanceCommand | None, external_force: np.ndarray | None) -> None:
+        """This cycle's command and estimated external force into the buffers the step reads
+        (None: none; the step is told which it has)."""
+        if external_force is not None:
             self._force[...] = external_force
-        problem = _state_problem(7, at["q"], at["qd"], at["low"], at["high"], self.safety == _SAFE,
-                                 at["force"], has_force, self.config.cartesian_force_limit)
-        if problem == _NON_FINITE:
-            # nothing can be computed from a broken measurement: drives off,
-            # brakes on (the physics keeps the arm; no torque is commanded)
-            self.safety = _NON_FINITE
-            self.last_tau.fill(0.0)
-            self._tau.fill(0.0)
-            return self._tau
-        if problem:
-            self._stop(_STOP_REASONS[problem], self._q)
-        self.kin.update_dynamics(self._q, self._qd)
-        if self.safety != _SAFE:
-            self._joint_hold()
-        elif self.gravity_compensation:
-            self._tau[...] = self.kin.views["nle"]
-            self.last_wrench_tcp.fill(0.0)
-        elif self.mode == POSITION:
-            self._position()
-        elif self.mode == JNT_IMP:
-            if hold or not self._has_joint_command:
-                self._position()  # monitor mode: held where it is, as in POSITION
-            else:
-                self._joint_impedance()
-        elif hold or command is None:
-            self._cartesian_hold()
-        else:
-            self._holding_pose = False
+        if command is not None:
             self._pose_cmd[...] = command.cart_pos
             self._stiffness[...] = command.cart_stiffness
             self._damping[...] = command.cart_damping
             self._wrench[...] = command.add_tcp_ft
-            self._impedance(at["pose"], at["k"], at["d"], at["ft"])
-        saturated = _saturate(7, at["tau"], at["tau_max"], at["last_tau"])
-        if saturated:
-            self._saturated_cycles = min(self._saturated_cycles + 1, self.config.torque_saturation_cycles)
-        else:
-            self._saturated_cycles = 0
-        if self._saturated_cycles >= self.config.torque_saturation_cycles and self.safety == _SAFE:
-            self._stop(_TORQUE_SATURATION, self._q)
+
+    @property
+    def torques(self) -> np.ndarray:
+        """The last step's torques: the controller's own buffer (what ``compute`` returns)."""
         return self._tau
 
+    def step_at(self, q_at: int, qd_at: int, has_force: bool, hold: bool, has_command: bool) -> None:
+        """``compute`` from buffers by address: the state at ``q_at``, ``qd_at``; the force
+        and the command already in ``_force``, ``_pose_cmd``, ``_stiffness``, ``_damping``,
+        ``_wrench``.  The torques go to ``_tau``."""
+        state, table, limit, at = self.state_at, self.table_at, self.config.cartesian_force_limit, self._at
+        if _law_cycle is not None:
+            done = _law_cycle(state, table, q_at, qd_at, at["force"], has_force, limit, hold, has_command,
+                              COMPUTE_ALL_TERMS, self._model_at, self._data_at)
+            if done == LAW_DYNAMICS_FAILED:
+                raise RuntimeError("Pinocchio's computeAllTerms failed in the KRC's step")
+            if done == LAW_JOINT_IMPEDANCE:
+                self._joint_impedance()
+                _law_end(state, table)
+            return
+        # without the extension's C functions: the dynamics through Python, between the kernels
+        if not _law_begin(state, table, q_at, qd_at, at["force"], has_force, limit):
+            return
+        self.kin.update_dynamics(self._q, self._qd)
+        if _law_torques(state, table, hold, has_command):
+            self._joint_impedance()
+        _law_end(state, table)
+
     # ------------------------------------------------------------------ laws
-
-    def _impedance(self, pose_at, stiffness_at, damping_at, wrench_at):
-        at = self._at
-        _impedance_law(7, at["J"], at["R"], at["p"], at["support"], at["nle"], at["M"], at["qd"], pose_at,
-                       stiffness_at, damping_at, wrench_at, self._phase == self._refresh_phase, at["lam"], at["work"],
-                       at["wrench_tcp"], at["tau"])
-
-    def _cartesian_hold(self):
-        at = self._at
-        if not self._holding_pose:
-            _pose(at["R"], at["p"], at["hold_pose"])
-            self._holding_pose = True
-        self._impedance(at["hold_pose"], at["hold_k"], at["hold_d"], at["no_wrench"])
-
-    def _position(self):
-        at = self._at
-        if not self._interpolating:
-            self._q_interp[...] = self._q
-            self._interpolating = True
-        if not self._has_target:
-            self._q_target[...] = self._q
-            self._has_target = True
-        _rate_limit(7, at["q_interp"], at["q_target"], at["step"])
-        _joint_spring(7, at["q"], at["qd"], at["nle"], at["q_interp"], at["kp"], at["kd"], at["tau"])
 
     def _joint_impedance(self):
         # not a kernel: JNT_IMP serves remotes over FRI (etar-bench serve), not the
         # allocation-free reproduction loop
-        self._interpolating = self._has_target = False  # a later hold holds where it then is
+        s = self._state
+        s[_INTERPOLATING] = s[_HAS_TARGET] = 0  # a later hold holds where it then is
         M = self.kin.views["M"]
         damping = 2.0 * self._jnt_d * np.sqrt(self._jnt_k * np.diag(M))
         self._tau[...] = (self._jnt_k * (self._jnt_cmd - self._q) - damping * self._qd + self._jnt_trq
                           + self.kin.views["nle"])
         self.last_wrench_tcp.fill(0.0)
 
-    def _joint_hold(self):
-        at = self._at
-        if not self._holding_joints:
-            self._q_hold[...] = self._q
-            self._holding_joints = True
-        _joint_spring(7, at["q"], at["qd"], at["nle"], at["q_hold"], at["kp"], at["kd"], at["tau"])
-
-    # --------------------------------------------------------------- safety
-
-    def _stop(self, reason: SafetyReason, q):
-        self.safety = reason
-        self._q_hold[...] = q
-        self._holding_joints = True
-
     @property
     def reached_target(self) -> bool:
         """POSITION mode: the interpolated target has arrived at the final target."""
-        return (self._has_target and self._interpolating
+        return (bool(self._state[_HAS_TARGET] and self._state[_INTERPOLATING])
                 and np.allclose(self._q_interp, self._q_target, atol=1e-9))

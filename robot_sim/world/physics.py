@@ -23,7 +23,8 @@ import numpy as np
 from numba import njit, types
 
 from kernel_plumbing import blas
-from kernel_plumbing.addresses import JIT, HoldsAddresses, address, addresses, carray_at, entry
+from kernel_plumbing.addresses import (JIT, HoldsAddresses, address, addresses, carray_at, entry, int64_address,
+                                       int64_array_at)
 from robot_sim.world.tasks import TIMESTEP, WorldSpec
 
 JOINTS = tuple(f"joint{i}" for i in range(1, 8))
@@ -143,8 +144,39 @@ def _mujoco_function(name: str) -> tuple[int, str]:
 
 
 _CONTACT_FORCE, WHY_NO_CONTACT_KERNEL = _mujoco_function("mj_contactForce")
+# mj_step(const mjModel*, mjData*): the step from a kernel (bit for bit the bindings' step)
+MJ_STEP, WHY_NO_STEP_KERNEL = _mujoco_function("mj_step")
+_call_step = blas.foreign(types.void, types.int64, types.int64)
 if _CONTACT_FORCE and not blas.AVAILABLE:
     _CONTACT_FORCE, WHY_NO_CONTACT_KERNEL = 0, blas.WHY
+# The addresses a step kernel reaches (``Simulation.table``), by index
+STEP_BUFFERS = ("cdof", "com", "flange", "chain", "wrench", "tau", "hand", "applied", "qacc", "model", "data",
+                "bad_qacc", "sensordata", "constraint")
+(_CDOF, _COM, _FLANGE, _CHAIN, _WRENCH, _TAU, _HAND, _APPLIED, _QACC, _MODEL, _DATA, _BAD_QACC, _SENSORDATA,
+ _CONSTRAINT) = range(len(STEP_BUFFERS))
+
+
+@njit(**JIT)
+def step_at(table_at, nv, arm_dof, hand, step_fn):
+    """``Simulation.apply`` (tau and the hand's wrench already in their buffers; ``hand``:
+    the hand acts) and ``Simulation.step`` through MuJoCo's C function at ``step_fn``.
+    False: the step diverged (a non-finite acceleration, or MuJoCo's bad-acceleration
+    warning), as ``step`` raises PhysicsError."""
+    at = int64_array_at(table_at, len(STEP_BUFFERS))
+    _applied_forces(nv, at[_CDOF], at[_COM], at[_FLANGE], at[_CHAIN], at[_WRENCH], hand, at[_TAU], arm_dof,
+                    at[_HAND], at[_APPLIED])
+    _call_step(step_fn, at[_MODEL], at[_DATA])
+    return all_finite_at(at[_QACC], nv) and blas.int32_at(at[_BAD_QACC]) == 0
+
+
+@njit(**JIT)
+def sense_table_at(table_at, force_adr, torque_adr, nv, arm_dof, wrench_at, torques_at):
+    """``Simulation.sense_at`` from a step kernel's table."""
+    at = int64_array_at(table_at, len(STEP_BUFFERS))
+    _sensed_at(at[_SENSORDATA], force_adr, torque_adr, at[_CONSTRAINT], at[_HAND], nv, arm_dof, wrench_at,
+               torques_at)
+
+
 # the geom ids of the contacts on the tip a kernel call can report; more go the Python way
 _MAX_TIP_CONTACTS = 64
 
@@ -217,7 +249,13 @@ class Simulation(HoldsAddresses):
                     "sensordata": address(d.sensordata), "constraint": address(d.qfrc_constraint),
                     "model": m._address, "data": d._address, "contact6": address(self._contact6),
                     "force3": address(self._contact_force3), "total": address(self._contact_total),
-                    "others": address(self._tip_others)}
+                    "others": address(self._tip_others),
+                    "bad_qacc": d.warning.number.ctypes.data + d.warning.number.strides[0] * mujoco.mjtWarning.mjWARN_BADQACC}
+        # the step kernel's addresses (step_at), and what it is called with besides
+        self._table = np.array([self._at[name] for name in STEP_BUFFERS], dtype=np.int64)
+        self.table_at = int64_address(self._table)
+        self.arm_qpos_at, self.arm_qvel_at = address(self._arm_qpos), address(self._arm_qvel)
+        self.tau_at, self.nv, self.arm_dof = self._at["tau"], self._nv, self._arm_dof
 
     @property
     def time(self) -> float:
@@ -268,6 +306,10 @@ class Simulation(HoldsAddresses):
         at = self._at
         _apply_forces(self._nv, at["cdof"], at["com"], at["flange"], at["chain"], at["wrench"], hand,
                       at["tau"], self._arm_dof, at["hand"], at["applied"])
+
+    def load_hand(self, hand_wrench: np.ndarray) -> None:
+        """The hand's wrench for ``step_at`` (as ``apply`` takes it)."""
+        self._hand_wrench[...] = hand_wrench
 
     def step(self) -> None:
         mujoco.mj_step(self.model, self.data)

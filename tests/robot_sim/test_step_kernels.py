@@ -8,8 +8,8 @@ import pinocchio as pin
 import pytest
 
 from robot_sim.arm.kinematics import ArmKinematics, FRAMES, READY
-from robot_sim.krc.law import (ImpedanceCommand, KrcController, SafetyReason, frame_jacobian, lambda_diagonal,
-                               log3, pose_to_cart_pos)
+from robot_sim.krc.law import ImpedanceCommand, KrcController, SafetyReason, pose_to_cart_pos
+from robot_sim.krc.law_arithmetic import frame_jacobian, lambda_diagonal, log3
 from robot_sim.arm.description import LWR4
 from robot_sim.world.physics import Simulation
 from robot_sim.world.tasks import Valley, free_space, valley
@@ -241,3 +241,88 @@ def test_update_with_jacobian_leaves_what_the_bindings_leave(kin):
             assert kin.data.J.tobytes() == reference.J.tobytes()
             for mine, theirs in zip(kin.data.oMf, reference.oMf):
                 assert mine.homogeneous.tobytes() == theirs.homogeneous.tobytes()
+
+
+def test_pinocchio_called_from_a_kernel_leaves_what_the_extension_leaves(kin):
+    """The extension's C functions, called by address from a numba kernel (as the cell's
+    physics cycle calls them), leave the bits its Python functions leave; and a bad
+    argument comes back as a failure code, not an exception through C."""
+    from numba import njit
+
+    from robot_sim.arm import kinematics as k
+
+    if not k.COMPUTE_ALL_TERMS:
+        pytest.skip(f"no extension here: {k.PINOCCHIO_INPLACE_MISSING or 'an older build'}")
+
+    @njit
+    def dynamics(fn, model, data, q, v):
+        return k.call_compute_all_terms(fn, model, data, q, v)
+
+    @njit
+    def measured(fn, model, data, q, frame, jacobian):
+        return k.call_measured_kinematics(fn, model, data, q, frame, jacobian)
+
+    other = ArmKinematics()
+    expected, got = np.empty((6, 7)), np.full((6, 7), np.nan)
+    for q, qd in random_states(100, seed=5):
+        kin.update_dynamics(q, qd)
+        assert dynamics(k.COMPUTE_ALL_TERMS, *other.native, q.ctypes.data, qd.ctypes.data) == 0
+        for name in ("J", "M", "nle"):
+            assert other.views[name].tobytes() == kin.views[name].tobytes(), name
+        for mine, theirs in zip(other.data.oMf, kin.data.oMf):
+            assert mine.homogeneous.tobytes() == theirs.homogeneous.tobytes()
+        kin.update_with_jacobian(q, "tcp", expected)
+        assert measured(k.MEASURED_KINEMATICS, *other.native, q.ctypes.data, kin.frame_ids["tcp"],
+                        got.ctypes.data) == 0
+        assert got.tobytes() == expected.tobytes()
+    q = READY.copy()
+    assert measured(k.MEASURED_KINEMATICS, *other.native, q.ctypes.data, 10**6, got.ctypes.data) != 0
+
+
+@pytest.mark.parametrize("substeps", [1, 2])
+def test_the_compiled_physics_cycle_steps_as_the_python_loop(monkeypatch, substeps):
+    """``RobotCell.end_cycle`` through ``_physics_cycle_at`` (one kernel: the law, the
+    torques applied, MuJoCo's step by address, per physics step) against its loop of
+    Python calls, cell beside cell from the same state: gravity compensation with a hand
+    pushing, then Cartesian impedance pressing the tool onto a plate, then holds; the same
+    joint state, torques and sensed wrench, bit for bit, every cycle."""
+    import robot_sim.cell as cell_module
+    from robot_sim.cell import RobotCell
+    from robot_sim.krc.packets import CommandPacket
+    from robot_sim.world.tasks import physics_step
+    from robot_sim.world.teacher import DOWN
+
+    compiled = cell_module._PHYSICS_CYCLE
+    if compiled is None:
+        pytest.skip("no compiled physics cycle here (MuJoCo's or the extension's C functions are missing)")
+    world = valley(Valley(), timestep=physics_step(substeps))
+    cells = [RobotCell(world, seed=1) for _ in range(2)]
+    start = np.array([0.6, -0.08, 0.26])
+    for cell in cells:
+        cell.place_tcp(start, DOWN)
+        cell.start()
+    target = np.hstack([DOWN, (start - [0.0, 0.0, 0.06])[:, None]]).ravel()
+    hand = np.array([0.0, 8.0, -20.0, 0.0, 0.0, 0.0])
+    stepped, pressed = 0, 0.0
+    for k in range(1400):
+        results = []
+        for cell, way in zip(cells, (compiled, None)):
+            monkeypatch.setattr(cell_module, "_PHYSICS_CYCLE", way)
+            cell.krc.gravity_compensation = k < 300
+            if k == 0:
+                cell.fri.request_command_mode()  # entered once the link has been PERFECT for 500 cycles
+            m = cell.begin_cycle()
+            if k < 1000 or k % 7:  # then now and then a missed answer: the link bridges, or holds
+                cell.receive(CommandPacket(m.seq, target, np.array([2000.0] * 3 + [150.0] * 3), np.full(6, 0.7)),
+                             m.stamp_ns + 100_000)
+            results.append(cell.end_cycle(hand if k < 300 else None))
+        a, b = cells
+        assert a.sim.data.qpos.tobytes() == b.sim.data.qpos.tobytes(), k
+        assert a.sim.data.qvel.tobytes() == b.sim.data.qvel.tobytes(), k
+        assert results[0].tau.tobytes() == results[1].tau.tobytes(), k
+        assert a.tool_wrench.tobytes() == b.tool_wrench.tobytes(), k
+        assert a.krc.safety == b.krc.safety
+        stepped += a.fri.state == 2
+        pressed = max(pressed, float(np.linalg.norm(a.contact_force)))
+    assert stepped > 300, "the link never reached command mode: the impedance law was not compared"
+    assert pressed > 1.0, f"the tool never pressed on the plate (at most {pressed:.2f} N)"

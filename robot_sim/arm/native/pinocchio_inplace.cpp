@@ -12,6 +12,7 @@
 // layout of Model and Data must be that of the loaded Pinocchio, so the module
 // carries the version it was built against and robot_sim.arm.kinematics checks it.
 
+#include <cstdint>
 #include <stdexcept>
 
 #include <pinocchio/multibody.hpp>
@@ -60,6 +61,44 @@ static void measured_kinematics(const pinocchio::Model &model, pinocchio::Data &
   pinocchio::getFrameJacobian(model, data, frame, pinocchio::LOCAL, J);
 }
 
+// The same two updates for a compiled caller (a numba kernel of the cell's cycle, which
+// holds no Python object): Model and Data by address, vectors and the Jacobian as raw
+// float64 buffers of the model's sizes.  C linkage, and no exception crosses it: a
+// return of 0 is success, anything else a failure the caller reports.
+extern "C" {
+
+int robot_sim_compute_all_terms(const void *model, void *data, const double *q, const double *v) {
+  try {
+    const auto &m = *static_cast<const pinocchio::Model *>(model);
+    Eigen::Map<const Eigen::VectorXd> qm(q, m.nq), vm(v, m.nv);
+    compute_all_terms(m, *static_cast<pinocchio::Data *>(data), qm, vm);
+    return 0;
+  } catch (...) {
+    return 1;
+  }
+}
+
+int robot_sim_measured_kinematics(const void *model, void *data, const double *q, long frame, double *J) {
+  try {
+    const auto &m = *static_cast<const pinocchio::Model *>(model);
+    Eigen::Map<const Eigen::VectorXd> qm(q, m.nq);
+    Eigen::Map<Eigen::MatrixXd> JT(J, m.nv, 6);  // the C-contiguous (6, nv) array, column-major
+    Eigen::Ref<Eigen::MatrixXd> ref(JT);
+    measured_kinematics(m, *static_cast<pinocchio::Data *>(data), qm,
+                        static_cast<pinocchio::FrameIndex>(frame), ref);
+    return 0;
+  } catch (...) {
+    return 1;
+  }
+}
+
+}  // extern "C"
+
+// Where the Python objects keep their C++ Model and Data, for the functions above.
+static bp::tuple model_and_data(const pinocchio::Model &model, pinocchio::Data &data) {
+  return bp::make_tuple(reinterpret_cast<std::uintptr_t>(&model), reinterpret_cast<std::uintptr_t>(&data));
+}
+
 BOOST_PYTHON_MODULE(_pinocchio_inplace) {
   // Pinocchio's module registers the Model/Data classes and eigenpy's converters
   bp::import("pinocchio");
@@ -73,4 +112,10 @@ BOOST_PYTHON_MODULE(_pinocchio_inplace) {
           "forwardKinematics(model, data, q), computeJointJacobians(model, data, q), "
           "updateFramePlacements(model, data), and getFrameJacobian(model, data, frame, LOCAL) "
           "written into J, a C-contiguous (6, nv) float64 array passed as J.T.");
+  bp::def("model_and_data", &model_and_data, (bp::arg("model"), bp::arg("data")),
+          "(address of the C++ Model, address of the C++ Data) of these Python objects, for "
+          "COMPUTE_ALL_TERMS and MEASURED_KINEMATICS; valid while the objects live.");
+  // the C entry points' addresses: int (model, data, q, v) and int (model, data, q, frame, J)
+  bp::scope().attr("COMPUTE_ALL_TERMS") = reinterpret_cast<std::uintptr_t>(&robot_sim_compute_all_terms);
+  bp::scope().attr("MEASURED_KINEMATICS") = reinterpret_cast<std::uintptr_t>(&robot_sim_measured_kinematics);
 }
