@@ -21,14 +21,17 @@ import pinocchio as pin
 from numba import njit
 
 from kernel_plumbing import blas
-from kernel_plumbing.addresses import JIT, HoldsAddresses, address, addresses, carray_at, entry
-from robot_sim.arm.kinematics import COMPUTE_ALL_TERMS, READY, ArmKinematics
+from kernel_plumbing.addresses import (JIT, HoldsAddresses, address, addresses, carray_at, entry, int64_address,
+                                       int64_array_at)
+from robot_sim.arm.kinematics import (COMPUTE_ALL_TERMS, MEASURED_KINEMATICS, READY, ArmKinematics,
+                                      call_measured_kinematics)
 from robot_sim.ati.rdt import RdtRecord
 from robot_sim.ati.sensor import AtiConfig, AtiSensor
 from robot_sim.krc.faults import LinkFaults
 from robot_sim.krc.link import CycleOutcome, FriConfig, FriLink
 from robot_sim.krc.packets import CommandPacket, ControlMode, FriState, MeasurementExtras, MeasurementPacket, fri_order
 from robot_sim.krc.law import LAW_DONE, ImpedanceCommand, KrcConfig, KrcController, law_cycle_at
+from robot_sim.krc.law_arithmetic import pose_at
 from robot_sim.world.physics import MJ_STEP, PhysicsError, Simulation, step_at
 from robot_sim.world.tasks import TIMESTEP, WorldSpec
 
@@ -168,6 +171,52 @@ def _physics_cycle_at(steps, law_state_at, law_table_at, q_at, qd_at, arm_qpos_a
     return steps
 
 
+# The buffers the measurement kernel reaches (``RobotCell._measure_table``), by index
+MEASURE_BUFFERS = ("arm_qpos", "arm_qvel", "q", "qd", "noise", "q_msr", "true_jacobian", "rotation", "translation",
+                   "true_pose", "local", "true_twist", "wrench_jacobian", "wrench", "cart")
+(_ARM_QPOS, _ARM_QVEL, _QT, _QDT, _NOISE, _Q_MSR, _TRUE_JACOBIAN, _ROTATION, _TRANSLATION, _TRUE_POSE, _LOCAL,
+ _TRUE_TWIST, _WRENCH_JACOBIAN, _WRENCH, _CART) = range(len(MEASURE_BUFFERS))
+
+
+@njit(**JIT)
+def _measure_at(table_at, joint_noise, kinematics_fn, model_at, data_at, frame, gemv, wrench_args_at):
+    """What ``RobotCell.begin_cycle`` measures before the FRI link, in one call: the true
+    joint state read from MuJoCo; the measured joints (the true ones plus this cycle's row
+    of noise); the tcp's true pose and twist (Pinocchio at the true joints, the twist
+    through the dgemv numpy's matmul calls, so the same bits); then Pinocchio at the
+    measured joints, the external wrench estimate (``_external_wrench_at``, its arguments
+    in the int64 table at ``wrench_args_at``) and the measured tcp pose.  Returns False if
+    Pinocchio failed."""
+    at = int64_array_at(table_at, len(MEASURE_BUFFERS))
+    _copy7(at[_ARM_QPOS], at[_QT])
+    _copy7(at[_ARM_QVEL], at[_QDT])
+    q, noise, q_msr = carray_at(at[_QT], (7,)), carray_at(at[_NOISE], (7,)), carray_at(at[_Q_MSR], (7,))
+    for i in range(7):
+        q_msr[i] = noise[i] * joint_noise
+        q_msr[i] += q[i]
+    if call_measured_kinematics(kinematics_fn, model_at, data_at, at[_QT], frame, at[_TRUE_JACOBIAN]) != 0:
+        return False
+    pose_at(at[_ROTATION], at[_TRANSLATION], at[_TRUE_POSE])
+    row, no_trans, trans = np.int32(blas.ROW_MAJOR), np.int32(blas.NO_TRANS), np.int32(blas.TRANS)
+    # local = J qd, [v; w] in tcp axes (J C-contiguous), then R v and R w (R column-major,
+    # as a transposed row-major matrix): the calls numpy's matmul makes for each
+    blas.call_gemv(gemv, row, no_trans, 6, 7, 1.0, at[_TRUE_JACOBIAN], 7, at[_QDT], 1, 0.0, at[_LOCAL], 1)
+    blas.call_gemv(gemv, row, trans, 3, 3, 1.0, at[_ROTATION], 3, at[_LOCAL], 1, 0.0, at[_TRUE_TWIST], 1)
+    blas.call_gemv(gemv, row, trans, 3, 3, 1.0, at[_ROTATION], 3, at[_LOCAL] + 24, 1, 0.0, at[_TRUE_TWIST] + 24, 1)
+    if call_measured_kinematics(kinematics_fn, model_at, data_at, at[_Q_MSR], frame, at[_WRENCH_JACOBIAN]) != 0:
+        return False
+    w = int64_array_at(wrench_args_at, 12)
+    if _external_wrench_at(w[0], w[1], w[2], w[3], w[4], w[5], w[6], w[7], w[8], w[9], w[10], w[11]):
+        wrench = carray_at(at[_WRENCH], (6,))
+        wrench[:] = np.nan  # a singular system: NaN, as numpy's solve kernel gives
+    pose_at(at[_ROTATION], at[_TRANSLATION], at[_CART])
+    return True
+
+
+_MEASURE = entry(_measure_at, f"int64, float64, {addresses(6)}") \
+    if MEASURED_KINEMATICS and _EXTERNAL_WRENCH is not None else None
+
+
 _PHYSICS_CYCLE = entry(_physics_cycle_at, f"int64, {addresses(7)}, boolean, float64, boolean, boolean, "
                                           f"{addresses(6)}, boolean, {addresses(3)}") \
     if MJ_STEP and COMPUTE_ALL_TERMS else None
@@ -204,6 +253,53 @@ def first_command_jump(krc: KrcController, cmd: CommandPacket, m: MeasurementPac
             return (f"first command's joint {j + 1} {np.rad2deg(step[j]):.1f} deg from the measured one "
                     f"(limit {np.rad2deg(limits.first_command_max_jump_rad):.1f} deg)")
     return ""
+
+
+class CompiledCycle(HoldsAddresses):
+    """A cell's cycle through its two kernels, ``_measure_at`` and ``_physics_cycle_at``:
+    the addresses they take, gathered once (the tcp's views of Pinocchio's data among
+    them), and their calls.  The same numbers as the cell's Python calls."""
+
+    def __init__(self, cell: "RobotCell"):
+        self.cell = cell
+        rotation, translation = cell.kin.frame_views("tcp")
+        scratch = cell._wrench_scratch
+        buffers = dict(arm_qpos=cell.sim.arm_qpos_at, arm_qvel=cell.sim.arm_qvel_at, q=cell._q_at, qd=cell._qd_at,
+                       noise=0, q_msr=address(cell._q_msr), true_jacobian=address(cell._true_jacobian),
+                       rotation=address(rotation), translation=address(translation),
+                       true_pose=address(cell._true_pose), local=address(cell._local_twist),
+                       true_twist=address(cell._true_twist), wrench_jacobian=address(scratch.jacobian),
+                       wrench=address(scratch.out), cart=address(cell._cart_pos))
+        self._table = np.array([buffers[name] for name in MEASURE_BUFFERS], dtype=np.int64)
+        self._table_at = int64_address(self._table)
+        self._wrench_args = np.array(scratch.args, dtype=np.int64)
+        self._wrench_args_at = int64_address(self._wrench_args)
+        (self._model_at, self._data_at), self._tcp_frame = cell.kin.native, cell.kin.frame_ids["tcp"]
+
+    def measure(self, noise_row_at: int) -> None:
+        """``begin_cycle``'s measurement, the joint noise's row at ``noise_row_at``."""
+        self._table[_NOISE] = noise_row_at
+        if not _MEASURE(self._table_at, self.cell.joint_noise, MEASURED_KINEMATICS, self._model_at, self._data_at,
+                        self._tcp_frame, blas.GEMV, self._wrench_args_at):
+            raise RuntimeError("Pinocchio's kinematics failed in the KRC's measurement")
+
+    def physics(self, impedance, force_estimate, hand_wrench) -> None:
+        """The loop of ``end_cycle``: the same law, the same steps, the same numbers."""
+        cell = self.cell
+        krc, sim = cell.krc, cell.sim
+        has_command, has_force, hand = impedance is not None, force_estimate is not None, hand_wrench is not None
+        krc.load(impedance, force_estimate)
+        if hand:
+            sim.load_hand(hand_wrench)
+        steps = cell.steps_per_cycle
+        done = _PHYSICS_CYCLE(steps, krc.state_at, krc.table_at, cell._q_at, cell._qd_at, sim.arm_qpos_at,
+                              sim.arm_qvel_at, krc.force_at, has_force, krc.config.cartesian_force_limit,
+                              not has_command, has_command, COMPUTE_ALL_TERMS, self._model_at, self._data_at,
+                              sim.table_at, sim.nv, sim.arm_dof, hand, MJ_STEP, krc.tau_at, sim.tau_at)
+        if done < 0:
+            raise PhysicsError(f"simulation diverged at t={sim.time:.3f} s (bad acceleration)")
+        if done < steps:
+            raise RuntimeError("Pinocchio's computeAllTerms failed in the KRC's step")
 
 
 class RobotCell(HoldsAddresses):
@@ -248,11 +344,13 @@ class RobotCell(HoldsAddresses):
         self._true_jacobian = np.empty((6, 7))
         self._true_pose = np.zeros((3, 4))
         self._true_twist = np.zeros(6)
+        self._local_twist = np.zeros(6)
         self._joint_noise_block = np.empty((0, 7))
         self._joint_noise_i = 0
         self._true_wrench = np.zeros(6)
         self._true_wrench_at, self._tau_ext_at = address(self._true_wrench), address(self._tau_ext)
         self._wrench_scratch = ExternalWrenchScratch(self._tau_ext)
+        self._noise_block_at = 0
         self._last_measurement: MeasurementPacket | None = None
         self._extras_data = None  # Pinocchio data of its own for fri_extras
         # the KRC's checks on a lab's remote (FRI over UDP): its first command in command mode
@@ -261,6 +359,7 @@ class RobotCell(HoldsAddresses):
         self.remote_checks = False
         self.first_command_refused = ""
         self._first_commands = 0  # of this command-mode session, still to check
+        self._compiled = CompiledCycle(self) if _MEASURE is not None and _PHYSICS_CYCLE is not None else None
         self.place(READY)
 
     @property
@@ -289,28 +388,34 @@ class RobotCell(HoldsAddresses):
 
     def begin_cycle(self) -> MeasurementPacket:
         sim, kin = self.sim, self.kin
-        sim.joint_positions(self._q)
-        sim.joint_velocities(self._qd)
+        if self._compiled is None:
+            sim.joint_positions(self._q)
+            sim.joint_velocities(self._qd)
         # the KRC reports measured joint positions, and the tcp pose from them; the
         # noise is drawn a block at a time (the same numbers as 7 per cycle)
         i = self._joint_noise_i
         if i >= len(self._joint_noise_block):
             self._joint_noise_block = self._joint_rng.standard_normal((_NOISE_BLOCK, 7))
+            self._noise_block_at = address(self._joint_noise_block)
             i = 0
         self._joint_noise_i = i + 1
-        np.multiply(self._joint_noise_block[i], self.joint_noise, out=self._q_msr)
-        self._q_msr += self._q
-        self._true_motion()
-        if _EXTERNAL_WRENCH is not None:
-            kin.update_with_jacobian(self._q_msr, "tcp", self._wrench_scratch.jacobian)
-            wrench = self._wrench_scratch.solve(_EXTERNAL_WRENCH)
+        if self._compiled is not None:
+            self._compiled.measure(self._noise_block_at + i * 56)  # this cycle's row of 7 float64
+            wrench, cart = self._wrench_scratch.out, self._cart_pos
         else:
-            kin.update(self._q_msr)
-            wrench = self._external_wrench_tcp()
-        R, p = kin.frame_views("tcp")
-        cart = self._cart_pos
-        cart[:, :3] = R
-        cart[:, 3] = p
+            np.multiply(self._joint_noise_block[i], self.joint_noise, out=self._q_msr)
+            self._q_msr += self._q
+            self._true_motion()
+            if _EXTERNAL_WRENCH is not None:
+                kin.update_with_jacobian(self._q_msr, "tcp", self._wrench_scratch.jacobian)
+                wrench = self._wrench_scratch.solve(_EXTERNAL_WRENCH)
+            else:
+                kin.update(self._q_msr)
+                wrench = self._external_wrench_tcp()
+            R, p = kin.frame_views("tcp")
+            cart = self._cart_pos
+            cart[:, :3] = R
+            cart[:, 3] = p
         m = self.fri.measurement(self.t_ns, self._q_msr, cart.reshape(12), standard_to_fri(wrench))
         self._last_measurement = m
         return m
@@ -427,8 +532,8 @@ class RobotCell(HoldsAddresses):
         force_estimate = None
         if self._last_measurement is not None:
             force_estimate = fri_to_standard(self._last_measurement.est_ext_tcp_ft)[:3]
-        if _PHYSICS_CYCLE is not None and not self.remote_checks and self.krc.mode != ControlMode.JNT_IMP:
-            self._physics_cycle(impedance, force_estimate, hand_wrench)
+        if self._compiled is not None and not self.remote_checks and self.krc.mode != ControlMode.JNT_IMP:
+            self._compiled.physics(impedance, force_estimate, hand_wrench)
         else:
             for step in range(self.steps_per_cycle):
                 if step:
@@ -445,25 +550,6 @@ class RobotCell(HoldsAddresses):
         self._sense()
         record = self.ati.read(self._true_wrench, self.t_ns) if self.ati is not None else None
         return CycleResult(outcome, record, self._contact_force.copy(), list(self._touching), tau.copy(), self.t_ns)
-
-    def _physics_cycle(self, impedance, force_estimate, hand_wrench) -> None:
-        """The loop of ``end_cycle`` in one kernel call (``_physics_cycle_at``): the same
-        law, the same steps, the same numbers."""
-        krc, sim = self.krc, self.sim
-        has_command, has_force, hand = impedance is not None, force_estimate is not None, hand_wrench is not None
-        krc.load(impedance, force_estimate)
-        if hand:
-            sim.load_hand(hand_wrench)
-        steps = self.steps_per_cycle
-        model_at, data_at = self.kin.native
-        done = _PHYSICS_CYCLE(steps, krc.state_at, krc.table_at, self._q_at, self._qd_at, sim.arm_qpos_at,
-                              sim.arm_qvel_at, krc.force_at, has_force, krc.config.cartesian_force_limit,
-                              not has_command, has_command, COMPUTE_ALL_TERMS, model_at, data_at, sim.table_at,
-                              sim.nv, sim.arm_dof, hand, MJ_STEP, krc.tau_at, sim.tau_at)
-        if done < 0:
-            raise PhysicsError(f"simulation diverged at t={sim.time:.3f} s (bad acceleration)")
-        if done < steps:
-            raise RuntimeError("Pinocchio's computeAllTerms failed in the KRC's step")
 
     def _sense(self) -> None:
         """The physics' truth of the current state, read once per step: the tool

@@ -280,23 +280,25 @@ def test_pinocchio_called_from_a_kernel_leaves_what_the_extension_leaves(kin):
 
 
 @pytest.mark.parametrize("substeps", [1, 2])
-def test_the_compiled_physics_cycle_steps_as_the_python_loop(monkeypatch, substeps):
-    """``RobotCell.end_cycle`` through ``_physics_cycle_at`` (one kernel: the law, the
-    torques applied, MuJoCo's step by address, per physics step) against its loop of
-    Python calls, cell beside cell from the same state: gravity compensation with a hand
+def test_the_compiled_cycle_measures_and_steps_as_the_python_calls(substeps):
+    """``RobotCell.begin_cycle`` through ``_measure_at`` (the joint noise, Pinocchio at the
+    true and the measured joints, the true twist, the external wrench estimate) and
+    ``end_cycle`` through ``_physics_cycle_at`` (the law, the torques applied, MuJoCo's
+    step by address, per physics step) against their Python calls, cell beside cell from
+    the same state: gravity compensation with a hand
     pushing, then Cartesian impedance pressing the tool onto a plate, then holds; the same
-    joint state, torques and sensed wrench, bit for bit, every cycle."""
-    import robot_sim.cell as cell_module
+    measurement, true pose and twist, joint state, torques and sensed wrench, bit for bit,
+    every cycle."""
     from robot_sim.cell import RobotCell
     from robot_sim.krc.packets import CommandPacket
     from robot_sim.world.tasks import physics_step
     from robot_sim.world.teacher import DOWN
 
-    compiled = cell_module._PHYSICS_CYCLE
-    if compiled is None:
-        pytest.skip("no compiled physics cycle here (MuJoCo's or the extension's C functions are missing)")
     world = valley(Valley(), timestep=physics_step(substeps))
     cells = [RobotCell(world, seed=1) for _ in range(2)]
+    if cells[0]._compiled is None:
+        pytest.skip("no compiled cycle here (MuJoCo's, numpy's BLAS or the extension's C functions are missing)")
+    cells[1]._compiled = None  # the Python calls
     start = np.array([0.6, -0.08, 0.26])
     for cell in cells:
         cell.place_tcp(start, DOWN)
@@ -306,17 +308,20 @@ def test_the_compiled_physics_cycle_steps_as_the_python_loop(monkeypatch, subste
     stepped, pressed = 0, 0.0
     for k in range(1400):
         results = []
-        for cell, way in zip(cells, (compiled, None)):
-            monkeypatch.setattr(cell_module, "_PHYSICS_CYCLE", way)
+        measured = []
+        for cell in cells:
             cell.krc.gravity_compensation = k < 300
             if k == 0:
                 cell.fri.request_command_mode()  # entered once the link has been PERFECT for 500 cycles
             m = cell.begin_cycle()
+            measured.append(np.concatenate([m.msr_jnt_pos, m.msr_cart_pos, m.est_ext_tcp_ft, cell.true_tcp_pose,
+                                            cell.true_tcp_twist]))
             if k < 1000 or k % 7:  # then now and then a missed answer: the link bridges, or holds
                 cell.receive(CommandPacket(m.seq, target, np.array([2000.0] * 3 + [150.0] * 3), np.full(6, 0.7)),
                              m.stamp_ns + 100_000)
             results.append(cell.end_cycle(hand if k < 300 else None))
         a, b = cells
+        assert measured[0].tobytes() == measured[1].tobytes(), k
         assert a.sim.data.qpos.tobytes() == b.sim.data.qpos.tobytes(), k
         assert a.sim.data.qvel.tobytes() == b.sim.data.qvel.tobytes(), k
         assert results[0].tau.tobytes() == results[1].tau.tobytes(), k
