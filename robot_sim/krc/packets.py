@@ -11,7 +11,10 @@ from dataclasses import dataclass, field
 from enum import IntEnum
 
 import numpy as np
+from numba import njit
 
+from kernel_plumbing.addresses import (JIT, HoldsAddresses, address, addresses, carray_at, entry, int64_address,
+                                       int64_array_at)
 from robot_sim.cycle import FRI_CYCLE_NS
 
 # LWR4+ Cartesian impedance limits from the FRI 1.0 documentation.
@@ -156,12 +159,105 @@ class CommandPacket:
         )
 
 
-def _vector(value, n: int, name: str) -> tuple[list | None, str | None]:
-    """The values of a length-n float vector as a list, or a reason it is not one.
+# what _numbers_at finds wrong first (0: nothing), the vector and its entry in ``where``
+_NOT_FINITE, _TOO_LARGE, _NOT_ORTHONORMAL, _DETERMINANT, _OUT_OF_RANGE = 1, 2, 3, 4, 5
+# the vectors a command's numbers are checked in, in this order, with their lengths and
+# the range of their entries (None: any finite number)
+_VECTORS = (("cart_pos", _CART, None), ("cart_stiffness", _FT, None), ("cart_damping", _FT, (0.0, 1.0)),
+            ("add_tcp_ft", _FT, None), ("jnt_pos", _JNT, None), ("jnt_stiffness", _JNT, (0.0, MAX_JOINT_STIFFNESS)),
+            ("jnt_damping", _JNT, (0.0, 1.0)), ("add_jnt_trq", _JNT, None))
+_STIFFNESS_LIMITS = np.array([MAX_TRANSLATIONAL_STIFFNESS] * 3 + [MAX_ROTATIONAL_STIFFNESS] * 3)
 
-    Lists of Python floats make the handful of range checks below cheaper than
-    numpy reductions on 6-12 element arrays.
-    """
+
+@njit(**JIT)
+def _finite_at(v, which, where):
+    """0, or why the float64 vector ``v`` is not finite (its entry in where[1])."""
+    total = 0.0
+    for x in v:
+        total += x
+    if math.isfinite(total):  # a finite sum implies finite terms; only then is the entry looked for
+        return 0
+    where[0] = which
+    for i in range(v.shape[0]):
+        if not math.isfinite(v[i]):
+            where[1] = i
+            return _NOT_FINITE
+    return _TOO_LARGE
+
+
+@njit(**JIT)
+def _in_range_at(v, low, high, which, where):
+    for i in range(v.shape[0]):
+        if not low[i] <= v[i] <= high[i]:
+            where[0], where[1] = which, i
+            return _OUT_OF_RANGE
+    return 0
+
+
+@njit(**JIT)
+def _numbers_at(present_at, values_at, lows_at, highs_at, tolerance, where_at, det_at):
+    """What is wrong first with a command's numbers (0: nothing): the vectors of _VECTORS in
+    the rows of ``values_at`` ((8, _CART), those ``present_at`` marks, int64), each finite,
+    the pose's rotation a rotation (its determinant into det_at), each entry of a vector
+    with a range within it (``lows_at``, ``highs_at``: per vector, _JNT entries each)."""
+    present, values = int64_array_at(present_at, 8), carray_at(values_at, (8, _CART))
+    lows, highs = carray_at(lows_at, (8, _JNT)), carray_at(highs_at, (8, _JNT))
+    where, det_out = int64_array_at(where_at, 2), carray_at(det_at, (1,))
+    lengths = (_CART, _FT, _FT, _FT, _JNT, _JNT, _JNT, _JNT)
+    for which in range(8):
+        if not present[which]:
+            continue
+        v = values[which, :lengths[which]]
+        problem = _finite_at(v, which, where)
+        if problem:
+            return problem
+        if which == 0:  # rows of R are c[0:3], c[4:7], c[8:11]; c[3], c[7], c[11] the position
+            a0, a1, a2, b0, b1, b2, c0, c1, c2 = v[0], v[1], v[2], v[4], v[5], v[6], v[8], v[9], v[10]
+            if (abs(a0 * a0 + a1 * a1 + a2 * a2 - 1.0) > tolerance
+                    or abs(b0 * b0 + b1 * b1 + b2 * b2 - 1.0) > tolerance
+                    or abs(c0 * c0 + c1 * c1 + c2 * c2 - 1.0) > tolerance
+                    or abs(a0 * b0 + a1 * b1 + a2 * b2) > tolerance
+                    or abs(a0 * c0 + a1 * c1 + a2 * c2) > tolerance
+                    or abs(b0 * c0 + b1 * c1 + b2 * c2) > tolerance):
+                return _NOT_ORTHONORMAL
+            det = a0 * (b1 * c2 - b2 * c1) - a1 * (b0 * c2 - b2 * c0) + a2 * (b0 * c1 - b1 * c0)
+            det_out[0] = det
+            if abs(det - 1.0) > tolerance:
+                return _DETERMINANT
+        elif lows[which, 0] <= highs[which, 0]:  # a vector with a range
+            problem = _in_range_at(v, lows[which], highs[which], which, where)
+            if problem:
+                return problem
+    return 0
+
+
+_NUMBERS = entry(_numbers_at, f"{addresses(4)}, float64, {addresses(2)}")
+
+
+class _CommandChecks(HoldsAddresses):
+    """The buffers ``_numbers_at`` reads and writes, made once for every check."""
+
+    def __init__(self):
+        self.present = np.zeros(8, dtype=np.int64)
+        self.values = np.zeros((8, _CART))
+        self.lows, self.highs = np.ones((8, _JNT)), np.zeros((8, _JNT))  # low > high: no range
+        for which, (name, n, limits) in enumerate(_VECTORS):
+            if name == "cart_stiffness":
+                self.lows[which, :n], self.highs[which, :n] = 0.0, _STIFFNESS_LIMITS
+            elif limits is not None:
+                self.lows[which, :n], self.highs[which, :n] = limits
+        self.where = np.zeros(2, dtype=np.int64)
+        self.det = np.zeros(1)
+        self.args = (int64_address(self.present), address(self.values), address(self.lows), address(self.highs),
+                     ROTATION_TOLERANCE, int64_address(self.where), address(self.det))
+
+
+_CHECKS = _CommandChecks()
+
+
+def _float_vector(value, n: int, name: str) -> tuple[np.ndarray | None, str | None]:
+    """``value`` as a numeric vector of n (float64 unless it is an array already), or why it is
+    not one."""
     if value is None:
         return None, f"{name} is missing"
     if isinstance(value, np.ndarray):
@@ -169,23 +265,49 @@ def _vector(value, n: int, name: str) -> tuple[list | None, str | None]:
             return None, f"{name} has shape {value.shape}, expected ({n},)"
         if value.dtype.kind not in "fiu":
             return None, f"{name} has dtype {value.dtype}, expected float"
-        values = value.tolist()
-    else:
-        try:
-            arr = np.asarray(value, dtype=np.float64)
-        except (TypeError, ValueError):
-            return None, f"{name} is not numeric ({type(value).__name__})"
-        if arr.shape != (n,):
-            return None, f"{name} has shape {arr.shape}, expected ({n},)"
-        values = arr.tolist()
-    # A finite sum implies finite terms (NaN and inf propagate); only when the sum is
-    # not finite is the element-wise look needed, and then only for the message.
-    if not math.isfinite(sum(values)):
-        bad = [i for i, v in enumerate(values) if not math.isfinite(v)]
-        if bad:
-            return None, f"{name}[{bad[0]}] is not finite ({values[bad[0]]})"
-        return None, f"{name} has values too large to be meaningful"
-    return values, None
+        return value, None  # copied into float64 for the check
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        return None, f"{name} is not numeric ({type(value).__name__})"
+    if arr.shape != (n,):
+        return None, f"{name} has shape {arr.shape}, expected ({n},)"
+    return arr, None
+
+
+def _numbers_problem(originals: list, kept: list) -> str | None:
+    """What ``_numbers_at`` finds wrong with the vectors gathered so far, in words naming
+    the field and the value (the original value, as the sender gave it)."""
+    checks = _CHECKS
+    present, values = checks.present, checks.values
+    for which in range(8):
+        vector = kept[which]
+        if vector is None:
+            present[which] = 0
+        else:
+            present[which] = 1
+            values[which, :len(vector)] = vector
+    a = checks.args
+    problem = _NUMBERS(a[0], a[1], a[2], a[3], a[4], a[5], a[6])
+    if not problem:
+        return None
+    if problem == _NOT_ORTHONORMAL:
+        return "cart_pos rotation is not orthonormal"
+    if problem == _DETERMINANT:
+        return f"cart_pos rotation has determinant {checks.det[0]:.6g}, expected 1"
+    which, i = int(checks.where[0]), int(checks.where[1])
+    name = _VECTORS[which][0]
+    if problem == _TOO_LARGE:
+        return f"{name} has values too large to be meaningful"
+    original = originals[which]  # an array's own type of number; anything else as the float it was read as
+    value = original.tolist()[i] if isinstance(original, np.ndarray) else float(kept[which][i])
+    if problem == _NOT_FINITE:
+        return f"{name}[{i}] is not finite ({value})"
+    if name == "cart_stiffness":
+        return f"{name}[{i}] = {value} outside [0, {_STIFFNESS_LIMITS[i]}]"
+    if name == "cart_damping":
+        return f"{name}[{i}] = {value} outside [0, 1]"
+    return f"{name}[{i}] = {value} outside [0, {checks.highs[which, 0]:g}]"
 
 
 def command_problem(p) -> str | None:
@@ -203,57 +325,21 @@ def command_problem(p) -> str | None:
         known = False
     if not known:
         return f"requested_mode is not a ControlMode ({mode!r})"
-
-    c, why = _vector(p.cart_pos, _CART, "cart_pos")
-    if why:
-        return why
-    # Rows of R are c[0:3], c[4:7], c[8:11]; c[3], c[7], c[11] are the position.
-    a0, a1, a2, _, b0, b1, b2, _, c0, c1, c2, _ = c
-    tol = ROTATION_TOLERANCE
-    if (abs(a0 * a0 + a1 * a1 + a2 * a2 - 1.0) > tol or abs(b0 * b0 + b1 * b1 + b2 * b2 - 1.0) > tol
-            or abs(c0 * c0 + c1 * c1 + c2 * c2 - 1.0) > tol or abs(a0 * b0 + a1 * b1 + a2 * b2) > tol
-            or abs(a0 * c0 + a1 * c1 + a2 * c2) > tol or abs(b0 * c0 + b1 * c1 + b2 * c2) > tol):
-        return "cart_pos rotation is not orthonormal"
-    det = a0 * (b1 * c2 - b2 * c1) - a1 * (b0 * c2 - b2 * c0) + a2 * (b0 * c1 - b1 * c0)
-    if abs(det - 1.0) > tol:
-        return f"cart_pos rotation has determinant {det:.6g}, expected 1"
-
-    k, why = _vector(p.cart_stiffness, _FT, "cart_stiffness")
-    if why:
-        return why
-    for i, v in enumerate(k):
-        limit = MAX_TRANSLATIONAL_STIFFNESS if i < 3 else MAX_ROTATIONAL_STIFFNESS
-        if not 0.0 <= v <= limit:
-            return f"cart_stiffness[{i}] = {v} outside [0, {limit}]"
-
-    d, why = _vector(p.cart_damping, _FT, "cart_damping")
-    if why:
-        return why
-    for i, v in enumerate(d):
-        if not 0.0 <= v <= 1.0:
-            return f"cart_damping[{i}] = {v} outside [0, 1]"
-
-    _, why = _vector(p.add_tcp_ft, _FT, "add_tcp_ft")
-    if why:
-        return why
-
-    if p.jnt_pos is not None or mode == ControlMode.POSITION or mode == ControlMode.JNT_IMP:
-        _, why = _vector(p.jnt_pos, _JNT, "jnt_pos")
-        if why:
-            return why
-    # joint impedance: only what the command carries (None leaves the KRC's own values)
-    for value, name, limit in ((p.jnt_stiffness, "jnt_stiffness", MAX_JOINT_STIFFNESS),
-                               (p.jnt_damping, "jnt_damping", 1.0), (p.add_jnt_trq, "add_jnt_trq", None)):
-        if value is None:
+    # joint positions when the command has them or its mode needs them; the joint
+    # impedance only as the command carries it (None leaves the KRC's own values)
+    needs_joints = p.jnt_pos is not None or mode == ControlMode.POSITION or mode == ControlMode.JNT_IMP
+    originals = [p.cart_pos, p.cart_stiffness, p.cart_damping, p.add_tcp_ft, p.jnt_pos, p.jnt_stiffness,
+                 p.jnt_damping, p.add_jnt_trq]
+    kept: list = [None] * 8
+    for which, (name, n, _) in enumerate(_VECTORS):
+        value = originals[which]
+        if which > 4 and value is None or which == 4 and not needs_joints:
             continue
-        values, why = _vector(value, _JNT, name)
+        kept[which], why = _float_vector(value, n, name)
         if why:
-            return why
-        if limit is not None:
-            for i, v in enumerate(values):
-                if not 0.0 <= v <= limit:
-                    return f"{name}[{i}] = {v} outside [0, {limit:g}]"
-    return None
+            # a problem with the numbers before this vector comes first, as they are checked in order
+            return _numbers_problem(originals, kept) or why
+    return _numbers_problem(originals, kept)
 
 
 def is_integer(value) -> bool:

@@ -7,7 +7,7 @@ import pytest
 
 from robot_sim.krc.faults import LinkFaults
 from robot_sim.krc.link import FriConfig, FriLink
-from robot_sim.krc.packets import CommandPacket, ControlMode, FriQuality, FriState
+from robot_sim.krc.packets import CommandPacket, ControlMode, FriQuality, FriState, command_problem
 
 CYCLE = 1_000_000
 Q = np.linspace(-0.3, 0.3, 7)
@@ -678,3 +678,25 @@ def test_bad_fault_settings_name_field(field, value):
     kw = {"seed": 0, field: value}
     with pytest.raises(ValueError, match=rf"LinkFaults\.{field}"):
         LinkFaults(**kw)
+
+
+def test_a_command_is_judged_field_by_field_in_order_and_names_the_value_as_sent():
+    """The first problem in the order of the fields wins, whether it is a value (checked by
+    the compiled check) or a shape (checked before it): a rotation that is not one comes
+    before a stiffness of the wrong shape, which comes before a damping out of range; and
+    the value at fault is named as the sender wrote it."""
+    link = FriLink()
+    link.start(0)
+    good = answer(link.measurement(0, Q, POSE, FT))
+    both = replace(good, cart_pos=np.zeros(12), cart_stiffness=np.zeros(5), cart_damping=np.full(6, 2.0))
+    assert command_problem(both) == "cart_pos rotation is not orthonormal"
+    assert command_problem(replace(both, cart_pos=POSE)) == "cart_stiffness has shape (5,), expected (6,)"
+    assert command_problem(replace(both, cart_pos=POSE, cart_stiffness=np.zeros(6))) == \
+        "cart_damping[0] = 2.0 outside [0, 1]"
+    ints = replace(good, cart_stiffness=np.array([100, 6000, 0, 0, 0, 0]))
+    assert command_problem(ints) == "cart_stiffness[1] = 6000 outside [0, 5000.0]"
+    listed = replace(good, cart_stiffness=[100, 6000, 0, 0, 0, 0])
+    assert command_problem(listed) == "cart_stiffness[1] = 6000.0 outside [0, 5000.0]"
+    assert command_problem(replace(good, add_tcp_ft=np.full(6, 1e308))) == \
+        "add_tcp_ft has values too large to be meaningful"
+    assert command_problem(good) is None
