@@ -66,6 +66,8 @@ call_syrk = foreign(types.void, _I32, _I32, _I32, _I64, _I64, _F64, _I64, _I64, 
 call_gesv = foreign(types.void, _I64, _I64, _I64, _I64, _I64, _I64, _I64, _I64)
 # cblas_ddot(n, x, incx, y, incy): numpy's ``a @ b`` of two vectors, and np.linalg.norm's sum of squares
 call_dot = foreign(types.float64, _I64, _I64, _I64, _I64, _I64)
+# cblas_dgemm(order, trans_a, trans_b, m, n, k, alpha, a, lda, b, ldb, beta, c, ldc): numpy's A @ B
+call_gemm = foreign(types.void, _I32, _I32, _I32, _I64, _I64, _I64, _F64, _I64, _I64, _I64, _I64, _F64, _I64, _I64)
 
 
 @njit(**JIT)
@@ -128,11 +130,12 @@ def _address(lib: ctypes.CDLL, name: str) -> int:
 
 
 _LIB, WHY = _library()
-GEMV = SYRK = GESV = DOT = 0
+GEMV = SYRK = GESV = DOT = GEMM = 0
 if _LIB is not None:
     try:
-        GEMV, SYRK, GESV, DOT = (_address(_LIB, n) for n in ("scipy_cblas_dgemv64_", "scipy_cblas_dsyrk64_",
-                                                              "scipy_dgesv_64_", "scipy_cblas_ddot64_"))
+        GEMV, SYRK, GESV, DOT, GEMM = (_address(_LIB, n) for n in (
+            "scipy_cblas_dgemv64_", "scipy_cblas_dsyrk64_", "scipy_dgesv_64_", "scipy_cblas_ddot64_",
+            "scipy_cblas_dgemm64_"))
     except AttributeError as e:
         WHY = f"numpy's OpenBLAS lacks a function: {e}"
-AVAILABLE = bool(GEMV and SYRK and GESV and DOT)
+AVAILABLE = bool(GEMV and SYRK and GESV and DOT and GEMM)

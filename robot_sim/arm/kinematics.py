@@ -54,9 +54,12 @@ _MEASURED_KINEMATICS = getattr(PINOCCHIO_INPLACE, "measured_kinematics", None)
 # int (model, data, q, v) and int (model, data, q, frame, J), every argument an address
 COMPUTE_ALL_TERMS = getattr(PINOCCHIO_INPLACE, "COMPUTE_ALL_TERMS", 0)
 MEASURED_KINEMATICS = getattr(PINOCCHIO_INPLACE, "MEASURED_KINEMATICS", 0)
+# int (R, out): pinocchio.log3 of 9 row-major numbers into 3, the bindings' bits
+LOG3 = getattr(PINOCCHIO_INPLACE, "LOG3", 0)
 # in a kernel: call_compute_all_terms(COMPUTE_ALL_TERMS, model, data, q, v) -> 0 on success
 call_compute_all_terms = foreign(types.int32, types.int64, types.int64, types.int64, types.int64)
 call_measured_kinematics = foreign(types.int32, types.int64, types.int64, types.int64, types.int64, types.int64)
+call_log3 = foreign(types.int32, types.int64, types.int64)
 
 FRAMES = ("flange", "ati_sensor", "tool", "tcp")
 

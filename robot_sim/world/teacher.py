@@ -21,15 +21,104 @@ from dataclasses import dataclass
 
 import numpy as np
 import pinocchio as pin
+from numba import njit
 
+from kernel_plumbing import blas
+from kernel_plumbing.addresses import JIT, HoldsAddresses, address, carray_at, entry
 from robot_sim.cycle import FRI_CYCLE_NS
 from robot_sim.arm.description import LWR4
+from robot_sim.arm.kinematics import LOG3, call_log3
 from robot_sim.world.tasks import HoseCoupler, Valley
 
 DOWN = np.diag([-1.0, 1.0, -1.0])  # tcp z pointing down, x against the base x (the READY posture)
 _NORMALS_BLOCK = 3000  # the step's normal draws, a block at a time: the same numbers in the same order
 _XY = np.array([1.0, 1.0, 0.0])
 _Y_03 = np.array([0.0, 0.3, 0.0])
+
+
+# The valley teacher's state between steps in its kernel (``ValleyTeacher._state``), by
+# index: the script's time, phase and done; what it drew and its settings; then its path,
+# target, path noise, tremor (two rows), the target rotation (row-major) and the wrench
+(_TIME, _PHASE, _DONE, _SPEED, _PRESS, _SIDE, _GOAL_X, _TIP, _ANGLE, _GROOVE_Z, _K, _D, _ROT_K, _ROT_D,
+ _PATH_NOISE, _PATH_NOISE_TIME, _RAMP_TIME, _CONTACT_THRESHOLD, _A1, _A2, _TREMOR_GAIN) = range(21)
+_PATH, _TARGET, _NOISE, _TREMOR, _R_TARGET, _WRENCH, _R_ERROR, _LOG = 21, 24, 27, 30, 36, 45, 51, 60
+_STATE_SIZE = 63
+# what a step reads, copied in by ValleyTeacher.step: the tcp's position, velocity, rotation
+# (row-major), angular velocity, and the contact force
+_X, _V, _R, _W, _CONTACT = 0, 3, 6, 15, 18
+_INPUT_SIZE = 21
+
+
+@njit(**JIT)
+def _valley_step_at(state_at, dt, inputs_at, touches_plate, noise_draw_at, tremor_draw_at, log3_fn, gemm_fn,
+                    dot_fn):
+    """``ValleyTeacher.step`` in one call: the script, the path noise, the hand's impedance and
+    tremor, with the same operations in the same order on the same numbers; the dot
+    products, the target rotation's product and its log through numpy's BLAS and
+    Pinocchio's log3 (their addresses), as numpy and the bindings compute them.  Returns
+    False if log3 failed."""
+    s = carray_at(state_at, (_STATE_SIZE,))
+    inputs = carray_at(inputs_at, (_INPUT_SIZE,))
+    noise_draw, tremor_draw = carray_at(noise_draw_at, (3,)), carray_at(tremor_draw_at, (3,))
+    s[_TIME] += dt
+    feels = math.sqrt(blas.call_dot(dot_fn, 3, inputs_at + 8 * _CONTACT, 1, inputs_at + 8 * _CONTACT, 1)) \
+        > s[_CONTACT_THRESHOLD]
+    if s[_PHASE] == 0 and touches_plate and feels:
+        s[_PHASE] = 1
+        for i in range(3):
+            s[_PATH + i] = inputs[_X + i]
+    ramp = min(1.0, s[_TIME] / s[_RAMP_TIME]) if s[_RAMP_TIME] > 0 else 1.0
+    speed = s[_SPEED] * ramp
+    a = math.exp(-dt / s[_PATH_NOISE_TIME])
+    scale = math.sqrt(1 - a * a) * s[_PATH_NOISE]
+    for i in range(3):
+        s[_NOISE + i] = a * s[_NOISE + i] + scale * noise_draw[i]
+    if s[_PHASE] == 0:
+        s[_PATH + 2] -= speed * dt
+        for i in range(3):
+            s[_TARGET + i] = s[_PATH + i] + s[_NOISE + i] * (1.0 if i < 2 else 0.0)
+    elif s[_PHASE] == 1:
+        side, angle = s[_SIDE], s[_ANGLE]
+        normal = s[_LOG:_LOG + 3]  # scratch until the log: the plate's normal
+        normal[0], normal[1], normal[2] = 0.0, -side * math.sin(angle), math.cos(angle)
+        step = speed * dt
+        s[_PATH] += step * 0.0
+        s[_PATH + 1] += step * (-side * math.cos(angle))
+        s[_PATH + 2] += step * -math.sin(angle)
+        s[_PATH + 2] = s[_GROOVE_Z] + abs(s[_PATH + 1]) * math.tan(angle) + s[_TIP] / math.cos(angle)
+        along = blas.call_dot(dot_fn, 3, state_at + 8 * _NOISE, 1, state_at + 8 * _LOG, 1)
+        for i in range(3):
+            lateral = s[_NOISE + i] - along * normal[i]
+            s[_TARGET + i] = s[_PATH + i] + lateral - normal[i] * s[_PRESS] / s[_K]
+        if side * s[_PATH + 1] <= 0.0:  # the path has reached the groove line
+            s[_PHASE] = 2
+            s[_PATH + 1] = 0.0
+    else:
+        s[_PATH] -= speed * dt
+        s[_PATH + 1] = 0.0
+        s[_PATH + 2] = s[_GROOVE_Z] + s[_TIP] / math.cos(s[_ANGLE])
+        s[_TARGET] = s[_PATH] + 0.0 + s[_NOISE] * 0.0
+        s[_TARGET + 1] = s[_PATH + 1] + 0.0 + s[_NOISE + 1] * 0.3
+        s[_TARGET + 2] = s[_PATH + 2] + -s[_PRESS] / s[_K] + s[_NOISE + 2] * 0.0
+        if inputs[_X] <= s[_GOAL_X]:
+            s[_DONE] = 1.0
+    # the hand: an impedance towards the target with tremor, and a rotational one towards R_target
+    for i in range(3):
+        new = s[_A1] * s[_TREMOR + i] + s[_A2] * s[_TREMOR + 3 + i] + tremor_draw[i]
+        s[_TREMOR + 3 + i] = s[_TREMOR + i]
+        s[_TREMOR + i] = new
+        s[_WRENCH + i] = s[_K] * (s[_TARGET + i] - inputs[_X + i]) - s[_D] * inputs[_V + i] + s[_TREMOR_GAIN] * new
+    blas.call_gemm(gemm_fn, np.int32(blas.ROW_MAJOR), np.int32(blas.NO_TRANS), np.int32(blas.TRANS), 3, 3, 3, 1.0,
+                   state_at + 8 * _R_TARGET, 3, inputs_at + 8 * _R, 3, 0.0, state_at + 8 * _R_ERROR, 3)
+    if call_log3(log3_fn, state_at + 8 * _R_ERROR, state_at + 8 * _LOG) != 0:
+        return False
+    for i in range(3):
+        s[_WRENCH + 3 + i] = s[_ROT_K] * s[_LOG + i] - s[_ROT_D] * inputs[_W + i]
+    return True
+
+
+_VALLEY_STEP = entry(_valley_step_at, "int64, float64, int64, boolean, int64, int64, int64, int64, int64") \
+    if LOG3 and blas.AVAILABLE else None
 
 
 @dataclass(frozen=True)
@@ -131,8 +220,11 @@ class ValleyTeacher(Teacher):
         self.start = np.array(start, dtype=np.float64)
         self.target = self.start.copy()
         self._path = self.start.copy()  # the intended (noise-free) path point
+        self._compiled = _CompiledValleyStep(self) if _VALLEY_STEP is not None else None
 
     def step(self, dt, x, v, R, w, contact_force, touching) -> np.ndarray:
+        if self._compiled is not None:
+            return self._compiled.step(dt, x, v, R, w, contact_force, touching)
         self.time += dt
         g = self.valley
         plates = {name for name in touching if name.startswith("plate")}
@@ -166,6 +258,55 @@ class ValleyTeacher(Teacher):
             if x[0] <= self.goal_x:
                 self.done = True
         return self._hand(x, v, R, w)
+
+
+class _CompiledValleyStep(HoldsAddresses):
+    """A valley teacher's steps through ``_valley_step_at``: its state moved into one array
+    when made (the teacher's own attributes then stand still, but ``phase`` and ``done``,
+    kept current), what a step reads copied into another."""
+
+    def __init__(self, teacher: ValleyTeacher):
+        self.teacher = teacher
+        c, g = teacher.config, teacher.valley
+        s = self.state = np.zeros(_STATE_SIZE)
+        s[:_PATH] = (teacher.time, teacher.phase, teacher.done, teacher.speed, teacher.press, teacher.side,
+                     teacher.goal_x, teacher.tip, g.angle, g.groove_z, c.hand_stiffness, c.hand_damping,
+                     c.hand_rot_stiffness, c.hand_rot_damping, c.path_noise, c.path_noise_time, c.ramp_time,
+                     c.contact_threshold, teacher._a1, teacher._a2, teacher._tremor_gain)
+        s[_PATH:_PATH + 3], s[_TARGET:_TARGET + 3], s[_NOISE:_NOISE + 3] = teacher._path, teacher.target, teacher._noise
+        s[_TREMOR:_TREMOR + 6] = teacher._tremor.reshape(6)
+        s[_R_TARGET:_R_TARGET + 9] = teacher.R_target.reshape(9)
+        self.inputs = np.zeros(_INPUT_SIZE)
+        self._rotation = self.inputs[_R:_R + 9].reshape(3, 3)  # a view: R is copied in row by row
+        self._state_at, self._inputs_at = address(self.state), address(self.inputs)
+        # the block of normals the teacher draws from, and the one before it (a draw just before
+        # the teacher made a new block must stay readable until the kernel has read it)
+        self._block = self._previous = None
+        self._block_at = 0
+
+    def _draw_at(self) -> int:
+        """The address of the teacher's next three normals (``Teacher._normal3``)."""
+        teacher = self.teacher
+        teacher._normal3()
+        if teacher._normals is not self._block:
+            self._previous, self._block = self._block, teacher._normals
+            self._block_at = address(self._block)
+        return self._block_at + 8 * (teacher._normals_i - 3)
+
+    def step(self, dt, x, v, R, w, contact_force, touching) -> np.ndarray:
+        inputs = self.inputs
+        inputs[_X:_X + 3], inputs[_V:_V + 3], inputs[_W:_W + 3] = x, v, w
+        self._rotation[...] = R
+        inputs[_CONTACT:_CONTACT + 3] = contact_force
+        touches_plate = any(name.startswith("plate") for name in touching)
+        noise_at = self._draw_at()  # the step's draws in the order the script makes them
+        tremor_at = self._draw_at()
+        if not _VALLEY_STEP(self._state_at, dt, self._inputs_at, touches_plate, noise_at, tremor_at, LOG3, blas.GEMM,
+                            blas.DOT):
+            raise RuntimeError("Pinocchio's log3 failed in the teacher's hand")
+        s, teacher = self.state, self.teacher
+        teacher.phase, teacher.done = int(s[_PHASE]), bool(s[_DONE])
+        return s[_WRENCH:_WRENCH + 6].copy()
 
 
 class HoseCouplerTeacher(Teacher):

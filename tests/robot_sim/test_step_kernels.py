@@ -331,3 +331,36 @@ def test_the_compiled_cycle_measures_and_steps_as_the_python_calls(substeps):
         pressed = max(pressed, float(np.linalg.norm(a.contact_force)))
     assert stepped > 300, "the link never reached command mode: the impedance law was not compared"
     assert pressed > 1.0, f"the tool never pressed on the plate (at most {pressed:.2f} N)"
+
+
+def test_the_valley_teachers_compiled_step_is_its_python_step():
+    """``ValleyTeacher.step`` through ``_valley_step_at`` (the script, the path noise, the
+    hand's impedance and tremor in one call; numpy's ddot and dgemm and Pinocchio's log3 by
+    address) against its Python step, teacher beside teacher from the same seed, on both
+    sides of the valley, through all three phases: the same wrench bit for bit, the same
+    phase and the same end; the tool's rotation comes as a view into its 3x4 pose, as the
+    teacher node passes it."""
+    import robot_sim.world.teacher as teacher_module
+    from robot_sim.world.teacher import DOWN, ValleyTeacher
+
+    rng = np.random.default_rng(5)
+    for side in (-1, 1):
+        start = np.array([0.62, side * 0.08, 0.30])
+        compiled, python = (ValleyTeacher(Valley(), start, 0.5, np.random.default_rng(3)) for _ in range(2))
+        if compiled._compiled is None:
+            pytest.skip(f"no compiled step here (LOG3 {teacher_module.LOG3}, BLAS {teacher_module.blas.WHY})")
+        python._compiled = None
+        x, phases = start.copy(), set()
+        for k in range(4000):
+            pose = np.asarray(np.hstack([pin.exp3(rng.normal(size=3) * 0.1) @ DOWN, x[:, None]]).ravel().tolist())
+            pose = pose.reshape(3, 4)
+            v, w = rng.normal(size=3) * 0.05, rng.normal(size=3) * 0.1
+            force = np.asarray((rng.normal(size=3) * (3.0 if k > 500 else 0.0)).tolist())
+            touching = [("plate_left" if side < 0 else "plate_right")] if k > 500 else []
+            got = compiled.step(0.001, pose[:, 3], v, pose[:, :3], w, force, touching)
+            expected = python.step(0.001, pose[:, 3], v, pose[:, :3], w, force, touching)
+            assert got.tobytes() == expected.tobytes(), (side, k)
+            assert (compiled.phase, compiled.done) == (python.phase, python.done), (side, k)
+            phases.add(compiled.phase)
+            x += [-1e-4, -side * 2e-5, -5e-5]
+        assert phases == {0, 1, 2} and compiled.done

@@ -18,6 +18,7 @@
 #include <pinocchio/multibody.hpp>
 #include <pinocchio/algorithm/compute-all-terms.hpp>
 #include <pinocchio/algorithm/frames.hpp>
+#include <pinocchio/spatial.hpp>
 
 #include <eigenpy/eigenpy.hpp>
 
@@ -92,6 +93,19 @@ int robot_sim_measured_kinematics(const void *model, void *data, const double *q
   }
 }
 
+// pinocchio.log3 of a rotation given as 9 row-major numbers (what the bindings copy a
+// numpy array into), into out (3): the teacher's hand in a kernel takes the same bits.
+int robot_sim_log3(const double *R, double *out) {
+  try {
+    const Eigen::Matrix3d M = Eigen::Map<const Eigen::Matrix<double, 3, 3, Eigen::RowMajor>>(R);
+    Eigen::Map<Eigen::Vector3d> result(out);
+    result = pinocchio::log3(M);
+    return 0;
+  } catch (...) {
+    return 1;
+  }
+}
+
 }  // extern "C"
 
 // Where the Python objects keep their C++ Model and Data, for the functions above.
@@ -118,4 +132,6 @@ BOOST_PYTHON_MODULE(_pinocchio_inplace) {
   // the C entry points' addresses: int (model, data, q, v) and int (model, data, q, frame, J)
   bp::scope().attr("COMPUTE_ALL_TERMS") = reinterpret_cast<std::uintptr_t>(&robot_sim_compute_all_terms);
   bp::scope().attr("MEASURED_KINEMATICS") = reinterpret_cast<std::uintptr_t>(&robot_sim_measured_kinematics);
+  // int (R, out): pinocchio.log3 of 9 row-major numbers into 3
+  bp::scope().attr("LOG3") = reinterpret_cast<std::uintptr_t>(&robot_sim_log3);
 }
