@@ -55,14 +55,16 @@ def test_a_service_killed_mid_reproduction_fails_the_run_at_once_and_keeps_the_e
         if killed.is_set() or b'"episode":0' not in sample.payload.to_bytes():
             return
         seen[0] += 1
-        if seen[0] >= 300:
-            pid = service_pid(role, run_id)
-            if pid is not None:
-                kill_at["pid"] = pid
-                kill_at["seq"] = json.loads(sample.payload.to_bytes())["seq"]
-                os.kill(pid, sig)
-                kill_at["t"] = time.monotonic()
-                killed.set()
+        # the process is found ahead of the kill: a scan of /proc lasts many cycles, and the
+        # cycle the kill is counted from must be the one it lands in
+        pid = kill_at.get("pid") or service_pid(role, run_id)
+        if pid is not None:
+            kill_at["pid"] = pid
+        if seen[0] >= 300 and pid is not None:
+            os.kill(pid, sig)
+            kill_at["seq"] = json.loads(sample.payload.to_bytes())["seq"]
+            kill_at["t"] = time.monotonic()
+            killed.set()
 
     sub = peer.declare_subscriber(topics.key(run_id, "robot/state"), on_state)
     try:
@@ -183,7 +185,7 @@ def test_services_with_a_restart_policy_and_the_live_views_bridge_come_back_and_
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     run_id = f"restart-{int(time.time() * 1000)}"
     peer = open_session(ZenohOptions(listen=(endpoint,)))
-    killed = {}
+    killed, pids = {}, {}
     seen = [0]
 
     def on_state(sample):
@@ -191,11 +193,14 @@ def test_services_with_a_restart_policy_and_the_live_views_bridge_come_back_and_
             return
         seen[0] += 1
         for role, at in (("recorder", 300), ("foxglove_bridge", 900), ("phase_estimator", 1500)):
-            if seen[0] >= at and role not in killed:
-                pid = service_pid(role, run_id)
-                if pid is not None:
-                    os.kill(pid, signal.SIGKILL)
-                    killed[role] = json.loads(sample.payload.to_bytes())["seq"]
+            if role in killed:
+                continue
+            # found ahead of its kill (a scan of /proc lasts many cycles): the kill lands in the cycle counted
+            pid = pids.get(role) or service_pid(role, run_id)
+            pids[role] = pid
+            if seen[0] >= at and pid is not None:
+                os.kill(pid, signal.SIGKILL)
+                killed[role] = json.loads(sample.payload.to_bytes())["seq"]
 
     sub = peer.declare_subscriber(topics.key(run_id, "robot/state"), on_state)
     try:
