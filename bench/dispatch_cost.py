@@ -4,9 +4,10 @@ numba's dispatcher, and as machine code (``kernel_plumbing.addresses.entry``, wh
     python bench/dispatch_cost.py [--scenario scenarios/smoke.yaml] [--ways dispatcher,entry]
 
 Runs the scenario in one process once per way (the same seed; no figures), each kernel
-call of the cell (its physics cycle: the KRC's law and MuJoCo's steps), the physics'
-sensing and the ATI sensor timed alone, and prints per kernel the calls per FRI cycle
-and the mean microseconds per call, then the time per cycle of all.
+call of the cell (its measurement; its physics cycle: the KRC's law and MuJoCo's
+steps), the physics' sensing, the ATI sensor and the valley teacher timed alone, and
+prints per kernel the calls per FRI cycle and the mean microseconds per call, then the
+time per cycle of all.
 A loop of calls would measure them hot, which a cycle never sees: between two calls of
 a kernel the rest of the cycle (Python, numpy, MuJoCo, Pinocchio, the other nodes) has
 pushed the dispatcher's code and data out of the caches.  Both ways call the same
@@ -30,11 +31,14 @@ sys.path.insert(0, str(ROOT))
 import robot_sim.ati.sensor as ati  # noqa: E402
 import robot_sim.cell as cell  # noqa: E402
 import robot_sim.world.physics as physics  # noqa: E402
+import robot_sim.world.teacher as teacher  # noqa: E402
 from node_costs import timed  # noqa: E402  (bench/, beside this script)
 
 # (module, the name the cell calls, the dispatcher it is the machine code of)
 KERNELS = (
+    (cell, "_MEASURE", cell._measure_at),
     (cell, "_PHYSICS_CYCLE", cell._physics_cycle_at),
+    (teacher, "_VALLEY_STEP", teacher._valley_step_at),
     (physics, "_sensed", physics._sensed_at),
     (ati, "_sample", ati._sample_at),
 )
