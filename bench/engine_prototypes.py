@@ -12,6 +12,11 @@ In one process, one after the other, on the valley's cell with the tool pressed 
   measurement and command in Python, the law, the step, the ATI sample), no node and no bus;
 - **the per-message engine**: a smoke run in one process (its seed, no figures), the
   reproduction's wall time per cycle: every node's handlers, the bus, the recorder;
+- **a reproduction cycle in Python glue** (fused cycles with Python between the compiled
+  pieces): one loop, no bus: the cell's kernels and the FRI link's books, the ATI sample,
+  the commander's compiled policy, the command through the link's checks, the four
+  messages packed with orjson straight from the arrays and handed to the recorder's writer
+  process (a prototype: none of the nodes' other logic);
 - **encoding a cycle's messages**: robot/state, robot/contact, ft/wrench and robot/command
   packed from their fields (``MessageType.pack``, the bytes recorded), from the smoke
   reproduction's own messages: what any engine that records the same bytes pays;
@@ -144,6 +149,95 @@ def side_by_side(n: int, cycles: int) -> float:
     return best(once)
 
 
+def python_glue_cycle(cycles: int, out: Path) -> float:
+    """us per cycle of a reproduction stepped by one Python loop with no bus: what fused cycles
+    with Python glue between the compiled pieces would cost.  Each cycle: the cell's
+    measurement (its kernel and the FRI link's books), the ATI sample, the commander's
+    compiled policy on the smoke's learned task, its command through the link's checks, the
+    cell's physics cycle, and the four 1 kHz messages packed with orjson straight from the
+    arrays (``OPT_SERIALIZE_NUMPY``: the same bytes as from lists) and handed to the
+    recorder's writer process, which writes the MCAP file on the other CPU, as in a run in
+    one process.  A prototype: not the nodes' logic (no estimator, holds, judge or labels), so its
+    recording is not the per-message engine's; it says what the loop itself costs."""
+    import orjson
+
+    from etar.policy import ReproductionPolicy
+    from etar.policy_kernel import compiled_policy
+    from etar.task import load_task
+    from robot_sim.ati.sensor import AtiConfig, AtiSensor
+    from robot_sim.krc.packets import CommandPacket, ControlMode
+    from services.recordings.offload import WriterProcess
+    from services.runtime.messages import FT_WRENCH, ROBOT_COMMAND, ROBOT_CONTACT, ROBOT_STATE
+    from sim_step import pressed_cell
+
+    numpy_option = orjson.OPT_SERIALIZE_NUMPY
+    task = load_task(str(ROOT / "scenarios" / "models" / "smoke.json"))
+    cell, q0, _, _ = pressed_cell()
+    cell.ati = None  # sampled below, as the ft_sensor node samples it (the robot's cell has no sensor)
+    cell.start()
+    cell.place(q0)
+    cell.fri.request_command_mode()
+    ati = AtiSensor(AtiConfig.mini45(), 0, clock_origin_ns=0)
+    stiffness, damping = np.array([0.0] * 3 + [150.0] * 3), np.full(6, 0.7)
+    cart, add = np.empty((3, 4)), np.zeros(6)
+    keys = {t: f"etar/prototype/{t.topic}" for t in (ROBOT_STATE, ROBOT_CONTACT, FT_WRENCH, ROBOT_COMMAND)}
+
+    def loop(k: int, writer, policy) -> float:
+        t = time.perf_counter()
+        for _ in range(k):
+            m = cell.begin_cycle()
+            seq, stamp = m.seq, m.stamp_ns
+            state = orjson.dumps({
+                "seq": seq, "stamp_ns": stamp, "sent_ns": 0, "reflected_seq": m.reflected_seq,
+                "fri_state": int(m.state), "fri_quality": int(m.quality), "control_mode": int(m.control_mode),
+                "msr_jnt_pos": m.msr_jnt_pos, "msr_cart_pos": m.msr_cart_pos, "est_ext_tcp_ft": m.est_ext_tcp_ft,
+                "answer_rate": m.answer_rate, "latency_s": m.latency_s, "jitter_s": m.jitter_s,
+                "miss_rate": m.miss_rate, "safety": 0, "gravity_compensation": False, "episode": 0},
+                option=numpy_option)
+            wrench = cell._true_wrench
+            contact = orjson.dumps({
+                "seq": seq, "stamp_ns": stamp, "sent_ns": 0, "wrench": wrench, "contact_force": cell._contact_force,
+                "touching": cell._touching, "true_phase": 1, "tcp_pose": cell._true_pose.reshape(12),
+                "tcp_twist": cell._true_twist, "episode": 0}, option=numpy_option)
+            rec, w = ati.sample(wrench, stamp)
+            ft = orjson.dumps({
+                "seq": seq, "stamp_ns": stamp, "sent_ns": 0, "rdt_sequence": rec.rdt_sequence,
+                "ft_sequence": rec.ft_sequence, "status": rec.status, "counts": rec.counts,
+                "counts_per_force": 1e6, "counts_per_torque": 1e6, "wrench": w}, option=numpy_option)
+            force, rotation, x = policy.tool_step(m.msr_cart_pos, m.est_ext_tcp_ft[:3], 1, 0.001)
+            cart[:, :3], cart[:, 3], add[:3] = rotation, x, force
+            packet = CommandPacket(seq, cart.reshape(12).copy(), stiffness, damping, add.copy(), None,
+                                   ControlMode.CART_IMP)
+            cell.deliver(packet, stamp + 100_000, owned=True)
+            command = orjson.dumps({
+                "seq": seq, "stamp_ns": stamp, "sent_ns": 0, "cart_pos": packet.cart_pos,
+                "cart_stiffness": stiffness, "cart_damping": damping, "add_tcp_ft": packet.add_tcp_ft,
+                "requested_mode": 2, "phase": 1, "estimate_seq": seq, "goal_reached": False, "hold": "",
+                "episode": 0}, option=numpy_option)
+            cell.end_cycle()
+            for mtype, payload in ((ROBOT_STATE, state), (ROBOT_CONTACT, contact), (FT_WRENCH, ft),
+                                   (ROBOT_COMMAND, command)):
+                writer.add(keys[mtype], payload, stamp)
+        return (time.perf_counter() - t) / k * 1e6
+
+    process = WriterProcess()
+
+    def once(index=[0]):
+        index[0] += 1
+        policy = compiled_policy(ReproductionPolicy(task.impedances, task.goal))
+        writer = process.open(out / f"glue_{index[0]}.mcap", run_id="prototype", episode_kind="reproduction",
+                              episode_index=index[0])
+        try:
+            loop(600, writer, policy)  # command mode entered (500 PERFECT cycles), the arm pressing
+            return loop(cycles, writer, policy)
+        finally:
+            writer.finish()
+    try:
+        return best(once)
+    finally:
+        process.close()
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--cycles", type=int, default=5000, help="cycles timed per figure (best of 3)")
@@ -164,12 +258,14 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         engine, recording = per_message_engine(Path(args.out or tmp) / "smoke")
         encode = encoding_us(recording)
+        glue = python_glue_cycle(args.cycles, Path(tmp))
     numba_step, python_step, same = compiled_steps(args.cycles)
     batched = {n: side_by_side(n, args.cycles) for n in counts}
 
     rows = [("floor: the KRC's law and MuJoCo's step, from Python", floor),
             ("the cell's whole cycle (FRI link, law, step, ATI), no nodes", cell_cycle),
             ("the per-message engine, smoke reproduction", engine),
+            ("a reproduction cycle in Python glue, no bus (prototype)", glue),
             ("packing one cycle's four 1 kHz messages", encode),
             ("MuJoCo's step alone, from Python", python_step),
             ("MuJoCo's step alone, from a numba loop (10 cycles a call)", numba_step)]
