@@ -36,6 +36,7 @@ from __future__ import annotations
 import argparse
 import ctypes
 import glob
+import itertools
 import os
 import sys
 import tempfile
@@ -220,13 +221,13 @@ def python_glue_cycle(cycles: int, out: Path) -> float:
                 writer.add(keys[mtype], payload, stamp)
         return (time.perf_counter() - t) / k * 1e6
 
-    process = WriterProcess()
+    process, runs = WriterProcess(), itertools.count(1)
 
-    def once(index=[0]):
-        index[0] += 1
+    def once():
+        index = next(runs)
         policy = compiled_policy(ReproductionPolicy(task.impedances, task.goal))
-        writer = process.open(out / f"glue_{index[0]}.mcap", run_id="prototype", episode_kind="reproduction",
-                              episode_index=index[0])
+        writer = process.open(out / f"glue_{index}.mcap", run_id="prototype", episode_kind="reproduction",
+                              episode_index=index)
         try:
             loop(600, writer, policy)  # command mode entered (500 PERFECT cycles), the arm pressing
             return loop(cycles, writer, policy)

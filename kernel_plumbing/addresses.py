@@ -85,6 +85,14 @@ def int64_array_at(addr, n):
     return carray(_int64_pointer(addr), (n,))
 
 
+@njit(**JIT, inline="always")
+def copy_at(src_at, dst_at, n):
+    """Copy ``n`` float64 from the buffer at ``src_at`` to the one at ``dst_at`` (in a kernel)."""
+    src, dst = carray(_float64_pointer(src_at), (n,)), carray(_float64_pointer(dst_at), (n,))
+    for i in range(n):
+        dst[i] = src[i]
+
+
 def int64_address(a: np.ndarray) -> int:
     """Where the int64 data of ``a`` starts, for ``int64_array_at``."""
     if a.dtype != np.int64 or not a.flags.c_contiguous:

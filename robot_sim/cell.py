@@ -21,8 +21,8 @@ import pinocchio as pin
 from numba import njit
 
 from kernel_plumbing import blas
-from kernel_plumbing.addresses import (JIT, HoldsAddresses, address, addresses, carray_at, entry, int64_address,
-                                       int64_array_at)
+from kernel_plumbing.addresses import (JIT, HoldsAddresses, address, addresses, carray_at, copy_at, entry,
+                                       int64_address, int64_array_at)
 from robot_sim.arm.kinematics import (COMPUTE_ALL_TERMS, MEASURED_KINEMATICS, READY, ArmKinematics,
                                       call_measured_kinematics)
 from robot_sim.ati.rdt import RdtRecord
@@ -143,13 +143,6 @@ _EXTERNAL_WRENCH, EXTERNAL_WRENCH_WHY = _external_wrench_kernel()
 
 
 @njit(**JIT)
-def _copy7(src_at, dst_at):
-    src, dst = carray_at(src_at, (7,)), carray_at(dst_at, (7,))
-    for i in range(7):
-        dst[i] = src[i]
-
-
-@njit(**JIT)
 def _physics_cycle_at(steps, law_state_at, law_table_at, q_at, qd_at, arm_qpos_at, arm_qvel_at, force_at, has_force,
                       force_limit, hold, has_command, dynamics_fn, model_at, data_at, sim_table_at, nv, arm_dof, hand,
                       step_fn, tau_at, sim_tau_at):
@@ -160,12 +153,12 @@ def _physics_cycle_at(steps, law_state_at, law_table_at, q_at, qd_at, arm_qpos_a
     Returns the steps done; fewer than ``steps``: the law (Pinocchio) or the step failed at
     the next one (-1 - steps done: the step diverged)."""
     for step in range(steps):
-        _copy7(arm_qpos_at, q_at)
-        _copy7(arm_qvel_at, qd_at)
+        copy_at(arm_qpos_at, q_at, 7)
+        copy_at(arm_qvel_at, qd_at, 7)
         if law_cycle_at(law_state_at, law_table_at, q_at, qd_at, force_at, has_force, force_limit, hold, has_command,
                         dynamics_fn, model_at, data_at) != LAW_DONE:
             return step
-        _copy7(tau_at, sim_tau_at)
+        copy_at(tau_at, sim_tau_at, 7)
         if not step_at(sim_table_at, nv, arm_dof, hand, step_fn):
             return -1 - step
     return steps
@@ -188,8 +181,8 @@ def _measure_at(table_at, joint_noise, kinematics_fn, model_at, data_at, frame, 
     in the int64 table at ``wrench_args_at``) and the measured tcp pose.  Returns False if
     Pinocchio failed."""
     at = int64_array_at(table_at, len(MEASURE_BUFFERS))
-    _copy7(at[_ARM_QPOS], at[_QT])
-    _copy7(at[_ARM_QVEL], at[_QDT])
+    copy_at(at[_ARM_QPOS], at[_QT], 7)
+    copy_at(at[_ARM_QVEL], at[_QDT], 7)
     q, noise, q_msr = carray_at(at[_QT], (7,)), carray_at(at[_NOISE], (7,)), carray_at(at[_Q_MSR], (7,))
     for i in range(7):
         q_msr[i] = noise[i] * joint_noise

@@ -42,8 +42,8 @@ from numba import njit
 
 from robot_sim.cycle import FRI_CYCLE_NS
 from robot_sim.krc.packets import ControlMode
-from kernel_plumbing.addresses import (JIT, HoldsAddresses, address, addresses, carray_at, entry, int64_address,
-                                       int64_array_at)
+from kernel_plumbing.addresses import (JIT, HoldsAddresses, address, addresses, carray_at, copy_at, entry,
+                                       int64_address, int64_array_at)
 from robot_sim.arm.kinematics import COMPUTE_ALL_TERMS, ArmKinematics, call_compute_all_terms
 from robot_sim.krc.law_arithmetic import (impedance_at, impedance_work_size, joint_spring_at, pose_at, rate_limit_at,
                                           saturate_at, state_problem_at)
@@ -117,17 +117,10 @@ LAW_DONE, LAW_JOINT_IMPEDANCE, LAW_DYNAMICS_FAILED = 0, 1, 2
 
 
 @njit(**JIT)
-def _copy(src_at, dst_at, n):
-    src, dst = carray_at(src_at, (n,)), carray_at(dst_at, (n,))
-    for i in range(n):
-        dst[i] = src[i]
-
-
-@njit(**JIT)
 def _stop_at(s, at, reason):
     """Latch a safety stop: the arm held by stiff joint springs where it is now."""
     s[_SAFETY] = reason
-    _copy(at[_Q], at[_Q_HOLD], _NV)
+    copy_at(at[_Q], at[_Q_HOLD], _NV)
     s[_HOLDING_JOINTS] = 1
 
 
@@ -138,10 +131,10 @@ def law_begin_at(state_at, table_at, q_at, qd_at, force_at, has_force, force_lim
     get zero torque and the step is over."""
     s, at = int64_array_at(state_at, _STATE_SIZE), int64_array_at(table_at, len(BUFFERS))
     s[_PHASE] = 0 if s[_PHASE] + 1 == s[_INERTIA_PERIOD] else s[_PHASE] + 1
-    _copy(q_at, at[_Q], _NV)
-    _copy(qd_at, at[_QD], _NV)
+    copy_at(q_at, at[_Q], _NV)
+    copy_at(qd_at, at[_QD], _NV)
     if has_force:
-        _copy(force_at, at[_FORCE], 3)
+        copy_at(force_at, at[_FORCE], 3)
     problem = state_problem_at(_NV, at[_Q], at[_QD], at[_LOW], at[_HIGH], s[_SAFETY] == 0, at[_FORCE], has_force,
                                 force_limit)
     if problem == 4:  # NON_FINITE: nothing can be computed from a broken measurement
@@ -165,10 +158,10 @@ def _impedance_with(s, at, pose_at, k_at, d_at, ft_at):
 def _position_with(s, at):
     """POSITION: a stiff joint PD towards the rate-limited target (the arm's own pose if none)."""
     if not s[_INTERPOLATING]:
-        _copy(at[_Q], at[_Q_INTERP], _NV)
+        copy_at(at[_Q], at[_Q_INTERP], _NV)
         s[_INTERPOLATING] = 1
     if not s[_HAS_TARGET]:
-        _copy(at[_Q], at[_Q_TARGET], _NV)
+        copy_at(at[_Q], at[_Q_TARGET], _NV)
         s[_HAS_TARGET] = 1
     rate_limit_at(_NV, at[_Q_INTERP], at[_Q_TARGET], at[_STEP])
     joint_spring_at(_NV, at[_Q], at[_QD], at[_NLE], at[_Q_INTERP], at[_KP], at[_KD], at[_TAU])
@@ -184,11 +177,11 @@ def law_torques_at(state_at, table_at, hold, has_command):
     mode = s[_MODE]
     if s[_SAFETY] != 0:
         if not s[_HOLDING_JOINTS]:
-            _copy(at[_Q], at[_Q_HOLD], _NV)
+            copy_at(at[_Q], at[_Q_HOLD], _NV)
             s[_HOLDING_JOINTS] = 1
         joint_spring_at(_NV, at[_Q], at[_QD], at[_NLE], at[_Q_HOLD], at[_KP], at[_KD], at[_TAU])
     elif s[_GRAVITY]:
-        _copy(at[_NLE], at[_TAU], _NV)
+        copy_at(at[_NLE], at[_TAU], _NV)
         wrench = carray_at(at[_WRENCH_TCP], (6,))
         wrench[:] = 0.0
     elif mode == 1:  # POSITION

@@ -7,6 +7,7 @@ Cartesian impedance from the FRI 1.0 documentation).  Pure values: no sockets, n
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass, field
 from enum import IntEnum
 
@@ -161,12 +162,14 @@ class CommandPacket:
 
 # what _numbers_at finds wrong first (0: nothing), the vector and its entry in ``where``
 _NOT_FINITE, _TOO_LARGE, _NOT_ORTHONORMAL, _DETERMINANT, _OUT_OF_RANGE = 1, 2, 3, 4, 5
-# the vectors a command's numbers are checked in, in this order, with their lengths and
-# the range of their entries (None: any finite number)
-_VECTORS = (("cart_pos", _CART, None), ("cart_stiffness", _FT, None), ("cart_damping", _FT, (0.0, 1.0)),
-            ("add_tcp_ft", _FT, None), ("jnt_pos", _JNT, None), ("jnt_stiffness", _JNT, (0.0, MAX_JOINT_STIFFNESS)),
-            ("jnt_damping", _JNT, (0.0, 1.0)), ("add_jnt_trq", _JNT, None))
 _STIFFNESS_LIMITS = np.array([MAX_TRANSLATIONAL_STIFFNESS] * 3 + [MAX_ROTATIONAL_STIFFNESS] * 3)
+# the vectors a command's numbers are checked in, in this order, with their lengths and
+# the range of their entries (None: any finite number; the upper end per entry or for all)
+_VECTORS = (("cart_pos", _CART, None), ("cart_stiffness", _FT, (0.0, _STIFFNESS_LIMITS)),
+            ("cart_damping", _FT, (0.0, 1.0)), ("add_tcp_ft", _FT, None), ("jnt_pos", _JNT, None),
+            ("jnt_stiffness", _JNT, (0.0, MAX_JOINT_STIFFNESS)), ("jnt_damping", _JNT, (0.0, 1.0)),
+            ("add_jnt_trq", _JNT, None))
+_LENGTHS = tuple(n for _, n, _ in _VECTORS)
 
 
 @njit(**JIT)
@@ -203,11 +206,10 @@ def _numbers_at(present_at, values_at, lows_at, highs_at, tolerance, where_at, d
     present, values = int64_array_at(present_at, 8), carray_at(values_at, (8, _CART))
     lows, highs = carray_at(lows_at, (8, _JNT)), carray_at(highs_at, (8, _JNT))
     where, det_out = int64_array_at(where_at, 2), carray_at(det_at, (1,))
-    lengths = (_CART, _FT, _FT, _FT, _JNT, _JNT, _JNT, _JNT)
     for which in range(8):
         if not present[which]:
             continue
-        v = values[which, :lengths[which]]
+        v = values[which, :_LENGTHS[which]]
         problem = _finite_at(v, which, where)
         if problem:
             return problem
@@ -235,16 +237,17 @@ _NUMBERS = entry(_numbers_at, f"{addresses(4)}, float64, {addresses(2)}")
 
 
 class _CommandChecks(HoldsAddresses):
-    """The buffers ``_numbers_at`` reads and writes, made once for every check."""
+    """The buffers ``_numbers_at`` reads and writes, made once for every check, and the lock
+    that keeps one check at a time in them (the kernel runs without the GIL, and a KRC's
+    UDP endpoint checks on its own thread)."""
 
     def __init__(self):
+        self.lock = threading.Lock()
         self.present = np.zeros(8, dtype=np.int64)
         self.values = np.zeros((8, _CART))
         self.lows, self.highs = np.ones((8, _JNT)), np.zeros((8, _JNT))  # low > high: no range
-        for which, (name, n, limits) in enumerate(_VECTORS):
-            if name == "cart_stiffness":
-                self.lows[which, :n], self.highs[which, :n] = 0.0, _STIFFNESS_LIMITS
-            elif limits is not None:
+        for which, (_, n, limits) in enumerate(_VECTORS):
+            if limits is not None:
                 self.lows[which, :n], self.highs[which, :n] = limits
         self.where = np.zeros(2, dtype=np.int64)
         self.det = np.zeros(1)
@@ -279,23 +282,23 @@ def _numbers_problem(originals: list, kept: list) -> str | None:
     """What ``_numbers_at`` finds wrong with the vectors gathered so far, in words naming
     the field and the value (the original value, as the sender gave it)."""
     checks = _CHECKS
-    present, values = checks.present, checks.values
-    for which in range(8):
-        vector = kept[which]
-        if vector is None:
-            present[which] = 0
-        else:
-            present[which] = 1
-            values[which, :len(vector)] = vector
-    a = checks.args
-    problem = _NUMBERS(a[0], a[1], a[2], a[3], a[4], a[5], a[6])
+    present, values, a = checks.present, checks.values, checks.args
+    with checks.lock:
+        for which in range(8):
+            vector = kept[which]
+            if vector is None:
+                present[which] = 0
+            else:
+                present[which] = 1
+                values[which, :len(vector)] = vector
+        problem = _NUMBERS(a[0], a[1], a[2], a[3], a[4], a[5], a[6])
+        det, which, i = float(checks.det[0]), int(checks.where[0]), int(checks.where[1])
     if not problem:
         return None
     if problem == _NOT_ORTHONORMAL:
         return "cart_pos rotation is not orthonormal"
     if problem == _DETERMINANT:
-        return f"cart_pos rotation has determinant {checks.det[0]:.6g}, expected 1"
-    which, i = int(checks.where[0]), int(checks.where[1])
+        return f"cart_pos rotation has determinant {det:.6g}, expected 1"
     name = _VECTORS[which][0]
     if problem == _TOO_LARGE:
         return f"{name} has values too large to be meaningful"

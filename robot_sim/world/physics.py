@@ -151,9 +151,8 @@ if _CONTACT_FORCE and not blas.AVAILABLE:
     _CONTACT_FORCE, WHY_NO_CONTACT_KERNEL = 0, blas.WHY
 # The addresses a step kernel reaches (``Simulation.table``), by index
 STEP_BUFFERS = ("cdof", "com", "flange", "chain", "wrench", "tau", "hand", "applied", "qacc", "model", "data",
-                "bad_qacc", "sensordata", "constraint")
-(_CDOF, _COM, _FLANGE, _CHAIN, _WRENCH, _TAU, _HAND, _APPLIED, _QACC, _MODEL, _DATA, _BAD_QACC, _SENSORDATA,
- _CONSTRAINT) = range(len(STEP_BUFFERS))
+                "bad_qacc")
+_CDOF, _COM, _FLANGE, _CHAIN, _WRENCH, _TAU, _HAND, _APPLIED, _QACC, _MODEL, _DATA, _BAD_QACC = range(len(STEP_BUFFERS))
 
 
 @njit(**JIT)
@@ -167,14 +166,6 @@ def step_at(table_at, nv, arm_dof, hand, step_fn):
                     at[_HAND], at[_APPLIED])
     _call_step(step_fn, at[_MODEL], at[_DATA])
     return all_finite_at(at[_QACC], nv) and blas.int32_at(at[_BAD_QACC]) == 0
-
-
-@njit(**JIT)
-def sense_table_at(table_at, force_adr, torque_adr, nv, arm_dof, wrench_at, torques_at):
-    """``Simulation.sense_at`` from a step kernel's table."""
-    at = int64_array_at(table_at, len(STEP_BUFFERS))
-    _sensed_at(at[_SENSORDATA], force_adr, torque_adr, at[_CONSTRAINT], at[_HAND], nv, arm_dof, wrench_at,
-               torques_at)
 
 
 # the geom ids of the contacts on the tip a kernel call can report; more go the Python way
@@ -250,7 +241,9 @@ class Simulation(HoldsAddresses):
                     "model": m._address, "data": d._address, "contact6": address(self._contact6),
                     "force3": address(self._contact_force3), "total": address(self._contact_total),
                     "others": address(self._tip_others),
-                    "bad_qacc": d.warning.number.ctypes.data + d.warning.number.strides[0] * mujoco.mjtWarning.mjWARN_BADQACC}
+                    # the bad-acceleration warning's counter, which step_at reads as step() does
+                    "bad_qacc": d.warning.number.ctypes.data
+                    + d.warning.number.strides[0] * mujoco.mjtWarning.mjWARN_BADQACC}
         # the step kernel's addresses (step_at), and what it is called with besides
         self._table = np.array([self._at[name] for name in STEP_BUFFERS], dtype=np.int64)
         self.table_at = int64_address(self._table)

@@ -82,7 +82,7 @@ def _valley_step_at(state_at, dt, inputs_at, touches_plate, noise_draw_at, tremo
         normal = s[_LOG:_LOG + 3]  # scratch until the log: the plate's normal
         normal[0], normal[1], normal[2] = 0.0, -side * math.sin(angle), math.cos(angle)
         step = speed * dt
-        s[_PATH] += step * 0.0
+        s[_PATH] += step * 0.0  # numpy adds downhill's 0 too (a path at -0.0 becomes 0.0)
         s[_PATH + 1] += step * (-side * math.cos(angle))
         s[_PATH + 2] += step * -math.sin(angle)
         s[_PATH + 2] = s[_GROOVE_Z] + abs(s[_PATH + 1]) * math.tan(angle) + s[_TIP] / math.cos(angle)

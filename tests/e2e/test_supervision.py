@@ -195,7 +195,8 @@ def test_services_with_a_restart_policy_and_the_live_views_bridge_come_back_and_
         for role, at in (("recorder", 300), ("foxglove_bridge", 900), ("phase_estimator", 1500)):
             if role in killed:
                 continue
-            # found ahead of its kill (a scan of /proc lasts many cycles): the kill lands in the cycle counted
+            # found ahead of its kill (a scan of /proc lasts many cycles): the kill lands in the
+            # cycle counted
             pid = pids.get(role) or service_pid(role, run_id)
             pids[role] = pid
             if seen[0] >= at and pid is not None:

@@ -700,3 +700,31 @@ def test_a_command_is_judged_field_by_field_in_order_and_names_the_value_as_sent
     assert command_problem(replace(good, add_tcp_ft=np.full(6, 1e308))) == \
         "add_tcp_ft has values too large to be meaningful"
     assert command_problem(good) is None
+
+
+def test_commands_checked_on_several_threads_at_once_each_get_their_own_answer():
+    """The compiled check's buffers are shared: threads checking at the same time (a KRC's
+    UDP endpoint beside the cycle) must each be told about their own packet."""
+    import threading
+
+    link = FriLink()
+    link.start(0)
+    good = answer(link.measurement(0, Q, POSE, FT))
+    packets = [(good, None), (replace(good, cart_damping=np.full(6, 2.0)), "cart_damping[0] = 2.0 outside [0, 1]"),
+               (replace(good, cart_stiffness=np.full(6, np.nan)), "cart_stiffness[0] is not finite (nan)"),
+               (replace(good, cart_pos=np.zeros(12)), "cart_pos rotation is not orthonormal")]
+    wrong = []
+
+    def check(packet, expected):
+        for _ in range(2000):
+            got = command_problem(packet)
+            if got != expected:
+                wrong.append((expected, got))
+                return
+
+    threads = [threading.Thread(target=check, args=p) for p in packets]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert wrong == []
