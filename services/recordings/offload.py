@@ -5,8 +5,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import pickle
+import signal
+import threading
 from pathlib import Path
 
 from services.recordings.format import RecordingError
@@ -47,8 +50,9 @@ class WriterProcess:
 
     def _call(self, *request):
         try:
-            self._send(request)
-            ok, value = pickle.load(self._proc.stdout)
+            with _interrupts_held():
+                self._send(request)
+                ok, value = pickle.load(self._proc.stdout)
         except (EOFError, OSError, pickle.UnpicklingError) as exc:
             raise RecordingError(f"the MCAP writer process is gone ({type(exc).__name__}: {exc}; exit code "
                                  f"{self._proc.poll()})") from None
@@ -66,7 +70,8 @@ class WriterProcess:
 
     def send(self, batch: list) -> None:
         try:
-            self._send(("add", batch))
+            with _interrupts_held():
+                self._send(("add", batch))
         except OSError as exc:
             raise RecordingError(f"the MCAP writer process is gone ({exc}; exit code {self._proc.poll()})") from None
 
@@ -100,22 +105,55 @@ class OffloadedEpisodeWriter:
             raise RecordingError(f"{self.path}: add() after finish()")
         self._batch.append((key_expr, bytes(payload), log_time_ns, publish_time_ns))
         if len(self._batch) >= WriterProcess.BATCH:
-            self._process.send(self._batch)
-            self._batch = []
+            with _interrupts_held():  # sent and forgotten together: sent twice, the file would hold it twice
+                self._process.send(self._batch)
+                self._batch = []
 
     def finish(self) -> None:
         if self._finished:
             return
         self._finished = True
         if self._batch:
-            self._process.send(self._batch)
-            self._batch = []
+            with _interrupts_held():
+                self._process.send(self._batch)
+                self._batch = []
         for name, value in self._process._call("finish").items():
             setattr(self, name, value)
 
     @property
     def finished(self) -> bool:
         return self._finished
+
+
+@contextlib.contextmanager
+def _interrupts_held():
+    """Ctrl-C and SIGTERM wait for the end of the block, on the main thread (where Python
+    runs their handlers).  An in-process run's interrupt is a KeyboardInterrupt raised
+    wherever the run is: raised half-way through a request to the helper, it left half a
+    pickle in the pipe, the next request (the finish the interrupt leads to) read as
+    garbage, and the episode's file was lost.  A second signal in the block is not held:
+    the run's way out of a hang."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held, saved = [], {}
+
+    def hold(signum, frame):
+        if held:  # the second: not held
+            saved[signum](signum, frame)
+        else:
+            held.append(signum)
+
+    try:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            if callable(signal.getsignal(sig)):  # a Python handler (raising, say): not the default's exit
+                saved[sig] = signal.signal(sig, hold)
+        yield
+    finally:
+        for sig, handler in saved.items():
+            signal.signal(sig, handler)
+        if held:
+            saved[held[0]](held[0], None)
 
 
 def _writer_main(requests, replies) -> None:
