@@ -20,4 +20,7 @@ RUN /opt/etar/bin/pip install --no-index --no-deps /project-wheel/*.whl && rm -r
 COPY scenarios /app/scenarios
 ENV PATH=/opt/etar/bin:$PATH PYTHONUNBUFFERED=1
 WORKDIR /app
+# numba's kernels compiled into the image once: otherwise every container compiles its own
+# on start (the cell's before the robot is ready, EM's in the runner's learning)
+RUN python -m services.run.kernel_cache
 CMD ["etar-bench", "--help"]

@@ -1,5 +1,6 @@
 # Two commands on a fresh machine with Python 3.11: `make run` and `make test`.
-# Each creates .venv and installs the project into it when needed.
+# Each creates .venv and installs the project into it when needed (and compiles numba's
+# kernels once: services/run/kernel_cache.py).
 
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV := .venv
@@ -15,6 +16,7 @@ $(STAMP): pyproject.toml setup.py robot_sim/arm/native/pinocchio_inplace.cpp
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade "pip>=24,<27"
 	$(BIN)/python -m pip install --quiet -e ".[test,cluster]"
+	$(BIN)/python -m services.run.kernel_cache
 	touch $(STAMP)
 
 venv: $(STAMP)

@@ -1,0 +1,92 @@
+"""numba's kernels compiled into its cache once, right after installing, two at a time.
+
+    python -m services.run.kernel_cache      (make does it once, after installing)
+
+A fresh checkout has no compiled kernel: the first process to call one compiles it
+(about 40 s of CPU for a whole run: the cell's kernels at import, EM's on learning,
+the estimator's and the commander's on reproducing) and writes numba's cache beside
+its source, which every later process loads in well under a second.  Before, every
+process of the first runs and tests compiled for itself at the same time: the two
+test workers, the six services of a run over Zenoh.  Here two processes compile what
+a run uses, one the learning, one the cell and the nodes, each by doing it: a small
+run in one process with the smoke's model, and EM on synthetic demonstrations.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+
+def _smoke_model() -> Path:
+    """The smoke's model: the checkout's, or (an installed package, as in the image) the working folder's."""
+    for base in (Path(__file__).resolve().parents[2], Path.cwd()):
+        if (base / "scenarios" / "models" / "smoke.json").is_file():
+            return base / "scenarios" / "models" / "smoke.json"
+    raise SystemExit("kernel cache: no scenarios/models/smoke.json in the checkout or the working folder")
+
+
+def _nodes(out: Path) -> None:
+    """The cell, the sensor, the teacher, the estimator and the commander: a demonstration
+    and a reproduction of the smoke's world in one process."""
+    from services.run.options import RunOptions
+    from services.run.runner import run
+    from services.scenario import Scenario
+
+    start = dict(start=[0.62, -0.06, 0.30], goal_x=0.57, max_seconds=1.0)
+    scenario = Scenario.from_dict(dict(name="kernel_cache", world="valley", seed=0, model=str(_smoke_model()),
+                                       stages=[{"demonstrate": dict(count=1, **start)},
+                                               {"reproduce": dict(count=1, **start)}]))
+    report = run(scenario, RunOptions(out=str(out), run_id="kernel-cache", transport="inproc", figures=False),
+                 progress=lambda line: None)
+    if report["error"]:
+        raise SystemExit(f"kernel cache: the run that compiles the nodes' kernels failed: {report['error']}")
+
+
+def _learning(out: Path) -> None:
+    """EM's kernels: a fit to synthetic demonstrations."""
+    from etar.cli import main as etar
+
+    if etar(["synth", "--out", str(out / "demos")]) != 0:
+        raise SystemExit("kernel cache: etar synth failed")
+    demos = sorted(str(p) for p in (out / "demos").glob("*.npz"))
+    if etar(["learn", *demos, "--phases", "3", "--out", str(out / "model.json")]) != 0:
+        raise SystemExit("kernel cache: etar learn failed")
+
+
+PARTS = {"nodes": _nodes, "learning": _learning}
+
+
+def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] in ("-h", "--help"):
+        print(__doc__.strip())
+        return 0
+    if argv[:1] == ["--part"] and len(argv) == 2 and argv[1] in PARTS:
+        with tempfile.TemporaryDirectory(prefix="etar-kernel-cache-") as tmp:
+            PARTS[argv[1]](Path(tmp))
+        return 0
+    if argv:
+        print(f"python -m services.run.kernel_cache: error: no flags but --help, got {' '.join(argv)!r}",
+              file=sys.stderr)
+        return 2
+    t0 = time.monotonic()
+    print("compiling numba's kernels into its cache (once after installing; a minute at most)", flush=True)
+    parts = {name: subprocess.Popen([sys.executable, "-m", "services.run.kernel_cache", "--part", name],
+                                    stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True) for name in PARTS}
+    said = {name: proc.communicate()[1] for name, proc in parts.items()}
+    failed = [name for name, proc in parts.items() if proc.returncode != 0]
+    for name in failed:
+        print(said[name].strip()[-2000:], file=sys.stderr)
+    if failed:
+        print(f"kernel cache: compiling the {' and '.join(failed)} kernels failed", file=sys.stderr)
+        return 1
+    print(f"kernels compiled in {time.monotonic() - t0:.0f} s", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,23 @@
+"""The kernel cache step make runs after installing: its flags, and the model it runs with."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+from services.run import kernel_cache
+
+ROOT = Path(__file__).resolve().parents[3]
+
+
+def test_a_bad_flag_is_one_line_and_exit_2_and_help_says_what_it_does():
+    bad = subprocess.run([sys.executable, "-m", "services.run.kernel_cache", "--fast"], cwd=ROOT,
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and bad.stderr.strip().splitlines() == [
+        "python -m services.run.kernel_cache: error: no flags but --help, got '--fast'"], bad.stderr
+    assert bad.stdout == ""
+    assert kernel_cache.main(["--help"]) == 0
+
+
+def test_the_nodes_part_runs_the_checkouts_smoke_model_from_any_folder(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert kernel_cache._smoke_model() == ROOT / "scenarios" / "models" / "smoke.json"
