@@ -85,6 +85,10 @@ def main(argv=None) -> int:
         print(f"kernel cache: compiling the {' and '.join(failed)} kernels failed", file=sys.stderr)
         return 1
     print(f"kernels compiled in {time.monotonic() - t0:.0f} s", flush=True)
+    from robot_sim.arm.kinematics import PINOCCHIO_INPLACE_MISSING
+
+    if PINOCCHIO_INPLACE_MISSING:  # the install goes on without the C++ part (setup.py): say so where it happened
+        print(f"note: {PINOCCHIO_INPLACE_MISSING}; the cell runs on Pinocchio's bindings instead", flush=True)
     return 0
 
 
