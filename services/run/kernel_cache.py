@@ -66,18 +66,30 @@ def main(argv=None) -> int:
         print(__doc__.strip())
         return 0
     if argv[:1] == ["--part"] and len(argv) == 2 and argv[1] in PARTS:
-        with tempfile.TemporaryDirectory(prefix="etar-kernel-cache-") as tmp:
-            PARTS[argv[1]](Path(tmp))
+        try:
+            with tempfile.TemporaryDirectory(prefix="etar-kernel-cache-") as tmp:
+                PARTS[argv[1]](Path(tmp))
+        except KeyboardInterrupt:  # Ctrl-C reaches the whole group: the parent says it
+            return 130
         return 0
     if argv:
         print(f"python -m services.run.kernel_cache: error: no flags but --help, got {' '.join(argv)!r}",
               file=sys.stderr)
         return 2
     t0 = time.monotonic()
-    print("compiling numba's kernels into its cache (once after installing; a minute at most)", flush=True)
-    parts = {name: subprocess.Popen([sys.executable, "-m", "services.run.kernel_cache", "--part", name],
-                                    stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True) for name in PARTS}
-    said = {name: proc.communicate()[1] for name, proc in parts.items()}
+    parts = {}
+    try:
+        print("compiling numba's kernels into its cache (once after installing; a minute at most)", flush=True)
+        for name in PARTS:
+            parts[name] = subprocess.Popen([sys.executable, "-m", "services.run.kernel_cache", "--part", name],
+                                           stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        said = {name: proc.communicate()[1] for name, proc in parts.items()}
+    except KeyboardInterrupt:
+        for proc in parts.values():
+            proc.kill()
+            proc.wait()
+        print("kernel cache: interrupted; the kernels not compiled yet compile on first use", file=sys.stderr)
+        return 130
     failed = [name for name, proc in parts.items() if proc.returncode != 0]
     for name in failed:
         print(said[name].strip()[-2000:], file=sys.stderr)
