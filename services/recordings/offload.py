@@ -70,8 +70,7 @@ class WriterProcess:
 
     def send(self, batch: list) -> None:
         try:
-            with _interrupts_held():
-                self._send(("add", batch))
+            self._send(("add", batch))
         except OSError as exc:
             raise RecordingError(f"the MCAP writer process is gone ({exc}; exit code {self._proc.poll()})") from None
 
@@ -105,24 +104,25 @@ class OffloadedEpisodeWriter:
             raise RecordingError(f"{self.path}: add() after finish()")
         self._batch.append((key_expr, bytes(payload), log_time_ns, publish_time_ns))
         if len(self._batch) >= WriterProcess.BATCH:
-            with _interrupts_held():  # sent and forgotten together: sent twice, the file would hold it twice
-                self._process.send(self._batch)
-                self._batch = []
+            self._hand_over()
 
     def finish(self) -> None:
         if self._finished:
             return
         self._finished = True
         if self._batch:
-            with _interrupts_held():
-                self._process.send(self._batch)
-                self._batch = []
+            self._hand_over()
         for name, value in self._process._call("finish").items():
             setattr(self, name, value)
 
     @property
     def finished(self) -> bool:
         return self._finished
+
+    def _hand_over(self) -> None:
+        with _interrupts_held():  # sent and forgotten together: sent twice, the file would hold it twice
+            self._process.send(self._batch)
+            self._batch = []
 
 
 @contextlib.contextmanager
