@@ -103,24 +103,28 @@ class RecorderNode(Node):
             # no receiver reads it: recording it would only let a foreign peer fill the disk
             self.oversized += 1
             return
+        if message is not None:
+            seq = message["seq"]
+        else:
+            m = SEQ_PREFIX.match(raw)
+            seq = int(m.group(1)) if m else None
         with self.lock:
-            if self.writer is not None:
-                # a message already decoded (one process) needs no decoding for its publish time
-                key = self._keys.get(topic)
-                if key is None:
-                    key = self._keys[topic] = self.prefix + topic
-                self.writer.add(key, raw, recv_ns,
-                                None if message is None else message["sent_ns"])
-                self.total += 1
-            if message is not None:
-                seq = message["seq"]
-            else:
-                m = SEQ_PREFIX.match(raw)
-                seq = int(m.group(1)) if m else None
-            if seq is not None:
-                if seq > self.last_seq.get(topic, -1):
-                    self.last_seq[topic] = seq
-                self.lock.notify_all()
+            try:
+                if self.writer is not None:
+                    # a message already decoded (one process) needs no decoding for its publish time
+                    key = self._keys.get(topic)
+                    if key is None:
+                        key = self._keys[topic] = self.prefix + topic
+                    self.writer.add(key, raw, recv_ns,
+                                    None if message is None else message["sent_ns"])
+                    self.total += 1
+            finally:
+                # arrived, even when the file could not take it (a full disk): ending the
+                # episode then says so at once instead of waiting for it to be written
+                if seq is not None:
+                    if seq > self.last_seq.get(topic, -1):
+                        self.last_seq[topic] = seq
+                    self.lock.notify_all()
 
     def lagging(self, wanted, last: int) -> list:
         """The topics among ``wanted`` whose newest message is older than cycle ``last``."""

@@ -230,7 +230,7 @@ class Service:
         run, undecoded, in batches (``services.transport.subscriptions``).  Returns the
         subscriber (for ``unsubscribe``)."""
         if topic == "**":
-            sub = subscribe_all(self.session, self.run_id, on_message, self.profile, self.stop)
+            sub = subscribe_all(self.session, self.run_id, on_message, self.links, self.profile, self.stop)
         else:
             sub = subscribe(self.session, self.run_id, topic, on_message, self.links, self.profile, decode=decode,
                             every_tenth=every_tenth, latest=latest, keep_tenth=keep_tenth)

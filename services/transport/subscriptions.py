@@ -201,9 +201,11 @@ def subscribe(session, run_id: str, topic: str, on_message, links: dict, profile
     return sub
 
 
-def subscribe_all(session, run_id: str, on_sample, profile, stop: threading.Event):
+def subscribe_all(session, run_id: str, on_sample, links: dict, profile, stop: threading.Event):
     """Every sample of the run, undecoded and in batches: ``on_sample(topic, receive
-    time ns, raw bytes, None)``, the receive time that of the batch's turn."""
+    time ns, raw bytes, None)``, the receive time that of the batch's turn.  A sample
+    ``on_sample`` raises on (a recording's full disk) is counted in ``links["**"]``, made
+    at the first, and the next is taken: the thread goes on."""
     prefix = topics.prefix(run_id) + "/"
     cut = len(prefix)
     sub = session.declare_subscriber(prefix + "**", zenoh.handlers.FifoChannel(BATCH_CAPACITY))
@@ -211,7 +213,12 @@ def subscribe_all(session, run_id: str, on_sample, profile, stop: threading.Even
 
     @profile.wrap
     def take(sample) -> None:
-        on_sample(str(sample.key_expr)[cut:], now_ns(), sample.payload.to_bytes(), None)
+        try:
+            on_sample(str(sample.key_expr)[cut:], now_ns(), sample.payload.to_bytes(), None)
+        except Exception as exc:  # noqa: BLE001 - counted and named; one bad sample must not end the drain
+            counters = links.get("**") or links.setdefault("**", LinkCounters())
+            counters.bad += 1
+            counters.last_error = f"{type(exc).__name__}: {exc}"
 
     def drain() -> None:
         try:

@@ -169,3 +169,27 @@ def test_a_decoder_that_fails_unexpectedly_does_not_end_the_subscription(link, m
             assert wait_for(lambda: seen[-1:] == [seq])
     assert seen == [1, 3, 4]
     assert svc.links["robot/contact"].last_error == "ZeroDivisionError while decoding: a decoder bug"
+
+
+def test_a_sample_the_recorders_subscription_raises_on_is_counted_and_the_next_are_taken(link):
+    """The recorder's ``**`` subscription: its handler raised on a full disk (the file could
+    take no more), which ended the drain thread; every later sample went unseen and ending
+    the episode waited out the recorder's wait for them.  Now counted, named, and the next
+    one taken."""
+    svc, run_id, session = link
+    seen = []
+
+    def on_sample(topic, recv_ns, raw, message):
+        if b'"seq":2,' in raw:
+            raise OSError(28, "No space left on device")
+        seen.append((topic, int(raw.split(b",")[0].split(b":")[1])))
+
+    svc.subscribe("**", on_sample)
+    pub = session.declare_publisher(topics.key(run_id, "robot/contact"))
+    assert wait_until_matched(pub)
+    for seq in range(1, 5):
+        pub.put(contact(seq))
+    assert wait_for(lambda: len(seen) == 3)
+    assert seen == [("robot/contact", 1), ("robot/contact", 3), ("robot/contact", 4)]
+    assert svc.links["**"].bad == 1
+    assert svc.links["**"].last_error == "OSError: [Errno 28] No space left on device"
