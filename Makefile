@@ -15,7 +15,12 @@ OUT ?= out/$(basename $(notdir $(SCENARIO)))
 $(STAMP): pyproject.toml setup.py robot_sim/arm/native/pinocchio_inplace.cpp
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade "pip>=24,<27"
-	$(BIN)/python -m pip install --quiet -e ".[test,cluster]"
+	$(BIN)/python -m pip install --quiet --no-compile -e ".[test,cluster]"
+	@# pip byte-compiles one file at a time (half of the install); compileall does it on every
+	@# core, the project's own modules too, which an editable install leaves to each process
+	@# (every one, where PYTHONDONTWRITEBYTECODE is set); a file that does not compile is
+	@# compiled at its import, as after pip, which ignores them too
+	$(BIN)/python -m compileall -q -j 0 $(VENV)/lib etar kernel_plumbing robot_sim services tests >/dev/null || true
 	$(BIN)/python -m services.run.kernel_cache
 	touch $(STAMP)
 

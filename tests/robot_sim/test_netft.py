@@ -130,7 +130,7 @@ def unpack_records(data: bytes) -> list[tuple]:
 
 @pytest.mark.slow
 def test_pynetft_streams_every_sample_with_the_simulated_counts():
-    """10 s at 1 kHz through pynetft: the box sends every record the sensor made, and the
+    """4 s at 1 kHz through pynetft: the box sends every record the sensor made, and the
     client receives them all but what loopback drops when its receiving thread is starved
     (a loaded 2-core machine), which it counts: each ft_sequence gap is a gap of the same
     size in rdt_sequence, and pynetft counts them, under 1 %.  Each sample's
@@ -143,10 +143,10 @@ def test_pynetft_streams_every_sample_with_the_simulated_counts():
     with served_box() as box, Feeder(box, AtiConfig.mini45()) as feed:
         with pynetft_client(pynetft, box) as c:
             assert c.wait_for_first_sample(2.0)
-            got = take(c.samples(timeout=1.0), 10.0)
+            got = take(c.samples(timeout=1.0), 4.0)
             health = c.health()
         sent = box.stats().records_sent
-    assert len(got) >= 9000, len(got)
+    assert len(got) >= 3600, len(got)
     ft = np.array([s.ft_sequence for s in got])
     rdt = np.array([s.rdt_sequence for s in got])
     restarts = np.flatnonzero(np.diff(rdt) <= 0) + 1
