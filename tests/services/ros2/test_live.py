@@ -1,4 +1,5 @@
-"""A lockstep smoke run with ``--ros2``, watched by an rmw_zenoh client nobody here wrote
+"""A lockstep run with ``--ros2`` (four short reproductions of the smoke task with its
+stored model), watched by an rmw_zenoh client nobody here wrote
 (zenoh-ros2-sdk, in its own process, a client of the run's Zenoh session as rmw_zenoh is
 advised to join from outside): every /ft_sensor/wrench and /joint_states message of the
 episodes it watched arrives with the recording's values, its graph query lists the cell's
@@ -21,7 +22,7 @@ import pytest
 from services.recordings.reader import read_episode
 from services.ros2.types import TOPICS
 from services.runtime.messages import FT_WRENCH, ROBOT_STATE
-from tests.support import popen_as_from_a_terminal
+from tests.support import hold, popen_as_from_a_terminal
 
 # a whole run over Zenoh and a second process watching it
 pytestmark = [pytest.mark.slow, pytest.mark.zenoh]
@@ -32,8 +33,10 @@ ENDPOINT = re.compile(r"ROS 2: the cell is node /etar_cell in domain (\d+), on t
 
 def test_an_rmw_zenoh_client_receives_every_message_with_the_recordings_values(tmp_path):
     out = tmp_path / "run"
+    scenario = tmp_path / "reproductions.yaml"
+    scenario.write_text(hold(2, {"clock": "lockstep", "reproduce.count": 4}).to_yaml())
     runner = popen_as_from_a_terminal(
-        [sys.executable, "-m", "services.cli.bench", "run", str(ROOT / "scenarios" / "smoke.yaml"), "--ros2", "7",
+        [sys.executable, "-m", "services.cli.bench", "run", str(scenario), "--ros2", "7",
          "--out", str(out), "--no-figures"], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     said, judge = [], None
     try:
@@ -79,6 +82,7 @@ def test_an_rmw_zenoh_client_receives_every_message_with_the_recordings_values(t
             if s["seq"] % 10 == 0:
                 assert s["stamp_ns"] in joints, f"{path.name}: joint state of {s['stamp_ns']} ns not received"
                 assert joints[s["stamp_ns"]][2] == s["msr_jnt_pos"]
+    print(f"the client watched {watched} whole episodes")
     assert watched >= 2, "the client watched fewer than two whole episodes"
     # the graph: topics with their types (the SDK's query), the node and its publishers (liveliness)
     assert dict((name, kinds) for name, kinds in judged["topics"]) == {t.name: [t.type] for t in TOPICS}
