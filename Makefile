@@ -38,7 +38,7 @@ run: $(STAMP)
 # UDP, the browser) one at a time.  Both always run; either failing (or finding no test)
 # fails the target.
 test: $(STAMP) browser foxglove-schemas foxglove-studio
-	@NUMBA_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n 2 --dist loadscope -m "not serial"; \
+	@NUMBA_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n 2 --dist loadscope --no-loadscope-reorder -m "not serial"; \
 	  shared=$$?; $(BIN)/python -m pytest -q -m serial; serial=$$?; \
 	  echo "make test: exit $$shared for the tests run two at a time, $$serial for the serial ones"; \
 	  [ $$shared = 0 ] && [ $$serial = 0 ]

@@ -10,3 +10,27 @@ def rng(request):
     seed = zlib.crc32(request.node.name.encode())
     print(f"rng seed={seed}")
     return np.random.default_rng(seed)
+
+
+def _weight(item) -> int:
+    """How early a test's module goes to a worker: compose, then the runs over Zenoh, then
+    the other slow ones, then the rest."""
+    for rank, marker in enumerate(("compose", "zenoh", "slow")):
+        if item.get_closest_marker(marker) is not None and (marker != "zenoh" or item.get_closest_marker("slow")):
+            return rank
+    return 3
+
+
+def pytest_collection_modifyitems(config, items):
+    """In an xdist worker: the modules that hold the longest tests first, so that with
+    ``--dist loadscope --no-loadscope-reorder`` (make test) the two workers start on them
+    and the quick ones fill the end.  xdist's own order (most tests first) sent the
+    modules of one or two whole runs, compose among them, last: one worker ran them alone
+    while the other had finished."""
+    if not hasattr(config, "workerinput"):
+        return
+    module_weight = {}
+    for item in items:
+        module_weight[item.module] = min(module_weight.get(item.module, 3), _weight(item))
+    order = {id(item): i for i, item in enumerate(items)}
+    items.sort(key=lambda item: (module_weight[item.module], order[id(item)]))
