@@ -536,14 +536,20 @@ def test_interrupts_in_the_hand_over_to_the_writer_process_lose_nothing_and_corr
     from services.recordings.offload import WriterProcess
 
     def interrupt(signum, frame):
-        if not done.is_set():  # one sent as the loop ended is not the test's to raise
+        if armed[0]:
+            armed[0] = False
             raise KeyboardInterrupt
+        # it landed between two adds or after the last: raised there, it would leave the test
+        # (and end pytest's session).  Only a flag: a handler that takes a lock (an Event's)
+        # that the code it interrupted holds waits for ever
+        missed[0] = True
 
     process = WriterProcess()
     writer = process.open(tmp_path / "e.mcap", run_id=RUN, episode_kind="demonstration", episode_index=0)
     payload = RUNNER_EVENT.encode(**header(0), event="episode_end", stage="demonstrate", episode=0,
                                   info={"note": "x" * 2000})
     added, caught, done = [], threading.Event(), threading.Event()
+    armed, missed = [False], [False]  # plain flags, set and read without a lock (see interrupt)
 
     def interrupter():  # one Ctrl-C at a time: a second before the first is met is the way out of a hang
         rng = np.random.default_rng(3)
@@ -561,10 +567,15 @@ def test_interrupts_in_the_hand_over_to_the_writer_process_lose_nothing_and_corr
         thread.start()
         while interrupted < 100:
             try:
+                armed[0] = True
                 writer.add(key(RUNNER_EVENT.topic), payload, 1_000_000 + seq)
+                armed[0] = False
                 added.append(1_000_000 + seq)
             except KeyboardInterrupt:
                 interrupted += 1
+                caught.set()
+            if missed[0]:  # the interrupter waits to be told before it sends the next
+                missed[0] = False
                 caught.set()
             seq += 1
     finally:
