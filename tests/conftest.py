@@ -15,10 +15,12 @@ def rng(request):
 def _weight(item) -> int:
     """How early a test's module goes to a worker: compose, then the runs over Zenoh, then
     the other slow ones, then the rest."""
-    for rank, marker in enumerate(("compose", "zenoh", "slow")):
-        if item.get_closest_marker(marker) is not None and (marker != "zenoh" or item.get_closest_marker("slow")):
-            return rank
-    return 3
+    if item.get_closest_marker("compose"):
+        return 0
+    slow = item.get_closest_marker("slow") is not None
+    if slow and item.get_closest_marker("zenoh"):
+        return 1
+    return 2 if slow else 3
 
 
 def pytest_collection_modifyitems(config, items):
@@ -32,5 +34,4 @@ def pytest_collection_modifyitems(config, items):
     module_weight = {}
     for item in items:
         module_weight[item.module] = min(module_weight.get(item.module, 3), _weight(item))
-    order = {id(item): i for i, item in enumerate(items)}
-    items.sort(key=lambda item: (module_weight[item.module], order[id(item)]))
+    items.sort(key=lambda item: module_weight[item.module])  # stable: collection order within a weight

@@ -176,13 +176,15 @@ def test_a_sample_the_recorders_subscription_raises_on_is_counted_and_the_next_a
     take no more), which ended the drain thread; every later sample went unseen and ending
     the episode waited out the recorder's wait for them.  Now counted, named, and the next
     one taken."""
+    import json
+
     svc, run_id, session = link
     seen = []
 
     def on_sample(topic, recv_ns, raw, message):
         if b'"seq":2,' in raw:
             raise OSError(28, "No space left on device")
-        seen.append((topic, int(raw.split(b",")[0].split(b":")[1])))
+        seen.append((topic, json.loads(raw)["seq"]))
 
     svc.subscribe("**", on_sample)
     pub = session.declare_publisher(topics.key(run_id, "robot/contact"))
