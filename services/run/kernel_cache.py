@@ -14,11 +14,14 @@ run in one process with the smoke's model, and EM on synthetic demonstrations.
 
 from __future__ import annotations
 
+import argparse
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+from etar.parsing import OneLineErrorParser
 
 
 def _smoke_model() -> Path:
@@ -60,22 +63,23 @@ def _learning(out: Path) -> None:
 PARTS = {"nodes": _nodes, "learning": _learning}
 
 
+def build_parser() -> argparse.ArgumentParser:
+    parser = OneLineErrorParser(prog="python -m services.run.kernel_cache", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    # one of the two processes the step starts (not for people)
+    parser.add_argument("--part", choices=PARTS, help=argparse.SUPPRESS)
+    return parser
+
+
 def main(argv=None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    if argv and argv[0] in ("-h", "--help"):
-        print(__doc__.strip())
-        return 0
-    if argv[:1] == ["--part"] and len(argv) == 2 and argv[1] in PARTS:
+    args = build_parser().parse_args(argv)
+    if args.part is not None:
         try:
             with tempfile.TemporaryDirectory(prefix="etar-kernel-cache-") as tmp:
-                PARTS[argv[1]](Path(tmp))
+                PARTS[args.part](Path(tmp))
         except KeyboardInterrupt:  # Ctrl-C reaches the whole group: the parent says it
             return 130
         return 0
-    if argv:
-        print(f"python -m services.run.kernel_cache: error: no flags but --help, got {' '.join(argv)!r}",
-              file=sys.stderr)
-        return 2
     t0 = time.monotonic()
     parts = {}
     try:

@@ -13,9 +13,15 @@ def test_a_bad_flag_is_one_line_and_exit_2_and_help_says_what_it_does():
     bad = subprocess.run([sys.executable, "-m", "services.run.kernel_cache", "--fast"], cwd=ROOT,
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and bad.stderr.strip().splitlines() == [
-        "python -m services.run.kernel_cache: error: no flags but --help, got '--fast'"], bad.stderr
+        "python -m services.run.kernel_cache: error: --fast: not a flag of this program (see --help)"], bad.stderr
     assert bad.stdout == ""
-    assert kernel_cache.main(["--help"]) == 0
+    part = subprocess.run([sys.executable, "-m", "services.run.kernel_cache", "--part", "all"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=60)
+    assert part.returncode == 2 and part.stderr.strip().splitlines() == [
+        "python -m services.run.kernel_cache: error: --part all: not one of nodes, learning"], part.stderr
+    shown = subprocess.run([sys.executable, "-m", "services.run.kernel_cache", "--help"], cwd=ROOT,
+                           capture_output=True, text=True, timeout=60)
+    assert shown.returncode == 0 and "compiled into its cache once" in shown.stdout and "--part" not in shown.stdout
 
 
 def test_the_nodes_part_runs_the_checkouts_smoke_model_from_any_folder(tmp_path, monkeypatch):
