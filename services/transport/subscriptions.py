@@ -52,6 +52,11 @@ class LinkCounters:
     latency: Histogram = field(default_factory=Histogram)
     sequence: SequenceTracker = field(default_factory=SequenceTracker)
 
+    def count_bad(self, error: str) -> None:
+        """One message that did not decode, or whose handler raised: counted, its error kept."""
+        self.bad += 1
+        self.last_error = error
+
     def to_dict(self) -> dict:
         seq = self.sequence.to_dict()
         return {"received": self.received, "bad": self.bad, "skipped": self.skipped, "dropped": self.dropped,
@@ -72,13 +77,11 @@ def _judged_delivery(counters: LinkCounters, message_type: MessageType | None, o
             try:
                 msg = message_type.decode(raw)
             except MessageError as exc:
-                counters.bad += 1
-                counters.last_error = str(exc)
+                counters.count_bad(str(exc))
                 return
             except Exception as exc:  # noqa: BLE001 - a decoder's own bug (tests/services/recordings/test_fuzz.py
                 # looks for them) must not end a latest subscriber's drain thread: counted, named
-                counters.bad += 1
-                counters.last_error = f"{type(exc).__name__} while decoding: {exc}"
+                counters.count_bad(f"{type(exc).__name__} while decoding: {exc}")
                 return
             counters.latency.add(recv - msg["sent_ns"])
             verdict = counters.sequence.add(msg["seq"])
@@ -101,8 +104,7 @@ def _judged_delivery(counters: LinkCounters, message_type: MessageType | None, o
         try:
             on_message(msg, recv, raw)
         except Exception as exc:  # a bad message must not kill the subscriber thread
-            counters.bad += 1
-            counters.last_error = f"{type(exc).__name__}: {exc}"
+            counters.count_bad(f"{type(exc).__name__}: {exc}")
 
 
     return deliver
@@ -217,8 +219,7 @@ def subscribe_all(session, run_id: str, on_sample, links: dict, profile, stop: t
             on_sample(str(sample.key_expr)[cut:], now_ns(), sample.payload.to_bytes(), None)
         except Exception as exc:  # noqa: BLE001 - counted and named; one bad sample must not end the drain
             counters = links.get("**") or links.setdefault("**", LinkCounters())
-            counters.bad += 1
-            counters.last_error = f"{type(exc).__name__}: {exc}"
+            counters.count_bad(f"{type(exc).__name__}: {exc}")
 
     def drain() -> None:
         try:
