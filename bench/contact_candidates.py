@@ -51,7 +51,7 @@ from robot_sim.world.teacher import DOWN, HoseCouplerTeacher, ValleyTeacher
 from robot_sim.world.tasks import (FRICTION_DAMPING, HoseCoupler, IMPRATIO, NORMAL_SOLIMP, NORMAL_SOLREF,
                                    Valley, WorldSpec, hose_coupler, physics_step, valley as valley_world)
 
-VALLEY_START = (0.62, -0.06, 0.30)  # the smoke scenario's: low over the left plate, the groove 4 s later
+VALLEY_START = (0.62, -0.06, 0.30)  # low over the left plate, the groove 4 s later (the stored smoke model's start)
 VALLEY_GOAL_X = 0.57
 COUPLER_START = HoseCoupler.start_left
 SEAL_TORSION = HoseCoupler().torsional_friction

@@ -2,8 +2,9 @@
 
     python bench/faults.py [--fault-at 1.5]
 
-The smoke reproduction (scenarios/models/smoke.json, start [0.62, -0.06, 0.30])
-with each fault injected ``--fault-at`` seconds into it:
+A reproduction with the stored smoke model (scenarios/models/smoke.json) from the start
+its demonstrations had, [0.62, -0.06, 0.30], with each fault injected ``--fault-at``
+seconds into it:
 
 - the F/T sensor's stream stops, saturates or reads NaN (ft_sensor --fault):
   the hold's reason, the cycles from the fault to the hold, how far the tcp

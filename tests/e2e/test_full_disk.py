@@ -1,6 +1,7 @@
 """A full disk: a run fails naming the file and the space left, and leaves what it had
-whole and readable; a run's file is whole or absent (services.runtime.files).  On a 3 MB
-tmpfs mounted here (root and mount needed; skipped with the reason elsewhere)."""
+whole and readable; a run's file is whole or absent (services.runtime.files).  On a 1.5 MB
+tmpfs mounted here (root and mount needed; skipped with the reason elsewhere), smaller than
+the smoke's first demonstration (~2 MB)."""
 
 from __future__ import annotations
 
@@ -14,16 +15,17 @@ import pytest
 from services.runtime.files import FileWriteError, write_file
 
 ROOT = Path(__file__).resolve().parents[2]
+SIZE_KB = 1536
 
 
 @pytest.fixture
 def small_disk(tmp_path):
     where = tmp_path / "small"
     where.mkdir()
-    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=3m", "tmpfs", str(where)], capture_output=True,
-                             text=True)
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={SIZE_KB}k", "tmpfs", str(where)],
+                             capture_output=True, text=True)
     if mounted.returncode != 0:
-        pytest.skip(f"cannot mount a 3 MB tmpfs here ({(mounted.stderr or mounted.stdout).strip()}): the full-disk "
+        pytest.skip(f"cannot mount a {SIZE_KB} kB tmpfs here ({(mounted.stderr or mounted.stdout).strip()}): the full-disk "
                     "tests need root and mount")
     try:
         yield where
@@ -33,7 +35,7 @@ def small_disk(tmp_path):
 
 def test_a_file_is_whole_or_absent_on_a_full_disk(small_disk):
     kept = write_file(small_disk / "report.json", '{"kept": true}\n')
-    (small_disk / "filler").write_bytes(b"\0" * (3 * 2**20 - 64 * 1024))  # the disk nearly full
+    (small_disk / "filler").write_bytes(b"\0" * ((SIZE_KB - 64) * 1024))  # the disk nearly full
     with pytest.raises(FileWriteError) as err:
         write_file(kept, "x" * 2**20)
     said = str(err.value)
@@ -46,7 +48,7 @@ def test_a_file_is_whole_or_absent_on_a_full_disk(small_disk):
 @pytest.mark.slow
 @pytest.mark.parametrize("transport", ["inproc", "zenoh"])
 def test_a_run_on_a_full_disk_fails_naming_the_file_and_keeps_what_it_had(small_disk, transport):
-    """The smoke scenario into 3 MB: its first demonstration fills the disk.  The run exits 1
+    """The smoke scenario into 1.5 MB: its first demonstration fills the disk.  The run exits 1
     without a traceback; each line it says about it names a file and the space left; no
     file is left half written (no 0-byte report, no .part); `etar-bench info` reads the
     folder and names the recording it kept."""

@@ -39,7 +39,8 @@ def test_the_smoke_scenario_reaches_its_goal_over_fri_udp_and_net_ft(tmp_path):
         remote = services["impedance_commander"]["fri_udp"]
         assert remote["garbage"] == 0
         netft = services["phase_estimator"]["netft"]
-        assert netft["calibrated"] and netft["records"] > 10_000 and netft["out_of_order"] == 0
+        # the box streams at 1 kHz from the first settle on: the run has ~9 s of cycles
+        assert netft["calibrated"] and netft["records"] > 7_000 and netft["out_of_order"] == 0
         rp, = report["reproductions"]
         f = rp["fri"]
         assert remote["answered"] >= f["answered"]
