@@ -22,7 +22,8 @@ from services.transport.launch import PROGRAM_MODULE
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIOS = ROOT / "scenarios"
-SMOKE_MODEL = str(SCENARIOS / "models" / "smoke.json")  # learned from smoke demonstrations started at [0.62, -0.06, 0.30], stored
+# learned from smoke demonstrations started at [0.62, -0.06, 0.30], stored
+SMOKE_MODEL = str(SCENARIOS / "models" / "smoke.json")
 
 
 def scenario(name: str, changes: dict | None = None) -> Scenario:

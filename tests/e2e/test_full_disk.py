@@ -25,8 +25,8 @@ def small_disk(tmp_path):
     mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={SIZE_KB}k", "tmpfs", str(where)],
                              capture_output=True, text=True)
     if mounted.returncode != 0:
-        pytest.skip(f"cannot mount a {SIZE_KB} kB tmpfs here ({(mounted.stderr or mounted.stdout).strip()}): the full-disk "
-                    "tests need root and mount")
+        pytest.skip(f"cannot mount a {SIZE_KB} kB tmpfs here ({(mounted.stderr or mounted.stdout).strip()}): "
+                    "the full-disk tests need root and mount")
     try:
         yield where
     finally:
