@@ -19,8 +19,11 @@ $(STAMP): pyproject.toml setup.py robot_sim/arm/native/pinocchio_inplace.cpp
 	@# pip byte-compiles one file at a time (half of the install); compileall does it on every
 	@# core, the project's own modules too, which an editable install leaves to each process
 	@# (every one, where PYTHONDONTWRITEBYTECODE is set); a file that does not compile is
-	@# compiled at its import, as after pip, which ignores them too
-	$(BIN)/python -m compileall -q -j 0 $(VENV)/lib etar kernel_plumbing robot_sim services tests >/dev/null || true
+	@# compiled at its import, as after pip, which ignores them too.  Left out: what no process of
+	@# the project imports (pip, setuptools, the libraries' own test suites, and PyOpenGL, which
+	@# only MuJoCo's viewer uses: a third of the files), compiled at its import if ever
+	$(BIN)/python -m compileall -q -j 0 -x '/(OpenGL|pip|setuptools|tests?)/' $(VENV)/lib etar kernel_plumbing \
+	  robot_sim services tests >/dev/null || true
 	$(BIN)/python -m services.run.kernel_cache
 	touch $(STAMP)
 

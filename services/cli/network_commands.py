@@ -3,6 +3,7 @@ command line is parsed (``services.cli.bench``)."""
 
 from __future__ import annotations
 
+import signal
 import time
 
 from services.cli.output import say
@@ -27,9 +28,7 @@ def cmd_router(args) -> int:
     """A real Zenoh router (the Python library in router mode) for multi-host or container runs."""
     import zenoh
 
-    from services.transport.session import ZenohOptions
-
-    from services.transport.session import zenoh_reason
+    from services.transport.session import ZenohOptions, zenoh_reason
 
     opts = ZenohOptions(mode="router", connect=(), listen=tuple(args.listen or [f"tcp/0.0.0.0:{ZENOH_PORT}"]))
     try:
@@ -41,11 +40,19 @@ def cmd_router(args) -> int:
     except zenoh.ZError as exc:  # e.g. an address it cannot listen on
         say(f"etar-bench router: error: --listen {' '.join(opts.listen)}: {zenoh_reason(exc)}")
         return 2
+    # SIGTERM as Ctrl-C: in a container the router is process 1, which has no default action
+    # for it, and `docker-compose down` would wait its 10 s grace and kill it
+    signal.signal(signal.SIGTERM, _stop)
     with session:
         say(f"zenoh router listening on {', '.join(opts.listen)}; Ctrl-C to stop")
         try:
             while True:
                 time.sleep(1.0)
         except KeyboardInterrupt:
+            say("zenoh router stopped")
             return 0
+
+
+def _stop(signum, frame) -> None:
+    raise KeyboardInterrupt
 
