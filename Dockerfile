@@ -18,9 +18,12 @@ RUN python3 -m venv /opt/etar \
 COPY docker/project-wheel /project-wheel
 RUN /opt/etar/bin/pip install --no-index --no-deps /project-wheel/*.whl && rm -rf /project-wheel
 COPY scenarios /app/scenarios
-ENV PATH=/opt/etar/bin:$PATH PYTHONUNBUFFERED=1
+ENV PATH=/opt/etar/bin:$PATH PYTHONUNBUFFERED=1 NUMBA_CACHE_DIR=/opt/etar/numba-cache
 WORKDIR /app
 # numba's kernels compiled into the image once: otherwise every container compiles its own
-# on start (the cell's before the robot is ready, EM's in the runner's learning)
-RUN python -m services.run.kernel_cache
+# on start (the cell's before the robot is ready, EM's in the runner's learning); taken
+# from the build cache when nothing they are compiled from changed (docker/image-kernels.sh)
+COPY docker/image-kernels.sh /usr/local/bin/
+RUN --mount=type=cache,id=etar-numba-kernels,target=/var/cache/etar-kernels \
+    sh /usr/local/bin/image-kernels.sh /var/cache/etar-kernels
 CMD ["etar-bench", "--help"]
