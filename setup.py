@@ -7,10 +7,12 @@ is optional: without a C++ compiler the install goes on and robot_sim falls back
 to Pinocchio's bindings, which allocate two small vectors per control step.
 """
 
+import shutil
 import sys
 from pathlib import Path
 
 from setuptools import Extension, setup
+from setuptools.command.build_ext import build_ext
 
 
 def cmeel_prefix() -> Path:
@@ -48,4 +50,22 @@ def pinocchio_inplace() -> Extension:
     )
 
 
-setup(ext_modules=[pinocchio_inplace()])
+class BuildExt(build_ext):
+    """A wheel's build takes the extension an editable install compiled in place (``make
+    venv``), when it is newer than its sources, instead of compiling it again (12 s of one
+    core: docker/setup-podman.sh builds the image's wheel from the checkout).  Both builds
+    compile the same source against the same pinned headers (build-system.requires)."""
+
+    def build_extension(self, ext):
+        if not self.inplace:
+            built = Path(self.get_ext_filename(ext.name))  # where an in-place build puts it
+            sources = [Path(source) for source in ext.sources] + [Path(__file__)]
+            if built.is_file() and all(built.stat().st_mtime > source.stat().st_mtime for source in sources):
+                target = Path(self.get_ext_fullpath(ext.name))
+                target.parent.mkdir(parents=True, exist_ok=True)
+                shutil.copy2(built, target)
+                return
+        super().build_extension(ext)
+
+
+setup(ext_modules=[pinocchio_inplace()], cmdclass={"build_ext": BuildExt})

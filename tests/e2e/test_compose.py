@@ -109,6 +109,11 @@ def _smoke_on_compose(tmp_path):
                    capture_output=True, timeout=300)
     print(f"compose up: {time.monotonic() - t1:.1f} s")
     assert up.returncode == 0, "the runner container failed"
+    # the image's wheel carries the compiled extension (setup.py may take the in-place build's),
+    # and it loads there: robot_sim would otherwise fall back to Pinocchio's bindings unseen
+    native = subprocess.run(["podman", "run", "--rm", "localhost/etar-testbench:latest", "python", "-c",
+                             "import robot_sim.arm._pinocchio_inplace"], capture_output=True, text=True, timeout=120)
+    assert native.returncode == 0, native.stderr[-2000:]
     out = runs / run_id
     report = json.loads((out / "report.json").read_text())
     assert report["error"] is None
