@@ -1,11 +1,12 @@
 #!/bin/sh
 # numba's kernels for the image (the Dockerfile's last step), compiled only when what they
 # are compiled from changed: the kernels' packages (etar, robot_sim, kernel_plumbing; the
-# services hold none and none of the three imports them), the installed libraries, numba
-# and this CPU.  A build that changed none of these takes the kernels a previous build
-# compiled, from a build cache (CACHE, a RUN --mount=type=cache) keyed by all of that;
-# otherwise `python -m services.run.kernel_cache` compiles them (~50 s of CPU) and the
-# cache keeps them for the next builds.
+# services hold none and none of the three imports them), which of them are compiled
+# (services/run/kernel_cache.py), the installed libraries, numba and this CPU.  A build that
+# changed none of these takes the kernels a previous build compiled, from a build cache
+# (CACHE, a RUN --mount=type=cache) keyed by all of that; otherwise
+# `python -m services.run.kernel_cache` compiles them (~50 s of CPU) and the cache keeps
+# them for the next builds.
 #
 # numba takes a kernel from its cache only if the source file's mtime and size are the ones
 # it was compiled from: the installed files of the three packages get one fixed mtime here
@@ -23,8 +24,11 @@ find $packages -name '*.py' -exec touch -d @315532800 {} +
 # shellcheck disable=SC2086
 python -m compileall -q $packages >/dev/null
 key="$( {
+  # the kernels' sources, and which kernels are compiled: what services.run.kernel_cache runs
   # shellcheck disable=SC2086
-  find $packages -name '*.py' | sort | while read -r f; do echo "$f"; cat "$f"; done
+  { find $packages -name '*.py'; echo "$site/services/run/kernel_cache.py"; } | sort | while read -r f; do
+    echo "$f"; cat "$f"
+  done
   python -m pip freeze --all
   python -c 'import numba, llvmlite.binding as ll; print(numba.__version__, ll.get_host_cpu_name(), ll.get_host_cpu_features().flatten())'
 } | sha256sum | cut -c1-32)"

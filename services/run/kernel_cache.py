@@ -50,7 +50,8 @@ def _nodes(out: Path) -> None:
 
 
 def _learning(out: Path) -> None:
-    """EM's kernels: a fit to synthetic demonstrations."""
+    """EM's kernels: a fit to synthetic demonstrations, then the learned model's likelihood
+    and posterior."""
     from etar.cli import main as etar
 
     if etar(["synth", "--out", str(out / "demos")]) != 0:
@@ -58,6 +59,17 @@ def _learning(out: Path) -> None:
     demos = sorted(str(p) for p in (out / "demos").glob("*.npz"))
     if etar(["learn", *demos, "--phases", "3", "--out", str(out / "model.json")]) != 0:
         raise SystemExit("kernel cache: etar learn failed")
+    # scoring the models on the demonstrations (the learn stage's ETAR against STAR) and the
+    # posterior phases: the forward pass and the smoother
+    import numpy as np
+
+    from etar.model import ETAR
+
+    model = ETAR.load(str(out / "model.json"))
+    with np.load(demos[0]) as demo:
+        states, forces = demo["states"], demo["forces"]
+    model.log_likelihood([(states, forces)])
+    model.posterior(states, forces)
 
 
 PARTS = {"nodes": _nodes, "learning": _learning}
