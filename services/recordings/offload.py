@@ -42,17 +42,28 @@ class WriterProcess:
         # its own interpreter (not multiprocessing: that re-imports the caller's main
         # script, and forking copies the run's threads), in its own session: Ctrl-C (or a
         # SIGTERM to the run's process group) is the run's to handle, which finishes the
-        # episode's file through it; if the run dies, the pipe's end finishes the file
-        self._proc = subprocess.Popen([sys.executable, "-m", "services.recordings.offload", "--writer-process"],
-                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=None,
-                                      start_new_session=True)
+        # episode's file through it; if the run dies, the pipe's end finishes the file.
+        # The replies come on a pipe of their own, and its stdout goes to stderr: whatever
+        # the helper prints (numba's NUMBA_DEBUG_CACHE lines as its imports load kernels)
+        # cannot corrupt them
+        replies, reply_end = os.pipe()
+        try:
+            self._proc = subprocess.Popen(
+                [sys.executable, "-m", "services.recordings.offload", "--writer-process", str(reply_end)],
+                stdin=subprocess.PIPE, stdout=2, stderr=None, start_new_session=True, pass_fds=(reply_end,))
+        except BaseException:
+            os.close(replies)
+            raise
+        finally:
+            os.close(reply_end)  # the helper's now: its end closing is what the parent reads as gone
+        self._replies = os.fdopen(replies, "rb")
         self._send(("opener", opener))
 
     def _call(self, *request):
         try:
             with _interrupts_held():
                 self._send(request)
-                ok, value = pickle.load(self._proc.stdout)
+                ok, value = pickle.load(self._replies)
         except (EOFError, OSError, pickle.UnpicklingError) as exc:
             raise RecordingError(f"the MCAP writer process is gone ({type(exc).__name__}: {exc}; exit code "
                                  f"{self._proc.poll()})") from None
@@ -85,7 +96,7 @@ class WriterProcess:
         except Exception:
             self._proc.kill()
             self._proc.wait()
-        self._proc.stdout.close()
+        self._replies.close()
 
 
 class OffloadedEpisodeWriter:
@@ -220,11 +231,7 @@ def _finish_quietly(writer) -> None:
 if __name__ == "__main__":
     import sys
 
-    if sys.argv[1:] != ["--writer-process"]:
-        sys.exit("python -m services.recordings.offload --writer-process: the MCAP writer of an in-process run "
-                 "(started by services.recordings.offload.WriterProcess, not by hand)")
-    # the replies get their own copy of stdout, and stdout itself goes to stderr: a stray
-    # print in this process must not corrupt the pickled replies
-    replies = os.fdopen(os.dup(1), "wb")
-    os.dup2(2, 1)
-    _writer_main(sys.stdin.buffer, replies)
+    if len(sys.argv) != 3 or sys.argv[1] != "--writer-process" or not sys.argv[2].isdigit():
+        sys.exit("python -m services.recordings.offload --writer-process FD: the MCAP writer of an in-process run, "
+                 "replying on FD (started by services.recordings.offload.WriterProcess, not by hand)")
+    _writer_main(sys.stdin.buffer, os.fdopen(int(sys.argv[2]), "wb"))

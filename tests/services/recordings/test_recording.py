@@ -590,3 +590,26 @@ def test_interrupts_in_the_hand_over_to_the_writer_process_lose_nothing_and_corr
     assert episode.complete, episode.problem
     assert logged == sorted(set(logged)), "a message recorded twice"
     assert set(added) <= set(logged), f"{len(set(added) - set(logged))} added messages missing"
+
+
+def test_what_the_writer_process_prints_does_not_reach_its_replies(tmp_path, monkeypatch):
+    """The helper's replies have a pipe of their own: what it prints (numba writes a line per
+    cached kernel its imports load when NUMBA_DEBUG_CACHE is set) goes to stderr, and the
+    episode's file is written whole.  On stdout, those lines broke the first reply."""
+    from services.recordings.offload import WriterProcess
+
+    monkeypatch.setenv("NUMBA_DEBUG_CACHE", "1")
+    process = WriterProcess()
+    try:
+        writer = process.open(tmp_path / "e.mcap", run_id=RUN, episode_kind="demonstration", episode_index=0)
+        for seq in range(3):
+            writer.add(key(RUNNER_EVENT.topic),
+                       RUNNER_EVENT.encode(**header(seq), event="episode_end", stage="demonstrate", episode=0,
+                                           info={}), 1_000_000 + seq)
+        writer.finish()
+    finally:
+        process.close()
+    episode = read_episode(tmp_path / "e.mcap")
+    assert episode.complete, episode.problem
+    assert [m.log_time_ns for m in episode.messages] == [1_000_000, 1_000_001, 1_000_002]
+    assert writer.messages_written == 3
