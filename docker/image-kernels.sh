@@ -39,7 +39,10 @@ if [ -d "$cache/$key" ]; then
 else
   echo "image-kernels: compiling numba's kernels ($key)"
   python -m services.run.kernel_cache
-  cp -a "$NUMBA_CACHE_DIR" "$cache/$key"
+  # whole or not at all: a build stopped half-way must not leave half the kernels under the key
+  rm -rf "$cache/$key.partial"
+  cp -a "$NUMBA_CACHE_DIR" "$cache/$key.partial"
+  mv "$cache/$key.partial" "$cache/$key"
   # the four newest (~5 MB each), so that going back to a branch finds its kernels: a cache
   # of every past build would grow without end
   ls -1t "$cache" | tail -n +5 | while read -r old; do rm -rf "${cache:?}/$old"; done
