@@ -43,14 +43,14 @@ def cmd_router(args) -> int:
     # SIGTERM as Ctrl-C: in a container the router is process 1, which has no default action
     # for it, and `docker-compose down` would wait its 10 s grace and kill it
     signal.signal(signal.SIGTERM, _stop)
-    with session:
-        say(f"zenoh router listening on {', '.join(opts.listen)}; Ctrl-C to stop")
-        try:
+    try:  # around all of it: the signal may come while the first line is being said
+        with session:
+            say(f"zenoh router listening on {', '.join(opts.listen)}; Ctrl-C to stop")
             while True:
                 time.sleep(1.0)
-        except KeyboardInterrupt:
-            say("zenoh router stopped")
-            return 0
+    except KeyboardInterrupt:
+        say("zenoh router stopped")
+        return 0
 
 
 def _stop(signum, frame) -> None:
