@@ -64,6 +64,7 @@ class NetFtStream:
         self.records = self.lost = self.out_of_order = self.garbage = self.requests = 0
         self.last_error = ""
         self._last_rdt = None
+        self._asked_again = False  # a new stream was asked for and has not begun yet
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._sock.connect(address)  # the box answers from its RDT port: nothing else gets in
         self._stop = threading.Event()
@@ -100,6 +101,7 @@ class NetFtStream:
                     self._sock.send(RDT_REQUEST.pack(RDT_HEADER, RdtCommand.REALTIME, 0))
                     self.requests += 1
                     self._last_rdt = None  # a new stream numbers its records from 1 again
+                    self._asked_again = True
                 except OSError as exc:
                     self.last_error = str(exc)
                 heard = now
@@ -125,9 +127,17 @@ class NetFtStream:
         if self._last_rdt is not None:
             step = (rdt - self._last_rdt) & 0xFFFFFFFF
             if step == 0 or step > 0x7FFFFFFF:
-                self.out_of_order += 1
-                return
-            self.lost += step - 1
+                if not self._asked_again:
+                    self.out_of_order += 1
+                    return
+                # the stream asked for again begins, numbered from 1 again: the records before
+                # it were the old stream's, still on their way when the request went out (after
+                # a stall of RESTART_S), not out of order
+                self._asked_again = False
+            else:
+                self.lost += step - 1
+        if rdt == 1:
+            self._asked_again = False  # the new stream's first: what follows numbers on from it
         self._last_rdt = rdt
         self.records += 1
         model_status = 0

@@ -110,3 +110,23 @@ def test_the_net_ft_client_reads_a_box_that_comes_up_after_it():
             assert np.allclose(msg["wrench"], rec.wrench(config), atol=1e-12)
     finally:
         client.close()
+
+
+def test_a_stream_asked_for_again_is_not_out_of_order_behind_the_old_streams_last_records():
+    """After a stall of RESTART_S the client asks for the stream again, which the box numbers
+    from 1 again; records of the old stream still on their way arrive first.  Those are
+    taken, the new stream's 1 is its beginning (not out of order); without a new request,
+    a record behind the last one is out of order and dropped."""
+    client = NetFtStream(("127.0.0.1", 9), 9, lambda msg, recv: None, time.monotonic_ns)
+    client.close()  # no box: the records are handed to it as its socket would
+    client.cpf, client.cpt = 1_000_000.0, 1_000_000.0
+
+    def feed(*rdts):
+        for rdt in rdts:
+            client._take((rdt, rdt, 0, 0, 0, 0, 0, 0, 0), 0)
+
+    client._asked_again = True  # what the client's own request sets
+    feed(57, 58, 1, 2, 3)
+    assert (client.records, client.out_of_order, client.lost) == (5, 0, 0)
+    feed(5, 4)  # 4 lost, then late: no new stream was asked for
+    assert (client.records, client.out_of_order, client.lost) == (6, 1, 1)
