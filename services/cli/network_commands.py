@@ -28,6 +28,7 @@ def cmd_router(args) -> int:
     """A real Zenoh router (the Python library in router mode) for multi-host or container runs."""
     import zenoh
 
+    from services.cli.run_commands import interrupt
     from services.transport.session import ZenohOptions, zenoh_reason
 
     opts = ZenohOptions(mode="router", connect=(), listen=tuple(args.listen or [f"tcp/0.0.0.0:{ZENOH_PORT}"]))
@@ -42,7 +43,7 @@ def cmd_router(args) -> int:
         return 2
     # SIGTERM as Ctrl-C: in a container the router is process 1, which has no default action
     # for it, and `docker-compose down` would wait its 10 s grace and kill it
-    signal.signal(signal.SIGTERM, _stop)
+    signal.signal(signal.SIGTERM, interrupt)
     try:  # around all of it: the signal may come while the first line is being said
         with session:
             say(f"zenoh router listening on {', '.join(opts.listen)}; Ctrl-C to stop")
@@ -51,8 +52,4 @@ def cmd_router(args) -> int:
     except KeyboardInterrupt:
         say("zenoh router stopped")
         return 0
-
-
-def _stop(signum, frame) -> None:
-    raise KeyboardInterrupt
 

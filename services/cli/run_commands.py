@@ -58,7 +58,7 @@ def cmd_run(args) -> int:
         return 2
     # SIGTERM (kill, docker stop) takes the same way out as Ctrl-C: the runner stops the
     # services it started and writes what it has; otherwise they outlive it as orphans
-    signal.signal(signal.SIGTERM, _interrupt)
+    signal.signal(signal.SIGTERM, interrupt)
     try:
         report = runner.run()
     except FileWriteError as exc:  # a full disk, a folder made read-only: what was kept stays readable
@@ -101,7 +101,7 @@ def cmd_serve(args) -> int:
     except (ScenarioError, ValueError) as exc:
         say(f"etar-bench serve: error: {exc}")
         return 2
-    signal.signal(signal.SIGTERM, _interrupt)
+    signal.signal(signal.SIGTERM, interrupt)
     try:
         report = runner.run()
     except KeyboardInterrupt:
@@ -197,7 +197,7 @@ def cmd_sweep(args) -> int:
     from services.run.sweep import Parameter, SweepError, SweepInterrupted, sweep
     from services.scenario import ScenarioError, load_scenario
 
-    signal.signal(signal.SIGTERM, _interrupt)  # kill: the same way out as Ctrl-C
+    signal.signal(signal.SIGTERM, interrupt)  # kill: the same way out as Ctrl-C
     try:
         params = [Parameter.parse(p) for p in args.param]
         result = sweep(load_scenario(args.scenario), params, repeats=args.repeats, out=args.out, record=args.record,
@@ -222,6 +222,7 @@ def cmd_sweep(args) -> int:
     return 0 if result["failed"] == 0 else 1
 
 
-def _interrupt(signum, frame):
+def interrupt(signum, frame):
+    """A signal handler: the signal (SIGTERM) ends the command the way Ctrl-C does."""
     raise KeyboardInterrupt(signal.Signals(signum).name)
 
