@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
+from robot_sim.krc.link import FriConfig
 from services.run.options import RunOptions
 from services.run.runner import Runner
 from services.scenario import Scenario, load_scenario
@@ -186,11 +187,21 @@ STALL_ANSWERED = 0.9
 
 def assert_a_stall(fri: dict, verdict: str) -> None:
     """Fail unless an episode's FRI figures (``fri`` of report.json) are those of a machine
-    that stalled now and then: command mode entered, and at least ``STALL_ANSWERED`` of its
-    cycles answered in time.  ``verdict``: the run's own line on how it fell short."""
-    assert fri["command_mode_entered"] >= 1, f"not a stall, command mode never entered: {verdict}; {fri}"
-    assert fri["answered"] >= STALL_ANSWERED * (fri["answered"] + fri["missed"]), \
-        f"not a stall, too many cycles unanswered: {verdict}; {fri}"
+    that stalled now and then: at least ``STALL_ANSWERED`` of its cycles answered in time,
+    and command mode entered unless the misses came often enough to keep it out.  The KRC
+    grants command mode after ``perfect_hold_cycles`` + ``window`` cycles without a miss
+    (robot_sim.krc.link): a VM that stalls more often than that never gets there (CI on
+    840142a: 158 of 15 000 cycles missed, never in command mode), whereas a KRC that
+    withholds it from a remote answering nearly every cycle in time still fails here.
+    ``verdict``: the run's own line on how it fell short."""
+    total = fri["answered"] + fri["missed"]
+    assert fri["answered"] >= STALL_ANSWERED * total, f"not a stall, too many cycles unanswered: {verdict}; {fri}"
+    if fri["command_mode_entered"] < 1:
+        link = FriConfig()
+        clean = link.perfect_hold_cycles + link.window
+        assert fri["missed"] * clean >= total, (f"not a stall, command mode never entered though a miss came only "
+                                                f"every {total / max(fri['missed'], 1):.0f} cycles on average (it "
+                                                f"needs {clean} without one): {verdict}; {fri}")
 
 
 def require_realtime_machine() -> None:

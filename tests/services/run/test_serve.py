@@ -44,17 +44,20 @@ def reached(predicate, seconds: float) -> bool:
 
 
 def fri_fell_back(served: dict, commanded: bool) -> str | None:
-    """A served episode's line when the KRC left command mode (FRI quality below OK) on a
-    machine that stalls now and then, or None when it did not.  A remote the KRC never let
-    into command mode, answers it did not take, or many cycles unanswered fail instead:
-    those are not a stall."""
+    """A served episode's line when the KRC left command mode (FRI quality below OK), or did
+    not let the remote in while the test waited, on a machine that stalls now and then; None
+    when neither.  Answers the KRC did not take, many cycles unanswered, or command mode
+    withheld though misses were rare fail instead: those are not a stall (``assert_a_stall``)."""
     kinds = [e["kind"] for e in served["wire"]["krl_events"]]
     f, datagrams = served["fri"], served["wire"]["datagrams"]
-    assert commanded and f["command_mode_entered"] >= 1, f"command mode never entered: {kinds}; {f}"
-    if "fallback" not in kinds:
+    missed = f"{f['missed']} FRI cycles unanswered in time of {f['answered'] + f['missed']}, longest run " \
+             f"{f['longest_miss_run']}"
+    if not commanded or f["command_mode_entered"] < 1:
+        verdict = f"the KRC did not let the remote into command mode while the test waited: {missed} ({kinds})"
+    elif "fallback" in kinds:
+        verdict = f"the KRC left command mode {kinds.count('fallback')} time(s): {missed}"
+    else:
         return None
-    verdict = (f"the KRC left command mode {kinds.count('fallback')} time(s): {f['missed']} FRI cycles unanswered "
-               f"in time of {f['answered'] + f['missed']}, longest run {f['longest_miss_run']}")
     assert datagrams["wrong_id"] == datagrams["unsent"] == 0, f"not a stall, answers refused: {datagrams}"
     assert_a_stall(f, verdict)
     return verdict
@@ -82,7 +85,7 @@ def test_serve_a_lab_remote_and_a_net_ft_client(tmp_path):
 
 def _serve_a_lab_remote_and_a_net_ft_client(pynetft, out: Path) -> str | None:
     with Remote("frilibrary", strategy=20) as remote:
-        proc, box = _start_serve_with_box(out, remote.port, 14)
+        proc, box = _start_serve_with_box(out, remote.port, 30)
         try:
             address, rdt, http = box.group(1), int(box.group(2)), int(box.group(3))
             wait_until(lambda: remote.received > 200, 10, "measurement datagrams")
@@ -101,6 +104,8 @@ def _serve_a_lab_remote_and_a_net_ft_client(pynetft, out: Path) -> str | None:
                 wait_until(lambda: int(remote.last["intf"]["state"]) == FriState.MON, 3, "monitor mode again")
                 remote.request = "close"
                 wait_until(lambda: int(remote.last["intf"]["state"]) == FriState.OFF, 3, "OFF after the close")
+            # what the remote does is over: Ctrl-C ends serving there (its --max-seconds is a bound)
+            proc.send_signal(signal.SIGINT)
             stdout, stderr = proc.communicate(timeout=60)
         finally:
             if proc.poll() is None:

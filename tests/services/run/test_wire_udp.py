@@ -41,6 +41,10 @@ def test_the_smoke_scenario_reaches_its_goal_over_fri_udp_and_net_ft(tmp_path):
         netft = services["phase_estimator"]["netft"]
         # the box streams at 1 kHz from the first settle on: the run has ~9 s of cycles
         assert netft["calibrated"] and netft["records"] > 7_000 and netft["out_of_order"] == 0
+        # a run that ended before its reproduction says why in its report and its lines
+        assert len(report["reproductions"]) == 1, (f"error: {report['error']}; demonstrations: "
+                                                   f"{[d.get('reason') for d in report['demonstrations']]}; "
+                                                   f"{proc.stdout[-2000:]}{proc.stderr[-2000:]}")
         rp, = report["reproductions"]
         f = rp["fri"]
         assert remote["answered"] >= f["answered"]
