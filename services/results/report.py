@@ -88,8 +88,9 @@ FRI_CHAIN_LINKS = ("robot/state -> impedance_commander", "robot/command -> robot
 def clock_not_held(demonstrations, reproductions, loops, received) -> str | None:
     """Why a realtime run did not hold its 1 kHz clock, in one line, or None: the robot
     loop missing more than REALTIME_MISS_LIMIT of its deadlines in any episode, a
-    reproduction whose FRI link missed more than that share or never reached command
-    mode; with the chain's latest link (p99 at its receiver)."""
+    reproduction whose FRI link missed more than that share, never reached command mode
+    or was dropped from it (quality below OK: a burst of misses, however few in all);
+    with the chain's latest link (p99 at its receiver)."""
     problems = []
     kinds = [("demonstration", i) for i in range(len(demonstrations))] + \
             [("reproduction", i) for i in range(len(reproductions))]
@@ -103,6 +104,8 @@ def clock_not_held(demonstrations, reproductions, loops, received) -> str | None
         why = []
         if fq and fq.get("first_cmd_s") is None:
             why.append("FRI never reached command mode")
+        if f.get("command_mode_left"):
+            why.append(f"the KRC dropped command mode {f['command_mode_left']} time(s) (FRI quality below OK)")
         if total and f["missed"] / total > REALTIME_MISS_LIMIT:
             why.append(f"{f['missed']} of {total} FRI cycles unanswered in time ({f['missed'] / total:.1%})")
         if why:

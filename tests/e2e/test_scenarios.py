@@ -129,7 +129,7 @@ def test_smoke_realtime_completes_with_its_deadline_report(tmp_path):
     fri = report["reproductions"][0]["fri"]
     held = all(lp["misses"] <= 0.01 * lp["cycles"] for lp in loops) and \
         fri["missed"] <= 0.01 * (fri["answered"] + fri["missed"]) and \
-        report["reproductions"][0]["fri_quality"]["first_cmd_s"] is not None
+        report["reproductions"][0]["fri_quality"]["first_cmd_s"] is not None and not fri["command_mode_left"]
     if held:
         # a clock held by the robot can still leave the estimator's chain 50 ms behind
         # on a crowded machine: the commander then holds the arm, and the run says so
