@@ -35,16 +35,14 @@ venv: $(STAMP)
 run: $(STAMP)
 	$(BIN)/etar-bench run $(SCENARIO) --out $(OUT) --replace
 
-# Two lanes, to fit CI's two cores: the tests that can share the machine two at a time
-# (numba's and OpenBLAS' threads at one each: two workers' threads spinning against each
-# other made EM 20 times slower), then the `serial` ones (the realtime clock, 1 kHz over
-# UDP, the browser) one at a time.  Both always run; either failing (or finding no test)
-# fails the target.
-test: $(STAMP) browser foxglove-schemas foxglove-studio
-	@NUMBA_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n 2 --dist loadscope --no-loadscope-reorder -m "not serial"; \
-	  shared=$$?; $(BIN)/python -m pytest -q -m serial; serial=$$?; \
-	  echo "make test: exit $$shared for the tests run two at a time, $$serial for the serial ones"; \
-	  [ $$shared = 0 ] && [ $$serial = 0 ]
+# Set-up in two chains at once (-j 2): the venv (pip, bytecode, numba: CPU) beside what the
+# browser tests need (apt, npm: mostly the network).  Then the two lanes at once: the
+# `serial` tests one at a time, every other test two at a time beside them on the CPU the
+# serial ones leave (tests/lanes.py says how).  Either failing (or finding no test) fails
+# the target.
+test:
+	@$(MAKE) --no-print-directory -j 2 $(STAMP) foxglove-studio
+	@$(BIN)/python -m tests.lanes
 
 # the fast lane: every test but the slow ones (whole scenarios, runs over Zenoh, compose)
 test-fast: $(STAMP)
@@ -62,7 +60,8 @@ browser:
 # visual message against them: npm (apt's nodejs and npm when missing and this runs as
 # root) installs them under .cache/; elsewhere that test is skipped (it says why)
 FOXGLOVE_SCHEMAS := .cache/foxglove-schemas
-foxglove-schemas:
+# after `browser`: one apt-get at a time (two at once, the second finds dpkg's lock taken)
+foxglove-schemas: browser
 	@test -f $(FOXGLOVE_SCHEMAS)/jsonschema/VERSION || { \
 	  { command -v npm >/dev/null 2>&1 || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1 && \
 	    { apt-get install -y -qq --no-install-recommends nodejs npm >/dev/null 2>&1 || \

@@ -15,7 +15,7 @@ from robot_sim.krc.packets import CommandPacket, ControlMode, FriQuality, FriSta
 from robot_sim.wire.fri_udp import FriUdpEndpoint
 from tests.support import wait_until
 
-# FRI datagrams with answer deadlines: serial (make test runs these after the rest)
+# FRI datagrams with answer deadlines: serial (make test runs these one at a time)
 pytestmark = [pytest.mark.serial]
 
 WAIT_S = 2.0  # the longest any datagram may take on loopback before a test fails

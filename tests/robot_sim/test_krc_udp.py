@@ -22,7 +22,7 @@ from robot_sim.world.teacher import DOWN
 from robot_sim.world.tasks import free_space
 from tests.robot_sim.fri_remote import Remote
 
-# the KRC answering at 1 kHz over UDP: serial (make test runs these after the rest)
+# the KRC answering at 1 kHz over UDP: serial (make test runs these one at a time)
 pytestmark = [pytest.mark.serial]
 
 START = np.array([0.5, 0.0, 0.45])

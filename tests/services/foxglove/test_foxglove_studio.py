@@ -31,7 +31,7 @@ import pytest
 from services.recordings.reader import read_episode
 from services.runtime.visual_topics import SCHEMA_NAMES
 
-# a browser with software WebGL and fixed waits: serial (make test runs these after the rest)
+# a browser with software WebGL and fixed waits: serial (make test runs these one at a time)
 pytestmark = [pytest.mark.serial]
 
 ROOT = Path(__file__).resolve().parents[3]

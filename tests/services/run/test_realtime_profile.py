@@ -15,7 +15,7 @@ from services.transport.process import NodeInputs, ZenohBus
 from tests.services.conftest import service_with_peer
 from tests.support import wait_until
 
-# SCHED_FIFO, CPU isolation and /dev/cpu_dma_latency of this machine: serial (make test runs these after the rest)
+# SCHED_FIFO, CPU isolation and /dev/cpu_dma_latency of this machine: serial (make test runs these one at a time)
 pytestmark = [pytest.mark.serial]
 
 

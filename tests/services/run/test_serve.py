@@ -27,7 +27,7 @@ from tests.robot_sim.fri_remote import Remote
 from tests.support import (assert_a_stall, popen_as_from_a_terminal, realtime_attempts, require_realtime_machine,
                            trickling, wait_until)
 
-# the served cell on the realtime clock, at 1 kHz over UDP: serial (make test runs these after the rest)
+# the served cell on the realtime clock, at 1 kHz over UDP: serial (make test runs these one at a time)
 pytestmark = [pytest.mark.serial]
 
 ROOT = Path(__file__).resolve().parents[3]

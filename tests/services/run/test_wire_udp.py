@@ -14,7 +14,7 @@ import pytest
 from services.results.report import CLOCK_NOT_HELD
 from tests.support import assert_a_stall, realtime_attempts, require_realtime_machine
 
-# a realtime run over FRI/UDP: serial (make test runs these after the rest)
+# a realtime run over FRI/UDP: serial (make test runs these one at a time)
 pytestmark = [pytest.mark.serial]
 
 ROOT = Path(__file__).resolve().parents[3]
