@@ -36,10 +36,9 @@ run: $(STAMP)
 	$(BIN)/etar-bench run $(SCENARIO) --out $(OUT) --replace
 
 # Set-up in two chains at once (-j 2): the venv (pip, bytecode, numba: CPU) beside what the
-# browser tests need (apt, npm: mostly the network).  Then the two lanes at once: the
-# `serial` tests one at a time, every other test two at a time beside them on the CPU the
-# serial ones leave (tests/lanes.py says how).  Either failing (or finding no test) fails
-# the target.
+# browser tests need (apt, npm: mostly the network).  Then the lanes (tests/lanes.py says
+# how): the `alone` tests one at a time, then the other `serial` ones one at a time with the
+# rest two at a time beside them.  Any lane failing (or finding no test) fails the target.
 test:
 	@$(MAKE) --no-print-directory -j 2 $(STAMP) foxglove-studio
 	@$(BIN)/python -m tests.lanes

@@ -28,7 +28,11 @@ def pytest_collection_modifyitems(config, items):
     ``--dist loadscope --no-loadscope-reorder`` (make test) the two workers start on them
     and the quick ones fill the end.  xdist's own order (most tests first) sent the
     modules of one or two whole runs, compose among them, last: one worker ran them alone
-    while the other had finished."""
+    while the other had finished.  And everywhere: a test marked ``alone`` is marked
+    ``serial`` too (make test's shared lane takes every test that is not serial)."""
+    for item in items:
+        if item.get_closest_marker("alone") and not item.get_closest_marker("serial"):
+            raise pytest.UsageError(f"{item.nodeid} is marked alone but not serial: the shared lane would run it")
     if not hasattr(config, "workerinput"):
         return
     module_weight = {}

@@ -107,7 +107,8 @@ def test_smoke_lockstep_twice_at_once_is_deterministic_isolated_and_the_same_in_
             (ra["reason"], ra["peak_contact_force"], ra["final_position"])
 
 
-@pytest.mark.serial  # the realtime clock
+@pytest.mark.serial  # the realtime clock: alone
+@pytest.mark.alone
 def test_smoke_realtime_completes_with_its_deadline_report(tmp_path):
     # the smoke scenario with its reproduction cut to 6 s: on the realtime clock every
     # simulated second is a wall second, and this test is about the clock, not the goal
@@ -159,7 +160,8 @@ def quality_at(changes, t):
     return q
 
 
-@pytest.mark.serial  # the realtime clock
+@pytest.mark.serial  # the realtime clock: alone
+@pytest.mark.alone
 def test_injected_commander_stall_shows_up_as_fri_misses_and_quality_drops(tmp_path):
     """The commander sleeps 3 ms before one answer every half simulated second (its
     --stall-every/--stall-ms fault injection); realtime, all processes over Zenoh,

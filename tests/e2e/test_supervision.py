@@ -23,7 +23,8 @@ pytestmark = [pytest.mark.slow, pytest.mark.zenoh]
 # a lost liveliness token is seen the same way on either clock (the lockstep SIGKILL case,
 # run by hand: noticed within 11 cycles, the run over 5.7 s after the kill); the suite
 # keeps one of each mechanism to stay within its 10 minutes
-@pytest.mark.serial  # how soon the run ends is timed
+@pytest.mark.serial  # how soon the run ends is timed: alone
+@pytest.mark.alone
 @pytest.mark.parametrize("role,clock,sig", [("ft_sensor", "realtime", signal.SIGKILL),
                                             ("phase_estimator", "lockstep", signal.SIGSTOP),
                                             ("recorder", "lockstep", signal.SIGKILL)])
@@ -153,7 +154,8 @@ def test_a_stale_episode_summary_from_a_foreign_peer_does_not_end_the_episode_in
         cell.stop(["robot"], before_report=False)
 
 
-@pytest.mark.serial  # the realtime clock
+@pytest.mark.serial  # the realtime clock: alone
+@pytest.mark.alone
 def test_a_saturating_sensor_over_zenoh_holds_the_arm_and_fails_the_run(tmp_path):
     """The ATI sensor process saturates 2 s into a realtime reproduction (its --fault flag):
     the estimator flags its estimate, the commander holds the arm stiffly at once, the
@@ -173,8 +175,9 @@ def test_a_saturating_sensor_over_zenoh_holds_the_arm_and_fails_the_run(tmp_path
     assert sensor["fault"] == "saturate" and sensor["faulted"] > 500, sensor
 
 
-@pytest.mark.serial  # the estimator must be back within the commander's patience (5 waits of 2 s): beside
+@pytest.mark.serial  # the estimator must be back within the commander's patience (5 waits of 2 s): alone; beside
 # the compose test's podman in the shared lane its restart took 8.8 s and the arm was held
+@pytest.mark.alone
 def test_services_with_a_restart_policy_and_the_live_views_bridge_come_back_and_the_run_goes_on(tmp_path):
     """restart: {recorder: on_failure, phase_estimator: on_failure}.  The recorder is killed
     300 cycles into a lockstep reproduction and the estimator 1500 cycles in: each is started

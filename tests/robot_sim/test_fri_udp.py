@@ -15,8 +15,8 @@ from robot_sim.krc.packets import CommandPacket, ControlMode, FriQuality, FriSta
 from robot_sim.wire.fri_udp import FriUdpEndpoint
 from tests.support import wait_until
 
-# FRI datagrams with answer deadlines: serial (make test runs these one at a time)
-pytestmark = [pytest.mark.serial]
+# FRI datagrams with answer deadlines: alone (make test runs these first, with nothing beside them)
+pytestmark = [pytest.mark.serial, pytest.mark.alone]
 
 WAIT_S = 2.0  # the longest any datagram may take on loopback before a test fails
 POSE = np.array([1.0, 0.0, 0.0, 0.5, 0.0, 1.0, 0.0, 0.125, 0.0, 0.0, 1.0, 0.25])

@@ -22,8 +22,8 @@ from robot_sim.world.teacher import DOWN
 from robot_sim.world.tasks import free_space
 from tests.robot_sim.fri_remote import Remote
 
-# the KRC answering at 1 kHz over UDP: serial (make test runs these one at a time)
-pytestmark = [pytest.mark.serial]
+# the KRC answering at 1 kHz over UDP: alone (make test runs these first, with nothing beside them)
+pytestmark = [pytest.mark.serial, pytest.mark.alone]
 
 START = np.array([0.5, 0.0, 0.45])
 LATENCY_NS = 200_000  # each answer taken to arrive 0.2 ms into its cycle

@@ -24,8 +24,8 @@ from robot_sim.ati.sensor import AtiConfig, AtiSensor
 from robot_sim.wire.netft import NETFT_ERROR, NETFT_SATURATION, NetFtBox, RdtCommand, netft_status
 from tests.support import trickling, wait_until
 
-# a sensor feeding the box at 1 kHz against the wall clock: serial (make test runs these one at a time)
-pytestmark = [pytest.mark.serial]
+# a sensor feeding the box at 1 kHz against the wall clock: alone (make test runs these first, with nothing beside them)
+pytestmark = [pytest.mark.serial, pytest.mark.alone]
 
 WRENCH = np.array([12.5, -4.25, 31.0, 0.12, -0.31, 0.05])  # N, Nm: inside the Mini45's ranges
 IDEAL = AtiConfig.mini45(resolution=np.zeros(6), noise_std=np.zeros(6), bias=np.zeros(6),

@@ -15,8 +15,8 @@ from services.transport.process import NodeInputs, ZenohBus
 from tests.services.conftest import service_with_peer
 from tests.support import wait_until
 
-# SCHED_FIFO, CPU isolation and /dev/cpu_dma_latency of this machine: serial (make test runs these one at a time)
-pytestmark = [pytest.mark.serial]
+# SCHED_FIFO, CPU isolation and /dev/cpu_dma_latency of this machine: alone (make test runs these first, with nothing beside them)
+pytestmark = [pytest.mark.serial, pytest.mark.alone]
 
 
 def test_profile_parts_parse_and_a_bad_part_is_named():

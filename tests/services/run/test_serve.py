@@ -27,8 +27,8 @@ from tests.robot_sim.fri_remote import Remote
 from tests.support import (assert_a_stall, popen_as_from_a_terminal, realtime_attempts, require_realtime_machine,
                            trickling, wait_until)
 
-# the served cell on the realtime clock, at 1 kHz over UDP: serial (make test runs these one at a time)
-pytestmark = [pytest.mark.serial]
+# the served cell on the realtime clock, at 1 kHz over UDP: alone (make test runs these first, with nothing beside them)
+pytestmark = [pytest.mark.serial, pytest.mark.alone]
 
 ROOT = Path(__file__).resolve().parents[3]
 BOX_LINE = re.compile(r"Net F/T box on ([\d.]+) \(RDT UDP (\d+), HTTP (\d+), calibration TCP (\d+)\)")

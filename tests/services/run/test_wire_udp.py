@@ -14,8 +14,8 @@ import pytest
 from services.results.report import CLOCK_NOT_HELD
 from tests.support import assert_a_stall, realtime_attempts, require_realtime_machine
 
-# a realtime run over FRI/UDP: serial (make test runs these one at a time)
-pytestmark = [pytest.mark.serial]
+# a realtime run over FRI/UDP: alone (make test runs these first, with nothing beside them)
+pytestmark = [pytest.mark.serial, pytest.mark.alone]
 
 ROOT = Path(__file__).resolve().parents[3]
 
