@@ -22,6 +22,7 @@ a second one kills what is left of them.
 
 from __future__ import annotations
 
+import argparse
 import os
 import signal
 import subprocess
@@ -75,7 +76,11 @@ def _start_shared() -> subprocess.Popen:
                                 preexec_fn=_idle, start_new_session=True)
 
 
-def main() -> int:
+def main(argv=None) -> int:
+    from etar.parsing import OneLineErrorParser
+
+    OneLineErrorParser(prog="python -m tests.lanes", description=__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter).parse_args(argv)
     SHARED_LOG.parent.mkdir(parents=True, exist_ok=True)
     log = SHARED_LOG.relative_to(ROOT)
     signal.signal(signal.SIGTERM, _terminate)
