@@ -244,12 +244,16 @@ def _bohning_factors(features, targets, l2):
     N, R, K = targets.shape
     q = targets.sum(axis=2)  # (N, R)
     A = 0.5 * (np.eye(K) - np.ones((K, K)) / (K + 1))
-    n = K * features.shape[1]
+    d1 = features.shape[1]
+    n = K * d1
+    eye = np.eye(n)
     bounds = np.empty((R, n, n))
     for r in range(R):
         S = features.T @ (features * q[:, r : r + 1])
         ridge = max(l2, 1e-12 * (np.trace(S) + 1.0))
-        bounds[r] = np.kron(A, S) + ridge * np.eye(n)
+        # kron(A, S) as a broadcast product: the same products, without np.kron's
+        # general-purpose reshaping (a third of this function's time)
+        bounds[r] = (A[:, None, :, None] * S[None, :, None, :]).reshape(n, n) + ridge * eye
     # one call for the stack: LAPACK's potrf on each block, as block by block, without
     # numpy's per-call overhead (learning fits these thousands of times)
     return np.linalg.cholesky(bounds)
