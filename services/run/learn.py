@@ -4,6 +4,7 @@ models saved; or a scenario's stored model, checked against the scenario."""
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import time
 from pathlib import Path
@@ -21,21 +22,78 @@ from services.runtime.threads import learning_threads, process_map
 from services.scenario import LearnStage, Scenario
 
 
+def _reader(scenario: Scenario):
+    return functools.partial(load_demonstration, state=scenario.state, features=scenario.features,
+                             state_resolution=scenario.state_resolution)
+
+
+class DemonstrationReads:
+    """The learn stage's pool of processes, started with the first demonstration of a run
+    whose learn stage chooses the number of phases, reading each recording as soon as it is
+    written: the 2.5 s that starting the pool and reading took at the start of the valley's
+    learn stage pass during its demonstrations (in one process the episodes take one core
+    of two).  Lockstep only: on the realtime clock that work would take CPU the 1 kHz loop
+    needs.  The learn stage takes the pool over and closes it; as a context manager it is
+    closed with the run, its workers terminated when the run failed."""
+
+    def __init__(self, scenario: Scenario, workers: int | None):
+        stage = next((s for s in scenario.stages if s.kind == "learn"), None)
+        self.wanted = stage is not None and stage.phases == "auto" and scenario.clock == "lockstep"
+        self._workers, self._load = workers, _reader(scenario)
+        self._stack = contextlib.ExitStack()
+        self.work_map = None
+        self._pending: dict[str, object] = {}
+
+    def read(self, path: str) -> None:
+        """Start reading the recording at ``path`` (a pool's map submits at once)."""
+        if not self.wanted:
+            return
+        if self.work_map is None:
+            self.work_map = self._stack.enter_context(process_map(self._workers))
+        if self.work_map is not map:  # one CPU: the builtin map, which would read it only when asked
+            self._pending[path] = self.work_map(self._load, [path])
+
+    @property
+    def pending(self) -> tuple:
+        """The recordings whose reading has started and not been taken yet."""
+        return tuple(self._pending)
+
+    def demonstrations(self, paths: list[str]) -> list[dict]:
+        """The recordings at ``paths``, read: those started already, the others now."""
+        return [next(self._pending.pop(p) if p in self._pending else self.work_map(self._load, [p])) for p in paths]
+
+    def close(self) -> None:
+        """The pool's work is done: its workers exit; later demonstrations are not read ahead."""
+        self._pending.clear()
+        self._stack.close()
+        self.wanted, self.work_map = False, None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self._pending.clear()
+        return self._stack.__exit__(*exc)
+
+
 def learn(stage: LearnStage, scenario: Scenario, demonstrations: list[str], out: Path, *, workers: int | None = None,
-          threads: int | None = None, say=print) -> LearningRecord:
+          threads: int | None = None, say=print, reads: DemonstrationReads | None = None) -> LearningRecord:
     """Fit the stage's model(s) to the recordings ``demonstrations`` and save them in ``out``
-    (``model.json``, the run's; ``model-STAR.json`` beside it when both are learned)."""
+    (``model.json``, the run's; ``model-STAR.json`` beside it when both are learned).
+    ``reads``: the pool that started reading them during the demonstrations, if any."""
     record = LearningRecord()
     t = time.monotonic()
+    started = reads is not None and reads.work_map is not None
     # choosing the number of phases is many independent fits: worth a pool of processes,
     # which then reads the demonstrations too (a fixed number of phases is one fit)
-    with process_map(workers if stage.phases == "auto" else 1) as work_map:
-        demos = list(work_map(functools.partial(load_demonstration, state=scenario.state,
-                                                features=scenario.features,
-                                                state_resolution=scenario.state_resolution), demonstrations))
+    with (contextlib.nullcontext(reads.work_map) if started else
+          process_map(workers if stage.phases == "auto" else 1)) as work_map:
+        demos = reads.demonstrations(demonstrations) if started else list(work_map(_reader(scenario), demonstrations))
         record.learned_from = [dict(path=path, samples=len(d["states"])) for path, d in zip(demonstrations, demos)]
         with learning_threads(threads):
             models, selection = _fit(stage, demos, work_map, say)
+    if started:
+        reads.close()  # learned: the pool's work is done (on a failure the run's exit terminates it)
     for i, m in enumerate(models):
         # which learned phase is which true phase is judged on the demonstrations only
         task = learn_task(m, demos, float(demos[0]["dt"]), state=scenario.state, features=scenario.features,

@@ -35,7 +35,7 @@ from services.results.report import write_report
 from services.ros2.wire import FULL_NODE_NAME
 from services.run.configs import node_configs
 from services.run.episode import Episodes, Recording
-from services.run.learn import learn, stored_model
+from services.run.learn import DemonstrationReads, learn, stored_model
 from services.run.options import RunOptions
 from services.run.preflight import preflight, start_problem
 from services.run.realtime_profile import Grant, parse_profile, placement, probe
@@ -119,9 +119,10 @@ class Runner:
             if self.options.serve is not None:
                 self.serve(self.options.serve)
             else:
-                for index, stage in enumerate(sc.stages):
-                    # the starts the preflight drew and found within reach, drawn once
-                    getattr(self, f"stage_{stage.kind}")(stage, self.preflight.stage_starts(index))
+                with DemonstrationReads(sc, self.options.workers) as self.reads:
+                    for index, stage in enumerate(sc.stages):
+                        # the starts the preflight drew and found within reach, drawn once
+                        getattr(self, f"stage_{stage.kind}")(stage, self.preflight.stage_starts(index))
             self.episodes.event("run_end", "", -1, {})
         except BaseException as exc:
             if isinstance(exc, KeyboardInterrupt):
@@ -212,6 +213,7 @@ class Runner:
                                                            goal_x=stage.goal_x, max_seconds=stage.max_seconds,
                                                            label=label)
             self.record.demonstrations.append(EpisodeRecord(str(path), side, list(start), summary, rec))
+            self.reads.read(str(path))  # for the learn stage, while the next demonstrations run
             self.say(f"{label} ({side}): {summary['reason']} after {summary['sim_seconds']:.1f} s simulated / "
                      f"{summary['wall_seconds']:.1f} s wall, "
                      f"{'recording unfinished' if rec is None else str(rec['messages']) + ' messages recorded'}")
@@ -219,7 +221,8 @@ class Runner:
 
     def stage_learn(self, stage, starts):  # a learn stage has no episodes: ``starts`` is empty
         self.record.learning = learn(stage, self.scenario, [d.path for d in self.record.demonstrations], self.out,
-                                     workers=self.options.workers, threads=self.options.learn_threads, say=self.say)
+                                     workers=self.options.workers, threads=self.options.learn_threads, say=self.say,
+                                     reads=self.reads)
 
     def stage_reproduce(self, stage, starts):
         learning = self.record.learning

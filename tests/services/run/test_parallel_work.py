@@ -4,6 +4,7 @@ give what one process gives, in order, and an interrupted pool leaves no process
 
 import json
 import os
+import time
 
 import numpy as np
 import pytest
@@ -86,3 +87,36 @@ def test_the_report_reads_recordings_in_a_pool_as_in_one_process(tmp_path, rng):
         assert a.phases["updates"] > 0
         for series_a, series_b in zip(a.fri_quality, b.fri_quality):
             np.testing.assert_array_equal(series_a, series_b)
+
+
+def test_the_learn_stages_pool_reads_each_demonstration_as_it_is_recorded(foxglove_run_dir):
+    """services.run.learn.DemonstrationReads: started by the first demonstration of a lockstep run
+    whose learn stage chooses the number of phases, it reads each recording in the pool while the
+    run goes on; the learn stage gets what reading then would give, and closing ends the workers."""
+    from services.run.learn import DemonstrationReads, _reader
+    from tests import support
+
+    demo = str(foxglove_run_dir / "recordings" / "demonstration_00.mcap")
+    scenario = support.scenario("smoke", {"learn.phases": "auto"})
+    assert not DemonstrationReads(support.scenario("smoke", {"learn.phases": 2}), 2).wanted
+    assert not DemonstrationReads(support.scenario("smoke", {"learn.phases": "auto", "clock": "realtime"}), 2).wanted
+    with DemonstrationReads(scenario, workers=2) as reads:
+        reads.read(demo)
+        assert reads.pending == (demo,)
+        pid, _ = next(reads.work_map(_pid_and_square, [3]))
+        assert pid != os.getpid()
+        # the first read ahead, the second now: both what one process reads
+        got = reads.demonstrations([demo, demo])
+        assert reads.pending == ()
+        reads.close()
+        assert reads.work_map is None and not reads.wanted
+    want = _reader(scenario)(demo)
+    for d in got:
+        assert d.keys() == want.keys()
+        for key in ("states", "forces", "phases"):
+            np.testing.assert_array_equal(d[key], want[key])
+    for _ in range(50):
+        if not _alive(pid):
+            break
+        time.sleep(0.1)
+    assert not _alive(pid), "the pool's worker outlived close()"
