@@ -113,8 +113,11 @@ def _interrupted(foreground: list, shared: subprocess.Popen | None, terminated: 
     print("\nmake test: interrupted; stopping the lanes (Ctrl-C again kills them)", file=sys.stderr, flush=True)
     procs = [*foreground, *([shared] if shared is not None else [])]
     try:
-        if shared is not None:
-            os.killpg(shared.pid, signal.SIGINT)
+        if shared is not None and shared.poll() is None:
+            try:
+                os.killpg(shared.pid, signal.SIGINT)
+            except ProcessLookupError:
+                pass  # it ended between the poll and the signal
         for proc in foreground:
             if terminated and proc.poll() is None:
                 proc.send_signal(signal.SIGINT)
