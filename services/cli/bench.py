@@ -85,7 +85,7 @@ def build_parser() -> OneLineErrorParser:
     from services.run.options import WIRES, RunOptions
     from services.runtime.cycle import CLOCKS
     from services.runtime.roles import FIFO_CHAIN
-    from services.transport.carriers import TRANSPORTS
+    from services.transport.carriers import ENGINES, TRANSPORTS
 
     from robot_sim.krc.krl import LAB_CONVENTIONS
     from services.run.serve import ServeOptions
@@ -109,6 +109,11 @@ def build_parser() -> OneLineErrorParser:
                    help="zenoh: every role in its own process over Zenoh (the lab's layout, realtime or lockstep; "
                         "default); inproc: every role in this process on an in-memory bus (lockstep only, "
                         "several times faster, the same recordings)")
+    p.add_argument("--engine", choices=ENGINES,
+                   help="with --transport inproc, how the FRI cycles are stepped: fused (the 1 kHz path walked "
+                        "once per cycle, each node's work called directly; default) or per-message (every "
+                        "message through the in-memory bus to each node's handler, the reference); the same "
+                        "recordings either way")
     p.add_argument("--attach", action="store_true",
                    help="drive services that are already running (docker-compose) instead of starting them")
     p.add_argument("--ready-timeout", type=float, default=RunOptions.ready_timeout,
@@ -222,6 +227,9 @@ def build_parser() -> OneLineErrorParser:
                    help="what to keep of each run: everything (recordings with Foxglove's visual topics), its "
                         "report and model (default), or nothing")
     p.add_argument("--workers", type=int, help="local processes (default: the CPUs this process may use)")
+    p.add_argument("--engine", choices=ENGINES,
+                   help="how each run's FRI cycles are stepped in its process: fused (default) or per-message "
+                        "(see etar-bench run --help)")
     p.add_argument("--cluster", metavar="ADDRESS",
                    help="a Dask scheduler, e.g. tcp://10.0.0.5:8786, to send the runs to instead")
     p.add_argument("--learn-threads", type=int,

@@ -46,7 +46,7 @@ def cmd_run(args) -> int:
         if args.clock:
             scenario = scenario.replace("clock", args.clock)
         options = RunOptions(out=out, run_id=args.run_id, zenoh=zenoh_options(args) if args.connect else None,
-                             transport=args.transport, attach=args.attach, ready_timeout=args.ready_timeout,
+                             transport=args.transport, engine=args.engine, attach=args.attach, ready_timeout=args.ready_timeout,
                              sched_fifo=args.sched_fifo_ends, realtime_profile=args.realtime_profile, tls=args.tls,
                              hosts=args.hosts, figures=not args.no_figures, foxglove=args.foxglove,
                              replace=args.replace, command=args.command_line, wire=args.wire, ros2=args.ros2,
@@ -202,7 +202,7 @@ def cmd_sweep(args) -> int:
         params = [Parameter.parse(p) for p in args.param]
         result = sweep(load_scenario(args.scenario), params, repeats=args.repeats, out=args.out, record=args.record,
                        workers=args.workers, cluster=args.cluster, learn_threads=args.learn_threads,
-                       replace=args.replace, say=say)
+                       replace=args.replace, say=say, engine=args.engine)
     except (SweepError, ScenarioError, TaskError) as exc:
         say(f"etar-bench sweep: error: {exc}")
         return 2

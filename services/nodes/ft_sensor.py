@@ -135,12 +135,19 @@ class FtSensorNode(Node):
         return msg["stamp_ns"] - self._episode_t0 >= self.fault_after_ns
 
     def on_contact(self, msg, recv_ns, raw) -> None:
+        packed = self.sample(msg)
+        if packed is not None:
+            self.bus.publish(FT_WRENCH.topic, *packed)
+
+    def sample(self, msg) -> tuple | None:
+        """The ATI record of one ``robot/contact``: ``ft/wrench`` as ``pack`` gives it, or None
+        when the injected fault stopped the stream."""
         with self._lock:
             self._wrench[:] = msg["wrench"]
             if self._injected(msg):
                 self.faulted += 1
                 if self.fault == "stop":
-                    return
+                    return None
                 if self.fault == "saturate":
                     self._wrench[:] = SATURATING_LOAD * float(np.max(self.ati_config.ranges))
                 else:
@@ -151,11 +158,11 @@ class FtSensorNode(Node):
             # outside the lock: a client's bias request (the box's thread) takes it
             self._stamp = (msg["seq"], msg["stamp_ns"])
             self.box.publish(rec)
-        self.bus.publish(FT_WRENCH.topic, *FT_WRENCH.pack(
+        return FT_WRENCH.pack(
             seq=msg["seq"], stamp_ns=msg["stamp_ns"], sent_ns=self.clock.now_ns(),
             rdt_sequence=int(rec.rdt_sequence), ft_sequence=int(rec.ft_sequence), status=int(rec.status),
             counts=rec.counts.tolist(), counts_per_force=self._cpf, counts_per_torque=self._cpt,
-            wrench=w))
+            wrench=w)
 
     def handlers(self):
         return {"tare": self.tare}

@@ -149,13 +149,20 @@ class ImpedanceCommanderNode(Node):
 
     def on_phase(self, msg, recv_ns, raw):
         with self._lock:
-            if msg["episode"] != self.episode:
-                return
-            if self.lockstep:  # realtime uses the latest estimate, whatever its cycle
-                self._phases[msg["seq"]] = msg
-                self._drain()
-            else:
-                self._take_estimate(msg)
+            self.deliver(self.take_phase(msg), self.bus.publish)
+
+    # the answers (``robot/command`` as ``pack`` gives each) that a message or the end of waiting
+    # lets the commander give; ``deliver`` hands them over.  Unlocked: the handlers hold the
+    # lock; an engine that steps the nodes itself (services.transport.fused) calls them from its one thread
+
+    def take_phase(self, msg) -> list:
+        if msg["episode"] != self.episode:
+            return []
+        if self.lockstep:  # realtime uses the latest estimate, whatever its cycle
+            self._phases[msg["seq"]] = msg
+            return self._drain()
+        self._take_estimate(msg)
+        return []
 
     def _take_estimate(self, msg) -> None:
         self._latest_phase = msg["phase"]
@@ -166,21 +173,39 @@ class ImpedanceCommanderNode(Node):
 
     def on_state(self, msg, recv_ns, raw):
         with self._lock:
-            # only the cycles of the reproduction this commander was reset for are
-            # answered: answers to others (demonstrations, the rest while the
-            # sensor is tared) would reach the FRI link at times that depend on
-            # the machine, and lockstep runs must not
-            if self.policy is None or msg["episode"] != self.episode:
-                return
-            t = self.clock.now_ns()
-            if not self.lockstep and t - msg["sent_ns"] >= FRI_CYCLE_NS:
-                self.stale += 1  # its cycle is over: an answer now could only be late
-                return
-            self.sections.cycles += 1
-            self.sections.add("decode", t - recv_ns)  # receive -> here: decoding and the lock
-            self._recv_ns = recv_ns
-            self._pending[msg["seq"]] = msg
-            self._drain()
+            self.deliver(self.take_state(msg, recv_ns), self.bus.publish)
+
+    def take_state(self, msg, recv_ns: int) -> list:
+        # only the cycles of the reproduction this commander was reset for are
+        # answered: answers to others (demonstrations, the rest while the
+        # sensor is tared) would reach the FRI link at times that depend on
+        # the machine, and lockstep runs must not
+        if self.policy is None or msg["episode"] != self.episode:
+            return []
+        t = self.clock.now_ns()
+        if not self.lockstep and t - msg["sent_ns"] >= FRI_CYCLE_NS:
+            self.stale += 1  # its cycle is over: an answer now could only be late
+            return []
+        self.sections.cycles += 1
+        self.sections.add("decode", t - recv_ns)  # receive -> here: decoding and the lock
+        self._recv_ns = recv_ns
+        self._pending[msg["seq"]] = msg
+        return self._drain()
+
+    def give_up(self) -> list:
+        """Nothing more can arrive (one process): go on without the estimate waited for."""
+        return self._drain(give_up=True) if self._waiting_since is not None else []
+
+    def deliver(self, answers, hand_over) -> None:
+        """Hand each answer over (``hand_over(topic, payload, message)``: the bus's publish),
+        timed: the commander's share of the FRI answer latency ends here."""
+        now, sec = self.clock.now_ns, self.sections
+        for packed in answers:
+            t = now()
+            hand_over(ROBOT_COMMAND.topic, *packed)
+            t3 = now()
+            sec.add("publish", t3 - t)
+            self.answer_time.add(t3 - self._recv_ns if self._recv_ns else 0)
 
     def _on_datagram(self, msg: dict, packed, recv_ns: int) -> None:
         """A measurement datagram (FriRemoteSocket's thread): passed on, and answered during
@@ -190,11 +215,12 @@ class ImpedanceCommanderNode(Node):
                 self.sections.cycles += 1
                 self.sections.add("decode", self.clock.now_ns() - recv_ns)
                 self._recv_ns = recv_ns
-                self._answer(msg)
+                self.deliver([self._answer(msg)], self.bus.publish)
         # after the answer: the KRC waits for that, the estimator's copy does not
         self.bus.publish(ROBOT_STATE.topic, *packed)
 
-    def _drain(self, give_up: bool = False):
+    def _drain(self, give_up: bool = False) -> list:
+        answers = []
         for seq in sorted(self._pending):
             # holding, it needs no estimate: it waits for none
             if self.lockstep and self.hold is None and estimator_instant(self._pending[seq]["stamp_ns"]) \
@@ -202,7 +228,7 @@ class ImpedanceCommanderNode(Node):
                 if not give_up:
                     if self._waiting_since is None:
                         self._waiting_since = self.clock.now_ns()
-                    return  # wait for this cycle's estimate
+                    return answers  # wait for this cycle's estimate
                 # the estimate is not coming (the estimator skipped the sample): go on with the last one
                 self.missing_estimates += 1
             self._waiting_since = None
@@ -210,9 +236,10 @@ class ImpedanceCommanderNode(Node):
             estimate = self._phases.pop(seq, None)
             if estimate is not None:
                 self._take_estimate(estimate)
-            self._answer(state)
+            answers.append(self._answer(state))
+        return answers
 
-    def _answer(self, state):
+    def _answer(self, state) -> tuple:
         c = self.config
         seq, last = state["seq"], self._last_answered_seq
         if c.stall_ms > 0 and c.stall_every > 0:
@@ -266,13 +293,11 @@ class ImpedanceCommanderNode(Node):
             self.fri.answer(state, cart.reshape(12), CART_STIFFNESS, CART_DAMPING, add,
                             goal_reached=bool(self.policy.goal_reached), hold=self.hold["reason"] if self.hold else "",
                             estimate_seq=self._latest_phase_seq)
-        self.bus.publish(ROBOT_COMMAND.topic, *packed)
-        t3 = now()
+            self.sections.add("publish", now() - t2)
         sec = self.sections
         sec.add("law", t1 - t0)
         sec.add("encode", t2 - t1)
-        sec.add("publish", t3 - t2)
-        self.answer_time.add(t3 - self._recv_ns if self._recv_ns else 0)
+        return packed
 
     def handlers(self):
         return {"reset": self.reset}
@@ -306,12 +331,11 @@ class ImpedanceCommanderNode(Node):
     def idle(self, now_ns: int) -> None:
         with self._lock:
             if self._waiting_since is not None and now_ns - self._waiting_since > ESTIMATE_WAIT_S * 1e9:
-                self._drain(give_up=True)
+                self.deliver(self._drain(give_up=True), self.bus.publish)
 
     def quiescent(self) -> None:
         with self._lock:
-            if self._waiting_since is not None:
-                self._drain(give_up=True)
+            self.deliver(self.give_up(), self.bus.publish)
 
     def status(self) -> dict:
         status = {"episode": self.episode, "missing_estimates": self.missing_estimates, "stale": self.stale,

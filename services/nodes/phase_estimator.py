@@ -107,35 +107,47 @@ class PhaseEstimatorNode(Node):
         return self.filter is not None  # before its first reproduction it has nothing to estimate
 
     def on_state(self, msg, recv_ns, raw):
-        if not estimator_instant(msg["stamp_ns"]):
-            return
-        with self._lock:
-            # a cycle still waiting for its wrench when the next one comes has lost it
-            stale = [k for k in self._states if k < msg["seq"]]
-            for k in stale:
-                del self._states[k]
-            if stale and self.filter is not None:
-                self.skipped += len(stale)
-            self._states[msg["seq"]] = msg
-            self._try(msg["seq"])
+        if estimator_instant(msg["stamp_ns"]):
+            with self._lock:
+                self._publish(self.take_state(msg))
 
     def on_wrench(self, msg, recv_ns, raw):
-        if not estimator_instant(msg["stamp_ns"]):
-            return
-        with self._lock:
-            self._wrenches[msg["seq"]] = msg
-            self._try(msg["seq"])
+        if estimator_instant(msg["stamp_ns"]):
+            with self._lock:
+                self._publish(self.take_wrench(msg))
+
+    def _publish(self, packed) -> None:
+        if packed is not None:
+            self.bus.publish(ESTIMATOR_PHASE.topic, *packed)
+
+    # an estimator instant's inputs: the estimate once both are in, ``estimator/phase`` as
+    # ``pack`` gives it, or None.  Unlocked: the handlers above hold the lock; an engine that
+    # steps the nodes itself (services.transport.fused) calls them from its one thread
+
+    def take_state(self, msg):
+        # a cycle still waiting for its wrench when the next one comes has lost it
+        stale = [k for k in self._states if k < msg["seq"]]
+        for k in stale:
+            del self._states[k]
+        if stale and self.filter is not None:
+            self.skipped += len(stale)
+        self._states[msg["seq"]] = msg
+        return self._try(msg["seq"])
+
+    def take_wrench(self, msg):
+        self._wrenches[msg["seq"]] = msg
+        return self._try(msg["seq"])
 
     def _try(self, seq):
         state = self._states.get(seq)
         wrench = self._wrenches.get(seq)
         if state is None or wrench is None:
-            return  # wait for the other input of this very cycle
+            return None  # wait for the other input of this very cycle
         for store in (self._states, self._wrenches):
             for k in [k for k in store if k <= seq]:
                 del store[k]
         if self.filter is None or state["episode"] != self.episode:
-            return
+            return None
         fault = unconditioned = None
         if wrench["status"] != 0:
             self.skipped += 1
@@ -164,7 +176,7 @@ class PhaseEstimatorNode(Node):
                 alpha = self.filter.anchor(s, f) if unconditioned else self.filter.update(s, f)
             except ValueError:
                 self.skipped += 1
-                return
+                return None
             self._last = (state["stamp_ns"], commanded)
             if unconditioned:
                 self.unconditioned[unconditioned] += 1
@@ -175,12 +187,12 @@ class PhaseEstimatorNode(Node):
             self._t0 = state["stamp_ns"]
         if self.mute_after_ns and state["stamp_ns"] - self._t0 >= self.mute_after_ns:
             self.muted += 1
-            return
-        self.bus.publish(ESTIMATOR_PHASE.topic, *ESTIMATOR_PHASE.pack(
+            return None
+        return ESTIMATOR_PHASE.pack(
             seq=seq, stamp_ns=state["stamp_ns"], sent_ns=self.clock.now_ns(), posterior=alpha,
             phase=int(np.argmax(alpha)), input_seq=seq, ft_seq=wrench["seq"], episode=self.episode,
             **({"input_fault": fault} if fault else {}),
-            **({"unconditioned": unconditioned} if unconditioned else {})))
+            **({"unconditioned": unconditioned} if unconditioned else {}))
 
     def handlers(self):
         return {"reset": self.reset}

@@ -99,32 +99,41 @@ class RecorderNode(Node):
         self.visual_errors = self.visual_undecodable = 0  # of the episodes finished
 
     def on_sample(self, topic: str, recv_ns: int, raw: bytes, message: dict | None = None) -> None:
-        if len(raw) > MAX_PAYLOAD_BYTES:
-            # no receiver reads it: recording it would only let a foreign peer fill the disk
-            self.oversized += 1
-            return
-        if message is not None:
-            seq = message["seq"]
-        else:
-            m = SEQ_PREFIX.match(raw)
-            seq = int(m.group(1)) if m else None
+        self.take(((topic, recv_ns, raw, message),))
+
+    def take(self, samples) -> None:
+        """Messages of the run in the order they came, each (topic, receive time, payload, the
+        decoded message or None): one at a time from a transport (``on_sample``), or a
+        cycle's at once (``services.transport.fused``)."""
+        keys = self._keys
         with self.lock:
+            writer = self.writer
             try:
-                if self.writer is not None:
-                    # a message already decoded (one process) needs no decoding for its publish time
-                    key = self._keys.get(topic)
-                    if key is None:
-                        key = self._keys[topic] = self.prefix + topic
-                    self.writer.add(key, raw, recv_ns,
-                                    None if message is None else message["sent_ns"])
-                    self.total += 1
+                for topic, recv_ns, raw, message in samples:
+                    if len(raw) > MAX_PAYLOAD_BYTES:
+                        # no receiver reads it: recording it would only let a foreign peer fill the disk
+                        self.oversized += 1
+                        continue
+                    if message is not None:
+                        seq = message["seq"]
+                    else:
+                        m = SEQ_PREFIX.match(raw)
+                        seq = int(m.group(1)) if m else None
+                    try:
+                        if writer is not None:
+                            # a message already decoded (one process) needs no decoding for its publish time
+                            key = keys.get(topic)
+                            if key is None:
+                                key = keys[topic] = self.prefix + topic
+                            writer.add(key, raw, recv_ns, None if message is None else message["sent_ns"])
+                            self.total += 1
+                    finally:
+                        # arrived, even when the file could not take it (a full disk): ending the
+                        # episode then says so at once instead of waiting for it to be written
+                        if seq is not None and seq > self.last_seq.get(topic, -1):
+                            self.last_seq[topic] = seq
             finally:
-                # arrived, even when the file could not take it (a full disk): ending the
-                # episode then says so at once instead of waiting for it to be written
-                if seq is not None:
-                    if seq > self.last_seq.get(topic, -1):
-                        self.last_seq[topic] = seq
-                    self.lock.notify_all()
+                self.lock.notify_all()
 
     def lagging(self, wanted, last: int) -> list:
         """The topics among ``wanted`` whose newest message is older than cycle ``last``."""

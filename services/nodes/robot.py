@@ -262,8 +262,26 @@ class RobotNode(Node):
     # --------------------------------------------------------------- cycles
 
     def open_cycle(self) -> tuple[int, int]:
-        """Measure and publish: the FRI measurement and the physics' truth."""
-        cell, ep, sec, now = self.cell, self.ep, self.ep.sections, self.clock.now_ns
+        """Measure and publish: the FRI measurement (first: it is what the commander answers)
+        and the physics' truth."""
+        bus, now = self.bus, self.clock.now_ns
+        state = self.measure_state()
+        t = now()
+        if not self.relayed:
+            bus.publish(ROBOT_STATE.topic, *state)
+        self.ep.sections.add("publish", now() - t)
+        contact = self.measure_contact()
+        t = now()
+        bus.publish(ROBOT_CONTACT.topic, *contact)
+        self.ep.sections.add("publish", now() - t)
+        return self._m.seq, self._m.stamp_ns
+
+    # what opening a cycle measures, each as ``pack`` gives it (payload, message), for whoever
+    # carries them: ``open_cycle``, or an engine that steps the nodes itself (services.transport.fused)
+
+    def measure_state(self) -> tuple:
+        """Open a cycle: the FRI measurement, ``robot/state``."""
+        cell, sec, now = self.cell, self.ep.sections, self.clock.now_ns
         t0 = now()
         m = cell.begin_cycle()
         if self.udp is not None:
@@ -273,35 +291,37 @@ class RobotNode(Node):
         sec.add("measure", sent - t0)
         state = state_message(m, sent_ns=sent, safety=int(cell.krc.safety),
                               gravity_compensation=bool(cell.krc.gravity_compensation), episode=self.episode)
-        t1 = now()
-        if not self.relayed:
-            self.bus.publish(ROBOT_STATE.topic, *state)
-        t2 = now()
-        sec.add("encode", t1 - sent)
-        sec.add("publish", t2 - t1)
+        sec.add("encode", now() - sent)
+        self._m, self._sent = m, sent
+        return state
+
+    def measure_contact(self) -> tuple:
+        """The open cycle's physics' truth, ``robot/contact``."""
+        cell, ep, m, now = self.cell, self.ep, self._m, self.clock.now_ns
+        t0 = now()
         wrench, contact, touching = cell.tool_wrench, cell.contact_force, cell.touching
         true_phase = self.labeler.update(touching)
-        ep.measured(m.seq, sent, math.hypot(contact[0], contact[1], contact[2]))
-        t3 = now()
-        contact_msg = ROBOT_CONTACT.pack(
-            seq=m.seq, stamp_ns=m.stamp_ns, sent_ns=t3, wrench=wrench, contact_force=contact,
+        ep.measured(m.seq, self._sent, math.hypot(contact[0], contact[1], contact[2]))
+        t1 = now()
+        packed = ROBOT_CONTACT.pack(
+            seq=m.seq, stamp_ns=m.stamp_ns, sent_ns=t1, wrench=wrench, contact_force=contact,
             touching=touching, true_phase=true_phase, tcp_pose=cell.true_tcp_pose, tcp_twist=cell.true_tcp_twist,
             episode=self.episode)
-        t4 = now()
-        self.bus.publish(ROBOT_CONTACT.topic, *contact_msg)
-        sec.add("measure", t3 - t2)
-        sec.add("encode", t4 - t3)
-        sec.add("publish", now() - t4)
-        self._m, self._sent = m, sent
-        return m.seq, m.stamp_ns
+        ep.sections.add("measure", t1 - t0)
+        ep.sections.add("encode", now() - t1)
+        return packed
 
     def close_cycle(self, stop_on) -> str | None:
         """Hand the open cycle's answers to the FRI link, apply the hand, step; the judge
         says whether the episode ends (why, or None)."""
+        return self.apply(*self.inbox.take(self._m.seq), stop_on)
+
+    def apply(self, commands, teacher_entry, latest_teacher, stop_on) -> str | None:
+        """Close the open cycle with these answers (``AnswerInbox.take``'s three): the commands
+        to the FRI link, the hand, the step; the judge says whether the episode ends."""
         cell, ep, m, sent = self.cell, self.ep, self._m, self._sent
         sec = ep.sections
         t0 = self.clock.now_ns()
-        commands, teacher_entry, latest_teacher = self.inbox.take(m.seq)
         faults = cell.fri.faults
         if faults is not None:
             faults.active = self.config.fri.active(ep.k * cell.cycle_ns / 1e9)

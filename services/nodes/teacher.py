@@ -53,17 +53,31 @@ class TeacherNode(Node):
 
     def on_state(self, msg, recv_ns, raw):
         with self._lock:
-            self._states[msg["seq"]] = msg
-            self._try(msg["seq"])
+            self._publish(self.take_state(msg))
 
     def on_contact(self, msg, recv_ns, raw):
         with self._lock:
-            self._contacts[msg["seq"]] = msg
-            self._try(msg["seq"])
+            self._publish(self.take_contact(msg))
+
+    def _publish(self, packed) -> None:
+        if packed is not None:
+            self.bus.publish(TEACHER_WRENCH.topic, *packed)
+
+    # the hand's answer once both of a cycle's messages are in: ``teacher/wrench`` as ``pack``
+    # gives it, or None.  Unlocked: the handlers above hold the lock; an engine that steps
+    # the nodes itself (services.transport.fused) calls them from its one thread
+
+    def take_state(self, msg):
+        self._states[msg["seq"]] = msg
+        return self._try(msg["seq"])
+
+    def take_contact(self, msg):
+        self._contacts[msg["seq"]] = msg
+        return self._try(msg["seq"])
 
     def _try(self, seq):
         if seq not in self._states or seq not in self._contacts:
-            return
+            return None
         state = self._states.pop(seq)
         contact = self._contacts.pop(seq)
         for store in (self._states, self._contacts):  # answers for older cycles are moot now
@@ -71,7 +85,7 @@ class TeacherNode(Node):
                 for k in [k for k in store if k < seq]:
                     del store[k]
         if self.teacher is None or state["episode"] != self.episode:
-            return
+            return None
         true_pose, twist = contact.get("tcp_pose"), contact.get("tcp_twist")
         if true_pose is not None and twist is not None:
             # the hand holds the tool: it feels its true motion, not the KRC's measurement
@@ -94,9 +108,9 @@ class TeacherNode(Node):
         done = bool(self.teacher.done)
         if isinstance(self.teacher, HoseCouplerTeacher):
             done = self.teacher.phase == 1 and self.teacher.rotation_done(R)
-        self.bus.publish(TEACHER_WRENCH.topic, *TEACHER_WRENCH.pack(
+        return TEACHER_WRENCH.pack(
             seq=seq, stamp_ns=state["stamp_ns"], sent_ns=self.clock.now_ns(), wrench=hand,
-            script_phase=int(self.teacher.phase), done=done, episode=self.episode))
+            script_phase=int(self.teacher.phase), done=done, episode=self.episode)
 
     @property
     def listening(self) -> bool:

@@ -39,7 +39,7 @@ IGNORED = (
     "messages it has, which over a network depends on the order of arrival)",
     "the run id (in the key expressions and the metadata record, in no payload compared)",
     "log and publish times, the metadata record (start, model path), the scenario attachment, the chunking",
-    "in report.json: the run id, the transport, the provenance, every wall-clock figure (wall_seconds, "
+    "in report.json: the run id, the transport and its engine, the provenance, every wall-clock figure (wall_seconds, "
     "episode_wall_seconds, real_time_factor) and the timing",
     "in model.json (compared as a digest of the rest): the fit's seconds, the note of what made it and the "
     "demonstrations' folders",
@@ -300,6 +300,12 @@ def _run_folder(path) -> Path:
     return p
 
 
+def _transport(report: dict):
+    """The transport a report names, with its engine in one process ('inproc (fused)')."""
+    engine = report.get("engine")
+    return f"{report.get('transport')} ({engine})" if engine else report.get("transport")
+
+
 def _result_rows(run_a: Path, ra: dict, run_b: Path, rb: dict) -> list[Row]:
     sa, sb = run_scenario(run_a), run_scenario(run_b)
     rows = [Row("scenario", ra.get("scenario", sa.get("name")), rb.get("scenario", sb.get("name"))),
@@ -308,7 +314,7 @@ def _result_rows(run_a: Path, ra: dict, run_b: Path, rb: dict) -> list[Row]:
                 (rb.get("environment") or {}).get("clock", sb.get("clock"))),
             Row("error", ra.get("error"), rb.get("error")),
             Row("run_id", ra.get("run_id"), rb.get("run_id"), compared=False),
-            Row("transport", ra.get("transport"), rb.get("transport"), compared=False)]
+            Row("transport", _transport(ra), _transport(rb), compared=False)]
     pa, pb = ra.get("provenance") or {}, rb.get("provenance") or {}
     for k in ("version", "commit"):
         if k in pa or k in pb:

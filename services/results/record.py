@@ -83,6 +83,7 @@ class RunRecord:
     run_id: str
     out: Path  # the run's folder, absolute
     transport: str
+    engine: str | None = None  # in one process: how the FRI cycles were stepped (per-message, fused)
     # zenoh: FRI and the wrench over the bus; udp: over FRI 1.0/UDP and Net F/T (--wire udp, serve)
     wire: str = "zenoh"
     world: str | None = None  # the task world: its surfaces and its phases' names in the figures

@@ -338,6 +338,7 @@ def write_report(run: RunRecord, exit_codes: dict, error: str | None, wall_secon
         "error": error,
         "wall_seconds": wall_seconds,
         "transport": run.transport,
+        **({"engine": run.engine} if run.engine else {}),
         "wire": run.wire,
         # what made the run: the code (version, commit, uncommitted changes), the date, the
         # command line and the libraries' versions

@@ -16,7 +16,7 @@ from services.run.realtime_profile import parse_profile
 from services.runtime import topics
 from services.runtime.roles import CELL_ROLES, FIFO_CHAIN
 from services.scenario import Scenario, ScenarioError
-from services.transport.carriers import TRANSPORTS, carrier
+from services.transport.carriers import ENGINES, TRANSPORTS, carrier
 from services.transport.session import ZenohOptions
 
 
@@ -30,6 +30,9 @@ class RunOptions:
     # zenoh: every node in its own process (the lab's layout, realtime or lockstep);
     # inproc: every node in this process on an in-memory bus (lockstep only: speed, sweeps)
     transport: str = "zenoh"
+    # inproc: how the FRI cycles are stepped, per-message or fused (services.transport.carriers.
+    # ENGINES); None: the default
+    engine: str | None = None
     zenoh: ZenohOptions | None = None  # None: the runner listens on a free loopback port
     robot_args: tuple = ()  # extra flags for the robot (e.g. fault injection)
     commander_args: tuple = ()
@@ -94,6 +97,11 @@ class RunOptions:
                 raise ValueError("--foxglove cannot be combined with --tls, --hosts or --attach yet: the bridge "
                                  "would need credentials and a host of its own")
         in_process = self.transport == "inproc"
+        if self.engine is not None and (self.engine not in ENGINES or not in_process):
+            raise ValueError(f"--engine must be one of {', '.join(ENGINES)}, got {self.engine!r}"
+                             if self.engine not in ENGINES else
+                             f"--engine {self.engine} steps the nodes of a run in one process: it needs "
+                             "--transport inproc (over Zenoh every node is its own process)")
         if self.ros2 is not None:
             check_domain(self.ros2, "--ros2 DOMAIN")
             if in_process or self.tls is not None or self.hosts is not None or self.attach:
@@ -137,7 +145,7 @@ class RunOptions:
         if self.foxglove:
             port_free(self.foxglove)
         chosen = carrier(self.transport, self.roles(scenario), zenoh=self.zenoh, tls=self.tls, hosts=self.hosts,
-                         attach=self.attach)
+                         attach=self.attach, engine=self.engine)
         if self.wire == "udp" and scenario.clock != "realtime":
             raise ScenarioError("--wire udp needs the realtime clock (--clock realtime): the KRC sends on its own "
                                 "clock and the remote answers on the wall clock", path="clock",

@@ -72,6 +72,7 @@ class Runner:
         self.run_id = options.run_id or f"{scenario.name}-{uuid.uuid4().hex[:8]}"
         self.record = RunRecord(scenario_name=scenario.name, source=scenario.source, clock=scenario.clock,
                                 run_id=self.run_id, out=self.out, transport=self.transport.name,
+                                engine=getattr(self.transport, "engine", None),
                                 wire="udp" if options.serve is not None else options.wire, world=scenario.world,
                                 workers=options.workers, provenance=provenance(options.command),
                                 # the scenario's view is its model's: the learn stage's, and a stored

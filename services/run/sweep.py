@@ -116,6 +116,7 @@ class RunSpec:
     out: str
     record: str
     learn_threads: int
+    engine: str | None = None  # how the run's FRI cycles are stepped (None: the default)
 
     @property
     def seed(self) -> int:
@@ -127,13 +128,13 @@ class RunSpec:
         a twentieth of a run's CPU, and a sweep's runs share the CPUs."""
         from services.run.options import RunOptions
 
-        return RunOptions(out=self.out, transport="inproc", figures=False, run_id=f"sweep-{self.name}",
-                          learn_threads=self.learn_threads, workers=1,
+        return RunOptions(out=self.out, transport="inproc", engine=self.engine, figures=False,
+                          run_id=f"sweep-{self.name}", learn_threads=self.learn_threads, workers=1,
                           recorder_args=() if self.record == "full" else ("--visual-rate-hz", "0"))
 
 
 def plan(base: Scenario, parameters: list, repeats: int, out: Path, record: str,
-         learn_threads: int) -> list[RunSpec]:
+         learn_threads: int, engine: str | None = None) -> list[RunSpec]:
     """Every combination x seed, as a scenario value (validated), each also written out
     under ``out/scenarios/`` as a record of what ran."""
     if repeats < 1:
@@ -158,7 +159,8 @@ def plan(base: Scenario, parameters: list, repeats: int, out: Path, record: str,
             scenario = varied.replace("seed", seed)
             index = len(specs)
             name = f"run{index:03d}"
-            specs.append(RunSpec(index, name, params, scenario, str(out / "runs" / name), record, learn_threads))
+            specs.append(RunSpec(index, name, params, scenario, str(out / "runs" / name), record, learn_threads,
+                                 engine))
     # written once every combination is valid: a refused sweep leaves no sweep behind
     (out / "scenarios").mkdir(parents=True, exist_ok=True)
     for spec in specs:
@@ -523,17 +525,20 @@ def plot(rows: list[dict], parameters: list, out: Path) -> list[Path]:
 
 def sweep(scenario: Scenario, parameters: list, *, repeats: int, out: str, record: str = "summary",
           workers: int | None = None, cluster: str | None = None, learn_threads: int | None = None,
-          replace: bool = False, say=print) -> dict:
+          replace: bool = False, say=print, engine: str | None = None) -> dict:
     from services.runtime.threads import available_cpus
+    from services.transport.carriers import ENGINES
 
     out_dir = Path(out).expanduser().resolve()
     for flag, value in (("--workers", workers), ("--learn-threads", learn_threads), ("--repeats", repeats)):
         if value is not None and value < 1:
             raise SweepError(f"{flag} must be >= 1, got {value}")
+    if engine is not None and engine not in ENGINES:
+        raise SweepError(f"--engine must be one of {', '.join(ENGINES)}, got {engine!r}")
     _prepare(out_dir, out, replace)
     workers = available_cpus() if workers is None else workers
     threads = learn_threads or max(1, available_cpus() // workers)
-    specs = plan(scenario, parameters, repeats, out_dir, record, threads)
+    specs = plan(scenario, parameters, repeats, out_dir, record, threads, engine)
     t0 = time.monotonic()
     try:
         rows = execute(specs, min(workers, len(specs)), cluster, say)
@@ -553,7 +558,7 @@ def sweep(scenario: Scenario, parameters: list, *, repeats: int, out: str, recor
     pngs = plot(rows, parameters, out_dir)
     summary = dict(scenario=scenario.source, parameters={p.path: list(p.values) for p in parameters}, repeats=repeats,
                    runs=n_runs, failed=n_failed, wall_seconds=wall,
-                   workers=workers, cluster=cluster, learn_threads=threads,
+                   workers=workers, cluster=cluster, learn_threads=threads, engine=engine,
                    table=str(csv_path), plots=[str(p) for p in pngs],
                    comparison=str(out_dir / "comparison.txt") if comparison else None)
     write_file(out_dir / "sweep.json", json.dumps(summary, indent=1) + "\n")

@@ -17,22 +17,38 @@ from services.runtime.cycle import CLOCKS
 from services.transport.cell import Cell, Start
 
 
+ENGINES = ("per-message", "fused")
+DEFAULT_ENGINE = "fused"
+
+
 @dataclass(frozen=True)
 class InProcess:
-    """Every node in this process, lockstep."""
+    """Every node in this process, lockstep.  ``engine``: how the FRI cycles are stepped,
+    per-message (every message through the in-memory bus to every handler,
+    ``services.transport.inproc``) or fused (the 1 kHz path walked once per cycle,
+    ``services.transport.fused``); the same recordings either way."""
 
+    engine: str = DEFAULT_ENGINE
     name = "inproc"
     clocks = ("lockstep",)
     offloads_recording = True  # MCAP writing in a helper process: it took a fifth of each cycle here
     spawns = False
 
+    def __post_init__(self):
+        if self.engine not in ENGINES:
+            raise ValueError(f"--engine must be one of {', '.join(ENGINES)}, got {self.engine!r}")
+
     def open(self, run_id: str, configs: dict, start: Start) -> Cell:
+        if self.engine == "fused":
+            from services.transport.fused import FusedCell
+
+            return FusedCell(run_id, configs)
         from services.transport.inproc import InProcessCell
 
         return InProcessCell(run_id, configs)
 
     def describe(self) -> str:
-        return "in-process"
+        return f"in-process ({self.engine} engine)"
 
 
 @dataclass(frozen=True)
@@ -79,14 +95,17 @@ TRANSPORTS = ("zenoh", "inproc")
 
 
 def carrier(transport: str, roles, *, zenoh=None, tls: str | None = None, hosts: str | None = None,
-            attach: bool = False):
+            attach: bool = False, engine: str | None = None):
     """The transport called ``transport`` with its options, checked before anything starts:
     a hosts layout against the run's ``roles`` (HostsError), every credential (CredentialsError
-    naming the file)."""
+    naming the file); ``engine`` (in one process only; None: the default)."""
     if transport == "inproc":
-        return InProcess()
+        return InProcess(engine or DEFAULT_ENGINE)
     if transport != "zenoh":
         raise ValueError(f"transport must be one of {', '.join(TRANSPORTS)}, got {transport!r}")
+    if engine is not None:
+        raise ValueError(f"--engine {engine} steps the nodes of a run in one process: it needs --transport inproc "
+                         "(over Zenoh every node is its own process)")
     layout = None
     if hosts is not None:
         from services.transport.hosts import parse_layout

@@ -75,37 +75,48 @@ class InProcessBus:
 
     def publish(self, topic: str, payload: bytes, message: dict | None = None) -> None:
         if self.check and message is not None:
-            decoded = self._decode(topic, payload)
-            if not _same(decoded, message):
-                raise AssertionError(f"{topic}: the message handed over in memory is not what its bytes decode to:"
-                                     f"\n  in memory {message!r}\n  decoded   {decoded!r}")
+            self.verify(topic, payload, message)
         self._queue.append((topic, payload, message))
+
+    def verify(self, topic: str, payload: bytes, message: dict) -> None:
+        """AssertionError unless ``message`` is exactly what ``payload`` decodes to."""
+        decoded = self._decode(topic, payload)
+        if not _same(decoded, message):
+            raise AssertionError(f"{topic}: the message handed over in memory is not what its bytes decode to:"
+                                 f"\n  in memory {message!r}\n  decoded   {decoded!r}")
+
+    def pending(self) -> bool:
+        return bool(self._queue)
 
     def drain(self) -> None:
         queue, subs, now = self._queue, self._subs, self.clock.now_ns
         while queue:
             topic, raw, message = queue.popleft()
-            recv = now()
-            # decoding is what a network needs: a message packed in this process is handed over as it is
-            msg = _UNDECODED if message is None else message
-            for name, sub in subs.get(topic, ()):
-                if sub.every_tenth and not (tenth_cycle(raw) if message is None else _tenth_stamp(message)):
+            self.deliver_to(subs, topic, raw, message, now())
+
+    def deliver_to(self, subs: dict, topic: str, raw: bytes, message: dict | None, recv: int) -> None:
+        """One message to the subscriptions of ``subs`` (topic -> [(node name, Subscription)],
+        '**' for every topic) and to this bus's wildcard subscribers."""
+        # decoding is what a network needs: a message packed in this process is handed over as it is
+        msg = _UNDECODED if message is None else message
+        for name, sub in subs.get(topic, ()):
+            if sub.every_tenth and not (tenth_cycle(raw) if message is None else _tenth_stamp(message)):
+                continue
+            if sub.decode:
+                if msg is _UNDECODED:
+                    msg = self._decode(topic, raw)
+                if msg is None:
+                    self.count_bad(name, topic, self._decode_error)
                     continue
-                if sub.decode:
-                    if msg is _UNDECODED:
-                        msg = self._decode(topic, raw)
-                    if msg is None:
-                        self._count_bad(name, topic, self._decode_error)
-                        continue
-                    arg = msg
-                else:
-                    arg = None
-                try:
-                    sub.handler(arg, recv, raw)
-                except Exception as exc:  # a bad message must not stop the run
-                    self._count_bad(name, topic, f"{type(exc).__name__}: {exc}")
-            for name, sub in self._all:
-                sub.handler(topic, recv, raw, message)
+                arg = msg
+            else:
+                arg = None
+            try:
+                sub.handler(arg, recv, raw)
+            except Exception as exc:  # a bad message must not stop the run
+                self.count_bad(name, topic, f"{type(exc).__name__}: {exc}")
+        for name, sub in (self._all if subs is self._subs else subs.get("**", ())):
+            sub.handler(topic, recv, raw, message)
 
     def _decode(self, topic, raw):
         mtype = BY_TOPIC.get(topic)
@@ -118,7 +129,7 @@ class InProcessBus:
             self._decode_error = str(exc)
             return None
 
-    def _count_bad(self, name, topic, error):
+    def count_bad(self, name, topic, error):
         key = (name, topic)
         self.bad[key] = self.bad.get(key, 0) + 1
         self.last_error[key] = error
@@ -181,9 +192,10 @@ class InProcessCell:
     def _cycles(self, robot, cmd: str, args: dict) -> dict:
         plan = robot.plan(cmd, args)
         robot.begin_episode(settle=cmd == "settle")
-        engine = CycleEngine(robot, plan, self.clock, mode="lockstep", cycle_ns=robot.cell.cycle_ns,
+        participant = self._participant(robot)
+        engine = CycleEngine(participant, plan, self.clock, mode="lockstep", cycle_ns=robot.cell.cycle_ns,
                              answer_timeout_ns=int(robot.config.answer_timeout * 1e9))
-        bus, clock, nodes = self.bus, self.clock, list(self.nodes.values())
+        clock = self.clock
         progress = self._progress if cmd == "run" else None
         next_report = PROGRESS_CYCLES
         while not engine.done:
@@ -191,19 +203,29 @@ class InProcessCell:
                 next_report += PROGRESS_CYCLES
                 progress(engine.k * robot.cell.cycle_ns / 1e9)
             engine.tick(clock.now_ns())
-            bus.drain()
-            if engine.awaiting():
-                for node in nodes:
-                    node.quiescent()
-                bus.drain()
-                if engine.awaiting():
-                    engine.tick(clock.now_ns(), quiescent=True)
-                    bus.drain()
+            self._deliver(engine, participant)
         summary = robot.end_episode(engine)
         if cmd == "run":
             robot.publish_summary(summary)
         # what a runner over Zenoh gets: the summary as it crosses the wire
         return EPISODE_SUMMARY.decode(EPISODE_SUMMARY.encode(**summary))
+
+    def _participant(self, robot):
+        """What the cycle engine drives: the robot, its cycles' messages carried by the bus."""
+        return robot
+
+    def _deliver(self, engine, participant) -> None:
+        """Deliver everything the cycle engine's tick caused; a cycle still waiting then can get
+        nothing more: the nodes are told, and if it still waits it closes with a missed answer."""
+        bus = self.bus
+        bus.drain()
+        if engine.awaiting():
+            for node in self.nodes.values():
+                node.quiescent()
+            bus.drain()
+            if engine.awaiting():
+                engine.tick(self.clock.now_ns(), quiescent=True)
+                bus.drain()
 
     def run_episode(self, answers_from, stop_on, max_seconds, progress=None, listening=()) -> dict:
         """One episode (the robot's 'run'), driven to its end; its summary.

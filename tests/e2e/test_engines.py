@@ -1,0 +1,83 @@
+"""The two in-process engines, per-message (services.transport.inproc) and fused
+(services.transport.fused): the same seed records the same messages, message for message
+(payloads without sent_ns, as ``etar-bench diff`` compares them), and gives the same
+results, faults included."""
+
+import pytest
+
+from services.nodes.ft_sensor import FtSensorNode
+from services.recordings.reader import recorded_content
+from services.results.diff import diff_runs
+from tests import support
+from tests.support import run
+
+SUMMARY = ("phases_chosen", "successes", "online_phase_accuracy", "mean_transition_error_s", "simulated_seconds")
+
+
+def both(scenario, tmp_path, **options) -> tuple[dict, dict]:
+    """``scenario`` run once per engine; their reports."""
+    reports = {}
+    for engine in ("per-message", "fused"):
+        reports[engine] = run(scenario, tmp_path / engine, progress=lambda m, e=engine: print(f"[{engine}] {m}"),
+                              transport="inproc", engine=engine, run_id=f"engines-{engine}", **options)
+        assert reports[engine]["error"] is None, (engine, reports[engine]["error"])
+    return reports["per-message"], reports["fused"]
+
+
+def assert_same(tmp_path, a: dict, b: dict) -> None:
+    content = recorded_content(tmp_path / "per-message"), recorded_content(tmp_path / "fused")
+    assert content[0].keys() == content[1].keys() and content[0]
+    for name in content[0]:
+        assert content[0][name] == content[1][name], f"{name}: the fused engine recorded other messages"
+    d = diff_runs(tmp_path / "per-message", tmp_path / "fused")
+    assert d.same, d.first_difference
+    for key in SUMMARY:
+        assert a["summary"][key] == b["summary"][key], key
+    episodes = [[{k: v for k, v in e.items() if k != "wall_seconds"} for e in r["demonstrations"] + r["reproductions"]]
+                for r in (a, b)]
+    assert episodes[0] == episodes[1]  # why each ended, its FRI link, peak force, final position, phases
+
+
+def test_the_smoke_records_the_same_messages_with_either_engine(tmp_path, monkeypatch):
+    # every message the fused engine hands over in memory is checked against what its bytes decode to
+    monkeypatch.setenv("ETAR_INPROC_CHECK", "1")
+    a, b = both(support.scenario("smoke"), tmp_path)
+    assert_same(tmp_path, a, b)
+    assert b["summary"]["successes"] == 1 and b["transport"] == "inproc"
+
+
+def test_a_node_whose_work_raises_is_counted_and_the_run_goes_on_alike(tmp_path, monkeypatch):
+    """The sensor fails on every 50th contact message of a demonstration: each engine counts
+    it as a bad message of the sensor, the robot closes that cycle without the sensor's
+    answer, and both record the same messages."""
+    real = FtSensorNode.sample
+
+    def failing(self, msg):
+        if msg["episode"] >= 0 and msg["seq"] % 50 == 0:
+            raise ValueError(f"injected: cycle {msg['seq']}")
+        return real(self, msg)
+
+    monkeypatch.setattr(FtSensorNode, "sample", failing)
+    demonstration = support.scenario("smoke").described()
+    demonstration["stages"] = [{"demonstrate": dict(demonstration["stages"][0]["demonstrate"], count=1)}]
+    from services.scenario import Scenario
+
+    a, b = both(Scenario.from_dict(demonstration), tmp_path)
+    assert_same(tmp_path, a, b)
+    bad = [r["timing"]["links_received"]["robot/contact -> ft_sensor"] for r in (a, b)]
+    assert bad[0] == bad[1] and bad[0]["bad"] > 10 and "injected" in bad[0]["last_error"]
+    assert a["demonstrations"][0]["reason"] == "teacher_done"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name, changes", [
+    # the FRI link's faults: command packets lost for 60 ms in each reproduction, command mode left and entered
+    ("fri_dropout", {}),
+    # the coupler's world, pose state and force/torque features, its BIC choice among 1..4 phases
+    ("hose_coupler", {"demonstrate.count": 2, "reproduce.count": 1}),
+    # the valley with its stored model: reproductions on either side of the plate
+    ("valley", {"demonstrate.count": 1, "reproduce.count": 2}),
+])
+def test_each_scenario_records_the_same_messages_with_either_engine(tmp_path, name, changes):
+    a, b = both(support.scenario(name, changes), tmp_path)
+    assert_same(tmp_path, a, b)
