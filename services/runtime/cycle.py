@@ -95,6 +95,9 @@ class CycleEngine:
         self._deadline = None  # realtime: the start of the next cycle
         self._idle_since = None
         self._timeouts = 0  # lockstep: consecutive cycles closed at the answer timeout
+        self._every = list(plan.answers_from)
+        self._most = [w for w in plan.answers_from if w != "phase"]
+        self._need = self._most
 
     # ------------------------------------------------------------- state
 
@@ -107,7 +110,7 @@ class CycleEngine:
         return self._open_seq is not None and not self._answered()
 
     def _needed(self) -> list:
-        return [w for w in self.plan.answers_from if w != "phase" or estimator_instant(self._open_stamp)]
+        return self._need
 
     def _answered(self) -> bool:
         return self.p.answered(self._needed(), self._open_seq)
@@ -185,6 +188,8 @@ class CycleEngine:
     def _open(self) -> None:
         self.p.sections.cycles += 1
         self._open_seq, self._open_stamp = self.p.open_cycle()
+        # the answers this cycle waits for: the estimator's only at its instants
+        self._need = self._every if estimator_instant(self._open_stamp) else self._most
 
     def _close(self, stop_on) -> None:
         why = self.p.close_cycle(stop_on)

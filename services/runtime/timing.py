@@ -43,6 +43,7 @@ def longest_run(flags) -> int:
 EXACT_SAMPLES = 20_000
 FINE_NS = 1_000
 MAX_OVERFLOW_VALUES = 20_000
+_PENDING = 1024  # values a histogram takes before it counts them into its bins
 
 
 @dataclass
@@ -52,16 +53,17 @@ class Histogram:
 
     limit_ns: int = DEFAULT_LIMIT_NS
     bin_ns: int = BIN_NS
-    counts: np.ndarray = field(default=None)
     overflow: int = 0
     samples: list | None = field(default_factory=list)  # None once past EXACT_SAMPLES
 
     def __post_init__(self):
         if self.limit_ns % self.bin_ns:
             raise ValueError(f"limit {self.limit_ns} ns is not a whole number of {self.bin_ns} ns bins")
-        if self.counts is None:
-            self.counts = np.zeros(self.limit_ns // self.bin_ns, dtype=np.int64)
-        self._fine = [0] * -(-self.limit_ns // FINE_NS)
+        self._counts = np.zeros(self.limit_ns // self.bin_ns, dtype=np.int64)
+        self._fine = np.zeros(-(-self.limit_ns // FINE_NS), dtype=np.int64)
+        # values below the limit not yet counted into the bins: counted in bulk (``_flush``), since
+        # one increment of a numpy bin from Python cost a 1 kHz loop about a microsecond per value
+        self._pending: list = []
         self._over: list = []  # the overflow's values (the largest kept past MAX_OVERFLOW_VALUES)
         self._n = 0
         self._sum = 0
@@ -84,18 +86,34 @@ class Histogram:
             if len(self._over) > 2 * MAX_OVERFLOW_VALUES:
                 self._over = sorted(self._over)[-MAX_OVERFLOW_VALUES:]
         else:
-            self.counts[v // self.bin_ns] += 1
-            self._fine[v // FINE_NS] += 1
+            self._pending.append(v)
+            if len(self._pending) >= _PENDING:
+                self._flush()
         if self.samples is not None:
             self.samples.append(v)
             if len(self.samples) > EXACT_SAMPLES:
                 self.samples = None
 
+    @property
+    def counts(self) -> np.ndarray:
+        """The count of each bin below the limit (the array itself: a caller may add to it)."""
+        self._flush()
+        return self._counts
+
+    def _flush(self) -> None:
+        """Count the pending values into ``counts`` and the 1 us bins (every reader calls it)."""
+        if self._pending:
+            values = np.asarray(self._pending, dtype=np.int64)
+            self._pending = []
+            self._counts += np.bincount(values // self.bin_ns, minlength=self._counts.size)
+            self._fine += np.bincount(values // FINE_NS, minlength=self._fine.size)
+
     def _percentiles(self) -> dict:
         """percentiles() from the 1 us bins (bin centres, linearly between ranks) and the
         overflow's values, for a histogram past EXACT_SAMPLES."""
         n = self._n
-        fine = np.asarray(self._fine, dtype=np.int64)
+        self._flush()
+        fine = self._fine
         cum = np.cumsum(fine)
         over = np.sort(np.asarray(self._over, dtype=np.float64))
         below = int(cum[-1]) if cum.size else 0
@@ -117,6 +135,7 @@ class Histogram:
 
     @property
     def total(self) -> int:
+        self._flush()
         return int(self.counts.sum()) + self.overflow
 
     def summary(self) -> dict:
@@ -124,11 +143,13 @@ class Histogram:
         return dict(exact, overflow=self.overflow, bin_us=self.bin_ns / 1e3, limit_us=self.limit_ns / 1e3)
 
     def to_dict(self) -> dict:
+        self._flush()
         nz = np.flatnonzero(self.counts)
         return dict(self.summary(), bins={int(i * self.bin_ns // 1000): int(self.counts[i]) for i in nz})
 
     def text(self, title: str = "") -> str:
         """cyclictest-style: one line per non-empty bin ("<us> <count>"), then totals."""
+        self._flush()
         lines = [f"# {title}" if title else "# histogram", f"# bin width {self.bin_ns / 1e3:.0f} us"]
         for i in np.flatnonzero(self.counts):
             lines.append(f"{i * self.bin_ns // 1000:06d} {int(self.counts[i]):09d}")
