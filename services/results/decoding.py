@@ -133,13 +133,21 @@ def decode_episode(reading: EpisodeReading) -> DecodedEpisode:
     return out
 
 
-def decode_episodes(readings: list[EpisodeReading], workers: int | None = 1) -> list[DecodedEpisode]:
+def decode_episodes(readings: list[EpisodeReading], workers: int | None = 1,
+                    decoded: list = ()) -> list[DecodedEpisode]:
     """``decode_episode`` of each reading, in order; on ``workers`` processes (None: every
-    CPU) once the recordings are worth a pool's start (~1.4 s of imports per process)."""
-    if sum(_size(r.path) for r in readings) < PARALLEL_READ_BYTES:
+    CPU) once the recordings are worth a pool's start (~1.4 s of imports per process).
+    ``decoded``: (reading, its DecodedEpisode) pairs decoded already, while the run went on
+    (``services.run.report_reads``): a reading equal to one of them is not decoded again."""
+    out = [next((d for r, d in decoded if r == reading), None) for reading in readings]
+    todo = [i for i, d in enumerate(out) if d is None]
+    rest = [readings[i] for i in todo]
+    if sum(_size(r.path) for r in rest) < PARALLEL_READ_BYTES:
         workers = 1
     with process_map(workers) as read_map:
-        return list(read_map(decode_episode, readings))
+        for i, d in zip(todo, read_map(decode_episode, rest)):
+            out[i] = d
+    return out
 
 
 def _size(path) -> int:

@@ -312,11 +312,13 @@ def _timing(run: RunRecord, episodes: list, loops: list, links: dict, received: 
     }
 
 
-def write_report(run: RunRecord, exit_codes: dict, error: str | None, wall_seconds: float) -> dict:
+def write_report(run: RunRecord, exit_codes: dict, error: str | None, wall_seconds: float,
+                 decoded: list = ()) -> dict:
     """report.json, report.txt, timing.txt and timing.png in the run's folder; the report.
-    Each recording is decoded once (``episode_readings``); the report, its text and what the
-    figures draw from each recording are left in ``run`` for the figures and the page."""
-    decoded = decode_episodes(episode_readings(run), run.workers)
+    Each recording is decoded once (``episode_readings``; ``decoded``: those decoded as the run
+    went, ``decode_episodes``); the report, its text and what the figures draw from each
+    recording are left in ``run`` for the figures and the page."""
+    decoded = decode_episodes(episode_readings(run), run.workers, decoded)
     links, phases_of, quality, undecodable = _gathered(run, decoded)
     timelines = {path: fri_quality_timeline(*series) for path, series in quality.items()}
     repro = _reproductions(run, phases_of, timelines, undecodable)

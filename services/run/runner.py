@@ -31,7 +31,7 @@ from pathlib import Path
 from services.results.decoding import LearnerView
 from services.results.folder import SCENARIO_FILE, check_run_folder, prepare_run_folder
 from services.results.record import EpisodeRecord, RunRecord
-from services.results.report import write_report
+from services.results.report import episode_readings, write_report
 from services.ros2.wire import FULL_NODE_NAME
 from services.run.configs import node_configs
 from services.run.episode import Episodes, Recording
@@ -39,6 +39,7 @@ from services.run.learn import DemonstrationReads, learn, stored_model
 from services.run.options import RunOptions
 from services.run.preflight import preflight, start_problem
 from services.run.realtime_profile import Grant, parse_profile, placement, probe
+from services.run.report_reads import ReportReads
 from services.run.serve import SERVED_TOPICS, served_start
 from services.scenario import Scenario
 from services.scenario.starts import teacher_seed
@@ -81,6 +82,7 @@ class Runner:
                                 if options.figures else None)
         self.cell = None
         self.episodes = None
+        self.report_reads = ReportReads(scenario.clock == "lockstep" and options.workers != 1)
         self.ready = threading.Event()  # set once every service is up (tests and benches wait on it)
         self._interrupted = False  # a Ctrl-C or SIGTERM has been taken
         self._late_signal = ""  # one that came once the stages had ended (raised after the report)
@@ -120,7 +122,7 @@ class Runner:
             if self.options.serve is not None:
                 self.serve(self.options.serve)
             else:
-                with DemonstrationReads(sc, self.options.workers) as self.reads:
+                with DemonstrationReads(sc, self.options.workers) as self.reads, self.report_reads:
                     for index, stage in enumerate(sc.stages):
                         # the starts the preflight drew and found within reach, drawn once
                         getattr(self, f"stage_{stage.kind}")(stage, self.preflight.stage_starts(index))
@@ -164,7 +166,7 @@ class Runner:
                     self.profile.release()
                 if self.profile.requested:
                     self.record.realtime_profile = self.profile.to_dict()
-                report = write_report(self.record, codes, error, time.monotonic() - t0)
+                report = write_report(self.record, codes, error, time.monotonic() - t0, self.report_reads.decoded)
                 if self.options.figures:
                     from services.results.html import write_figures_and_page
 
@@ -246,6 +248,7 @@ class Runner:
             self.record.reproductions.append(EpisodeRecord(
                 str(recording), side, list(start), summary, rec, max_contact_force=stage.max_contact_force,
                 model=name, phase_to_truth=model.phase_to_truth))
+            self.report_reads.catch_up(episode_readings(self.record))  # decoded while the next ones run
             self.say(f"{label} ({side}): {summary['reason']}, peak contact "
                      f"{summary['peak_contact_force']:.1f} N, {summary['sim_seconds']:.1f} s simulated / "
                      f"{summary['wall_seconds']:.1f} s wall")

@@ -10,7 +10,9 @@ parallelism comes from running several at a time.
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
+import threading
 
 
 def available_cpus() -> int:
@@ -34,36 +36,61 @@ def learning_threads(n: int | None):
         numba.set_num_threads(before)
 
 
-def _worker_start() -> None:
+def _spawning(pool_map, fn, *iterables):
+    """``pool_map`` (which starts the pool's processes as it needs them) with SIGINT blocked
+    meanwhile: the processes start with it blocked, until their ``_worker_start`` ignores it.
+    Here a SIGINT waits until the work is handed over, then interrupts as ever."""
+    import signal
+
+    if threading.current_thread() is not threading.main_thread():
+        return pool_map(fn, *iterables)
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        return pool_map(fn, *iterables)
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, before)
+
+
+def _worker_start(idle: bool = False) -> None:
     import signal
 
     import numba
 
     numba.set_num_threads(1)
-    # Ctrl-C is the runner's to handle: it ends the pool, a worker needs no traceback of its own
+    # Ctrl-C is the runner's to handle: it ends the pool, a worker needs no traceback of its own.
+    # Until here SIGINT was blocked (``_spawning``): a second Ctrl-C to the process group while
+    # the report's pool started killed a worker half-way through its start-up, and the report
+    # was lost to a BrokenProcessPool
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    if idle:
+        # only CPU nobody else wants: beside a run on two cores its work slowed the run's
+        # own processes (the valley's episodes 38.5 -> 45.6 s) more than it saved
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
 
 
 @contextlib.contextmanager
-def process_map(workers: int | None):
+def process_map(workers: int | None, beside: bool = False):
     """A ``map`` over independent pieces of a run's own work (the candidate fits of a
     phase-count selection, reading the recordings for the report): ``workers`` None,
     a pool of one single-threaded process per CPU this process may use; 1 (a sweep,
-    whose parallelism is across runs), the builtin ``map`` in this process.  Results
-    come back in order, whatever runs where.  For the fits: numba's parallel E-step
+    whose parallelism is across runs), the builtin ``map`` in this process, or with
+    ``beside`` a pool of one process under SCHED_IDLE (work that goes on while the run goes
+    on, on the CPU it leaves).  Results come back in order, whatever runs where.  For the fits: numba's parallel E-step
     gains little on one demonstration's thousand steps (the valley's 36 candidate
     fits: 17.9 s on 2 threads, 19.4 s on one, 11.6 s in two processes)."""
-    workers = available_cpus() if workers is None else int(workers)
-    if workers < 2:
+    workers = 1 if beside else available_cpus() if workers is None else int(workers)
+    if workers < 2 and not beside:
         yield map
         return
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
     # spawn: numba's threads and Zenoh's do not survive fork
-    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_start)
+    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_start,
+                               initargs=(beside,))
     try:
-        yield pool.map
+        yield functools.partial(_spawning, pool.map)
     except BaseException:
         # interrupted or failed: no piece is worth waiting for, and none may outlive the run
         # (the executor has no public way to stop its workers before Python 3.14)

@@ -120,3 +120,77 @@ def test_the_learn_stages_pool_reads_each_demonstration_as_it_is_recorded(foxglo
             break
         time.sleep(0.1)
     assert not _alive(pid), "the pool's worker outlived close()"
+
+
+def test_the_reports_recordings_are_decoded_beside_the_run_and_only_a_changed_reading_again(tmp_path, rng):
+    """services.run.report_reads.ReportReads: each reading is decoded once in a process under
+    SCHED_IDLE as soon as it is known; on a clean exit the report gets what was decoded, and
+    ``decode_episodes`` decodes only a reading that is not among them (here one whose phase
+    mapping changed since), giving what decoding everything at the end gives."""
+    from services.results.decoding import decode_episodes
+    from services.run.report_reads import ReportReads
+
+    readings = []
+    for i in range(2):
+        path = tmp_path / f"reproduction_{i:02d}.mcap"
+        write_episode(path, mixed_messages(60 + 20 * i, rng))
+        readings.append(EpisodeReading(str(path), phase_to_truth={0: 0, 1: 1}))
+    assert ReportReads(False).decoded == [] and ReportReads(False).catch_up(readings) is None
+    with ReportReads(True) as ahead:
+        ahead.catch_up(readings[:1])
+        ahead.catch_up(readings)  # the first is not started twice
+        assert [r for r, _ in ahead._started] == readings
+        pid, _ = next(ahead._map(_pid_and_square, [2]))
+        assert pid != os.getpid() and os.sched_getscheduler(pid) == os.SCHED_IDLE
+    assert [r for r, _ in ahead.decoded] == readings
+    final = [readings[0], EpisodeReading(readings[1].path, phase_to_truth={0: 1, 1: 0})]
+    for a, b in zip(decode_episodes(final, 1, ahead.decoded), map(decode_episode, final)):
+        assert a.links == b.links and json.dumps(a.phases, sort_keys=True) == json.dumps(b.phases, sort_keys=True)
+    assert decode_episodes(final, 1, ahead.decoded)[0] is ahead.decoded[0][1]  # taken, not decoded again
+    for _ in range(50):
+        if not _alive(pid):
+            break
+        time.sleep(0.1)
+    assert not _alive(pid), "the decoding process outlived the run"
+
+
+def test_a_failed_run_ends_the_report_reads_at_once(tmp_path, rng):
+    from services.run.report_reads import ReportReads
+
+    path = tmp_path / "reproduction_00.mcap"
+    write_episode(path, mixed_messages(60, rng))
+    with pytest.raises(RuntimeError, match="the run failed"):
+        with ReportReads(True) as ahead:
+            ahead.catch_up([EpisodeReading(str(path))])
+            pid, _ = next(ahead._map(_pid_and_square, [2]))
+            raise RuntimeError("the run failed")
+    assert ahead.decoded == []
+    for _ in range(50):
+        if not _alive(pid):
+            break
+        time.sleep(0.1)
+    assert not _alive(pid)
+
+
+def _sigint_handling(_):
+    import signal
+
+    return signal.getsignal(signal.SIGINT) == signal.SIG_IGN, signal.SIGINT in signal.pthread_sigmask(signal.SIG_BLOCK, [])
+
+
+def test_a_pools_processes_start_with_sigint_blocked_and_then_ignore_it():
+    """A second Ctrl-C to the process group while a pool's processes start must not kill one
+    half-way through its start-up (the report was lost to a BrokenProcessPool): the pool
+    hands its work over with SIGINT blocked, so its processes start with it blocked, and
+    each ignores it once started; here the mask is as it was."""
+    import signal
+
+    from services.runtime.threads import _spawning
+
+    seen = []
+    got = _spawning(lambda fn, items: seen.append(signal.SIGINT in signal.pthread_sigmask(signal.SIG_BLOCK, []))
+                    or [fn(x) for x in items], lambda x: x + 1, [1, 2])
+    assert got == [2, 3] and seen == [True]
+    assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, [])
+    with process_map(2) as pool_map:
+        assert set(pool_map(_sigint_handling, range(4))) == {(True, False)}

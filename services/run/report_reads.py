@@ -1,0 +1,60 @@
+"""The report's decoding of the recordings, started while the run goes on.
+
+The report decodes every recording once (``services.results.decoding``): on the valley in
+one process, 7 s after the last reproduction, while during the reproductions one core of
+two stepped the cell and the other had little to do.  ``ReportReads`` decodes each
+recording in a process beside the run as soon as the recording is complete and what the
+report takes from it is known (after the learn stage: the phase mapping its reproductions
+are scored with, the figures' view), and hands the report what it decoded; the report
+decodes only what is not there or whose reading has changed since (``decode_episodes``
+compares them), so the report is the same either way.  Lockstep only: on the realtime
+clock that work would take CPU the 1 kHz loop needs; not in a sweep, whose runs take the
+CPUs already (``workers`` 1).
+"""
+
+from __future__ import annotations
+
+import contextlib
+
+from services.results.decoding import decode_episode
+from services.runtime.threads import process_map
+
+
+class ReportReads:
+    """As a context manager: on a clean exit, what was started is waited for and kept in
+    ``decoded`` ((reading, DecodedEpisode) pairs, for ``write_report``); on a failure the
+    process is terminated with the run and the report decodes everything itself."""
+
+    def __init__(self, wanted: bool):
+        self.wanted = wanted
+        self.decoded: list = []
+        self._started: list = []  # (reading, the pool's iterator of its one result)
+        self._stack = contextlib.ExitStack()
+        self._map = None
+
+    def catch_up(self, readings) -> None:
+        """Start decoding every reading of ``readings`` (the report's, as of now) not started yet."""
+        if not self.wanted:
+            return
+        if self._map is None:
+            self._map = self._stack.enter_context(process_map(None, beside=True))
+        for reading in readings:
+            if not any(reading == started for started, _ in self._started):
+                self._started.append((reading, self._map(decode_episode, [reading])))
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        started, self._started = self._started, []
+        if exc_type is None:
+            try:
+                for reading, result in started:
+                    try:
+                        self.decoded.append((reading, next(result)))
+                    except Exception:  # noqa: BLE001 - the report decodes it again and says what is wrong
+                        pass
+            except BaseException as waiting:  # Ctrl-C while waiting: the process goes with the run
+                self._stack.__exit__(type(waiting), waiting, waiting.__traceback__)
+                raise
+        return self._stack.__exit__(exc_type, exc, tb)
