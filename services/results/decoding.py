@@ -142,12 +142,17 @@ def decode_episodes(readings: list[EpisodeReading], workers: int | None = 1,
     out = [next((d for r, d in decoded if r == reading), None) for reading in readings]
     todo = [i for i, d in enumerate(out) if d is None]
     rest = [readings[i] for i in todo]
-    if sum(_size(r.path) for r in rest) < PARALLEL_READ_BYTES:
+    if recordings_size(rest) < PARALLEL_READ_BYTES:
         workers = 1
     with process_map(workers) as read_map:
         for i, d in zip(todo, read_map(decode_episode, rest)):
             out[i] = d
     return out
+
+
+def recordings_size(readings) -> int:
+    """Bytes on disk of the readings' recordings (their first files; one not there counts 0)."""
+    return sum(_size(r.path) for r in readings)
 
 
 def _size(path) -> int:

@@ -9,14 +9,15 @@ are scored with, the figures' view), and hands the report what it decoded; the r
 decodes only what is not there or whose reading has changed since (``decode_episodes``
 compares them), so the report is the same either way.  Lockstep only: on the realtime
 clock that work would take CPU the 1 kHz loop needs; not in a sweep, whose runs take the
-CPUs already (``workers`` 1).
+CPUs already (``workers`` 1); not before the recordings are worth a process's start
+(``PARALLEL_READ_BYTES``, as the report decides: a smoke's are not).
 """
 
 from __future__ import annotations
 
 import contextlib
 
-from services.results.decoding import decode_episode
+from services.results.decoding import PARALLEL_READ_BYTES, decode_episode, recordings_size
 from services.runtime.threads import process_map
 
 
@@ -25,8 +26,9 @@ class ReportReads:
     ``decoded`` ((reading, DecodedEpisode) pairs, for ``write_report``); on a failure the
     process is terminated with the run and the report decodes everything itself."""
 
-    def __init__(self, wanted: bool):
-        self.wanted = wanted
+    def __init__(self, wanted: bool, at_least: int = PARALLEL_READ_BYTES):
+        """``at_least``: the bytes of recordings that make starting the process worth it."""
+        self.wanted, self.at_least = wanted, at_least
         self.decoded: list = []
         self._started: list = []  # (reading, the pool's iterator of its one result)
         self._stack = contextlib.ExitStack()
@@ -37,6 +39,8 @@ class ReportReads:
         if not self.wanted:
             return
         if self._map is None:
+            if recordings_size(readings) < self.at_least:
+                return
             self._map = self._stack.enter_context(process_map(None, beside=True))
         for reading in readings:
             if not any(reading == started for started, _ in self._started):

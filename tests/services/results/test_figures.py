@@ -44,7 +44,9 @@ def drawn_run(tmp_path_factory):
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(decoding, "read_episode", counted)
         patch.setattr(phases, "read_episode", refused)
-        report = support.run(scenario, out / "run", figures=True, transport="inproc", run_id="figures")
+        # workers 1: everything decoded in this process, where the reads are counted (with more,
+        # the report's decoding goes on beside the run: tests/services/run/test_parallel_work.py)
+        report = support.run(scenario, out / "run", figures=True, transport="inproc", run_id="figures", workers=1)
     assert report["error"] is None, report["error"]
     return out / "run", reads, (out / "run" / "report.html").read_text()
 

@@ -136,7 +136,10 @@ def test_the_reports_recordings_are_decoded_beside_the_run_and_only_a_changed_re
         write_episode(path, mixed_messages(60 + 20 * i, rng))
         readings.append(EpisodeReading(str(path), phase_to_truth={0: 0, 1: 1}))
     assert ReportReads(False).decoded == [] and ReportReads(False).catch_up(readings) is None
-    with ReportReads(True) as ahead:
+    small = ReportReads(True)  # a smoke's recordings are not worth a process's start
+    small.catch_up(readings)
+    assert small._map is None and small._started == []
+    with ReportReads(True, at_least=0) as ahead:
         ahead.catch_up(readings[:1])
         ahead.catch_up(readings)  # the first is not started twice
         assert [r for r, _ in ahead._started] == readings
@@ -160,7 +163,7 @@ def test_a_failed_run_ends_the_report_reads_at_once(tmp_path, rng):
     path = tmp_path / "reproduction_00.mcap"
     write_episode(path, mixed_messages(60, rng))
     with pytest.raises(RuntimeError, match="the run failed"):
-        with ReportReads(True) as ahead:
+        with ReportReads(True, at_least=0) as ahead:
             ahead.catch_up([EpisodeReading(str(path))])
             pid, _ = next(ahead._map(_pid_and_square, [2]))
             raise RuntimeError("the run failed")
@@ -175,7 +178,8 @@ def test_a_failed_run_ends_the_report_reads_at_once(tmp_path, rng):
 def _sigint_handling(_):
     import signal
 
-    return signal.getsignal(signal.SIGINT) == signal.SIG_IGN, signal.SIGINT in signal.pthread_sigmask(signal.SIG_BLOCK, [])
+    blocked = signal.pthread_sigmask(signal.SIG_BLOCK, [])
+    return signal.getsignal(signal.SIGINT) == signal.SIG_IGN, signal.SIGINT in blocked
 
 
 def test_a_pools_processes_start_with_sigint_blocked_and_then_ignore_it():
