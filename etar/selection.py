@@ -79,9 +79,9 @@ def information_criterion(log_likelihood: float, n_parameters: int, n_samples: i
     raise ValueError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
 
 
-def _fit_candidate(job: tuple) -> ETAR:
+def fit_candidate(job: tuple) -> ETAR:
     """One candidate's fit: a module-level function of plain values, so that a
-    process pool's ``map`` can run it (``fit_map``)."""
+    process pool's ``map`` can run it (``fit_map``); ``job`` as ``vote_jobs`` makes them."""
     demos, k, transitions, model_options, max_iter, tol, seed = job
     return ETAR(k, transitions, **model_options).fit(demos, max_iter=max_iter, tol=tol, seed=seed)
 
@@ -91,7 +91,7 @@ def _fits(fit_map: Callable, jobs: list, labels: list, progress) -> Iterator[ETA
     ``progress`` hears ``fit i/N done: <label>, ...`` (a pool's ``map`` runs ahead, so
     the line comes when that fit and every one before it are done)."""
     total = len(jobs)
-    for i, (label, model) in enumerate(zip(labels, fit_map(_fit_candidate, jobs)), 1):
+    for i, (label, model) in enumerate(zip(labels, fit_map(fit_candidate, jobs)), 1):
         if progress:
             r = model.fit_report_
             progress(f"fit {i}/{total} done: {label}, log-likelihood {r.log_likelihood:.2f}, "
@@ -203,6 +203,25 @@ class OrderVote:
                     per_demonstration=[sel._scores_dict() for sel in self.per_demonstration])
 
 
+def vote_jobs(demo, candidates, transitions: str, model_options: dict, max_iter: int, tol: float,
+              seed: int) -> list[tuple]:
+    """The candidate fits ``vote_order`` runs for one (checked) demonstration, in its order,
+    as jobs for ``fit_candidate``: a caller that has one demonstration before the others can
+    start its fits then (``services.run.learn``) and hand their models over through
+    ``fit_map``."""
+    params, _ = _candidates([demo], candidates, transitions, None)
+    return [([demo], k, transitions, model_options, max_iter, tol, seed) for k in params]
+
+
+def demonstration_fits(pair, candidates: Sequence[int] = (1, 2, 3, 4, 5, 6), criterion: str = "bic", *,
+                       transitions: str = "effect", seed: int = 0, max_iter: int = 200, tol: float = 1e-7,
+                       **model_options) -> list[tuple]:
+    """``vote_jobs`` for one (states, forces) pair with ``vote_order``'s checks and defaults:
+    the fits ``vote_order`` of the same options runs for it."""
+    (demo,) = check_demonstrations([pair])
+    return vote_jobs(demo, _check_candidates(criterion, candidates), transitions, model_options, max_iter, tol, seed)
+
+
 def vote_order(
     demos: Sequence,
     candidates: Sequence[int] = (1, 2, 3, 4, 5, 6),
@@ -229,8 +248,8 @@ def vote_order(
     candidates = _check_candidates(criterion, candidates)
     demos = check_demonstrations(demos)
     plans = [_candidates([demo], candidates, transitions, None) for demo in demos]
-    jobs = [([demo], k, transitions, model_options, max_iter, tol, seed)
-            for demo, (params, _) in zip(demos, plans) for k in params]
+    jobs = [job for demo in demos for job in vote_jobs(demo, candidates, transitions, model_options, max_iter, tol,
+                                                       seed)]
     labels = [f"K={k} demonstration {i}" for i, (params, _) in enumerate(plans) for k in params]
     # in order: each demonstration's candidates, one after the other
     models = _fits(fit_map, jobs, labels, fit_progress)

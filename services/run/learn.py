@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import hashlib
 import time
 from pathlib import Path
 
@@ -13,7 +14,7 @@ import numpy as np
 
 from etar import ETAR
 from etar.comparison import MODEL_NAMES, evaluate
-from etar.selection import fit_order
+from etar.selection import demonstration_fits, fit_candidate, fit_order
 from etar.task import learn_task
 from services.recordings.demonstrations import load_demonstration
 from services.results.record import LearningRecord, ModelRecord
@@ -27,22 +28,50 @@ def _reader(scenario: Scenario):
                              state_resolution=scenario.state_resolution)
 
 
+def _job_key(job: tuple) -> tuple:
+    """A candidate fit's job (``etar.selection.vote_jobs``) as a value to find it by: its
+    demonstrations by their bytes, the rest as it is."""
+    demos, k, transitions, options, max_iter, tol, seed = job
+    digest = hashlib.sha1()
+    for arrays in demos:
+        for a in arrays:
+            digest.update(f"{a.dtype}{a.shape}".encode())
+            digest.update(np.ascontiguousarray(a).tobytes())
+    return digest.hexdigest(), k, transitions, tuple(sorted(options.items())), max_iter, tol, seed
+
+
+def _read_and_vote(job: tuple) -> tuple[dict, list]:
+    """A demonstration read, and the candidate fits the per-demonstration vote runs for it:
+    (the demonstration, [(job key, fitted model)])."""
+    load, path, vote = job
+    demo = load(path)
+    fits = demonstration_fits((demo["states"], demo["forces"]), **vote)
+    return demo, [(_job_key(j), fit_candidate(j)) for j in fits]
+
+
 class DemonstrationReads:
     """The learn stage's pool of processes, started with the first demonstration of a run
     whose learn stage chooses the number of phases, reading each recording as soon as it is
     written: the 2.5 s that starting the pool and reading took at the start of the valley's
     learn stage pass during its demonstrations (in one process the episodes take one core
-    of two).  Lockstep only: on the realtime clock that work would take CPU the 1 kHz loop
-    needs.  The learn stage takes the pool over and closes it; as a context manager it is
-    closed with the run, its workers terminated when the run failed."""
+    of two).  When the stage votes per demonstration, the vote's fits of each demonstration
+    run then too (``fit_map`` hands them to the vote, which runs the others).  Lockstep
+    only: on the realtime clock that work would take CPU the 1 kHz loop needs.  The learn
+    stage takes the pool over and closes it; as a context manager it is closed with the
+    run, its workers terminated when the run failed."""
 
     def __init__(self, scenario: Scenario, workers: int | None):
         stage = next((s for s in scenario.stages if s.kind == "learn"), None)
         self.wanted = stage is not None and stage.phases == "auto" and scenario.clock == "lockstep"
         self._workers, self._load = workers, _reader(scenario)
+        # what fit_order's vote runs for each demonstration (services.run.learn._fit)
+        self._vote = dict(candidates=stage.candidates, criterion=stage.criterion, transitions=stage.transitions[0],
+                          seed=stage.seed, max_iter=stage.max_iter, n_restarts=stage.restarts) \
+            if self.wanted and stage.selection == "per_demonstration" else None
         self._stack = contextlib.ExitStack()
         self.work_map = None
         self._pending: dict[str, object] = {}
+        self.fitted: dict[tuple, object] = {}  # job key -> the model fitted ahead
 
     def read(self, path: str) -> None:
         """Start reading the recording at ``path`` (a pool's map submits at once)."""
@@ -51,7 +80,8 @@ class DemonstrationReads:
         if self.work_map is None:
             self.work_map = self._stack.enter_context(process_map(self._workers))
         if self.work_map is not map:  # one CPU: the builtin map, which would read it only when asked
-            self._pending[path] = self.work_map(self._load, [path])
+            self._pending[path] = self.work_map(self._load, [path]) if self._vote is None else \
+                self.work_map(_read_and_vote, [(self._load, path, self._vote)])
 
     @property
     def pending(self) -> tuple:
@@ -60,11 +90,32 @@ class DemonstrationReads:
 
     def demonstrations(self, paths: list[str]) -> list[dict]:
         """The recordings at ``paths``, read: those started already, the others now."""
-        return [next(self._pending.pop(p) if p in self._pending else self.work_map(self._load, [p])) for p in paths]
+        demos = []
+        for p in paths:
+            if p not in self._pending:
+                demos.append(next(self.work_map(self._load, [p])))
+                continue
+            got = next(self._pending.pop(p))
+            if self._vote is not None:
+                got, fits = got
+                self.fitted.update(fits)
+            demos.append(got)
+        return demos
+
+    def fit_map(self, fn, jobs):
+        """The pool's ``map`` for the vote's fits: a fit already done ahead is taken, the
+        others run now, in order."""
+        jobs = list(jobs)
+        ahead = [self.fitted.pop(_job_key(j), None) if fn is fit_candidate else None for j in jobs]
+        missing = [j for j, model in zip(jobs, ahead) if model is None]
+        rest = self.work_map(fn, missing) if missing else iter(())
+        for model in ahead:
+            yield next(rest) if model is None else model
 
     def close(self) -> None:
         """The pool's work is done: its workers exit; later demonstrations are not read ahead."""
         self._pending.clear()
+        self.fitted.clear()
         self._stack.close()
         self.wanted, self.work_map = False, None
 
@@ -91,7 +142,7 @@ def learn(stage: LearnStage, scenario: Scenario, demonstrations: list[str], out:
         demos = reads.demonstrations(demonstrations) if started else list(work_map(_reader(scenario), demonstrations))
         record.learned_from = [dict(path=path, samples=len(d["states"])) for path, d in zip(demonstrations, demos)]
         with learning_threads(threads):
-            models, selection = _fit(stage, demos, work_map, say)
+            models, selection = _fit(stage, demos, reads.fit_map if started else work_map, say)
     if started:
         reads.close()  # learned: the pool's work is done (on a failure the run's exit terminates it)
     for i, m in enumerate(models):

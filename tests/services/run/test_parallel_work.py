@@ -198,3 +198,39 @@ def test_a_pools_processes_start_with_sigint_blocked_and_then_ignore_it():
     assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, [])
     with process_map(2) as pool_map:
         assert set(pool_map(_sigint_handling, range(4))) == {(True, False)}
+
+
+def test_the_votes_fits_of_a_demonstration_run_as_it_is_read_and_the_vote_takes_them(foxglove_run_dir):
+    """With the per-demonstration vote, DemonstrationReads fits each demonstration's
+    candidates in the pool as soon as it is read; the vote then takes those models instead
+    of fitting again, and chooses and fits exactly what it chooses and fits without them."""
+    from etar.selection import fit_order
+    from services.run.learn import DemonstrationReads, _reader
+
+    demo = str(foxglove_run_dir / "recordings" / "demonstration_00.mcap")
+    changes = {"learn.phases": "auto", "learn.candidates": [1, 2], "learn.max_iter": 15, "learn.restarts": 1}
+    scenario = support_scenario("smoke", changes)
+    assert DemonstrationReads(support_scenario("smoke", {**changes, "learn.selection": "pooled"}), 2)._vote is None
+    stage = next(s for s in scenario.stages if s.kind == "learn")
+    options = dict(transitions=stage.transitions[0], seed=stage.seed, max_iter=stage.max_iter, n_restarts=1)
+    with DemonstrationReads(scenario, workers=2) as reads:
+        reads.read(demo)
+        (got,) = reads.demonstrations([demo])
+        assert len(reads.fitted) == 2  # K=1 and K=2, fitted ahead
+        ahead_model, ahead_vote = fit_order([(got["states"], got["forces"])] * 2, [1, 2], "bic", fit_map=reads.fit_map,
+                                            **options)
+        assert len(reads.fitted) == 0  # the first demonstration's taken, the copy's fitted now
+    want = _reader(scenario)(demo)
+    model, vote = fit_order([(want["states"], want["forces"])] * 2, [1, 2], "bic", **options)
+    assert ahead_vote == vote
+
+    def parameters(m):  # the model file's content, without the fit's wall time
+        return json.dumps({k: v for k, v in m.to_dict().items() if k != "fit"}, sort_keys=True)
+
+    assert parameters(ahead_model) == parameters(model)
+
+
+def support_scenario(name, changes):
+    from tests import support
+
+    return support.scenario(name, changes)
