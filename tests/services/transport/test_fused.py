@@ -21,7 +21,7 @@ START = [0.62, -0.06, 0.30]
 WALL = ("wall_seconds", "sent_ns", "loop")
 
 
-def reproduce(cell_class, *, robot=None, sensor=None, estimator=None, seconds=3.0) -> tuple[dict, dict, list]:
+def reproduce(cell_class, *, robot=None, sensor=None, estimator=None, seconds=2.7) -> tuple[dict, dict, list]:
     """The smoke reproduction with the stored model in a cell of ``cell_class``: its summary
     without the wall clock's figures, every node's status, and the recorded messages
     (topic, payload without sent_ns; not the wall-clock topics)."""
