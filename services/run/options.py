@@ -16,7 +16,7 @@ from services.run.realtime_profile import parse_profile
 from services.runtime import topics
 from services.runtime.roles import CELL_ROLES, FIFO_CHAIN
 from services.scenario import Scenario, ScenarioError
-from services.transport.carriers import ENGINES, TRANSPORTS, carrier
+from services.transport.carriers import TRANSPORTS, carrier, check_engine
 from services.transport.session import ZenohOptions
 
 
@@ -97,11 +97,7 @@ class RunOptions:
                 raise ValueError("--foxglove cannot be combined with --tls, --hosts or --attach yet: the bridge "
                                  "would need credentials and a host of its own")
         in_process = self.transport == "inproc"
-        if self.engine is not None and (self.engine not in ENGINES or not in_process):
-            raise ValueError(f"--engine must be one of {', '.join(ENGINES)}, got {self.engine!r}"
-                             if self.engine not in ENGINES else
-                             f"--engine {self.engine} steps the nodes of a run in one process: it needs "
-                             "--transport inproc (over Zenoh every node is its own process)")
+        check_engine(self.engine, in_process)
         if self.ros2 is not None:
             check_domain(self.ros2, "--ros2 DOMAIN")
             if in_process or self.tls is not None or self.hosts is not None or self.attach:

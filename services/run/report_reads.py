@@ -41,7 +41,7 @@ class ReportReads:
         if self._map is None:
             if recordings_size(readings) < self.at_least:
                 return
-            self._map = self._stack.enter_context(process_map(None, beside=True))
+            self._map = self._stack.enter_context(process_map(1, beside=True))
         for reading in readings:
             if not any(reading == started for started, _ in self._started):
                 self._started.append((reading, self._map(decode_episode, [reading])))

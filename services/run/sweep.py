@@ -527,14 +527,16 @@ def sweep(scenario: Scenario, parameters: list, *, repeats: int, out: str, recor
           workers: int | None = None, cluster: str | None = None, learn_threads: int | None = None,
           replace: bool = False, say=print, engine: str | None = None) -> dict:
     from services.runtime.threads import available_cpus
-    from services.transport.carriers import ENGINES
+    from services.transport.carriers import check_engine
 
     out_dir = Path(out).expanduser().resolve()
     for flag, value in (("--workers", workers), ("--learn-threads", learn_threads), ("--repeats", repeats)):
         if value is not None and value < 1:
             raise SweepError(f"{flag} must be >= 1, got {value}")
-    if engine is not None and engine not in ENGINES:
-        raise SweepError(f"--engine must be one of {', '.join(ENGINES)}, got {engine!r}")
+    try:
+        check_engine(engine, in_process=True)
+    except ValueError as exc:
+        raise SweepError(str(exc)) from None
     _prepare(out_dir, out, replace)
     workers = available_cpus() if workers is None else workers
     threads = learn_threads or max(1, available_cpus() // workers)

@@ -79,10 +79,13 @@ def process_map(workers: int | None, beside: bool = False):
     on, on the CPU it leaves).  Results come back in order, whatever runs where.  For the fits: numba's parallel E-step
     gains little on one demonstration's thousand steps (the valley's 36 candidate
     fits: 17.9 s on 2 threads, 19.4 s on one, 11.6 s in two processes)."""
-    workers = 1 if beside else available_cpus() if workers is None else int(workers)
-    if workers < 2 and not beside:
-        yield map
-        return
+    if beside:
+        workers = 1
+    else:
+        workers = available_cpus() if workers is None else int(workers)
+        if workers < 2:
+            yield map
+            return
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 

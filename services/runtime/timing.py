@@ -101,7 +101,8 @@ class Histogram:
         return self._counts
 
     def _flush(self) -> None:
-        """Count the pending values into ``counts`` and the 1 us bins (every reader calls it)."""
+        """Count the pending values into the bins and the 1 us bins (``counts`` and the
+        percentiles call it before they read them)."""
         if self._pending:
             values = np.asarray(self._pending, dtype=np.int64)
             self._pending = []
@@ -135,7 +136,6 @@ class Histogram:
 
     @property
     def total(self) -> int:
-        self._flush()
         return int(self.counts.sum()) + self.overflow
 
     def summary(self) -> dict:
@@ -143,13 +143,11 @@ class Histogram:
         return dict(exact, overflow=self.overflow, bin_us=self.bin_ns / 1e3, limit_us=self.limit_ns / 1e3)
 
     def to_dict(self) -> dict:
-        self._flush()
         nz = np.flatnonzero(self.counts)
         return dict(self.summary(), bins={int(i * self.bin_ns // 1000): int(self.counts[i]) for i in nz})
 
     def text(self, title: str = "") -> str:
         """cyclictest-style: one line per non-empty bin ("<us> <count>"), then totals."""
-        self._flush()
         lines = [f"# {title}" if title else "# histogram", f"# bin width {self.bin_ns / 1e3:.0f} us"]
         for i in np.flatnonzero(self.counts):
             lines.append(f"{i * self.bin_ns // 1000:06d} {int(self.counts[i]):09d}")

@@ -21,6 +21,17 @@ ENGINES = ("per-message", "fused")
 DEFAULT_ENGINE = "fused"
 
 
+def check_engine(engine: str | None, in_process: bool) -> None:
+    """ValueError unless ``engine`` (None: the default) is one of ENGINES, asked for in one process."""
+    if engine is None:
+        return
+    if engine not in ENGINES:
+        raise ValueError(f"--engine must be one of {', '.join(ENGINES)}, got {engine!r}")
+    if not in_process:
+        raise ValueError(f"--engine {engine} steps the nodes of a run in one process: it needs --transport inproc "
+                         "(over Zenoh every node is its own process)")
+
+
 @dataclass(frozen=True)
 class InProcess:
     """Every node in this process, lockstep.  ``engine``: how the FRI cycles are stepped,
@@ -35,8 +46,7 @@ class InProcess:
     spawns = False
 
     def __post_init__(self):
-        if self.engine not in ENGINES:
-            raise ValueError(f"--engine must be one of {', '.join(ENGINES)}, got {self.engine!r}")
+        check_engine(self.engine, in_process=True)
 
     def open(self, run_id: str, configs: dict, start: Start) -> Cell:
         if self.engine == "fused":
@@ -103,9 +113,7 @@ def carrier(transport: str, roles, *, zenoh=None, tls: str | None = None, hosts:
         return InProcess(engine or DEFAULT_ENGINE)
     if transport != "zenoh":
         raise ValueError(f"transport must be one of {', '.join(TRANSPORTS)}, got {transport!r}")
-    if engine is not None:
-        raise ValueError(f"--engine {engine} steps the nodes of a run in one process: it needs --transport inproc "
-                         "(over Zenoh every node is its own process)")
+    check_engine(engine, in_process=False)
     layout = None
     if hosts is not None:
         from services.transport.hosts import parse_layout

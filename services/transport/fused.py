@@ -74,8 +74,6 @@ class FusedCycle:
         self.got: dict[str, int] = {}  # participant -> the seq of its answer this cycle
         self.commands: list = []
         self.hand = None
-        self.seq = -1
-        self.recv = 0
 
     # ------------------------------------------------------------- the engine's participant
 
@@ -95,9 +93,8 @@ class FusedCycle:
         contact = robot.measure_contact()
         # from here on the other nodes' work on the cycle's messages, the recorder's included:
         # the robot's "wait", as in the per-message engine
-        self.recv = recv = self.now()
+        recv = self.now()
         s, c = state[1], contact[1]
-        self.seq = seq = s["seq"]
         self._record(_STATE, state)
         self._record(_CONTACT, contact)
         tenth = estimator_instant(s["stamp_ns"])
@@ -108,7 +105,7 @@ class FusedCycle:
         phase = None
         if tenth and estimator is not None:
             phase = self._work(estimator, _STATE, estimator.take_state, s)  # None: it waits for the wrench
-        hand_on = teacher is not None and teacher.teacher is not None
+        hand_on = teacher is not None and teacher.listening
         if hand_on:
             self._work(teacher, _STATE, teacher.take_state, s)
         wrench = self._work(self.sensor, _CONTACT, self.sensor.sample, c) if self.sensor is not None else None
@@ -129,13 +126,14 @@ class FusedCycle:
                 self._commands(self._work(commander, _PHASE, commander.take_phase, phase[1]))
         self._hand_to_recorder()
         self.sections.add("wait", self.now() - recv)
-        return seq, s["stamp_ns"]
+        return s["seq"], s["stamp_ns"]
 
     def quiescent(self) -> None:
         """Everything is delivered and the cycle still waits: as the per-message engine tells
-        its nodes (the commander goes on without the estimate)."""
+        its nodes (the commander goes on without the estimate; what raises here stops the
+        run, as a node's ``quiescent`` does there)."""
         if self.commander is not None:
-            self._commands(self._work(self.commander, _PHASE, self.commander.give_up))
+            self._commands(self.commander.give_up())
             self._hand_to_recorder()
         for node in self.other_nodes:
             node.quiescent()

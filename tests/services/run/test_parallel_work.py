@@ -37,6 +37,16 @@ def _alive(pid: int) -> bool:
     return True
 
 
+def _gone(pid: int, within_s: float = 5.0) -> bool:
+    """Whether process ``pid`` is gone, or goes within ``within_s``."""
+    deadline = time.monotonic() + within_s
+    while _alive(pid):
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.1)
+    return True
+
+
 def test_a_pool_runs_the_pieces_in_other_processes_and_returns_them_in_order():
     with process_map(2) as pool_map:
         results = list(pool_map(_pid_and_square, range(8)))
@@ -115,11 +125,7 @@ def test_the_learn_stages_pool_reads_each_demonstration_as_it_is_recorded(foxglo
         assert d.keys() == want.keys()
         for key in ("states", "forces", "phases"):
             np.testing.assert_array_equal(d[key], want[key])
-    for _ in range(50):
-        if not _alive(pid):
-            break
-        time.sleep(0.1)
-    assert not _alive(pid), "the pool's worker outlived close()"
+    assert _gone(pid), "the pool's worker outlived close()"
 
 
 def test_the_reports_recordings_are_decoded_beside_the_run_and_only_a_changed_reading_again(tmp_path, rng):
@@ -150,11 +156,7 @@ def test_the_reports_recordings_are_decoded_beside_the_run_and_only_a_changed_re
     for a, b in zip(decode_episodes(final, 1, ahead.decoded), map(decode_episode, final)):
         assert a.links == b.links and json.dumps(a.phases, sort_keys=True) == json.dumps(b.phases, sort_keys=True)
     assert decode_episodes(final, 1, ahead.decoded)[0] is ahead.decoded[0][1]  # taken, not decoded again
-    for _ in range(50):
-        if not _alive(pid):
-            break
-        time.sleep(0.1)
-    assert not _alive(pid), "the decoding process outlived the run"
+    assert _gone(pid), "the decoding process outlived the run"
 
 
 def test_a_failed_run_ends_the_report_reads_at_once(tmp_path, rng):
@@ -168,11 +170,7 @@ def test_a_failed_run_ends_the_report_reads_at_once(tmp_path, rng):
             pid, _ = next(ahead._map(_pid_and_square, [2]))
             raise RuntimeError("the run failed")
     assert ahead.decoded == []
-    for _ in range(50):
-        if not _alive(pid):
-            break
-        time.sleep(0.1)
-    assert not _alive(pid)
+    assert _gone(pid)
 
 
 def _sigint_handling(_):
