@@ -55,7 +55,10 @@ def demonstration_of(episode: Episode, path, *, state: str = "position", feature
         raise RecordingError(f"{path}: incomplete recording: {episode.problem}; {len(episode.messages)} "
                              "message(s) recovered (load_demonstration(..., allow_incomplete=True) uses them)")
 
-    by_seq: dict[str, dict[int, dict]] = {topic: {} for topic in _DEMONSTRATION_TOPICS}
+    # of each message only what is used below (a decoded message kept whole cost ~5 kB a robot
+    # cycle: 200 MB for a reproduction of 40 s, the report's peak): a state's stamp, episode
+    # and, at the sample instants, pose; a wrench's six numbers; a contact's true phase
+    by_seq: dict[str, dict[int, object]] = {topic: {} for topic in _DEMONSTRATION_TOPICS}
     skipped = 0
     for msg in episode.messages:
         mtype = _DEMONSTRATION_TOPICS.get(msg.topic)
@@ -70,7 +73,12 @@ def demonstration_of(episode: Episode, path, *, state: str = "position", feature
         if decoded["seq"] in table:
             skipped += 1  # a repeated cycle: the first one is what the robot sent
             continue
-        table[decoded["seq"]] = decoded
+        if mtype is ROBOT_STATE:
+            stamp = decoded["stamp_ns"]
+            kept = (stamp, decoded.get("episode", 0), decoded["msr_cart_pos"] if stamp % period_ns == 0 else None)
+        else:
+            kept = decoded["wrench"] if mtype is FT_WRENCH else decoded["true_phase"]
+        table[decoded["seq"]] = kept
     for topic, table in by_seq.items():
         if not table:
             found = ", ".join(episode.topics()) or "none"
@@ -78,7 +86,7 @@ def demonstration_of(episode: Episode, path, *, state: str = "position", feature
                                  f"({skipped} skipped; topics in the file: {found})")
     states_by_seq, ft_by_seq, contact_by_seq = (by_seq[t] for t in _DEMONSTRATION_TOPICS)
     # cycles of no episode (episode -1: the arm resting while the sensor is tared) are not demonstration
-    states_by_seq = {k: v for k, v in states_by_seq.items() if v.get("episode", 0) != -1} or states_by_seq
+    states_by_seq = {k: v for k, v in states_by_seq.items() if v[1] != -1} or states_by_seq
     cycles = sorted(states_by_seq.keys() & ft_by_seq.keys() & contact_by_seq.keys())
     if not cycles:
         ranges = "; ".join(f"{t} seq {min(v)}..{max(v)}" for t, v in by_seq.items())
@@ -86,24 +94,23 @@ def demonstration_of(episode: Episode, path, *, state: str = "position", feature
                              f"({ranges})")
     # the robot cycle, from consecutive cycles: a sample period that is not a
     # multiple of it would pick instants at uneven intervals
-    steps = [states_by_seq[b]["stamp_ns"] - states_by_seq[a]["stamp_ns"]
-             for a, b in zip(cycles, cycles[1:]) if b == a + 1]
+    steps = [states_by_seq[b][0] - states_by_seq[a][0] for a, b in zip(cycles, cycles[1:]) if b == a + 1]
     cycle_ns = int(np.median(steps)) if steps else 0
     if cycle_ns <= 0 or period_ns % cycle_ns:
         raise RecordingError(f"{path}: the sample period {period_ns} ns ({rate_hz} Hz) must be a multiple of the "
                              f"robot cycle ({cycle_ns} ns, from {len(steps)} consecutive cycles)")
-    chosen = [s for s in cycles if states_by_seq[s]["stamp_ns"] % period_ns == 0]
+    chosen = [s for s in cycles if states_by_seq[s][0] % period_ns == 0]
     if len(chosen) < 2:
         raise RecordingError(f"{path}: {len(chosen)} sample(s) at {rate_hz} Hz from {len(cycles)} complete "
                              "robot cycles; a demonstration needs at least 2")
 
-    stamp_ns = np.array([states_by_seq[s]["stamp_ns"] for s in chosen], dtype=np.int64)
+    stamp_ns = np.array([states_by_seq[s][0] for s in chosen], dtype=np.int64)
     if np.any(np.diff(stamp_ns) <= 0):
         raise RecordingError(f"{path}: robot_state stamp_ns does not increase with seq")
-    cart = np.array([states_by_seq[s]["msr_cart_pos"] for s in chosen], dtype=np.float64).reshape(-1, 3, 4)
+    cart = np.array([states_by_seq[s][2] for s in chosen], dtype=np.float64).reshape(-1, 3, 4)
     R = cart[:, :, :3]
-    wrench = np.array([ft_by_seq[s]["wrench"] for s in chosen], dtype=np.float64)
-    true_phase = np.array([contact_by_seq[s]["true_phase"] for s in chosen], dtype=np.int64)
+    wrench = np.array([ft_by_seq[s] for s in chosen], dtype=np.float64)
+    true_phase = np.array([contact_by_seq[s] for s in chosen], dtype=np.int64)
 
     # the same functions as the online estimator, so learner and estimator see the same numbers
     R0 = R[0]
