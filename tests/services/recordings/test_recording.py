@@ -509,6 +509,24 @@ def test_the_report_reads_past_garbage_in_a_recording_and_counts_it(tmp_path, rn
     assert reproduction_phases(decoded, {1: 1})["accuracy"] == 1.0
 
 
+def test_a_topics_columns_give_back_each_message_as_added_after_a_restarted_recorders_part():
+    """The report's fields per topic held as columns: iterated, every message's (log time,
+    fields) in order, the known text values where they were, across a part appended."""
+    from services.results.decoding import TopicColumns
+
+    first, part = TopicColumns(("seq", "sent_ns", "phase")), TopicColumns(("seq", "sent_ns", "phase"))
+    first.append(10, {"seq": 1, "sent_ns": 5, "phase": 0})
+    first.append(20, {"seq": 2, "sent_ns": 6, "phase": 1, "unconditioned": "gap"})
+    part.append(30, {"seq": 3, "sent_ns": 7, "phase": 2, "unconditioned": "arm_held"})
+    part.append(40, {"seq": 2**63 - 1, "sent_ns": -(2**63), "phase": 1})
+    first.extend(part)
+    assert len(first) == 4
+    assert list(first) == [(10, {"seq": 1, "sent_ns": 5, "phase": 0}),
+                           (20, {"seq": 2, "sent_ns": 6, "phase": 1, "unconditioned": "gap"}),
+                           (30, {"seq": 3, "sent_ns": 7, "phase": 2, "unconditioned": "arm_held"}),
+                           (40, {"seq": 2**63 - 1, "sent_ns": -(2**63), "phase": 1})]
+
+
 def test_the_report_counts_each_unconditioned_estimate_once_and_only_the_values_it_knows():
     from services.results.decoding import reproduction_phases
 
