@@ -34,6 +34,16 @@ from etar.vocabulary import CRITERIA, FEATURES, STATES, TRANSITIONS
 
 USAGE_ERROR = 2  # a flag or a file the command cannot use: nothing was done
 RUN_FAILED = 1  # the work started and failed
+READER_GONE = 141  # whoever read the output stopped (`| head`): as a program SIGPIPE ends
+
+
+def reader_gone() -> int:
+    """The output's reader closed it: say nothing more (stdout onto /dev/null, so that the
+    interpreter's last flush does not complain) and exit as a program SIGPIPE ends."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
+    return READER_GONE
 
 _NO_VALUE = object()
 
@@ -559,6 +569,8 @@ def main(argv=None) -> int:
         return USAGE_ERROR
     try:
         return run()
+    except BrokenPipeError:
+        return reader_gone()
     except (ValueError, OSError, FloatingPointError) as exc:
         print(f"{name}: error: {one_line(exc)}", file=sys.stderr)
         return RUN_FAILED

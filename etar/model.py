@@ -2,7 +2,7 @@
 
 The model only holds parameters and builds the arrays that the pure functions in
 ``etar.inference`` and ``etar.em`` work on; its file is ``etar.model_file``.
-Parameters are plain, assignable attributes (shapes in ``../shared/DESIGN.md``):
+Parameters are plain, assignable attributes, of these shapes:
 
 - ``A``     (K, n, n)     state matrix of each phase
 - ``B``     (K, n, m+1)   effect-of-action matrix (last column: intercept)

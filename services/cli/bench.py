@@ -27,6 +27,7 @@ import sys
 
 import numpy as np
 
+from etar.cli import reader_gone
 from etar.parsing import OneLineErrorParser
 from robot_sim.world.tasks import TASK_WORLDS
 from services.cli.version import add_version_argument
@@ -310,7 +311,10 @@ def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser().parse_args(argv)
     args.command_line = shlex.join(["etar-bench", *argv])  # what the report says made the run
-    return args.func(args)
+    try:
+        return args.func(args)
+    except BrokenPipeError:
+        return reader_gone()
 
 
 if __name__ == "__main__":

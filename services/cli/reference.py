@@ -94,7 +94,8 @@ def reference() -> str:
     lines = ["# Command-line reference", "",
              "Generated from the argparse parsers (`python -m services.cli.reference > docs/cli.md`); "
              "every program also answers `--help`.  A bad flag or file is refused in one line on stderr "
-             "with exit code 2; a run that failed exits 1.", "",
+             "with exit code 2; a run that failed exits 1; output whose reader stops reading (`| head`) ends "
+             "quietly with 141, as a program SIGPIPE ends.", "",
              "- [`etar-bench`](#etar-bench): run scenarios, sweeps and demonstrations; read, redraw, "
              "compare and export their results",
              "- [`etar`](#etar): learn ETAR models from demonstrations and inspect them",

@@ -222,3 +222,21 @@ def test_report_json_on_a_corrupt_report_names_the_file(capsys, tmp_path, conten
     assert bench_cli.main(["report", str(tmp_path), "--json"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"etar-bench report: {tmp_path / 'report.json'}: not a JSON report")
+
+
+@pytest.mark.parametrize("argv", [["etar-bench", "check", "scenarios/smoke.yaml"],
+                                  ["etar", "inspect", "scenarios/models/valley.json"]], ids=["etar-bench", "etar"])
+def test_output_whose_reader_is_gone_ends_quietly(argv):
+    """`| head` closes the pipe before the program is done: no traceback, no error line, exit 141
+    (what a program SIGPIPE ends exits with), whatever is left unsaid."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[3]
+    program = Path(sys.executable).parent / argv[0]
+    proc = subprocess.Popen([str(program), *argv[1:]], cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()  # the reader gone before the first line
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 141, (proc.returncode, err.decode())
+    assert err == b"", err.decode()
