@@ -34,7 +34,8 @@ def cmd_report(args) -> int:
 
 
 def cmd_info(args) -> int:
-    """What a recording or a run holds, as ``mcap info`` / ``ros2 bag info`` would say it."""
+    """What a recording or a run holds, as ``mcap info`` / ``ros2 bag info`` would say it;
+    exit code 1 when a recording is incomplete or missing (described all the same)."""
     from services.results.info import describe, info_text
 
     try:
@@ -43,6 +44,11 @@ def cmd_info(args) -> int:
         say(f"etar-bench info: error: {exc}")
         return 2
     print(json.dumps(described, indent=1, allow_nan=False) if args.json else info_text(described), flush=True)
+    incomplete = (described["totals"]["incomplete"] if described.get("kind") == "run"
+                  else int(not described["complete"]))
+    if incomplete:
+        say(f"etar-bench info: {args.path}: {incomplete} recording(s) incomplete or missing (INCOMPLETE above)")
+        return 1
     return 0
 
 
@@ -135,6 +141,16 @@ def cmd_export(args) -> int:
     if not (Path(args.run_dir) / "recordings").is_dir():
         say(f"etar-bench export: error: {args.run_dir}: no recordings/ folder: not a run's folder")
         return 2
+    if args.out is not None:  # the bags' folder made before any bag is: refused in one line here
+        problem = "an empty path" if not args.out.strip() else None
+        if problem is None:
+            try:
+                Path(args.out).mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                problem = f"cannot make that folder ({exc.strerror or exc})"
+        if problem:
+            say(f"etar-bench export: error: --out {args.out!r}: {problem}; --out names the folder for the bags")
+            return 2
     try:
         if args.foxglove:
             results = export_foxglove(args.run_dir, args.visual_rate_hz, progress=print)

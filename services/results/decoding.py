@@ -90,6 +90,7 @@ class FigureData:
     arrays: dict | None = None
     trace: ReproductionTrace | None = None
     problem: str | None = None
+    cut: str | None = None  # drawn from a recording that was not finished: the file and why
 
 
 @dataclass
@@ -177,9 +178,10 @@ def _figure_data(ep: Episode, reading: EpisodeReading) -> FigureData:
                                   state_resolution=view.state_resolution, allow_incomplete=True)
     except (OSError, ValueError) as exc:
         return FigureData(problem=str(exc))
+    cut = None if ep.complete else f"{reading.path}: {ep.problem or 'not finished'}"
     if reading.demonstration is not None:
-        return FigureData(arrays=arrays)
-    return FigureData(trace=reproduction_trace(ep, arrays))
+        return FigureData(arrays=arrays, cut=cut)
+    return FigureData(trace=reproduction_trace(ep, arrays), cut=cut)
 
 
 def reproduction_trace(ep: Episode, arrays: dict) -> ReproductionTrace:

@@ -171,7 +171,10 @@ def diff_runs(a, b) -> DiffResult:
     run folder; RecordingError (naming the file) if a recording is not MCAP or is damaged."""
     run_a, run_b = _run_folder(a), _run_folder(b)
     result = DiffResult(str(run_a), str(run_b))
-    result.rows = _result_rows(run_a, read_report(run_a, required=False), run_b, read_report(run_b, required=False))
+    report_a, report_b = read_report(run_a, required=False), read_report(run_b, required=False)
+    for run, report in ((run_a, report_a), (run_b, report_b)):
+        _named_recordings_present(run, report)
+    result.rows = _result_rows(run_a, report_a, run_b, report_b)
     names = sorted({p.name for run in (run_a, run_b) for p in (run / "recordings").glob("*.mcap")})
     for name in names:
         fa, fb = run_a / "recordings" / name, run_b / "recordings" / name
@@ -297,7 +300,22 @@ def _run_folder(path) -> Path:
         raise DiffError(f"{p}: a file; diff compares two run folders")
     if not (p / "report.json").exists() and not (p / "recordings").is_dir():
         raise DiffError(f"{p}: not a run folder (no report.json, no recordings/)")
+    if (p / "recordings").exists() and not (p / "recordings").is_dir():
+        raise DiffError(f"{p / 'recordings'}: not a folder")
     return p
+
+
+def _named_recordings_present(run: Path, report: dict) -> None:
+    """Every recording the run's report names is there: two runs that both lost theirs
+    must not compare as the same (nothing would be compared)."""
+    for kind in ("demonstrations", "reproductions", "served"):
+        episodes = report.get(kind) or []
+        if not isinstance(episodes, list):
+            raise DiffError(f"{run / 'report.json'}: {kind} is not a list of episodes")
+        for e in episodes:
+            path = e.get("path") if isinstance(e, dict) else None
+            if isinstance(path, str) and not (run / path).is_file():  # an absolute path stays itself
+                raise DiffError(f"{run / path}: named by {run / 'report.json'} ({kind}), missing")
 
 
 def _transport(report: dict):
@@ -344,8 +362,8 @@ def _model(run: Path) -> str | None:
         return None
     try:
         model = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        return f"unreadable ({type(exc).__name__})"
+    except (OSError, ValueError) as exc:  # two runs' unreadable models must not compare equal
+        raise DiffError(f"{path}: not a JSON model ({type(exc).__name__}: {exc})") from None
     if isinstance(model, dict):
         (model.get("fit") or {}).pop("seconds", None)
         meta = model.get("metadata") or {}

@@ -153,7 +153,7 @@ def write_figures_and_page(run_dir, progress=None, run: RunRecord | None = None)
     line saying what was written.  ``run``: the record of the run just reported, whose
     report, text and decoded recordings they are drawn from (None: the folder's).  A
     figure that cannot be drawn must not cost the run its report: the reason goes in
-    figures.error (figures.skipped: what was left out)."""
+    figures.error, with every recording found damaged (figures.skipped: what was left out)."""
     run_dir = Path(run_dir)
     t = time.monotonic()
     # the page embeds every figure in the folder: none may be left from an earlier drawing
@@ -163,10 +163,12 @@ def write_figures_and_page(run_dir, progress=None, run: RunRecord | None = None)
         if stale.name != COMPARISON_FIGURE:
             stale.unlink(missing_ok=True)
     try:
-        written, skipped = write_figures(run_dir, progress=progress, run=run)
+        written, skipped, damaged = write_figures(run_dir, progress=progress, run=run)
     except Exception as exc:
         _note(run_dir / "figures.error", f"{type(exc).__name__}: {exc}\n")
-        written, skipped = [], [f"{type(exc).__name__}: {exc}"]
+        written, skipped, damaged = [], [f"{type(exc).__name__}: {exc}"], []
+    if damaged:  # figures from what could be read, and the folder says what could not
+        _note(run_dir / "figures.error", "".join(f"damaged recording {d}\n" for d in damaged))
     if skipped:
         _note(run_dir / "figures.skipped", "".join(f"{why}\n" for why in skipped))
     try:

@@ -70,5 +70,6 @@ def test_a_run_on_a_full_disk_fails_naming_the_file_and_keeps_what_it_had(small_
         json.loads((out / "report.json").read_text())
     info = subprocess.run([sys.executable, "-m", "services.cli.bench", "info", str(out)], cwd=ROOT,
                           capture_output=True, text=True, timeout=120)
-    assert info.returncode == 0 and "Traceback" not in info.stderr, info.stderr
+    assert info.returncode == 1 and "Traceback" not in info.stderr, info.stderr  # 1: a recording incomplete
+    assert "recording(s) incomplete or missing" in info.stderr, info.stderr
     assert "recordings/demonstration_00.mcap" in info.stdout and "INCOMPLETE" in info.stdout, info.stdout

@@ -69,14 +69,23 @@ def read_run_report(run_dir: Path) -> dict:
         report = read_report(run_dir)
     except RunFolderError as exc:
         raise FiguresError(str(exc)) from None
+    path = Path(run_dir) / "report.json"
     if "learning" not in report:
-        raise FiguresError(f"{Path(run_dir) / 'report.json'}: not a run report (no 'learning')")
+        raise FiguresError(f"{path}: not a run report (no 'learning')")
+    if not isinstance(report["learning"], dict):
+        raise FiguresError(f"{path}: learning: expected an object, got {type(report['learning']).__name__}")
+    for kind in ("demonstrations", "reproductions"):
+        episodes = report.get(kind) or []
+        if not isinstance(episodes, list) or not all(isinstance(e, dict) and isinstance(e.get("path"), str)
+                                                     for e in episodes):
+            raise FiguresError(f"{path}: {kind}: expected a list of episodes, each with its recording's path")
     return report
 
 
-def write_figures(run_dir, progress=None, run: RunRecord | None = None) -> tuple[list[Path], list[str]]:
+def write_figures(run_dir, progress=None, run: RunRecord | None = None) -> tuple[list[Path], list[str], list[str]]:
     """Every figure the run has data for, into RUN_DIR/figures/: (files written, what was
-    skipped and why).  ``run``: the record of the run just reported, whose report and
+    skipped and why, the recordings that were damaged: unreadable, or cut and drawn from
+    what they hold).  ``run``: the record of the run just reported, whose report and
     recordings, as the report decoded them, the figures draw; None: the folder's
     report.json, and its recordings decoded here."""
     run_dir = Path(run_dir)
@@ -85,7 +94,7 @@ def write_figures(run_dir, progress=None, run: RunRecord | None = None) -> tuple
     out.mkdir(exist_ok=True)
     model_path = report["learning"].get("model")
     if not model_path:
-        return [], ["no learned model in the run"]
+        return [], ["no learned model in the run"], []
     task = load_task(in_run(run_dir, model_path))
     if run is not None and run.figures is not None:
         first = run.reproductions[0].figure_data if run.reproductions else None
@@ -111,11 +120,12 @@ def _decoded(run_dir: Path, report: dict, task: LearnedTask) -> tuple[str | None
 
 
 def _draw(task: LearnedTask, world, report: dict, demos_data: list, first: FigureData | None, out: Path,
-          say) -> tuple[list[Path], list[str]]:
+          say) -> tuple[list[Path], list[str], list[str]]:
     model = task.model
     names = true_phase_names(world)
     labels = phase_labels(model.n_phases, task.phase_to_truth, names)
     written, skipped, demos = [], [], []
+    damaged = [p for data in [*demos_data, first] if data is not None for p in (data.problem, data.cut) if p]
     for d, data in zip(report.get("demonstrations", []), demos_data):
         if data.problem is None:
             demos.append(data.arrays)
@@ -138,4 +148,4 @@ def _draw(task: LearnedTask, world, report: dict, demos_data: list, first: Figur
         fig = (f"reproduction 0: {first.problem}" if first.problem is not None else
                reproduction_figure(first.trace, 0, model, out, phase_to_truth=mapping, true_names=names))
         (written if isinstance(fig, Path) else skipped).append(fig)
-    return written, skipped
+    return written, skipped, damaged

@@ -86,11 +86,36 @@ def test_the_figures_command_draws_them_again_and_refuses_a_folder_that_is_no_ru
                       "finished run's folder?)"
 
 
+def test_the_figures_command_fails_on_damaged_recordings_and_says_which(run_dir, tmp_path, capsys):
+    """A recording the report names that is gone, or cut short: the figures are drawn from what
+    can be read, figures.error names each damaged file, and the command exits 1 saying so; a
+    report whose episodes are not a list is refused in one line, exit 2."""
+    import json
+
+    damaged = tmp_path / "damaged"
+    shutil.copytree(run_dir, damaged)
+    demos = sorted((damaged / "recordings").glob("demonstration_*.mcap"))
+    assert len(demos) >= 2, demos
+    demos[0].unlink()
+    data = demos[1].read_bytes()
+    demos[1].write_bytes(data[:len(data) // 2])
+    capsys.readouterr()
+    assert bench_cli.main(["figures", str(damaged)]) == 1
+    err = capsys.readouterr().err
+    assert f"damaged recording {demos[0]}" in err and f"damaged recording {demos[1]}" in err, err
+    assert (damaged / "figures" / "demonstrations_position_and_force.png").is_file()  # from the cut one
+    report = json.loads((damaged / "report.json").read_text())
+    report["demonstrations"] = "oops"
+    (damaged / "report.json").write_text(json.dumps(report))
+    assert bench_cli.main(["figures", str(damaged)]) == 2
+    assert capsys.readouterr().err.strip().endswith(
+        "report.json: demonstrations: expected a list of episodes, each with its recording's path")
+
 def test_a_run_without_demonstrations_says_which_figures_it_skips(tmp_path):
     report = support.run(support.scenario("fri_dropout", {"reproduce.count": 1}), tmp_path / "run", figures=True, transport="inproc",
                          run_id="nodemos")
     assert report["error"] is None
-    written, skipped = write_figures(tmp_path / "run")
+    written, skipped, damaged = write_figures(tmp_path / "run")
     # the stored valley model keeps the BIC scores its learn stage chose by
     assert [p.name for p in written] == ["bic_by_phase_count.png", "reproduction_00_force_phase_alpha.png"]
     assert any("no demonstrations" in s for s in skipped) and not any("no selection scores" in s for s in skipped)
@@ -112,7 +137,7 @@ def test_the_runs_figures_draw_its_world_and_name_its_phases_by_the_true_ones(ru
     save = canvas.save
     monkeypatch.setattr(canvas, "save", lambda fig, path, *a, **k: kept.setdefault(Path(path).name, fig)
                         and save(fig, path, *a, **k))
-    written, _ = write_figures(run_dir)
+    written, _, _ = write_figures(run_dir)
     assert sorted(p.name for p in written) == sorted(FIGURES)
     meta = json.loads((run_dir / "model.json").read_text())["metadata"]
     k = json.loads((run_dir / "model.json").read_text())["n_phases"]

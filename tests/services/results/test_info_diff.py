@@ -177,6 +177,11 @@ def test_info_of_a_cut_recording_and_a_run_folder_without_report(tmp_path):
     (ep,) = r["episodes"]
     assert not r["report"] and not ep["complete"] and ep["kind"] == "reproduction" and ep["messages"] > 0
     assert r["totals"]["incomplete"] == 1 and "no report.json" in info_text(r)
+    # the command describes them all the same, and says in its exit code that not all is well
+    from services.cli import bench as bench_cli
+    assert bench_cli.main(["info", str(cut)]) == 1
+    assert bench_cli.main(["info", str(run_dir)]) == 1
+    assert bench_cli.main(["info", str(full)]) == 0
 
 
 def test_info_errors_name_the_path(tmp_path):
@@ -314,6 +319,26 @@ def test_diff_refuses_what_is_not_a_run_folder(tmp_path):
     with pytest.raises(DiffError, match="a file; diff compares two run folders"):
         diff_runs(a, a / "report.json")
 
+
+def test_diff_of_runs_that_lost_what_they_recorded_is_trouble_not_same(tmp_path):
+    """Two runs that both lost the recordings their reports name, or both hold an unreadable
+    model, compared nothing: not SAME but trouble (DiffError: exit 2), naming the file."""
+    a = make_run(tmp_path / "a", "run-a")
+    b = make_run(tmp_path / "b", "run-b")
+    for run in (a, b):
+        (run / "recordings" / "reproduction_00.mcap").unlink()
+    with pytest.raises(DiffError, match=r"reproduction_00.mcap: named by .*report.json \(reproductions\), missing"):
+        diff_runs(a, b)
+    for run in (a, b):
+        shutil.rmtree(run / "recordings")
+        (run / "recordings").write_text("not a folder")
+    with pytest.raises(DiffError, match="recordings: not a folder"):
+        diff_runs(a, b)
+    c, d = make_run(tmp_path / "c", "run-c"), make_run(tmp_path / "d", "run-d")
+    for run in (c, d):
+        (run / "model.json").write_text("{garbage")
+    with pytest.raises(DiffError, match=r"model.json: not a JSON model \(JSONDecodeError"):
+        diff_runs(c, d)
 
 def _messages(path):
     from services.recordings.reader import read_episode
