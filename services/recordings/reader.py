@@ -10,8 +10,10 @@ chunk that was completely written; the messages of the chunk being written when
 the process died (at most ``CHUNK_SIZE`` of JSON, about 100 robot cycles) are
 lost.  Such an episode has ``complete = False`` and ``problem`` says what was
 lost; a file cut before its metadata record says nothing worth keeping and
-raises.  A file that is not MCAP, or a finished file (with its closing magic)
-that does not read through, raises ``RecordingError`` naming the file.
+raises.  A file read through its footer whose closing magic is cut or damaged (a
+copy a few bytes short) lost nothing: ``complete = False``, every message read.  A
+file that is not MCAP, or a finished file (with its closing magic) that does not
+read through, raises ``RecordingError`` naming the file.
 """
 
 from __future__ import annotations
@@ -160,7 +162,15 @@ def read_episode(path) -> Episode:
     if scan.header is None:
         raise RecordingError(f"{path}: not a readable MCAP file ({_describe(error)})") from error
     problem = None
-    if error is not None:
+    if error is not None and scan.footer is not None and not ends_with_magic:
+        # read through the footer: only the closing magic is cut (a copy a few bytes short)
+        # or damaged, and every record before it was read
+        problem = (f"the closing magic bytes are cut or damaged ({_describe(error)}); every record before them "
+                   "was read")
+        if scan.statistics is not None and scan.statistics.message_count != len(scan.rows):
+            raise RecordingError(f"{path}: corrupt MCAP file (the summary counts {scan.statistics.message_count} "
+                                 f"messages, the chunks hold {len(scan.rows)})")
+    elif error is not None:
         if scan.footer is not None or ends_with_magic:
             # the writer finished this file, so it is damaged, not cut short
             raise RecordingError(f"{path}: corrupt MCAP file ({_describe(error)}); {scan.chunks} chunk(s), "
