@@ -28,6 +28,7 @@ import time
 import uuid
 from pathlib import Path
 
+from etar.interrupts import interrupt_behind
 from services.results.decoding import LearnerView
 from services.results.folder import SCENARIO_FILE, check_run_folder, prepare_run_folder
 from services.results.record import EpisodeRecord, RunRecord
@@ -127,7 +128,9 @@ class Runner:
                         # the starts the preflight drew and found within reach, drawn once
                         getattr(self, f"stage_{stage.kind}")(stage, self.preflight.stage_starts(index))
             self.episodes.event("run_end", "", -1, {})
-        except BaseException as exc:
+        except BaseException as caught:
+            # a Ctrl-C inside compiled code (the learn stage's fits) comes as numba's SystemError
+            exc = interrupt_behind(caught) or caught
             if isinstance(exc, KeyboardInterrupt):
                 self._interrupted = True
             # before the first line that says the run failed: a Ctrl-C after it escalates
@@ -139,7 +142,9 @@ class Runner:
                 for line in self.cell.post_mortem():
                     self.say(line)
             if isinstance(exc, KeyboardInterrupt):
-                raise
+                if exc is caught:
+                    raise
+                raise exc from None
         finally:
             # from here a signal must not cut the report short (_escalate_on_next_interrupt).
             # Whatever fails here, the services, the session and the hosts are let go (the
