@@ -32,6 +32,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from node_costs import timed  # noqa: E402  (bench/, beside this script)
+from services.transport.carriers import ENGINES  # noqa: E402
 
 # (label, module, global name): kernels called through module globals at call time
 KERNELS = (
@@ -103,7 +104,7 @@ def reproduce_only(n: int, out: Path) -> Path:
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--reproductions", type=int, default=4, help="reproductions of the valley (default 4)")
-    parser.add_argument("--engine", default="fused", help="the in-process engine (fused, per-message)")
+    parser.add_argument("--engine", default="fused", choices=ENGINES, help="the in-process engine")
     parser.add_argument("--out", type=Path, default=None, help="keep the run here (default: a temporary folder)")
     args = parser.parse_args()
     if args.reproductions < 1:
@@ -126,6 +127,9 @@ def main():
                                           engine=args.engine, figures=False), progress=lambda line: None)
     if report["error"]:
         raise SystemExit(f"the run failed: {report['error']}")
+    untimed = [label for label in [k[0] for k in KERNELS] + [POLICY, PIPE] if not timers.calls[label]]
+    if untimed:  # the code no longer calls it where this bench looks: a figure of 0 would mislead
+        raise SystemExit(f"never called in the run, so not timed: {', '.join(untimed)}")
     episodes = report["timing"]["robot_loop"]["per_episode"]
     cycles = sum(e["cycles"] for e in episodes)
     wall = sum(r["wall_seconds"] for r in report["reproductions"])
