@@ -75,7 +75,8 @@ def cmd_recover(args) -> int:
         return 2
     missing = [f for f in args.files if not Path(f).is_file()]
     if missing:
-        what = "a folder, not a recording" if Path(missing[0]).is_dir() else "no such file"
+        what = ("a folder, not a recording" if Path(missing[0]).is_dir() else
+                "not a regular file" if Path(missing[0]).exists() else "no such file")
         say(f"etar-bench recover: error: {missing[0]}: {what}")
         return 2
     if args.out is not None:  # refused before anything is read or written

@@ -136,6 +136,8 @@ def recording_kind(path) -> str | None:
 def read_episode(path) -> Episode:
     """Read one recording; see the module docstring for truncated files."""
     path = Path(path)
+    if path.exists() and not path.is_file():  # a FIFO would block the open, /dev/zero never end
+        raise RecordingError(f"{path}: not a regular file" + (" (a folder)" if path.is_dir() else ""))
     try:
         f = open(path, "rb")
     except FileNotFoundError:

@@ -220,13 +220,15 @@ def run_text(d: dict) -> str:
         if s:
             acc = s.get("online_phase_accuracy")
             err = s.get("mean_transition_error_s")
-            result += (f"; {s.get('phases_chosen')} phases; {s.get('successes')} of {s.get('reproductions')} "
+            phases = "no phases chosen" if s.get("phases_chosen") is None else f"{s['phases_chosen']} phases"
+            result += (f"; {phases}; {s.get('successes')} of {s.get('reproductions')} "
                        f"reproductions succeeded; online phase accuracy {_num(acc, '.4f')}; mean transition error "
                        f"{_num(err, '.3f')} s")
         lines.append(f"  result    {result}")
     m = d.get("model")
     if m:
-        chosen = f"{m['phases_chosen']} phases" + (f" ({m['criterion']})" if m.get("criterion") else "")
+        chosen = ("no phases chosen" if m["phases_chosen"] is None else f"{m['phases_chosen']} phases") \
+            + (f" ({m['criterion']})" if m.get("criterion") else "")
         files = ", ".join(f"{x['name'] + ': ' if x['name'] else ''}{x['file']} "
                           f"({x['phases']} phases, {x['transitions']} transitions)" if not x.get("problem")
                           else x["problem"] for x in m["models"]) or "no model file"

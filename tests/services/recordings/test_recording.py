@@ -346,8 +346,14 @@ def test_corrupt_or_foreign_files_raise_naming_the_file(tmp_path, long_episode):
         read_episode(foreign)
     with pytest.raises(RecordingError, match="no such file"):
         read_episode(tmp_path / "missing.mcap")
-    with pytest.raises(RecordingError, match="cannot open"):
-        read_episode(tmp_path)  # a directory
+    with pytest.raises(RecordingError, match=r"not a regular file \(a folder\)"):
+        read_episode(tmp_path)
+    # what would block the open (a FIFO with no writer) or never end (/dev/zero) is refused unread
+    fifo = tmp_path / "live.mcap"
+    os.mkfifo(fifo)
+    for special in (fifo, "/dev/zero"):
+        with pytest.raises(RecordingError, match="not a regular file"):
+            read_episode(special)
 
 
 # ---------------------------------------------------------------------------
