@@ -4,7 +4,7 @@ normalised value or raises a ``ScenarioError`` naming the field."""
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -55,14 +55,90 @@ class ScenarioError(ValueError):
         if self.source is not None:
             parts.append(self.source if self.line is None else f"{self.source}:{self.line}")
         if self.path:
-            parts.append(self.path)
-        parts.append(f"{self.problem}, got {self.value!r}" if self.has_value else self.problem)
+            parts.append(shorten(self.path, MAX_PATH))
+        parts.append(f"{self.problem}, got {quoted(self.value)}" if self.has_value else self.problem)
         return ": ".join(parts)
 
     def within(self, prefix: str = "", source: str | None = None) -> ScenarioError:
         """The same error seen from further out: ``prefix`` goes in front of the path."""
         return ScenarioError(self.problem, path=_join(prefix, self.path), value=self.value,
                              source=self.source if source is None else source, line=self.line)
+
+
+# An error is one line a person reads: a value pasted by mistake (a whole file, an anchor
+# bomb's millions of items) is shown by its start and its size, never printed whole.
+MAX_QUOTED = 80  # characters of a value quoted in an error
+MAX_PATH = 120  # characters of a field path (an unknown key is part of it)
+
+
+class _Full(Exception):
+    """The quoted text has reached its length: stop walking the value."""
+
+
+def quoted(value: Any, limit: int = MAX_QUOTED) -> str:
+    """``repr(value)``, cut to ``limit`` characters with an ellipsis and the value's size.
+
+    The value is walked only as far as the text reaches, so a nested, shared (YAML
+    aliases) or self-containing value costs ``limit`` steps, never its expanded size.
+    """
+    parts: list[str] = []
+    room = [limit + 1]
+
+    def put(text: str) -> None:
+        parts.append(text[:room[0]])
+        room[0] -= len(text)
+        if room[0] <= 0:
+            raise _Full
+
+    def walk(item: Any) -> None:
+        if isinstance(item, (list, tuple, Mapping)):
+            ends = "{}" if isinstance(item, Mapping) else "()" if isinstance(item, tuple) else "[]"
+            put(ends[0])
+            pairs = item.items() if isinstance(item, Mapping) else ((_NOTHING, x) for x in item)
+            for i, (key, x) in enumerate(pairs):
+                put(", " if i else "")
+                if key is not _NOTHING:
+                    walk(key)
+                    put(": ")
+                walk(x)
+            put("," + ends[1] if isinstance(item, tuple) and len(item) == 1 else ends[1])
+        elif isinstance(item, str):
+            put(repr(item[:room[0]]) if len(item) > room[0] else repr(item))
+        elif _is_int(item):
+            put(_digits(item))
+        else:
+            put(repr(item))
+
+    try:
+        walk(value)
+    except _Full:
+        return "".join(parts)[:limit] + f"... ({_size(value)})"
+    return "".join(parts)
+
+
+def _digits(value: Any) -> str:
+    try:
+        return repr(value)
+    except ValueError:  # past sys.get_int_max_str_digits (4300): str() would take quadratic time
+        return f"<an integer of about {int(int(value).bit_length() * math.log10(2)) + 1} digits>"
+
+
+def _size(value: Any) -> str:
+    if _is_int(value):
+        digits = _digits(abs(int(value)))
+        return f"{len(digits)} digits" if digits.isdigit() else digits
+    if isinstance(value, str):
+        return f"{len(value)} characters"
+    if isinstance(value, Mapping):
+        return f"a mapping of {len(value)} keys"
+    if isinstance(value, (list, tuple)):
+        return f"a {'list' if isinstance(value, list) else 'tuple'} of {len(value)} items"
+    return type(value).__name__
+
+
+def shorten(text: str, limit: int) -> str:
+    """``text`` cut to ``limit`` characters with an ellipsis and its length."""
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} characters)"
 
 
 def _join(prefix: str, path: str) -> str:
@@ -82,6 +158,9 @@ MAX_EPISODE_SECONDS = 3600.0  # simulated, per episode
 MAX_RESTARTS = 1_000
 MAX_EM_ITERATIONS = 100_000
 MAX_PHYSICS_SUBSTEPS = 100  # per FRI cycle: 10 us steps, a hundred times the shipped cost
+# a phase per distinct contact of the task: the thesis' tasks need at most 6 (docs/learning.md);
+# many more than that, fitted on a handful of demonstrations, is a typo that fails at learning
+MAX_PHASES = 20
 
 
 def _bound_text(minimum: float | None, strict: bool) -> str:
@@ -189,16 +268,16 @@ def _transitions(value: Any, name: str) -> tuple[str, ...]:
 def _phases(value: Any, name: str) -> int | str:
     if isinstance(value, str) and value == "auto":
         return value
-    if not _is_int(value) or value < 1:
-        raise ScenarioError("expected 'auto' or an integer >= 1", path=name, value=value)
+    if not _is_int(value) or not 1 <= value <= MAX_PHASES:
+        raise ScenarioError(f"expected 'auto' or an integer >= 1 and <= {MAX_PHASES}", path=name, value=value)
     return int(value)
 
 
 def _candidates(value: Any, name: str) -> tuple[int, ...]:
-    items = _list(value, name, "phase counts (integers >= 1)")
+    items = _list(value, name, f"phase counts (integers >= 1 and <= {MAX_PHASES})")
     if not items:
         raise ScenarioError("expected at least one phase count", path=name, value=value)
-    counts = tuple(_int(v, f"{name}[{i}]", 1) for i, v in enumerate(items))
+    counts = tuple(_int(v, f"{name}[{i}]", 1, MAX_PHASES) for i, v in enumerate(items))
     if len(set(counts)) != len(counts):
         raise ScenarioError("expected distinct phase counts", path=name, value=value)
     return counts

@@ -16,7 +16,7 @@ import yaml
 from services.runtime.cycle import CLOCKS
 from services.runtime.roles import CELL_ROLES, RESTARTABLE, STAGE_ROLES
 from services.scenario.checks import (FEATURES, RESTART_POLICIES, STATES, WORLDS, ScenarioError, _choice, _join,
-                                      _list, _number, _seed, _set, _text)
+                                      _list, _number, _seed, _set, _text, quoted)
 from services.scenario.stages import (STAGE_TYPES, CellSpec, DemonstrateStage, LearnStage, ReproduceStage, Stage,
                                       _check_stage_order, doc)
 from services.scenario.starts import DEMONSTRATE_SEED_OFFSET, REPRODUCE_SEED_OFFSET
@@ -152,7 +152,7 @@ class Scenario:
             return Scenario.from_dict(data, source=self.source)
         except ScenarioError as err:
             raise ScenarioError(err.problem, path=err.path, value=err.value,
-                                source=f"{self.source} with {path} = {value!r}") from None
+                                source=f"{self.source} with {path} = {quoted(value)}") from None
 
     def described(self) -> dict[str, Any]:
         """Plain data of the scenario as described: the stages' defaults not filled in."""

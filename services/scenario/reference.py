@@ -16,10 +16,10 @@ import sys
 from pathlib import Path
 
 from robot_sim.krc.faults import LinkFaultSpec
-from services.scenario.loading import load_scenario
+from services.scenario.loading import MAX_FILE_BYTES, MAX_NESTING, MAX_VALUES, load_scenario
 from services.scenario.model import Scenario
 from robot_sim.world.tasks import Valley
-from services.scenario.checks import MAX_START_DRAWS
+from services.scenario.checks import MAX_PHASES, MAX_QUOTED, MAX_START_DRAWS
 from services.scenario.starts import DEMONSTRATE_SEED_OFFSET, REPRODUCE_SEED_OFFSET, TEACHER_SEED_STRIDE
 from services.scenario.stages import DEFAULT_STARTS, FRI_PREFIX, STAGE_TYPES, VALLEY_GOAL_X, CellSpec
 
@@ -69,8 +69,12 @@ RULES = f"""\
   `fri_faults_until_s: .inf` is the default), `1e-3` reads as a number, and a duplicate key
   is an error (PyYAML would keep the last one silently).
 - **Errors** are one `ScenarioError` naming the file (and line, for YAML), the field and the
-  value, e.g. `scenarios/x.yaml: stages[1].learn.phases: expected 'auto' or an integer >= 1,
-  got 'three'`, or `stages[0].demonstrate.cuont: unknown key (did you mean 'count'? ...)`.
+  value, e.g. `scenarios/x.yaml: stages[1].learn.phases: expected 'auto' or an integer >= 1
+  and <= {MAX_PHASES}, got 'three'`, or `stages[0].demonstrate.cuont: unknown key (did you mean 'count'? ...)`.
+  A value quoted in an error is cut to {MAX_QUOTED} characters, with its size.
+- **Size**: a scenario is a regular file of at most {MAX_FILE_BYTES:,} bytes, nested at most
+  {MAX_NESTING} levels deep and of at most {MAX_VALUES:,} values, an alias counted as the values it
+  stands for (a few lines of aliases of aliases would otherwise expand to billions).
 
 ## Varying a scenario
 

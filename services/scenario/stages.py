@@ -12,7 +12,7 @@ from typing import Any, Union
 from robot_sim.cycle import FRI_CYCLE_NS
 from robot_sim.krc.faults import LinkFaultError, LinkFaultSpec
 from robot_sim.world.tasks import HoseCoupler, Valley
-from services.scenario.checks import (CRITERIA, MAX_EM_ITERATIONS, MAX_EPISODE_SECONDS, MAX_EPISODES,
+from services.scenario.checks import (CRITERIA, MAX_EM_ITERATIONS, MAX_EPISODE_SECONDS, MAX_EPISODES, MAX_PHASES,
                                       MAX_PHYSICS_SUBSTEPS, MAX_RESTARTS, SELECTIONS, ScenarioError, Xyz, _bool,
                                       _candidates, _choice, _int, _number, _phases, _seconds, _seed, _set, _sides,
                                       _transitions, _xyz)
@@ -116,8 +116,10 @@ class LearnStage:
     phases (thesis 6.3), so a reproduce stage can run the same starts with each.
     """
 
-    phases: int | str = doc("'auto' (chosen by the criterion among the candidates) or a number of phases >= 1", "auto")
-    candidates: tuple[int, ...] = doc('distinct phase counts >= 1, tried with phases: auto', (1, 2, 3, 4, 5, 6))
+    phases: int | str = doc(f"'auto' (chosen by the criterion among the candidates) or a number of phases, "
+                            f"1..{MAX_PHASES} (the thesis' tasks need at most 6)", "auto")
+    candidates: tuple[int, ...] = doc(f'distinct phase counts, 1..{MAX_PHASES}, tried with phases: auto',
+                                      (1, 2, 3, 4, 5, 6))
     criterion: str = doc('bic | aic', "bic")
     selection: str = doc('per_demonstration (each demonstration chooses, the majority wins: thesis 6.1) | pooled (one score over all demonstrations)', "per_demonstration")
     transitions: str | tuple[str, ...] = doc("effect (ETAR) | state (STAR), or a list of both: the first is the run's model and alone chooses the number of phases, each further one is fitted with that number and every one is scored against the true phases", ("effect",))
