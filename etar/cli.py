@@ -29,21 +29,12 @@ from typing import Callable
 import numpy as np
 
 from etar.demonstrations import DemonstrationError, check_demonstration
-from etar.parsing import OneLineErrorParser, one_line
-from etar.vocabulary import CRITERIA, FEATURES, STATES, TRANSITIONS
+from etar.interrupts import interrupt_behind
+from etar.parsing import CommandParser, cannot_write_in, one_line, reader_gone
+from etar.vocabulary import CRITERIA, FEATURES, MAX_PHASES, STATES, TRANSITIONS
 
 USAGE_ERROR = 2  # a flag or a file the command cannot use: nothing was done
 RUN_FAILED = 1  # the work started and failed
-READER_GONE = 141  # whoever read the output stopped (`| head`): as a program SIGPIPE ends
-
-
-def reader_gone() -> int:
-    """The output's reader closed it: say nothing more (stdout onto /dev/null, so that the
-    interpreter's last flush does not complain) and exit as a program SIGPIPE ends."""
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    os.dup2(devnull, sys.stdout.fileno())
-    os.close(devnull)
-    return READER_GONE
 
 _NO_VALUE = object()
 
@@ -57,8 +48,6 @@ class UsageError(ValueError):
             value = value.tolist() if hasattr(value, "tolist") else value
             text += f", got {value!r}"
         super().__init__(text)
-
-
 
 
 def _say(msg: str) -> None:
@@ -161,9 +150,11 @@ def _warn(command: str, loaded) -> None:
 # --------------------------------------------------------------------------
 
 
-def _at_least(flag: str, value, low: int, why: str = "") -> int:
+def _at_least(flag: str, value, low: int, why: str = "", high: int | None = None) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < low:
         raise UsageError(flag, f"must be an integer >= {low}{why}", value)
+    if high is not None and value > high:
+        raise UsageError(flag, f"must be an integer <= {high}", value)
     return value
 
 
@@ -182,13 +173,21 @@ def _writable_folder(flag: str, value, folder: Path) -> None:
         p = p.parent
     if not p.is_dir():
         raise UsageError(flag, f"{p} is a file, not a folder", value)
-    if not os.access(p, os.W_OK | os.X_OK):
-        raise UsageError(flag, f"cannot write in {p} (permission denied)", value)
+    why = cannot_write_in(p)
+    if why:
+        raise UsageError(flag, f"cannot write in {p} ({why[0].lower() + why[1:]})", value)
+
+
+def _path(flag: str, value: str) -> Path:
+    """A path flag's value; an empty one is refused, as Path('') would be the current folder."""
+    if not str(value).strip():
+        raise UsageError(flag, "an empty path names no file or folder", value)
+    return Path(value).expanduser()
 
 
 def _out_file(flag: str, value: str, what: str) -> Path:
     """``--out FILE``: a file that can be written (its folder is created)."""
-    path = Path(value).expanduser()
+    path = _path(flag, value)
     if path.is_dir():
         raise UsageError(flag, f"is a folder; give the {what} file to write", value)
     if path.exists() and not os.access(path, os.W_OK):
@@ -199,7 +198,7 @@ def _out_file(flag: str, value: str, what: str) -> Path:
 
 def _out_folder(flag: str, value: str) -> Path:
     """``--out DIR``: a folder that exists or can be created, and can be written in."""
-    path = Path(value).expanduser()
+    path = _path(flag, value)
     if path.exists() and not path.is_dir():
         raise UsageError(flag, "is a file, not a folder", value)
     _writable_folder(flag, value, path)
@@ -240,10 +239,10 @@ def check_learn(args) -> LearnJob:
             phases = int(args.phases)
         except ValueError:
             phases = 0
-        if phases < 1:
-            raise UsageError("--phases", "must be 'auto' or an integer >= 1", args.phases)
+        if not 1 <= phases <= MAX_PHASES:
+            raise UsageError("--phases", f"must be 'auto' or an integer in 1..{MAX_PHASES}", args.phases)
     if phases is None:
-        _at_least("--max-phases", args.max_phases, 1)
+        _at_least("--max-phases", args.max_phases, 1, high=MAX_PHASES)
     seed = _at_least("--seed", args.seed, 0)
     restarts = _at_least("--restarts", args.restarts, 1)
     max_iter = _at_least("--max-iter", args.max_iter, 1)
@@ -440,6 +439,8 @@ def inspect(model_path: str, model, loaded) -> int:
 
 
 SYNTH_DT = 0.01  # s between the synthetic samples
+# a learner needs a handful of demonstrations of a few hundred samples: past these a typo fills the disk
+SYNTH_MAX_DEMOS, SYNTH_MAX_LENGTH = 1000, 100_000
 
 
 @dataclass(frozen=True)
@@ -453,9 +454,9 @@ class SynthJob:
 
 def check_synth(args) -> SynthJob:
     phases = _at_least("--phases", args.phases, 1)
-    demos = _at_least("--demos", args.demos, 1)
+    demos = _at_least("--demos", args.demos, 1, high=SYNTH_MAX_DEMOS)
     length = _at_least("--length", args.length, phases + 1,
-                       f" (a sample more than one step per phase of --phases {phases})")
+                       f" (a sample more than one step per phase of --phases {phases})", SYNTH_MAX_LENGTH)
     seed = _at_least("--seed", args.seed, 0)
     return SynthJob(out=_out_folder("--out", args.out), demos=demos, length=length, phases=phases, seed=seed)
 
@@ -495,7 +496,7 @@ def _synth_command(args):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = OneLineErrorParser(prog="etar", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = CommandParser(prog="etar", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"etar {_version()}",
                         help="print the installed version and exit")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -505,9 +506,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="demonstration files: .npz (arrays states (T, n), forces (T, m), optional phases, dt in s) "
                         "or .mcap demonstration recordings")
     p.add_argument("--phases", default="auto",
-                   help="number of phases, an integer >= 1, or 'auto' to choose it by --criterion (default auto)")
+                   help=f"number of phases, an integer in 1..{MAX_PHASES}, or 'auto' to choose it by --criterion "
+                        "(default auto)")
     p.add_argument("--max-phases", type=int, default=6,
-                   help="largest candidate for --phases auto, >= 1; the candidates are 1..this (default %(default)s)")
+                   help=f"largest candidate for --phases auto, 1..{MAX_PHASES}; the candidates are 1..this "
+                        "(default %(default)s)")
     p.add_argument("--criterion", choices=CRITERIA, default="bic",
                    help="how --phases auto scores a candidate number of phases: bic (Bayesian) or aic (Akaike) "
                         "information criterion, the lowest wins (default %(default)s)")
@@ -546,10 +549,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("synth", help="write synthetic demonstrations drawn from a known model")
     p.add_argument("--out", required=True, metavar="DIR",
                    help="folder to write demo_XX.npz into (created; existing demo_XX.npz are replaced)")
-    p.add_argument("--demos", type=int, default=6, help="number of demonstrations, >= 1 (default %(default)s)")
+    p.add_argument("--demos", type=int, default=6,
+                   help=f"number of demonstrations, 1..{SYNTH_MAX_DEMOS} (a learner needs a handful; more only fill "
+                        "the folder) (default %(default)s)")
     p.add_argument("--length", type=int, default=600,
-                   help=f"samples per demonstration, {SYNTH_DT * 1000:g} ms apart, >= --phases + 1 "
-                        "(default %(default)s)")
+                   help=f"samples per demonstration, {SYNTH_DT * 1000:g} ms apart, >= --phases + 1 and <= "
+                        f"{SYNTH_MAX_LENGTH} (default %(default)s)")
     p.add_argument("--phases", type=int, default=3,
                    help="number of phases of the true model, >= 1 (default %(default)s)")
     p.add_argument("--seed", type=int, default=0,
@@ -574,7 +579,9 @@ def main(argv=None) -> int:
     except (ValueError, OSError, FloatingPointError) as exc:
         print(f"{name}: error: {one_line(exc)}", file=sys.stderr)
         return RUN_FAILED
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, SystemError) as exc:
+        if interrupt_behind(exc) is None:  # a SystemError that is no Ctrl-C inside compiled code
+            raise
         print(f"{name}: interrupted", file=sys.stderr)
         return 130
 

@@ -1,13 +1,20 @@
-"""The command lines' parser, for ``etar`` and every program of the testbench (which import
-it from here, the lowest package with a command line): a usage error is one line on stderr,
-``<prog>: error: <flag> <value>: <problem>``, exit code 2 (argparse's own prints the usage
-first and words its errors ``argument --flag: ...``).  The standard library only: a
-program's ``--help`` loads nothing else through it."""
+"""The command lines' parser and what every program shares about its command line, for
+``etar`` and every program of the testbench (which import it from here, the lowest package
+with a command line): a usage error is one line on stderr, ``<prog>: error: <flag> <value>:
+<problem>``, exit code 2 (argparse's own prints the usage first and words its errors
+``argument --flag: ...``); an output path is asked whether it can be written; output whose
+reader left ends quietly.  The standard library only: a program's ``--help`` loads nothing
+else through it."""
 
 from __future__ import annotations
 
 import argparse
+import os
 import re
+import sys
+import tempfile
+
+READER_GONE = 141  # whoever read the output stopped (`| head`): as a program SIGPIPE ends
 
 
 class OneLineErrorParser(argparse.ArgumentParser):
@@ -17,6 +24,43 @@ class OneLineErrorParser(argparse.ArgumentParser):
 
     def error(self, message: str):
         self.exit(2, f"{self.prog}: error: {one_line_error(message)}\n")
+
+
+class CommandParser(OneLineErrorParser):
+    """A OneLineErrorParser that names a flag it does not know before an argument that is
+    missing: ``etar --bogus`` is told that --bogus is no flag, not that a command is required."""
+
+    def parse_known_args(self, args=None, namespace=None):
+        self._given = list(sys.argv[1:] if args is None else args)
+        return super().parse_known_args(args, namespace)
+
+    def error(self, message: str):
+        if message.startswith("the following arguments are required"):
+            given = self._given[:self._given.index("--")] if "--" in self._given else self._given
+            # _parse_optional: None for a value, else (action, ...) of the flag it is, or a list of them
+            found = [(a, self._parse_optional(a)) for a in given]
+            message = next((f"unrecognized arguments: {a}" for a, f in found if f is not None and
+                            all(g[0] is None for g in (f if isinstance(f, list) else [f]))), message)
+        super().error(message)
+
+
+def cannot_write_in(folder) -> str | None:
+    """Why this process cannot make files in the existing ``folder``, or None: asked by making and
+    removing an empty folder there, as os.access says yes to root anywhere, /proc included."""
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".etar-probe-", dir=folder))
+    except OSError as exc:
+        return exc.strerror or str(exc)
+    return None
+
+
+def reader_gone() -> int:
+    """The output's reader closed it: say nothing more (stdout onto /dev/null, so that the
+    interpreter's last flush does not complain) and exit as a program SIGPIPE ends."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
+    return READER_GONE
 
 
 def one_line_error(message: str) -> str:

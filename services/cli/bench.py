@@ -27,9 +27,8 @@ import sys
 
 import numpy as np
 
-from etar.cli import reader_gone
-from etar.parsing import OneLineErrorParser
 from robot_sim.world.tasks import TASK_WORLDS
+from etar.parsing import CommandParser, reader_gone
 from services.cli.version import add_version_argument
 from services.cli.network_commands import cmd_certs, cmd_router
 from services.cli.result_commands import (cmd_compare, cmd_diff, cmd_export, cmd_figures, cmd_info, cmd_recover,
@@ -77,7 +76,7 @@ def add_ros2_arguments(p, live: bool) -> None:
                                           f"{getattr(Ros2Rates, f'{name}_rate_hz'):g})")
 
 
-def build_parser() -> OneLineErrorParser:
+def build_parser() -> CommandParser:
     from services.foxglove import export
     from services.recordings import recovery
     from services.results import diff
@@ -93,8 +92,8 @@ def build_parser() -> OneLineErrorParser:
 
     fifo = ", ".join(f"{role} {priority}" for role, priority in FIFO_CHAIN)
     fifo_ends = " and ".join(f"{role} ({priority})" for role, priority in RunOptions.fifo_priorities)
-    parser = OneLineErrorParser(prog="etar-bench", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = CommandParser(prog="etar-bench", description=__doc__,
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
     add_version_argument(parser, "etar-bench")
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("run", help="run a scenario: demonstrate, learn, reproduce, report")
@@ -148,7 +147,7 @@ def build_parser() -> OneLineErrorParser:
     p.add_argument("--no-figures", action="store_true",
                    help="skip the thesis' figures and report.html after the report (etar-bench figures RUN_DIR "
                         "draws both later)")
-    add_zenoh_arguments(p, process_flags=False)  # the services get theirs from the run
+    add_zenoh_arguments(p, process_flags=False, run=True)  # the services get theirs from the run
     p.set_defaults(func=cmd_run)
     p = sub.add_parser("serve", help="the simulated cell alone (arm, KRC, sensor, recorder) on the realtime clock, "
                                      "for a lab's own FRI 1.0 remote over UDP and Net F/T client (docs/fri.md)")
@@ -207,9 +206,10 @@ def build_parser() -> OneLineErrorParser:
                                                 "--replace")
     p.add_argument("--replace", action="store_true", help="--out holds an earlier run: remove it first")
     p.add_argument("--png", metavar="FILE", help="write a picture of the demonstration to this file (its folder must "
+                                                 "exist; checked before the demonstration runs)")
+    p.add_argument("--npz", metavar="FILE", help="write its arrays to exactly this file (states, forces, phases, dt: "
+                                                 "what etar learn reads, from a name ending .npz; its folder must "
                                                  "exist)")
-    p.add_argument("--npz", metavar="FILE", help="write its arrays to this file (states, forces, phases, dt: what etar "
-                                                 "learn reads)")
     p.set_defaults(func=cmd_demo)
     p = sub.add_parser("sweep", help="run every combination of scenario parameters x seeds in parallel, "
                                      "in-process; a table and plots",
@@ -219,7 +219,9 @@ def build_parser() -> OneLineErrorParser:
     p.add_argument("--param", action="append", default=[], metavar="PATH=V1,V2,...",
                    help="a scenario parameter and its values, e.g. cell.sensor_noise=0.5,1,2 or "
                         "reproduce.start_perturbation=0.01,0.03 (repeatable: every combination runs)")
-    p.add_argument("--repeats", type=int, default=1, help="seeds per combination: the scenario's seed + 0..N-1")
+    p.add_argument("--repeats", type=int, default=1,
+                   help=f"seeds per combination: the scenario's seed + 0..N-1; the sweep's runs, combinations x "
+                        f"repeats, at most {sweep.MAX_RUNS} (each is seconds of CPU: more is days)")
     p.add_argument("--out", required=True, metavar="DIR",
                    help="the sweep's folder, created, for the table, the plots and the runs; one that holds a sweep "
                         "is refused unless --replace")
@@ -227,7 +229,9 @@ def build_parser() -> OneLineErrorParser:
     p.add_argument("--record", choices=sweep.RECORD, default="summary",
                    help="what to keep of each run: everything (recordings with Foxglove's visual topics), its "
                         "report and model (default), or nothing")
-    p.add_argument("--workers", type=int, help="local processes (default: the CPUs this process may use)")
+    p.add_argument("--workers", type=int,
+                   help=f"local processes, at most {sweep.WORKERS_PER_CPU} x the CPUs this process may use (each run "
+                        "is CPU-bound and holds a cell in memory: more only share the CPUs) (default: the CPUs)")
     p.add_argument("--engine", choices=ENGINES,
                    help="how each run's FRI cycles are stepped in its process: fused (default) or per-message "
                         "(see etar-bench run --help)")

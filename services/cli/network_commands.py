@@ -14,6 +14,9 @@ def cmd_certs(args) -> int:
     from services.runtime.roles import CREDENTIAL_NAMES as ROLES
     from services.transport.credentials import CredentialsError, make_credentials
 
+    if not args.dir.strip():  # Path('') is the current folder: keys would land there unasked
+        say(f"etar-bench certs: error: {args.dir!r}: an empty path; give the credentials' folder")
+        return 2
     try:
         out = make_credentials(args.dir, hosts=tuple(args.host or ["127.0.0.1"]), roles=ROLES + tuple(args.role))
     except CredentialsError as exc:

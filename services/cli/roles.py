@@ -20,7 +20,7 @@ import sys
 
 import zenoh
 
-from etar.parsing import OneLineErrorParser
+from etar.parsing import CommandParser
 from services.cli.version import add_version_argument
 from services.cli.zenoh_flags import add_zenoh_arguments, zenoh_options
 from services.nodes import NODES
@@ -48,8 +48,8 @@ def run_id(text: str) -> str:
 def build_parser(role: str) -> argparse.ArgumentParser:
     node_cls, config_cls = NODES[role]
     program = ROLES[role].program
-    parser = OneLineErrorParser(prog=program, description=help_text(sys.modules[node_cls.__module__].__doc__),
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = CommandParser(prog=program, description=help_text(sys.modules[node_cls.__module__].__doc__),
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
     add_version_argument(parser, program)
     parser.add_argument("--run-id", required=True, type=run_id, metavar="ID",
                         help="the run's id: 1-64 letters, digits, '-' or '_'; topics live under etar/ID/ (required)")

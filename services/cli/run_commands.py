@@ -3,6 +3,8 @@ command line is parsed (``services.cli.bench``)."""
 
 from __future__ import annotations
 
+import argparse
+import os
 import signal
 import time
 from pathlib import Path
@@ -31,6 +33,36 @@ def ros2_rate_flags(args) -> tuple:
                  for part in (f"--{name}-rate-hz", repr(getattr(rates, f"{name}_rate_hz"))))
 
 
+def empty_path(flag: str, value, names: str) -> None:
+    """ValueError for a path flag given as '' (Path('') is the current folder, where the
+    work would land unasked); ``names``: what the flag names."""
+    if value is not None and not str(value).strip():
+        raise ValueError(f"{flag} {value!r}: an empty path; {flag} names {names}")
+
+
+def run_zenoh(args):
+    """The run's Zenoh session from --connect and the flags that go with it, each value checked
+    as a service checks it; None: the runner makes its own on loopback and gives it to the
+    services it starts.  The same options go to the runner's session and to every service,
+    so without --connect nothing links them: --listen, --cfg and --mode need it; and a run
+    in one process has no Zenoh at all (ValueError naming the flag for either)."""
+    given = [("--connect", v) for v in args.connect or ()] + [("--listen", v) for v in args.listen or ()]
+    given += [("--cfg", v) for v in args.cfg]
+    if args.mode != os.environ.get("ETAR_ZENOH_MODE", "peer"):  # the environment's is a default, not a choice
+        given.append(("--mode", args.mode))
+    if not given:
+        return None
+    options = zenoh_options(argparse.Namespace(**{**vars(args), "connect": args.connect or []}))
+    flag, value = given[0]
+    if args.transport == "inproc":
+        raise ValueError(f"{flag} {value}: a Zenoh flag; --transport inproc runs every node in this process, "
+                         "without Zenoh: it needs --transport zenoh")
+    if not args.connect:
+        raise ValueError(f"{flag} {value}: needs --connect ENDPOINT: the runner and its services share the Zenoh "
+                         "flags only on a session they join; without --connect the runner makes its own on loopback")
+    return options
+
+
 def cmd_run(args) -> int:
     from etar.task import TaskError
     from services.run.options import RunOptions
@@ -42,11 +74,13 @@ def cmd_run(args) -> int:
 
     out = args.out or f"runs/{Path(args.scenario).stem}-{time.strftime('%Y%m%d-%H%M%S')}"
     try:
+        empty_path("--out", args.out, "the run's folder")
+        zenoh = run_zenoh(args)
         scenario = load_scenario(args.scenario)
         if args.clock:
             scenario = scenario.replace("clock", args.clock)
-        options = RunOptions(out=out, run_id=args.run_id, zenoh=zenoh_options(args) if args.connect else None,
-                             transport=args.transport, engine=args.engine, attach=args.attach, ready_timeout=args.ready_timeout,
+        options = RunOptions(out=out, run_id=args.run_id, zenoh=zenoh, transport=args.transport, engine=args.engine,
+                             attach=args.attach, ready_timeout=args.ready_timeout,
                              sched_fifo=args.sched_fifo_ends, realtime_profile=args.realtime_profile, tls=args.tls,
                              hosts=args.hosts, figures=not args.no_figures, foxglove=args.foxglove,
                              replace=args.replace, command=args.command_line, wire=args.wire, ros2=args.ros2,
@@ -84,6 +118,7 @@ def cmd_serve(args) -> int:
     from services.scenario import ScenarioError, load_scenario
 
     try:
+        empty_path("--out", args.out, "the folder for the recording and the report")
         scenario = load_scenario(args.scenario).replace("clock", "realtime")
         ports = ()
         for flag, value in (("--netft-rdt-port", args.netft_rdt_port), ("--netft-http-port", args.netft_http_port),
@@ -93,6 +128,7 @@ def cmd_serve(args) -> int:
         serve = ServeOptions(fri_remote=args.fri_remote, fri_bind=args.fri_bind, krl=args.krl,
                              netft=None if args.netft == "none" else args.netft, netft_ports=ports,
                              start=args.start, max_seconds=args.max_seconds, fri_cycle_ms=args.fri_cycle_ms)
+        check_robot_flags(tuple(args.robot_flag or ()), serve)
         options = RunOptions(out=args.out, run_id=args.run_id, realtime_profile=args.realtime_profile,
                              figures=False, replace=args.replace, command=args.command_line, serve=serve,
                              robot_args=tuple(args.robot_flag or ()), ros2=args.ros2,
@@ -112,6 +148,18 @@ def cmd_serve(args) -> int:
     print(runner.record.report_text, flush=True)
     say(f"report: {args.out}/report.json, {args.out}/report.txt; recording in {args.out}/recordings")
     return 0 if report["error"] is None else 1
+
+
+def check_robot_flags(flags: tuple, serve) -> None:
+    """``--robot-flag`` values as the runner gives them to the robot after the serve's own:
+    ValueError ``--robot-flag <flag> <value>: <problem>`` now, not once the run is set up."""
+    from services.nodes import RobotConfig
+    from services.runtime.config import with_flags
+
+    try:
+        with_flags(with_flags(RobotConfig(), serve.robot_flags()), flags, who="etar-robot")
+    except ValueError as exc:
+        raise ValueError(f"--robot-flag {exc}") from None
 
 
 def cmd_check(args) -> int:
@@ -140,17 +188,19 @@ def cmd_check(args) -> int:
 def cmd_demo(args) -> int:
     """One demonstration by the teacher, run by the nodes in one process; its recording,
     and on request a picture and the arrays ``etar learn`` reads."""
-    from robot_sim.world.labels import LABELERS
     from services.recordings.demonstrations import load_demonstration
     from services.recordings.format import RecordingError
     from services.run.demonstration import demonstration_scenario, record_demonstration
     from services.scenario import ScenarioError
 
     out = args.out or f"runs/demo-{args.world}-{time.strftime('%Y%m%d-%H%M%S')}"
-    for flag, path in (("--png", args.png), ("--npz", args.npz)):
-        if path is not None and not Path(path).expanduser().resolve().parent.is_dir():
-            say(f"etar-bench demo: error: {flag} {path}: the folder {Path(path).parent} does not exist")
-            return 2
+    try:
+        empty_path("--out", args.out, "the run's folder")
+        for flag, path in (("--png", args.png), ("--npz", args.npz)):
+            output_file(flag, path)
+    except ValueError as exc:
+        say(f"etar-bench demo: error: {exc}")
+        return 2
     try:
         scenario = demonstration_scenario(args.world, side=args.side, seed=args.seed, spread=args.spread,
                                           max_seconds=args.max_seconds)
@@ -179,6 +229,38 @@ def cmd_demo(args) -> int:
     say(f"{args.world} demonstration ({args.side}): {d['reason']} after {d['sim_seconds']:.2f} s simulated, "
          f"{len(demo['states'])} samples at {1 / demo['dt']:.0f} Hz, steps per true phase {counts}; "
          f"recording {recording}")
+    try:
+        write_demonstration(args, demo)
+    except OSError as exc:  # a disk that filled during the run: the recording is kept
+        say(f"etar-bench demo: failed: {exc}; the recording is kept: {recording}")
+        return 1
+    return 0 if d["reason"] == "teacher_done" else 1
+
+
+def output_file(flag: str, path) -> None:
+    """ValueError ``<flag> <path>: <problem>`` unless ``path`` (None: not asked for) is a file
+    this process can write: checked before the demonstration runs, not after."""
+    from etar.parsing import cannot_write_in
+
+    if path is None:
+        return
+    empty_path(flag, path, "the file to write")
+    folder = Path(path).expanduser().resolve().parent
+    if Path(path).expanduser().is_dir():
+        raise ValueError(f"{flag} {path}: a folder; {flag} names the file to write")
+    if not folder.is_dir():
+        raise ValueError(f"{flag} {path}: the folder {Path(path).parent} does not exist")
+    why = cannot_write_in(folder)
+    if why:
+        raise ValueError(f"{flag} {path}: cannot write in {folder} ({why})")
+
+
+def write_demonstration(args, demo: dict) -> None:
+    """The picture (--png) and the arrays (--npz) of a demonstration, each at exactly the
+    path given (numpy's own savez would add .npz to a name without it)."""
+    from robot_sim.world.labels import LABELERS
+    from services.runtime.files import write_via
+
     if args.png:
         from services.results.figures.demonstrations import demonstration_figure
 
@@ -186,10 +268,13 @@ def cmd_demo(args) -> int:
                              LABELERS[args.world].names)
         say(f"wrote {args.png}")
     if args.npz:
-        np.savez(args.npz, states=demo["states"], forces=demo["forces"], phases=demo["phases"],
-                 dt=np.float64(demo["dt"]), t=demo["t"])
-        say(f"wrote {args.npz} (etar learn {args.npz} ... reads it)")
-    return 0 if d["reason"] == "teacher_done" else 1
+        def savez(tmp: Path) -> None:
+            with open(tmp, "wb") as f:
+                np.savez(f, states=demo["states"], forces=demo["forces"], phases=demo["phases"],
+                         dt=np.float64(demo["dt"]), t=demo["t"])
+        write_via(args.npz, savez)
+        say(f"wrote {args.npz} " + (f"(etar learn {args.npz} ... reads it)" if args.npz.endswith(".npz") else
+                                    "(etar learn reads it once its name ends .npz)"))
 
 
 def cmd_sweep(args) -> int:
@@ -216,6 +301,9 @@ def cmd_sweep(args) -> int:
     except KeyboardInterrupt as exc:  # before any run started
         say(f"etar-bench sweep: interrupted ({str(exc) or 'SIGINT'}) before any run started")
         return 130
+    except OSError as exc:  # a scheduler that does not answer, a disk that filled: what ran is in --out
+        say(f"etar-bench sweep: failed: {' '.join(str(exc).split())} (the sweep's folder: {args.out})")
+        return 1
     where = result["cluster"] or f"{result['workers']} local processes"
     print(f"sweep: {result['runs']} runs ({result['failed']} failed) in {result['wall_seconds']:.0f} s on {where}; "
           f"table {result['table']}; plots {', '.join(result['plots']) or 'none'}", flush=True)

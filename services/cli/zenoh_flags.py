@@ -18,23 +18,28 @@ FIFO_PRIORITIES = range(1, 100)  # Linux's SCHED_FIFO priorities (99 the highest
 FIFO_DEFAULT = 50  # --sched-fifo without a priority
 
 
-def add_zenoh_arguments(parser: argparse.ArgumentParser, *, process_flags: bool = True) -> None:
+def add_zenoh_arguments(parser: argparse.ArgumentParser, *, process_flags: bool = True, run: bool = False) -> None:
     """The Zenoh flags, and with ``process_flags`` the process's own (``--sched-fifo PRIORITY``,
-    ``--cpus``) unless ``parser`` already has a ``sched_fifo`` of its own."""
+    ``--cpus``) unless ``parser`` already has a ``sched_fifo`` of its own.  ``run``: the
+    runner's, which it gives its services too, only with ``--connect`` (see ``etar-bench run``)."""
     g = parser.add_argument_group("zenoh")
+    # the runner hands these to every service it starts, so alone (without a session to join) they link nothing
+    needs = "; with --connect only (and --transport zenoh)" if run else ""
     g.add_argument("--mode", choices=("peer", "client", "router"),
                    default=os.environ.get("ETAR_ZENOH_MODE", "peer"),
-                   help="Zenoh session mode (default peer, or $ETAR_ZENOH_MODE)")
+                   help=f"Zenoh session mode (default peer, or $ETAR_ZENOH_MODE){needs}")
     g.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
                    help="endpoint to connect to, PROTOCOL/HOST:PORT with a port in 1..65535, e.g. "
-                        f"tcp/127.0.0.1:{ZENOH_PORT} (repeatable; default $ETAR_ZENOH_CONNECT, comma-separated; an "
-                        "endpoint not up yet is retried)")
+                        f"tcp/127.0.0.1:{ZENOH_PORT} (repeatable; " + (
+                            "the runner and every service it starts join the session there with these flags; "
+                            "default: none, the runner makes its own on loopback; --transport zenoh only)" if run else
+                            "default $ETAR_ZENOH_CONNECT, comma-separated; an endpoint not up yet is retried)"))
     g.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
                    help="endpoint to listen on, PROTOCOL/HOST:PORT with a port in 0..65535 (0: any free one) "
-                        "(repeatable; default tcp/127.0.0.1:0 for peers, none for clients)")
+                        f"(repeatable; default tcp/127.0.0.1:0 for peers, none for clients){needs}")
     g.add_argument("--cfg", action="append", default=[], metavar="KEY:VALUE",
                    help="any Zenoh configuration key with a JSON5 value, e.g. transport/unicast/lowlatency:true "
-                        "(repeatable; default none)")
+                        f"(repeatable; default none){needs}")
     if process_flags and not any(a.dest == "sched_fifo" for a in parser._actions):
         add_sched_fifo_argument(parser)
 

@@ -55,7 +55,7 @@ def rdt_fields(data: bytes) -> dict:
 
 @dataclass(frozen=True)
 class FtSensorConfig:
-    seed: int = option(0, "seed of the sensor's noise and drift")
+    seed: int = option(0, "seed of the sensor's noise and drift, >= 0")
     noise_scale: float = option(1.0, "white noise as a multiple of the Mini45's (0: none)", metavar="FACTOR")
     fault: str = option("none", "fault injection: the sensor fails from --fault-after s into each episode "
                                 "(stop: no more records; saturate: beyond its range; nan: the gauges read NaN)",
@@ -72,6 +72,8 @@ class FtSensorConfig:
                                          metavar="PORT")
 
     def __post_init__(self):
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"seed must be an integer >= 0, got {self.seed!r}")
         if not (math.isfinite(self.noise_scale) and self.noise_scale >= 0):
             raise ValueError(f"noise_scale must be a finite number >= 0, got {self.noise_scale!r}")
         if self.fault not in SENSOR_FAULTS:

@@ -51,6 +51,7 @@ integrates over the cycles that passed (``dt``).  Lockstep answers every one.
 
 from __future__ import annotations
 
+import math
 import threading
 from dataclasses import dataclass
 
@@ -61,7 +62,7 @@ from etar.policy_kernel import compiled_policy
 from etar.task import load_task
 from robot_sim.wire.fri_udp import host_port
 from services.runtime.bus import Node, Publication, Subscription
-from services.runtime.config import option
+from services.runtime.config import check_stall, option
 from services.runtime.loop import Sections
 from robot_sim.cycle import FRI_CYCLE_NS
 from services.runtime.messages import (ESTIMATOR_PHASE, ESTIMATOR_STRIDE, ROBOT_COMMAND, ROBOT_STATE,
@@ -82,17 +83,21 @@ class CommanderConfig:
     model: str | None = option(None, "learned model file with per-phase impedance; can also come with reset",
                                metavar="FILE")
     lead: float = option(LEAD, "how far the reference may run ahead of the tool, m (> 0)", metavar="M")
-    damping_ratio: float = option(0.7, "damping ratio of the commanded impedance (1: critical)", metavar="RATIO")
-    stall_every: float = option(0.0, "fault injection: stall before answering, every S seconds of simulated time "
-                                     "(0: never)", metavar="S")
-    stall_ms: float = option(0.0, "fault injection: how long each stall lasts, ms", metavar="MS")
+    damping_ratio: float = option(0.7, "damping ratio of the commanded impedance, > 0 (1: critical)", metavar="RATIO")
+    stall_every: float = option(0.0, "fault injection: stall before answering, every S seconds of simulated time, "
+                                     ">= 0 (0: never)", metavar="S")
+    stall_ms: float = option(0.0, "fault injection: how long each stall lasts, ms, >= 0", metavar="MS")
     fri_listen: str = option("", "be the KRC's FRI 1.0 remote over UDP on this address (measurements come here, "
                                  "commands go back; each measurement is passed on as robot/state); empty: "
                                  "robot/state and robot/command over the bus", metavar="HOST:PORT")
 
     def __post_init__(self):
-        if not self.lead > 0:
+        if not (math.isfinite(self.lead) and self.lead > 0):
             raise ValueError(f"lead must be > 0 m, got {self.lead!r}")
+        # a ratio <= 0 commands no damping or energy into the arm: never an impedance to hold a task with
+        if not (math.isfinite(self.damping_ratio) and self.damping_ratio > 0):
+            raise ValueError(f"damping_ratio must be a finite number > 0, got {self.damping_ratio!r}")
+        check_stall(self.stall_every, self.stall_ms)
         if self.fri_listen:
             host_port(self.fri_listen, "fri_listen", listen=True)
 

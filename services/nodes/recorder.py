@@ -18,6 +18,7 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
+from etar.parsing import cannot_write_in
 from services.recordings.offload import WriterProcess
 from services.runtime import topics
 from services.runtime.bus import Node, Subscription
@@ -45,15 +46,18 @@ class RecorderConfig:
 
 def check_out_dir(out_dir) -> None:
     """FieldError unless the recorder can put its files in ``out_dir``: a folder, or one it
-    can make (its nearest existing parent a folder it may write in).  Nothing is made."""
+    can make (its nearest existing parent a folder it may write in).  Nothing is left made."""
     path = Path(out_dir)
-    if not str(out_dir):
+    if not str(out_dir).strip():
         raise FieldError("out_dir", "expected a folder", "''")
     if path.exists():
         if not path.is_dir():
             raise FieldError("out_dir", "not a folder (it is a file)", out_dir)
         if not os.access(path, os.W_OK | os.X_OK):
             raise FieldError("out_dir", "this user may not write in that folder", out_dir)
+        why = cannot_write_in(path)
+        if why:
+            raise FieldError("out_dir", f"nothing can be made in that folder ({why})", out_dir)
         return
     parent = path.absolute().parent
     while not parent.exists():
@@ -62,6 +66,9 @@ def check_out_dir(out_dir) -> None:
         raise FieldError("out_dir", f"cannot be made: {parent} is a file, not a folder", out_dir)
     if not os.access(parent, os.W_OK | os.X_OK):
         raise FieldError("out_dir", f"cannot be made: this user may not write in {parent}", out_dir)
+    why = cannot_write_in(parent)
+    if why:
+        raise FieldError("out_dir", f"cannot be made in {parent} ({why})", out_dir)
 
 
 def episode_path(out_dir, name) -> Path:

@@ -45,7 +45,7 @@ from robot_sim.world.tasks import TASK_WORLDS, Valley, WORLDS, physics_step, val
 from services.nodes.robot_episode import EpisodeJudge
 from services.nodes.robot_inbox import AnswerInbox
 from services.runtime.bus import Node, Publication, Subscription
-from services.runtime.config import nested, option
+from services.runtime.config import check_stall, nested, option
 from services.runtime.cycle import EpisodePlan
 from services.runtime.fri_messages import command_packet, state_message
 from services.runtime.messages import EPISODE_SUMMARY, FRI_DATAGRAM, ROBOT_CONTACT, ROBOT_STATE
@@ -60,11 +60,11 @@ EPISODE_KINDS = ("demonstration", "reproduction", "served")
 @dataclass(frozen=True)
 class RobotConfig:
     world: str = option("valley", "task world", choices=TASK_WORLDS)
-    seed: int = option(0, "seed of the cell (joint measurement noise)")
+    seed: int = option(0, "seed of the cell (joint measurement noise), >= 0")
     answer_timeout: float = option(5.0, "lockstep: seconds to wait for a cycle's answers before counting a miss",
                                    metavar="S")
-    stall_every: float = option(0.0, "fault injection: stall the loop every S seconds (0: never)", metavar="S")
-    stall_ms: float = option(0.0, "fault injection: how long each stall lasts, ms", metavar="MS")
+    stall_every: float = option(0.0, "fault injection: stall the loop every S seconds, >= 0 (0: never)", metavar="S")
+    stall_ms: float = option(0.0, "fault injection: how long each stall lasts, ms, >= 0", metavar="MS")
     plate_friction: float = option(Valley.friction, "valley: sliding friction coefficient of the plates (> 0)",
                                    metavar="MU")
     physics_substeps: int = option(1, "physics steps per 1 ms FRI cycle, the KRC's law in each (more: the finer "
@@ -88,8 +88,11 @@ class RobotConfig:
     def __post_init__(self):
         if self.world not in TASK_WORLDS:
             raise ValueError(f"world {self.world!r} unknown (known: {', '.join(TASK_WORLDS)})")
-        if not self.answer_timeout > 0:
-            raise ValueError(f"answer_timeout must be > 0 s, got {self.answer_timeout!r}")
+        if not (math.isfinite(self.answer_timeout) and self.answer_timeout > 0):  # inf: a lost answer hangs the run
+            raise ValueError(f"answer_timeout must be a finite number of seconds > 0, got {self.answer_timeout!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"seed must be an integer >= 0, got {self.seed!r}")
+        check_stall(self.stall_every, self.stall_ms)
         if not (math.isfinite(self.plate_friction) and self.plate_friction > 0):
             raise ValueError(f"plate_friction must be a finite number > 0, got {self.plate_friction!r}")
         if self.wire not in WIRES:

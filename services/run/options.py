@@ -1,8 +1,9 @@
 """How a scenario is run, as opposed to what it runs: the output folder, the transport and
-where its processes go, what the machine is asked for.  Every rule about which options
-go together is here, checked on construction (``RunOptions``) and against the scenario
-(``check``), for the command line and the API alike: a refusal is a ValueError (or a
-ScenarioError, CredentialsError, HostsError naming what is at fault) before anything starts.
+where its processes go (a sweep's too: ``check_cluster``), what the machine is asked for.
+Every rule about which options go together is here, checked on construction (``RunOptions``)
+and against the scenario (``check``), for the command line and the API alike: a refusal is a
+ValueError (or a ScenarioError, CredentialsError, HostsError naming what is at fault) before
+anything starts.
 """
 
 from __future__ import annotations
@@ -162,3 +163,25 @@ def port_free(port: int, host: str = "127.0.0.1") -> None:
         except OSError as exc:
             raise ValueError(f"--foxglove {port}: {host}:{port} is taken ({exc.strerror}); choose another port, "
                              "or 0 for any free one") from None
+
+
+def check_cluster(address: str) -> None:
+    """ValueError unless Dask distributed is installed and ``address`` is a scheduler's as it
+    reads one, ``[SCHEME://]HOST:PORT`` (tcp when no scheme): before anything is made."""
+    try:
+        from distributed.comm.addressing import parse_address
+        from distributed.comm.registry import get_backend
+    except ImportError:
+        raise ValueError("--cluster needs Dask distributed: pip install 'etar-testbench[cluster]' "
+                         "(make run and make test install it)") from None
+    try:
+        scheme, location = parse_address(address)
+        get_backend(scheme)  # ValueError naming the schemes it knows
+        host, colon, port = location.rpartition(":")
+        problem = ("" if scheme == "inproc" else "no HOST:PORT" if not colon or not host
+                   else "" if port.isdigit() and 1 <= int(port) <= 65535 else f"port {port!r} is not in 1..65535")
+    except ValueError as exc:
+        problem = str(exc)
+    if problem:
+        raise ValueError(f"--cluster {address or repr(address)}: {problem}; expected a Dask scheduler's address, e.g. "
+                         "tcp://10.0.0.5:8786")

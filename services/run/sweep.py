@@ -65,6 +65,11 @@ class SweepError(ValueError):
     """A sweep that cannot be run, saying which parameter or value is at fault."""
 
 
+# a sweep's runs (each seconds of CPU; 10000 are days) and local processes per CPU (each run is
+# CPU-bound and holds a cell in memory): past these, a typo's digits fill the memory, not a table
+MAX_RUNS, WORKERS_PER_CPU = 10_000, 4
+
+
 @dataclass(frozen=True)
 class Parameter:
     path: str
@@ -134,9 +139,10 @@ class RunSpec:
 
 
 def plan(base: Scenario, parameters: list, repeats: int, out: Path, record: str,
-         learn_threads: int, engine: str | None = None) -> list[RunSpec]:
+         learn_threads: int, engine: str | None = None, write: bool = True) -> list[RunSpec]:
     """Every combination x seed, as a scenario value (validated), each also written out
-    under ``out/scenarios/`` as a record of what ran."""
+    under ``out/scenarios/`` as a record of what ran (``write_scenarios``); ``write=False``
+    writes nothing, for a sweep that checks every value before it makes its folder."""
     if repeats < 1:
         raise SweepError(f"--repeats must be >= 1, got {repeats}")
     if record not in RECORD:
@@ -144,6 +150,10 @@ def plan(base: Scenario, parameters: list, repeats: int, out: Path, record: str,
     paths = [p.path for p in parameters]
     if len(set(paths)) != len(paths):
         raise SweepError(f"a parameter is given twice: {paths}")
+    runs = math.prod(len(p.values) for p in parameters) * repeats
+    if runs > MAX_RUNS:
+        raise SweepError(f"--param values x --repeats {repeats} make {runs} runs, more than a sweep's {MAX_RUNS} "
+                         "(split it into sweeps of their own)")
     specs = []
     combos = list(itertools.product(*[p.values for p in parameters])) if parameters else [()]
     for combo in combos:
@@ -161,11 +171,17 @@ def plan(base: Scenario, parameters: list, repeats: int, out: Path, record: str,
             name = f"run{index:03d}"
             specs.append(RunSpec(index, name, params, scenario, str(out / "runs" / name), record, learn_threads,
                                  engine))
-    # written once every combination is valid: a refused sweep leaves no sweep behind
+    if write:
+        write_scenarios(specs, out)
+    return specs
+
+
+def write_scenarios(specs: list[RunSpec], out: Path) -> None:
+    """Each run's scenario under ``out/scenarios/``, once every combination is valid: a
+    refused sweep leaves no sweep behind."""
     (out / "scenarios").mkdir(parents=True, exist_ok=True)
     for spec in specs:
         write_file(out / "scenarios" / f"{spec.name}.yaml", spec.scenario.to_yaml())
-    return specs
 
 
 # what a sweep writes into its --out (one folder holds one sweep, as one holds one run)
@@ -324,11 +340,7 @@ def execute(specs: list[RunSpec], workers: int, cluster: str | None, say=print) 
             + f"  [{len(rows)}/{len(specs)}, {time.monotonic() - t0:.0f} s]")
 
     if cluster:
-        try:
-            from distributed import Client, as_completed as dask_completed
-        except ImportError:
-            raise SweepError("--cluster needs Dask distributed: pip install 'etar-testbench[cluster]' "
-                             "(make run and make test install it)") from None
+        from distributed import Client, as_completed as dask_completed  # installed: sweep() checked --cluster
 
         with Client(cluster, timeout="30s") as client:
             say(f"sweep: {len(specs)} runs on the Dask cluster at {cluster} "
@@ -526,21 +538,30 @@ def plot(rows: list[dict], parameters: list, out: Path) -> list[Path]:
 def sweep(scenario: Scenario, parameters: list, *, repeats: int, out: str, record: str = "summary",
           workers: int | None = None, cluster: str | None = None, learn_threads: int | None = None,
           replace: bool = False, say=print, engine: str | None = None) -> dict:
+    from services.run.options import check_cluster
     from services.runtime.threads import available_cpus
     from services.transport.carriers import check_engine
 
+    if not str(out).strip():  # Path('') is the current folder, where the sweep would land unasked
+        raise SweepError(f"--out {out!r}: an empty path; --out names the sweep's folder")
     out_dir = Path(out).expanduser().resolve()
-    for flag, value in (("--workers", workers), ("--learn-threads", learn_threads), ("--repeats", repeats)):
-        if value is not None and value < 1:
-            raise SweepError(f"{flag} must be >= 1, got {value}")
+    cpus = available_cpus()
+    for flag, value, most, why in (("--workers", workers, WORKERS_PER_CPU * cpus, f" ({WORKERS_PER_CPU} x the {cpus} "
+                                                                                  "CPUs this process may use)"),
+                                   ("--learn-threads", learn_threads, None, ""), ("--repeats", repeats, MAX_RUNS, "")):
+        if value is not None and not 1 <= value <= (most or value):
+            raise SweepError(f"{flag} must be {'>= 1' if value < 1 else f'<= {most}{why}'}, got {value}")
     try:
         check_engine(engine, in_process=True)
+        if cluster is not None:
+            check_cluster(cluster)
     except ValueError as exc:
         raise SweepError(str(exc)) from None
-    _prepare(out_dir, out, replace)
-    workers = available_cpus() if workers is None else workers
-    threads = learn_threads or max(1, available_cpus() // workers)
-    specs = plan(scenario, parameters, repeats, out_dir, record, threads, engine)
+    workers = cpus if workers is None else workers
+    threads = learn_threads or max(1, cpus // workers)
+    specs = plan(scenario, parameters, repeats, out_dir, record, threads, engine, write=False)
+    _prepare(out_dir, out, replace)  # every value checked: only now is anything made or removed
+    write_scenarios(specs, out_dir)
     t0 = time.monotonic()
     try:
         rows = execute(specs, min(workers, len(specs)), cluster, say)

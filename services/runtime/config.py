@@ -38,6 +38,14 @@ class FieldError(ValueError):
         self.field, self.problem, self.value = field, problem, value
 
 
+def check_stall(every_s: float, stall_ms: float) -> None:
+    """FieldError for fault injection's stall (``stall_every``, ``stall_ms``) that cannot be:
+    negative, or endless (inf: a stall that never ends hangs the run)."""
+    for name, value in (("stall_every", every_s), ("stall_ms", stall_ms)):
+        if not (math.isfinite(value) and value >= 0):
+            raise FieldError(name, "must be a finite number >= 0", value)
+
+
 def nested(default, prefix: str):
     """A field holding the frozen dataclass ``default`` is an instance of; its fields are
     flags named ``--<prefix><field>``."""
@@ -192,17 +200,25 @@ def config_to_args(config) -> list[str]:
     return out
 
 
-def with_flags(config, flags):
+class _Refusing(argparse.ArgumentParser):
+    """A parser whose usage error is a ValueError of one line, not a usage printed and an exit:
+    the flags are a run's, given to a node built or spawned for it."""
+
+    def error(self, message: str):
+        from etar.parsing import one_line_error
+
+        raise ValueError(one_line_error(message).replace("this program (see --help)", self.prog))
+
+
+def with_flags(config, flags, who: str | None = None):
     """``config`` with command-line ``flags`` of its own applied (e.g. the fault
-    injection flags a bench gives the robot), for a node built in this process."""
+    injection flags a bench gives the robot), for a node built in this process.  A flag
+    it does not take is a ValueError ``<flag> <value>: <problem>`` naming ``who`` takes
+    them (default: the config's class)."""
     flags = list(flags)
     if not flags:
         return config
-    parser = argparse.ArgumentParser(prog=type(config).__name__, add_help=False, exit_on_error=False)
+    parser = _Refusing(prog=who or type(config).__name__, add_help=False)
     add_config_arguments(parser, type(config))
     parser.set_defaults(**_values(config))
-    try:
-        args = parser.parse_args(flags)
-    except (argparse.ArgumentError, SystemExit) as exc:
-        raise ValueError(f"{type(config).__name__}: bad flags {flags}: {exc}") from None
-    return config_from_args(type(config), args)
+    return config_from_args(type(config), parser.parse_args(flags))

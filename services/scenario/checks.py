@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from etar.vocabulary import CRITERIA, TRANSITIONS  # noqa: F401  (CRITERIA: the stages check it)
+from etar.vocabulary import CRITERIA, MAX_PHASES, TRANSITIONS  # noqa: F401  (CRITERIA: the stages check it)
 from etar.vocabulary import FEATURES as ETAR_FEATURES, STATES as ETAR_STATES
 from robot_sim.world.tasks import TASK_WORLDS
 
@@ -158,9 +158,6 @@ MAX_EPISODE_SECONDS = 3600.0  # simulated, per episode
 MAX_RESTARTS = 1_000
 MAX_EM_ITERATIONS = 100_000
 MAX_PHYSICS_SUBSTEPS = 100  # per FRI cycle: 10 us steps, a hundred times the shipped cost
-# a phase per distinct contact of the task: the thesis' tasks need at most 6 (docs/learning.md);
-# many more than that, fitted on a handful of demonstrations, is a typo that fails at learning
-MAX_PHASES = 20
 
 
 def _bound_text(minimum: float | None, strict: bool) -> str:

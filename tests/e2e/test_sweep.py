@@ -40,7 +40,7 @@ def test_parameters_are_parsed_and_every_combination_validated_before_anything_r
     # a refused sweep leaves nothing of a sweep behind, so the corrected command is not refused
     with pytest.raises(SweepError, match=r"cell.sensor_noise: expected a finite number >= 0, got -1"):
         sweep(scenario, [Parameter.parse("cell.sensor_noise=1,-1")], repeats=1, out=str(tmp_path / "refused"))
-    assert list((tmp_path / "refused").iterdir()) == []
+    assert not (tmp_path / "refused").exists()  # not even its folder: every value is checked first
     with pytest.raises(SweepError, match="no values"):
         Parameter.parse("cell.sensor_noise=,")
     with pytest.raises(SweepError, match="learn.phases: the scenario has no learn stage"):

@@ -61,6 +61,8 @@ def demos(tmp_path_factory):
                                          "one step per phase of --phases 2), got 2"),
     (["--seed", "-1"], "etar synth: error: --seed: must be an integer >= 0, got -1"),
     (["--phases", "x"], "etar synth: error: --phases x: expected an integer"),
+    (["--demos", "1001"], "etar synth: error: --demos: must be an integer <= 1000, got 1001"),
+    (["--length", "100001"], "etar synth: error: --length: must be an integer <= 100000, got 100001"),
 ])
 def test_synth_refuses_a_bad_number(tmp_path, capsys, flags, line):
     out = tmp_path / "out"
@@ -97,11 +99,12 @@ LEARN_FLAG_CASES = [
     (["--max-phases", "0"], "--max-phases: must be an integer >= 1, got 0"),
     (["--dt", "0"], "--dt: must be a finite number > 0 s, got 0.0"),
     (["--dt", "nan"], "--dt: must be a finite number > 0 s, got nan"),
-    (["--phases", "x"], "--phases: must be 'auto' or an integer >= 1, got 'x'"),
-    (["--phases", "0"], "--phases: must be 'auto' or an integer >= 1, got '0'"),
-    (["--phases", "2.5"], "--phases: must be 'auto' or an integer >= 1, got '2.5'"),
-    (["--phases", "40"], "--phases: a 40-phase model has 7476 free parameters, more than the 597 steps of the "
-                         "demonstrations (record more or use fewer phases), got 40"),
+    (["--phases", "x"], "--phases: must be 'auto' or an integer in 1..20, got 'x'"),
+    (["--phases", "0"], "--phases: must be 'auto' or an integer in 1..20, got '0'"),
+    (["--phases", "2.5"], "--phases: must be 'auto' or an integer in 1..20, got '2.5'"),
+    (["--phases", "21"], "--phases: must be 'auto' or an integer in 1..20, got '21'"),
+    (["--phases", "20"], "--phases: a 20-phase model has 2136 free parameters, more than the 597 steps of the "
+                         "demonstrations (record more or use fewer phases), got 20"),
     (["--seed", "-3"], "--seed: must be an integer >= 0, got -3"),
     (["--criterion", "xic"], "--criterion xic: not one of bic, aic"),
     (["--max-iter", "many"], "--max-iter many: expected an integer"),
@@ -130,6 +133,26 @@ def test_learn_refuses_an_out_it_cannot_write_before_fitting(tmp_path, capsys, m
         f"etar learn: error: --out: {afile} is a file, not a folder, got '{afile}/deeper/m.json'"
     assert refused(["learn", *demos, "--out", demos[1]], capsys) == \
         f"etar learn: error: --out: is one of the demonstration files; it would be overwritten, got '{demos[1]}'"
+    assert refused(["learn", *demos, "--out", ""], capsys) == \
+        "etar learn: error: --out: an empty path names no file or folder, got ''"
+
+
+def test_an_out_in_a_folder_nothing_can_be_made_in_is_refused_before_any_work(tmp_path, capsys, monkeypatch, demos):
+    """(root may write anywhere os.access asks about, /proc included: the folder is asked by
+    making one there)"""
+    import errno
+    import tempfile
+
+    def read_only(*_, **__):
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    monkeypatch.setattr(ETAR, "fit", lambda *a, **k: pytest.fail("fitted despite a bad --out"))
+    monkeypatch.setattr(tempfile, "mkdtemp", read_only)
+    assert refused(["learn", *demos, "--out", str(tmp_path / "m.json")], capsys) == \
+        f"etar learn: error: --out: cannot write in {tmp_path} (read-only file system), got '{tmp_path}/m.json'"
+    assert refused(["synth", "--out", str(tmp_path / "new")], capsys) == \
+        f"etar synth: error: --out: cannot write in {tmp_path} (read-only file system), got '{tmp_path}/new'"
+    assert list(tmp_path.iterdir()) == []
 
 
 # --------------------------------------------------------------------------

@@ -30,7 +30,7 @@ SERVICE_CASES = [
     ("robot", ["--run-id", "x", "--connect", "foo/1.2.3.4:7"], "--connect foo/1.2.3.4:7: unknown protocol 'foo'"),
     ("robot", ["--run-id", "x", "--connect", "bogus"], "--connect bogus: Endpoints must be of the form"),
     ("robot", ["--run-id", "x", "--fri-packet-loss", "2"], "--fri-packet-loss 2: expected a probability in [0, 1]"),
-    ("robot", ["--run-id", "x", "--answer-timeout", "0"], "--answer-timeout 0: must be > 0 s"),
+    ("robot", ["--run-id", "x", "--answer-timeout", "0"], "--answer-timeout 0: must be a finite number of seconds > 0"),
     ("ft_sensor", ["--run-id", "x", "--listen", "garbage"], "--listen garbage: Endpoints must be of the form"),
     ("ft_sensor", ["--run-id", "x", "--listen", "tcp/1.2.3.4:99999"],
      "--listen tcp/1.2.3.4:99999: port '99999' is not in 0..65535 (0: any free port)"),
