@@ -44,8 +44,11 @@ def cmd_info(args) -> int:
         say(f"etar-bench info: error: {exc}")
         return 2
     print(json.dumps(described, indent=1, allow_nan=False) if args.json else info_text(described), flush=True)
-    incomplete = (described["totals"]["incomplete"] if described.get("kind") == "run"
-                  else int(not described["complete"]))
+    if described.get("kind") == "run":  # a run without recordings/ kept none by choice (--record summary)
+        kept = (Path(described["path"]) / "recordings").exists()
+        incomplete = described["totals"]["incomplete"] if kept else 0
+    else:
+        incomplete = int(not described["complete"])
     if incomplete:
         say(f"etar-bench info: {args.path}: {incomplete} recording(s) incomplete or missing (INCOMPLETE above)")
         return 1

@@ -307,7 +307,10 @@ def _run_folder(path) -> Path:
 
 def _named_recordings_present(run: Path, report: dict) -> None:
     """Every recording the run's report names is there: two runs that both lost theirs
-    must not compare as the same (nothing would be compared)."""
+    must not compare as the same (nothing would be compared).  A run without a recordings/
+    folder kept none by choice (a sweep's ``--record summary``): its results are compared."""
+    if not (run / "recordings").exists():
+        return
     for kind in ("demonstrations", "reproductions", "served"):
         episodes = report.get(kind) or []
         if not isinstance(episodes, list):

@@ -182,6 +182,11 @@ def test_info_of_a_cut_recording_and_a_run_folder_without_report(tmp_path):
     assert bench_cli.main(["info", str(cut)]) == 1
     assert bench_cli.main(["info", str(run_dir)]) == 1
     assert bench_cli.main(["info", str(full)]) == 0
+    kept = make_run(tmp_path / "summary", "r-s")
+    (kept / "recordings" / "reproduction_00.mcap").unlink()  # lost
+    assert bench_cli.main(["info", str(kept)]) == 1
+    shutil.rmtree(kept / "recordings")  # none kept, by choice (a sweep's --record summary)
+    assert bench_cli.main(["info", str(kept)]) == 0
 
 
 def test_info_errors_name_the_path(tmp_path):
@@ -329,8 +334,11 @@ def test_diff_of_runs_that_lost_what_they_recorded_is_trouble_not_same(tmp_path)
         (run / "recordings" / "reproduction_00.mcap").unlink()
     with pytest.raises(DiffError, match=r"reproduction_00.mcap: named by .*report.json \(reproductions\), missing"):
         diff_runs(a, b)
-    for run in (a, b):
+    for run in (a, b):  # no recordings/ at all: kept by choice (a sweep's --record summary): the results
         shutil.rmtree(run / "recordings")
+    d = diff_runs(a, b)
+    assert d.files == [] and d.same and "none in either run" in d.text()
+    for run in (a, b):
         (run / "recordings").write_text("not a folder")
     with pytest.raises(DiffError, match="recordings: not a folder"):
         diff_runs(a, b)
