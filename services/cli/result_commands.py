@@ -36,6 +36,7 @@ def cmd_report(args) -> int:
 def cmd_info(args) -> int:
     """What a recording or a run holds, as ``mcap info`` / ``ros2 bag info`` would say it;
     exit code 1 when a recording is incomplete or missing (described all the same)."""
+    from services.results.folder import kept_recordings
     from services.results.info import describe, info_text
 
     try:
@@ -44,9 +45,8 @@ def cmd_info(args) -> int:
         say(f"etar-bench info: error: {exc}")
         return 2
     print(json.dumps(described, indent=1, allow_nan=False) if args.json else info_text(described), flush=True)
-    if described.get("kind") == "run":  # a run without recordings/ kept none by choice (--record summary)
-        kept = (Path(described["path"]) / "recordings").exists()
-        incomplete = described["totals"]["incomplete"] if kept else 0
+    if described.get("kind") == "run":
+        incomplete = described["totals"]["incomplete"] if kept_recordings(described["path"]) else 0
     else:
         incomplete = int(not described["complete"])
     if incomplete:
@@ -128,6 +128,7 @@ def cmd_export(args) -> int:
     from services.recordings.format import RecordingError
     from services.cli.run_commands import ros2_rates
     from services.ros2.bag import export_rosbag2
+    from etar.parsing import empty_path
 
     if not (args.foxglove or args.rosbag2):
         say("etar-bench export: error: say what to export: --foxglove (visual topics added to the recordings) "
@@ -146,14 +147,15 @@ def cmd_export(args) -> int:
         say(f"etar-bench export: error: {args.run_dir}: no recordings/ folder: not a run's folder")
         return 2
     if args.out is not None:  # the bags' folder made before any bag is: refused in one line here
-        problem = "an empty path" if not args.out.strip() else None
-        if problem is None:
-            try:
-                Path(args.out).mkdir(parents=True, exist_ok=True)
-            except OSError as exc:
-                problem = f"cannot make that folder ({exc.strerror or exc})"
-        if problem:
-            say(f"etar-bench export: error: --out {args.out!r}: {problem}; --out names the folder for the bags")
+        try:
+            empty_path("--out", args.out, "the folder for the bags")
+            Path(args.out).mkdir(parents=True, exist_ok=True)
+        except ValueError as exc:
+            say(f"etar-bench export: error: {exc}")
+            return 2
+        except OSError as exc:
+            say(f"etar-bench export: error: --out {args.out!r}: cannot make that folder ({exc.strerror or exc}); "
+                "--out names the folder for the bags")
             return 2
     try:
         if args.foxglove:

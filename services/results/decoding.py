@@ -178,7 +178,8 @@ def _figure_data(ep: Episode, reading: EpisodeReading) -> FigureData:
                                   state_resolution=view.state_resolution, allow_incomplete=True)
     except (OSError, ValueError) as exc:
         return FigureData(problem=str(exc))
-    cut = None if ep.complete else f"{reading.path}: {ep.problem or 'not finished'}"
+    # a part cut where the next one goes on (a recorder restarted mid-episode) is cut by design
+    cut = None if ep.complete or reading.parts else f"{reading.path}: {ep.problem or 'not finished'}"
     if reading.demonstration is not None:
         return FigureData(arrays=arrays, cut=cut)
     return FigureData(trace=reproduction_trace(ep, arrays), cut=cut)

@@ -27,7 +27,7 @@ from pathlib import Path
 
 from services.recordings.format import WALL_CLOCK_TOPICS
 from services.recordings.reader import compared_messages
-from services.results.folder import read_report
+from services.results.folder import kept_recordings, read_report
 from services.results.info import run_scenario
 from services.runtime.visual_topics import SCHEMA_NAMES as VISUAL_SCHEMA_NAMES
 
@@ -307,9 +307,9 @@ def _run_folder(path) -> Path:
 
 def _named_recordings_present(run: Path, report: dict) -> None:
     """Every recording the run's report names is there: two runs that both lost theirs
-    must not compare as the same (nothing would be compared).  A run without a recordings/
-    folder kept none by choice (a sweep's ``--record summary``): its results are compared."""
-    if not (run / "recordings").exists():
+    must not compare as the same (nothing would be compared); a run that kept none by choice
+    (``kept_recordings``) is compared by its results."""
+    if not kept_recordings(run):
         return
     for kind in ("demonstrations", "reproductions", "served"):
         episodes = report.get(kind) or []

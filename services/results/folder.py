@@ -27,6 +27,13 @@ RUN_PRODUCTS = ("report.json", "report.txt", "report.html", "report.html.error",
 RUN_MARKERS = ("report.json", SCENARIO_FILE, "recordings", "model.json")
 
 
+def kept_recordings(run_dir) -> bool:
+    """Whether a run kept its recordings: one without a recordings/ folder kept none by choice
+    (a sweep's ``--record summary``), and what reads it reads its report alone; a recording
+    missing from a recordings/ folder is lost."""
+    return (Path(run_dir) / "recordings").exists()
+
+
 def holds_a_run(folder: Path) -> bool:
     return any((folder / name).exists() for name in RUN_MARKERS)
 

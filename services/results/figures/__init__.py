@@ -46,7 +46,7 @@ from services.results.figures.learning import bic_figure, forward_figure, predic
 from services.results.figures.phases import phase_labels, true_phase_names, world_of_run
 from services.results.figures.reproduction import reproduction_figure
 from services.results.figures.tool_paths import path_figure
-from services.results.folder import RunFolderError, read_report
+from services.results.folder import RunFolderError, kept_recordings, read_report
 from services.results.record import RunRecord
 
 FIGURES_DIR = "figures"
@@ -111,9 +111,13 @@ def _decoded(run_dir: Path, report: dict, task: LearnedTask) -> tuple[str | None
     demonstrations, reproductions = report.get("demonstrations", []), report.get("reproductions") or []
     recordings = [in_run(run_dir, e["path"]) for e in [*demonstrations, *reproductions] if e.get("path")]
     world = world_of_run(run_dir, recordings[:1])
+    if not kept_recordings(run_dir):  # none kept by choice: the figures of the report alone
+        return world, [], None
 
     def decoded(entry: dict, **what) -> FigureData:
-        return decode_episode(EpisodeReading(str(in_run(run_dir, entry["path"])), measures=False, **what)).figure_data
+        parts = tuple(str(in_run(run_dir, p)) for p in entry.get("recording_parts") or ())
+        return decode_episode(EpisodeReading(str(in_run(run_dir, entry["path"])), parts, measures=False,
+                                             **what)).figure_data
 
     first = decoded(reproductions[0], trace=view) if reproductions else None
     return world, [decoded(d, demonstration=view) for d in demonstrations], first
@@ -137,12 +141,16 @@ def _draw(task: LearnedTask, world, report: dict, demos_data: list, first: Figur
         written.append(forward_figure(model, demos, out, labels))
         written.append(path_figure(model, demos, out, labels, world=world, goal=task.goal))
         written += prediction_figures(model, demos, out, labels)
+    elif report.get("demonstrations") and not demos_data:
+        skipped.append("the run kept no recordings: the demonstrations' figures are not drawn")
     else:
         skipped.append("no demonstrations: their figures are not drawn")
     bic = bic_figure(report["learning"].get("selection") or {}, out)
     (written if isinstance(bic, Path) else skipped).append(bic)
     repro = report.get("reproductions") or []
-    if repro:
+    if repro and first is None:
+        skipped.append("the run kept no recordings: the reproduction's figure is not drawn")
+    elif repro:
         # the mapping the report scored this reproduction with, else the model's
         mapping = (repro[0].get("phases") or {}).get("mapping") or task.phase_to_truth
         fig = (f"reproduction 0: {first.problem}" if first.problem is not None else

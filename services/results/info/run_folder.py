@@ -32,6 +32,8 @@ def describe_run(path) -> dict:
 
     episodes, listed = [], set()
     for kind, key in (("demonstration", "demonstrations"), ("reproduction", "reproductions"), ("served", "served")):
+        if not isinstance(report.get(key) or [], list):
+            raise InfoError(f"{report_path}: {key}: expected a list of episodes, got {type(report[key]).__name__}")
         for i, entry in enumerate(report.get(key) or []):
             if not isinstance(entry, dict):
                 continue
@@ -161,7 +163,9 @@ def _episode(kind: str, index, entry: dict, files: list, stats: list, run_dir: P
             "messages": sum(s["messages"] for s in stats) if stats and all(s["messages"] is not None for s in stats)
             else None,
             "size_bytes": sum(s["size_bytes"] or 0 for s in stats),
-            "complete": bool(stats) and all(s["complete"] for s in stats),
+            # the parts before the last are cut by design (a recorder restarted mid-episode, the
+            # report's recording_gaps): the episode is whole when every part reads and the last is finished
+            "complete": bool(stats) and stats[-1]["complete"] and all(s["messages"] is not None for s in stats),
             "problem": "; ".join(problems) or None}
 
 

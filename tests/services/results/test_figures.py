@@ -104,6 +104,23 @@ def test_the_figures_command_fails_on_damaged_recordings_and_says_which(run_dir,
     err = capsys.readouterr().err
     assert f"damaged recording {demos[0]}" in err and f"damaged recording {demos[1]}" in err, err
     assert (damaged / "figures" / "demonstrations_position_and_force.png").is_file()  # from the cut one
+    # a reproduction whose first part was cut where a restarted recorder's next part goes on: by
+    # design, not damage; and a run that kept no recordings (a sweep's --record summary)
+    parts = tmp_path / "parts"
+    shutil.copytree(run_dir, parts)
+    first = parts / "recordings" / "reproduction_00.mcap"
+    whole = first.read_bytes()
+    (parts / "recordings" / "reproduction_00.part2.mcap").write_bytes(whole)
+    first.write_bytes(whole[:len(whole) * 3 // 10])
+    report = json.loads((parts / "report.json").read_text())
+    report["reproductions"][0]["recording_parts"] = ["recordings/reproduction_00.part2.mcap"]
+    (parts / "report.json").write_text(json.dumps(report))
+    shutil.rmtree(parts / "figures")
+    assert bench_cli.main(["figures", str(parts)]) == 0, capsys.readouterr().err
+    assert not (parts / "figures.error").exists()
+    shutil.rmtree(parts / "recordings")
+    assert bench_cli.main(["figures", str(parts)]) == 0, capsys.readouterr().err
+    assert "kept no recordings" in (parts / "figures.skipped").read_text()
     report = json.loads((damaged / "report.json").read_text())
     report["demonstrations"] = "oops"
     (damaged / "report.json").write_text(json.dumps(report))

@@ -182,6 +182,17 @@ def test_info_of_a_cut_recording_and_a_run_folder_without_report(tmp_path):
     assert bench_cli.main(["info", str(cut)]) == 1
     assert bench_cli.main(["info", str(run_dir)]) == 1
     assert bench_cli.main(["info", str(full)]) == 0
+    # a recorder restarted mid-episode: its first part cut by design, the next part finished
+    parts = make_run(tmp_path / "parts", "r-p")
+    first = parts / "recordings" / "reproduction_00.mcap"
+    (parts / "recordings" / "reproduction_00.part2.mcap").write_bytes(first.read_bytes())
+    first.write_bytes(data[:len(data) // 3])
+    report = json.loads((parts / "report.json").read_text())
+    report["reproductions"][0]["recording_parts"] = ["recordings/reproduction_00.part2.mcap"]
+    (parts / "report.json").write_text(json.dumps(report))
+    (ep,) = describe(parts)["episodes"]
+    assert ep["complete"] and len(ep["files"]) == 2
+    assert bench_cli.main(["info", str(parts)]) == 0
     kept = make_run(tmp_path / "summary", "r-s")
     (kept / "recordings" / "reproduction_00.mcap").unlink()  # lost
     assert bench_cli.main(["info", str(kept)]) == 1
