@@ -453,7 +453,7 @@ class SynthJob:
 
 
 def check_synth(args) -> SynthJob:
-    phases = _at_least("--phases", args.phases, 1)
+    phases = _at_least("--phases", args.phases, 1, high=MAX_PHASES)
     demos = _at_least("--demos", args.demos, 1, high=SYNTH_MAX_DEMOS)
     length = _at_least("--length", args.length, phases + 1,
                        f" (a sample more than one step per phase of --phases {phases})", SYNTH_MAX_LENGTH)
@@ -556,7 +556,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"samples per demonstration, {SYNTH_DT * 1000:g} ms apart, >= --phases + 1 and <= "
                         f"{SYNTH_MAX_LENGTH} (default %(default)s)")
     p.add_argument("--phases", type=int, default=3,
-                   help="number of phases of the true model, >= 1 (default %(default)s)")
+                   help=f"number of phases of the true model, 1..{MAX_PHASES} (default %(default)s)")
     p.add_argument("--seed", type=int, default=0,
                    help="seed of the true model, >= 0; the demonstrations are drawn with seed + 1 "
                         "(default %(default)s)")

@@ -44,6 +44,15 @@ class CommandParser(OneLineErrorParser):
         super().error(message)
 
 
+def empty_path(flag: str | None, value, names: str) -> None:
+    """ValueError for a path given as '' (Path('') is the current folder, where the work would
+    land unasked); ``flag`` None for a positional argument; ``names``: what the path names."""
+    if value is not None and not str(value).strip():
+        if flag is None:
+            raise ValueError(f"{value!r}: an empty path; give {names}")
+        raise ValueError(f"{flag} {value!r}: an empty path; {flag} names {names}")
+
+
 def cannot_write_in(folder) -> str | None:
     """Why this process cannot make files in the existing ``folder``, or None: asked by making and
     removing an empty folder there, as os.access says yes to root anywhere, /proc included."""

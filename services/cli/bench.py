@@ -245,7 +245,8 @@ def build_parser() -> CommandParser:
     p.add_argument("--json", action="store_true", help="print report.json instead of the text")
     p.set_defaults(func=cmd_report)
     p = sub.add_parser("info", help="what a recording or a run holds: topics with schema, counts, rates, duration, "
-                                    "gaps, episodes and their results, the scenario and the code that made it")
+                                    "gaps, episodes and their results, the scenario and the code that made it; "
+                                    "exit 1 when a recording is incomplete or missing")
     p.add_argument("path", help="a recording (.mcap) or a run's folder")
     p.add_argument("--json", action="store_true", help="print it as JSON (for scripts)")
     p.set_defaults(func=cmd_info)
@@ -268,7 +269,8 @@ def build_parser() -> CommandParser:
     p.set_defaults(func=cmd_recover)
     p = sub.add_parser("figures", help="draw the thesis' figures (section 6) from a finished run into "
                                        "RUN_DIR/figures/ and rebuild RUN_DIR/report.html (every run does both unless "
-                                       "--no-figures)")
+                                       "--no-figures); exit 1 when a recording is unreadable or cut short "
+                                       "(figures.error names it)")
     p.add_argument("run_dir", help="a finished run's folder (report.json, model.json, recordings/)")
     p.set_defaults(func=cmd_figures)
 

@@ -11,11 +11,14 @@ from services.transport.session import ZENOH_PORT
 
 
 def cmd_certs(args) -> int:
+    from etar.parsing import empty_path
     from services.runtime.roles import CREDENTIAL_NAMES as ROLES
     from services.transport.credentials import CredentialsError, make_credentials
 
-    if not args.dir.strip():  # Path('') is the current folder: keys would land there unasked
-        say(f"etar-bench certs: error: {args.dir!r}: an empty path; give the credentials' folder")
+    try:
+        empty_path(None, args.dir, "the credentials' folder")
+    except ValueError as exc:
+        say(f"etar-bench certs: error: {exc}")
         return 2
     try:
         out = make_credentials(args.dir, hosts=tuple(args.host or ["127.0.0.1"]), roles=ROLES + tuple(args.role))

@@ -4,13 +4,13 @@ command line is parsed (``services.cli.bench``)."""
 from __future__ import annotations
 
 import argparse
-import os
 import signal
 import time
 from pathlib import Path
 
 import numpy as np
 
+from etar.parsing import empty_path
 from services.cli.output import say
 from services.cli.zenoh_flags import zenoh_options
 from services.results.text import summary_line
@@ -33,13 +33,6 @@ def ros2_rate_flags(args) -> tuple:
                  for part in (f"--{name}-rate-hz", repr(getattr(rates, f"{name}_rate_hz"))))
 
 
-def empty_path(flag: str, value, names: str) -> None:
-    """ValueError for a path flag given as '' (Path('') is the current folder, where the
-    work would land unasked); ``names``: what the flag names."""
-    if value is not None and not str(value).strip():
-        raise ValueError(f"{flag} {value!r}: an empty path; {flag} names {names}")
-
-
 def run_zenoh(args):
     """The run's Zenoh session from --connect and the flags that go with it, each value checked
     as a service checks it; None: the runner makes its own on loopback and gives it to the
@@ -48,7 +41,7 @@ def run_zenoh(args):
     in one process has no Zenoh at all (ValueError naming the flag for either)."""
     given = [("--connect", v) for v in args.connect or ()] + [("--listen", v) for v in args.listen or ()]
     given += [("--cfg", v) for v in args.cfg]
-    if args.mode != os.environ.get("ETAR_ZENOH_MODE", "peer"):  # the environment's is a default, not a choice
+    if args.mode is not None:  # typed: $ETAR_ZENOH_MODE is a default, not a choice
         given.append(("--mode", args.mode))
     if not given:
         return None

@@ -25,8 +25,8 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser, *, process_flags: bool 
     g = parser.add_argument_group("zenoh")
     # the runner hands these to every service it starts, so alone (without a session to join) they link nothing
     needs = "; with --connect only (and --transport zenoh)" if run else ""
-    g.add_argument("--mode", choices=("peer", "client", "router"),
-                   default=os.environ.get("ETAR_ZENOH_MODE", "peer"),
+    # None when not given: the environment's is a default, and the runner tells the two apart
+    g.add_argument("--mode", choices=("peer", "client", "router"), default=None,
                    help=f"Zenoh session mode (default peer, or $ETAR_ZENOH_MODE){needs}")
     g.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
                    help="endpoint to connect to, PROTOCOL/HOST:PORT with a port in 1..65535, e.g. "
@@ -86,20 +86,21 @@ def cpu_list(text: str) -> tuple:
 def zenoh_options(args: argparse.Namespace) -> ZenohOptions:
     """The session options of the parsed flags; ValueError naming the flag and the value
     (``EndpointError`` for an endpoint) if one cannot work."""
+    mode = args.mode or os.environ.get("ETAR_ZENOH_MODE", "peer")
     connect = args.connect
     if connect is None:
         env = os.environ.get("ETAR_ZENOH_CONNECT", "")
         connect = [check_endpoint(e.strip(), "$ETAR_ZENOH_CONNECT") for e in env.split(",") if e.strip()]
     listen = args.listen
     if listen is None:
-        listen = [] if args.mode == "client" else ["tcp/127.0.0.1:0"]
+        listen = [] if mode == "client" else ["tcp/127.0.0.1:0"]
     cfg = []
     for item in args.cfg:
         k, colon, v = item.partition(":")
         if not colon or not k:
             raise ValueError(f"--cfg {item}: expected KEY:VALUE, e.g. transport/unicast/lowlatency:true")
         cfg.append((k, v))
-    options = ZenohOptions(args.mode, tuple(connect), tuple(listen), tuple(cfg))
+    options = ZenohOptions(mode, tuple(connect), tuple(listen), tuple(cfg))
     options.config()  # a value Zenoh refuses is named now, not as a traceback when the session opens
     return options
 

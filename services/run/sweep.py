@@ -538,12 +538,15 @@ def plot(rows: list[dict], parameters: list, out: Path) -> list[Path]:
 def sweep(scenario: Scenario, parameters: list, *, repeats: int, out: str, record: str = "summary",
           workers: int | None = None, cluster: str | None = None, learn_threads: int | None = None,
           replace: bool = False, say=print, engine: str | None = None) -> dict:
+    from etar.parsing import empty_path
     from services.run.options import check_cluster
     from services.runtime.threads import available_cpus
     from services.transport.carriers import check_engine
 
-    if not str(out).strip():  # Path('') is the current folder, where the sweep would land unasked
-        raise SweepError(f"--out {out!r}: an empty path; --out names the sweep's folder")
+    try:
+        empty_path("--out", out, "the sweep's folder")
+    except ValueError as exc:
+        raise SweepError(str(exc)) from None
     out_dir = Path(out).expanduser().resolve()
     cpus = available_cpus()
     for flag, value, most, why in (("--workers", workers, WORKERS_PER_CPU * cpus, f" ({WORKERS_PER_CPU} x the {cpus} "
