@@ -61,6 +61,22 @@ def test_deeply_nested_yaml_is_one_line_not_a_recursion_error(tmp_path, value):
     assert message.startswith(f"{path}:27: invalid YAML: "), message
 
 
+def test_nesting_and_values_up_to_the_bounds_are_yaml_the_scenario_then_judges(tmp_path):
+    """At the bounds the YAML is read and the scenario's own checks speak (the unknown key),
+    and anchors and aliases in a real scenario are fine."""
+    deepest = MAX_NESTING - 1  # the top-level mapping is the first level
+    message = refused(write(tmp_path, SMOKE + "bogus: " + "[" * (deepest - 1) + "1" + "]" * (deepest - 1) + "\n"))
+    assert "bogus: unknown key" in message and "nested too deeply" not in message, message
+    values = MAX_VALUES - SMOKE.count(":") * 2 - 50  # the smoke's own values, with room to spare
+    message = refused(write(tmp_path, SMOKE + "bogus: [" + ", ".join(["1"] * values) + "]\n", "many.yaml"))
+    assert "bogus: unknown key" in message and f"more than {MAX_VALUES}" not in message, message
+    anchored = SMOKE.replace("start: [0.60, -0.04, 0.27]", "start: &s [0.60, -0.04, 0.27]", 1)
+    anchored = anchored.replace("start: [0.60, -0.04, 0.27]", "start: *s", 1)
+    assert anchored.count("*s") == 1
+    assert load_scenario(write(tmp_path, anchored, "anchored.yaml")).stages == \
+        load_scenario(ROOT / "scenarios" / "smoke.yaml").stages
+
+
 def test_nesting_through_aliases_counts_the_levels_they_stand_for(tmp_path):
     # each anchor is 20 levels deep, within the bound; three of them in a row are 60
     levels = 20
