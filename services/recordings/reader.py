@@ -164,14 +164,12 @@ def read_episode(path) -> Episode:
     if scan.header is None:
         raise RecordingError(f"{path}: not a readable MCAP file ({_describe(error)})") from error
     problem = None
-    if error is not None and scan.footer is not None and not ends_with_magic:
-        # read through the footer: only the closing magic is cut (a copy a few bytes short)
-        # or damaged, and every record before it was read
+    # read through the footer, only the closing magic cut (a copy a few bytes short) or damaged:
+    # every record before it was read
+    magic_cut = error is not None and scan.footer is not None and not ends_with_magic
+    if magic_cut:
         problem = (f"the closing magic bytes are cut or damaged ({_describe(error)}); every record before them "
                    "was read")
-        if scan.statistics is not None and scan.statistics.message_count != len(scan.rows):
-            raise RecordingError(f"{path}: corrupt MCAP file (the summary counts {scan.statistics.message_count} "
-                                 f"messages, the chunks hold {len(scan.rows)})")
     elif error is not None:
         if scan.footer is not None or ends_with_magic:
             # the writer finished this file, so it is damaged, not cut short
@@ -186,7 +184,8 @@ def read_episode(path) -> Episode:
                      "chunk being written when the file ended are lost")
         problem = (f"no MCAP footer: the writer did not finish (killed, or the file copied while recording); "
                    f"{_describe(error)}; {recovered}")
-    elif scan.statistics is not None and scan.statistics.message_count != len(scan.rows):
+    if (error is None or magic_cut) and scan.statistics is not None and \
+            scan.statistics.message_count != len(scan.rows):
         raise RecordingError(f"{path}: corrupt MCAP file (the summary counts {scan.statistics.message_count} "
                              f"messages, the chunks hold {len(scan.rows)})")
 
