@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from etar.parsing import empty_path
+from etar.parsing import cannot_write_in, empty_path
 from services.cli.output import say
 from services.cli.zenoh_flags import zenoh_options
 from services.results.text import summary_line
@@ -233,8 +233,6 @@ def cmd_demo(args) -> int:
 def output_file(flag: str, path) -> None:
     """ValueError ``<flag> <path>: <problem>`` unless ``path`` (None: not asked for) is a file
     this process can write: checked before the demonstration runs, not after."""
-    from etar.parsing import cannot_write_in
-
     if path is None:
         return
     empty_path(flag, path, "the file to write")

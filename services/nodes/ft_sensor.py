@@ -38,7 +38,7 @@ import numpy as np
 from robot_sim.ati.sensor import AtiConfig, AtiSensor
 from robot_sim.wire.netft import CALIBRATION_PORT, HTTP_PORT, RDT_PORT, RDT_RECORD
 from services.runtime.bus import Node, Publication, Subscription
-from services.runtime.config import option
+from services.runtime.config import check_seed, option
 from services.runtime.messages import FT_WRENCH, NETFT_RDT, ROBOT_CONTACT
 
 SENSOR_FAULTS = ("none", "stop", "saturate", "nan")
@@ -72,8 +72,7 @@ class FtSensorConfig:
                                          metavar="PORT")
 
     def __post_init__(self):
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise ValueError(f"seed must be an integer >= 0, got {self.seed!r}")
+        check_seed(self.seed)
         if not (math.isfinite(self.noise_scale) and self.noise_scale >= 0):
             raise ValueError(f"noise_scale must be a finite number >= 0, got {self.noise_scale!r}")
         if self.fault not in SENSOR_FAULTS:

@@ -45,7 +45,7 @@ from robot_sim.world.tasks import TASK_WORLDS, Valley, WORLDS, physics_step, val
 from services.nodes.robot_episode import EpisodeJudge
 from services.nodes.robot_inbox import AnswerInbox
 from services.runtime.bus import Node, Publication, Subscription
-from services.runtime.config import check_stall, nested, option
+from services.runtime.config import check_seed, check_stall, nested, option
 from services.runtime.cycle import EpisodePlan
 from services.runtime.fri_messages import command_packet, state_message
 from services.runtime.messages import EPISODE_SUMMARY, FRI_DATAGRAM, ROBOT_CONTACT, ROBOT_STATE
@@ -90,8 +90,7 @@ class RobotConfig:
             raise ValueError(f"world {self.world!r} unknown (known: {', '.join(TASK_WORLDS)})")
         if not (math.isfinite(self.answer_timeout) and self.answer_timeout > 0):  # inf: a lost answer hangs the run
             raise ValueError(f"answer_timeout must be a finite number of seconds > 0, got {self.answer_timeout!r}")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise ValueError(f"seed must be an integer >= 0, got {self.seed!r}")
+        check_seed(self.seed)
         check_stall(self.stall_every, self.stall_ms)
         if not (math.isfinite(self.plate_friction) and self.plate_friction > 0):
             raise ValueError(f"plate_friction must be a finite number > 0, got {self.plate_friction!r}")

@@ -38,6 +38,12 @@ class FieldError(ValueError):
         self.field, self.problem, self.value = field, problem, value
 
 
+def check_seed(seed) -> None:
+    """FieldError unless ``seed`` (a node's noise generator's) is an integer >= 0, as numpy takes it."""
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise FieldError("seed", "must be an integer >= 0", seed)
+
+
 def check_stall(every_s: float, stall_ms: float) -> None:
     """FieldError for fault injection's stall (``stall_every``, ``stall_ms``) that cannot be:
     negative, or endless (inf: a stall that never ends hangs the run)."""
