@@ -32,7 +32,9 @@ import numpy as np
 
 from etar import inference
 from etar.demonstrations import StepArrays
-from etar.softmax_regression import softmax_regression_at, softmax_regression_objective
+from etar.interrupts import interrupt_behind
+from etar.softmax_regression import preconditioned_steps, softmax_regression_at, softmax_regression_objective
+from kernel_plumbing import blas
 
 LOG_2PI = math.log(2.0 * math.pi)
 
@@ -305,6 +307,19 @@ def fit_softmax_blocks(w, features, targets, l2, solver="gd", max_steps=1, at_w=
         value, grad = softmax_regression_objective(w, features, targets, l2)
     else:
         value, grad = (a.copy() for a in at_w)
+    if _compiled_steps():
+        out, v, g = w.copy(), value.copy(), grad.copy()
+        # contiguous, as the check's: one compiled specialisation
+        if preconditioned_steps(out, np.ascontiguousarray(features), np.ascontiguousarray(targets), float(l2),
+                                factors, v, g, int(max_steps), blas.GESV, blas.DOT) == 0:
+            return out
+        # a solve failed: numpy's own path below raises numpy's error
+    return _preconditioned_steps_numpy(w, features, targets, l2, factors, value, grad, max_steps)
+
+
+def _preconditioned_steps_numpy(w, features, targets, l2, factors, value, grad, max_steps):
+    """``preconditioned_steps`` in numpy (the reference it is checked against)."""
+    R, K, d1 = w.shape
     active = np.ones(R, dtype=bool)
     for _ in range(max_steps):
         direction = np.zeros_like(w)
@@ -344,6 +359,40 @@ def fit_softmax_blocks(w, features, targets, l2, solver="gd", max_steps=1, at_w=
         if not active.any():
             break
     return w
+
+
+_STEPS_CHECKED: list = []  # [whether the compiled descent gives numpy's bits here], once per process
+
+
+def _compiled_steps() -> bool:
+    """Whether ``preconditioned_steps`` may stand in for the numpy path: numpy's BLAS was found
+    and, on random problems of EM's shapes, it gives the numpy path's bits (checked once)."""
+    if not _STEPS_CHECKED:
+        _STEPS_CHECKED.append(blas.AVAILABLE and _same_bits())
+    return _STEPS_CHECKED[0]
+
+
+def _same_bits() -> bool:
+    rng = np.random.default_rng(31)
+    try:
+        for R, K, N in ((1, 2, 1), (3, 2, 40), (4, 3, 300), (7, 6, 200)):
+            features = np.hstack([rng.standard_normal((N, 3)) * 10.0, np.ones((N, 1))])
+            targets = rng.dirichlet(np.ones(K), size=(N, R)) * rng.uniform(0.0, 1.0, (N, R, 1))
+            w = rng.standard_normal((R, K, 4)) * 0.1
+            factors = _bohning_factors(features, targets, 1e-3)
+            value, grad = softmax_regression_objective(w, features, targets, 1e-3)
+            expected = _preconditioned_steps_numpy(w.copy(), features, targets, 1e-3, factors, value.copy(),
+                                                   grad.copy(), 3)
+            got = w.copy()
+            if preconditioned_steps(got, features, targets, 1e-3, factors, value.copy(), grad.copy(), 3,
+                                    blas.GESV, blas.DOT) != 0 or not np.array_equal(got, expected):
+                return False
+    except Exception as exc:  # noqa: BLE001 - a kernel that will not compile: the numpy path
+        interrupt = interrupt_behind(exc)
+        if interrupt is not None:  # a Ctrl-C while it compiled or ran: not a verdict, and not to be lost
+            raise interrupt from None
+        return False
+    return True
 
 
 def m_step(stacked: StackedSteps, ex: Expectations, W, priors: Priors, solver="gd", w_steps=1):

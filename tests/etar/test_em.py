@@ -203,3 +203,57 @@ def test_star_fits_with_state_features():
     np.testing.assert_allclose(model.goal, np.mean([s[-1] for s, _ in demos], axis=0))
     assert np.isfinite(model.log_likelihood(demos))
     assert model.n_free_parameters == ETAR.count_free_parameters(3, 3, 3, 3)
+
+
+@pytest.mark.skipif(not __import__("kernel_plumbing.blas").blas.AVAILABLE, reason="numpy's BLAS not callable here")
+def test_compiled_softmax_descent_gives_the_numpy_paths_bits(monkeypatch):
+    """The W step's descent compiled (etar.softmax_regression.preconditioned_steps) stands in
+    for the numpy path only because it gives the same bits: over a long descent and whole fits."""
+    assert em._compiled_steps()
+    _, demos, _ = synthetic(3, n_demos=2, length=300)
+    stacked = em.StackedSteps.from_steps([step_arrays(s, f, "effect") for s, f in demos])
+    model = ETAR(3).fit(demos, max_iter=5)
+    ex = em.e_step(stacked, np.concatenate([model.A, model.B], axis=2), model.Sigma, model.W)
+    got = {}
+    for compiled in (True, False):
+        monkeypatch.setattr(em, "_STEPS_CHECKED", [compiled])
+        descent = em.fit_softmax_blocks(np.zeros_like(model.W[1:]), stacked.features, ex.xi, 1e-3, max_steps=200)
+        fit = ETAR(4).fit(demos, max_iter=40, seed=3)
+        got[compiled] = descent, fit.fit_report_.history, fit.W, fit.A, fit.Sigma
+    for a, b in zip(got[True], got[False]):
+        assert np.array_equal(a, b)
+    assert not np.array_equal(got[True][0], np.zeros_like(model.W[1:]))  # it did descend
+
+
+def test_compiled_softmax_descent_says_when_a_solve_fails():
+    from etar.softmax_regression import preconditioned_steps, softmax_regression_objective
+    from kernel_plumbing import blas
+
+    if not blas.AVAILABLE:
+        pytest.skip("numpy's BLAS not callable here")
+    rng = np.random.default_rng(0)
+    features = np.hstack([rng.standard_normal((50, 3)), np.ones((50, 1))])
+    targets = rng.dirichlet(np.ones(3), size=(50, 2))
+    w = np.zeros((2, 3, 4))
+    value, grad = softmax_regression_objective(w, features, targets, 1e-3)
+    singular = np.zeros((2, 12, 12))  # numpy's solve raises LinAlgError: the caller takes that path
+    assert preconditioned_steps(w, features, targets, 1e-3, singular, value, grad, 3, blas.GESV, blas.DOT) > 0
+    assert not w.any()
+
+
+@pytest.mark.skipif(not __import__("kernel_plumbing.blas").blas.AVAILABLE, reason="numpy's BLAS not callable here")
+def test_a_ctrl_c_during_the_compiled_descents_check_is_not_swallowed(monkeypatch):
+    """The first W step checks the compiled descent against numpy; a Ctrl-C landing in that
+    check (numba raises it as a SystemError caused by the KeyboardInterrupt) must interrupt,
+    not count as 'the kernel failed' and let the fit run on."""
+    def interrupted(*args):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as exc:
+            raise SystemError("<numba dispatcher> returned a result with an exception set") from exc
+
+    monkeypatch.setattr(em, "_STEPS_CHECKED", [])
+    monkeypatch.setattr(em, "preconditioned_steps", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        em._compiled_steps()
+    assert em._STEPS_CHECKED == []  # asked again next time
