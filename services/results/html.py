@@ -148,22 +148,24 @@ def _note(path: Path, text: str) -> None:
         pass
 
 
-def write_figures_and_page(run_dir, progress=None, run: RunRecord | None = None) -> str:
+def write_figures_and_page(run_dir, progress=None, run: RunRecord | None = None, ahead: tuple | None = None) -> str:
     """The thesis' figures (``RUN_DIR/figures/``) and report.html after a run's report; one
     line saying what was written.  ``run``: the record of the run just reported, whose
-    report, text and decoded recordings they are drawn from (None: the folder's).  A
+    report, text and decoded recordings they are drawn from (None: the folder's);
+    ``ahead``: the figures this run drew while it reproduced (``write_figures``').  A
     figure that cannot be drawn must not cost the run its report: the reason goes in
     figures.error, with every recording found damaged (figures.skipped: what was left out)."""
     run_dir = Path(run_dir)
     t = time.monotonic()
     # the page embeds every figure in the folder: none may be left from an earlier drawing
     # (a BIC figure of a run that has since fixed its phase count); etar-bench compare's
-    # figure is not the run's to redraw
+    # figure is not the run's to redraw, nor those this run drew already
+    keep = {COMPARISON_FIGURE, *(Path(p).name for p in (ahead[0] if ahead is not None else ()))}
     for stale in [*(run_dir / FIGURES_DIR).glob("*.png"), *(run_dir / n for n in STALE_FILES)]:
-        if stale.name != COMPARISON_FIGURE:
+        if stale.name not in keep:
             stale.unlink(missing_ok=True)
     try:
-        written, skipped, damaged = write_figures(run_dir, progress=progress, run=run)
+        written, skipped, damaged = write_figures(run_dir, progress=progress, run=run, ahead=ahead)
     except Exception as exc:
         _note(run_dir / "figures.error", f"{type(exc).__name__}: {exc}\n")
         written, skipped, damaged = [], [f"{type(exc).__name__}: {exc}"], []

@@ -56,6 +56,8 @@ class LearningRecord:
     models: dict[str, ModelRecord] = field(default_factory=dict)
     # each model scored against the true phases of the demonstrations (etar.comparison), with more than one
     offline: list = field(default_factory=list)
+    # the demonstrations as the learn stage read them (their arrays): the figures', not the report's
+    demonstrations: list = field(default_factory=list, repr=False)
 
     def adopt(self, model: ModelRecord, selection: dict | None) -> None:
         """``model`` is the run's model from now on."""

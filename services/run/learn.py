@@ -141,6 +141,7 @@ def learn(stage: LearnStage, scenario: Scenario, demonstrations: list[str], out:
           process_map(workers if stage.phases == "auto" else 1)) as work_map:
         demos = reads.demonstrations(demonstrations) if started else list(work_map(_reader(scenario), demonstrations))
         record.learned_from = [dict(path=path, samples=len(d["states"])) for path, d in zip(demonstrations, demos)]
+        record.demonstrations = demos
         with learning_threads(threads):
             models, selection = _fit(stage, demos, reads.fit_map if started else work_map, say)
     if started:

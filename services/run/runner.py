@@ -175,7 +175,8 @@ class Runner:
                 if self.options.figures:
                     from services.results.html import write_figures_and_page
 
-                    self.say(write_figures_and_page(self.out, run=self.record))
+                    self.say(write_figures_and_page(self.out, run=self.record,
+                                                    ahead=self.report_reads.ahead.get("figures")))
             finally:
                 if self.cell is not None:
                     self.cell.stop(self.roles, before_report=False)
@@ -228,9 +229,11 @@ class Runner:
             self.episodes.raise_if_lost()
 
     def stage_learn(self, stage, starts):  # a learn stage has no episodes: ``starts`` is empty
-        self.record.learning = learn(stage, self.scenario, [d.path for d in self.record.demonstrations], self.out,
-                                     workers=self.options.workers, threads=self.options.learn_threads, say=self.say,
-                                     reads=self.reads)
+        learning = self.record.learning = learn(
+            stage, self.scenario, [d.path for d in self.record.demonstrations], self.out, workers=self.options.workers,
+            threads=self.options.learn_threads, say=self.say, reads=self.reads)
+        if self.options.figures and learning.demonstrations:
+            _draw_learning_figures_beside(self.report_reads, self.out, self.record)
 
     def stage_reproduce(self, stage, starts):
         learning = self.record.learning
@@ -348,6 +351,17 @@ class Runner:
 
 def run(scenario: Scenario, options: RunOptions, progress=print) -> dict:
     return Runner(scenario, options, progress).run()
+
+
+def _draw_learning_figures_beside(reads: ReportReads, out: Path, record: RunRecord) -> None:
+    """The figures of the demonstrations and the learning need no reproduction: drawn beside
+    the reproductions, the report's figures then add the reproduction's (write_figures_and_page)."""
+    from services.results.figures import learning_figures
+
+    learning = record.learning
+    reads.start("figures", learning_figures, (str(out), learning.model_path, record.world,
+                                              [d.path for d in record.demonstrations], learning.demonstrations,
+                                              learning.selection), episode_readings(record))
 
 
 def _unclean_exits(codes: dict, lost) -> str:

@@ -82,12 +82,14 @@ def read_run_report(run_dir: Path) -> dict:
     return report
 
 
-def write_figures(run_dir, progress=None, run: RunRecord | None = None) -> tuple[list[Path], list[str], list[str]]:
+def write_figures(run_dir, progress=None, run: RunRecord | None = None,
+                  ahead: tuple | None = None) -> tuple[list[Path], list[str], list[str]]:
     """Every figure the run has data for, into RUN_DIR/figures/: (files written, what was
     skipped and why, the recordings that were damaged: unreadable, or cut and drawn from
     what they hold).  ``run``: the record of the run just reported, whose report and
     recordings, as the report decoded them, the figures draw; None: the folder's
-    report.json, and its recordings decoded here."""
+    report.json, and its recordings decoded here.  ``ahead``: ``learning_figures``' result
+    for this run (drawn while it reproduced): only the reproduction's figure is left."""
     run_dir = Path(run_dir)
     report = read_run_report(run_dir) if run is None else run.report
     out = run_dir / FIGURES_DIR
@@ -101,7 +103,7 @@ def write_figures(run_dir, progress=None, run: RunRecord | None = None) -> tuple
         world, demos = run.world, [d.figure_data for d in run.demonstrations]
     else:
         world, demos, first = _decoded(run_dir, report, task)
-    return _draw(task, world, report, demos, first, out, progress or (lambda _m: None))
+    return _draw(task, world, report, demos, first, out, progress or (lambda _m: None), ahead)
 
 
 def _decoded(run_dir: Path, report: dict, task: LearnedTask) -> tuple[str | None, list, FigureData | None]:
@@ -124,36 +126,61 @@ def _decoded(run_dir: Path, report: dict, task: LearnedTask) -> tuple[str | None
 
 
 def _draw(task: LearnedTask, world, report: dict, demos_data: list, first: FigureData | None, out: Path,
-          say) -> tuple[list[Path], list[str], list[str]]:
+          say, ahead: tuple | None = None) -> tuple[list[Path], list[str], list[str]]:
+    """Every figure; ``ahead``: what ``learning_figures`` drew already (then only the reproduction's)."""
+    if ahead is None:
+        ahead = _draw_learning(task, world, [d["path"] for d in report.get("demonstrations", [])], demos_data,
+                               report["learning"].get("selection") or {}, out, say)
+    written, skipped, damaged = (list(part) for part in ahead)
+    damaged += [p for p in ((first.problem, first.cut) if first is not None else ()) if p]
+    repro = report.get("reproductions") or []
+    if repro and first is None:
+        skipped.append("the run kept no recordings: the reproduction's figure is not drawn")
+    elif repro:
+        names = true_phase_names(world)
+        # the mapping the report scored this reproduction with, else the model's
+        mapping = (repro[0].get("phases") or {}).get("mapping") or task.phase_to_truth
+        fig = (f"reproduction 0: {first.problem}" if first.problem is not None else
+               reproduction_figure(first.trace, 0, task.model, out, phase_to_truth=mapping, true_names=names))
+        (written if isinstance(fig, Path) else skipped).append(fig)
+    return written, skipped, damaged
+
+
+def learning_figures(run_dir, model_path: str, world, demonstrations: list[str], arrays: list[dict],
+                     selection: dict | None) -> tuple[list[Path], list[str], list[str]]:
+    """The figures of the demonstrations and the learning (all but the reproduction's) from the
+    demonstrations as the learner read them (``demonstrations``: their recordings' paths):
+    what a run draws beside its reproductions, its report's figures then adding the
+    reproduction's (``write_figures``' ``ahead``).  As ``write_figures``, its share."""
+    out = Path(run_dir) / FIGURES_DIR
+    out.mkdir(exist_ok=True)
+    task = load_task(in_run(Path(run_dir), model_path))
+    return _draw_learning(task, world, demonstrations, [FigureData(arrays=a) for a in arrays], selection or {}, out,
+                          lambda _m: None)
+
+
+def _draw_learning(task: LearnedTask, world, paths: list[str], demos_data: list, selection: dict, out: Path,
+                   say) -> tuple[list[Path], list[str], list[str]]:
+    """The demonstrations' and the learning's figures (all but the reproduction's)."""
     model = task.model
-    names = true_phase_names(world)
-    labels = phase_labels(model.n_phases, task.phase_to_truth, names)
+    labels = phase_labels(model.n_phases, task.phase_to_truth, true_phase_names(world))
     written, skipped, demos = [], [], []
-    damaged = [p for data in [*demos_data, first] if data is not None for p in (data.problem, data.cut) if p]
-    for d, data in zip(report.get("demonstrations", []), demos_data):
+    damaged = [p for data in demos_data for p in (data.problem, data.cut) if p]
+    for path, data in zip(paths, demos_data):
         if data.problem is None:
             demos.append(data.arrays)
         else:
-            skipped.append(f"demonstration {Path(d['path']).name}: {data.problem}")
+            skipped.append(f"demonstration {Path(path).name}: {data.problem}")
     if demos:
         say(f"figures: {len(demos)} demonstrations")
         written.append(demonstrations_figure(demos, out))
         written.append(forward_figure(model, demos, out, labels))
         written.append(path_figure(model, demos, out, labels, world=world, goal=task.goal))
         written += prediction_figures(model, demos, out, labels)
-    elif report.get("demonstrations") and not demos_data:
+    elif paths and not demos_data:
         skipped.append("the run kept no recordings: the demonstrations' figures are not drawn")
     else:
         skipped.append("no demonstrations: their figures are not drawn")
-    bic = bic_figure(report["learning"].get("selection") or {}, out)
+    bic = bic_figure(selection, out)
     (written if isinstance(bic, Path) else skipped).append(bic)
-    repro = report.get("reproductions") or []
-    if repro and first is None:
-        skipped.append("the run kept no recordings: the reproduction's figure is not drawn")
-    elif repro:
-        # the mapping the report scored this reproduction with, else the model's
-        mapping = (repro[0].get("phases") or {}).get("mapping") or task.phase_to_truth
-        fig = (f"reproduction 0: {first.problem}" if first.problem is not None else
-               reproduction_figure(first.trace, 0, model, out, phase_to_truth=mapping, true_names=names))
-        (written if isinstance(fig, Path) else skipped).append(fig)
     return written, skipped, damaged

@@ -232,3 +232,46 @@ def support_scenario(name, changes):
     from tests import support
 
     return support.scenario(name, changes)
+
+
+def test_the_learning_figures_drawn_beside_a_run_are_those_drawn_after_it(foxglove_run_dir, tmp_path):
+    """A run draws the demonstrations' and the learning's figures beside its reproductions
+    (``ReportReads.start``, ``learning_figures``) from the learner's arrays; its figures at the
+    end then add the reproduction's and keep them: the same files, byte for byte, as drawing
+    everything after the run from its folder."""
+    import shutil
+
+    from services.results.figures import in_run, learning_figures
+    from services.results.figures.phases import world_of_run
+    from services.results.folder import read_report
+    from services.results.html import write_figures_and_page
+    from services.run.learn import _reader
+    from services.run.report_reads import ReportReads
+    from tests import support
+
+    after, beside = tmp_path / "after", tmp_path / "beside"
+    for run_dir in (after, beside):
+        shutil.copytree(foxglove_run_dir, run_dir)
+        shutil.rmtree(run_dir / "figures", ignore_errors=True)
+    report = read_report(beside)
+    demos = [str(in_run(beside, d["path"])) for d in report["demonstrations"]]
+    arrays = [_reader(support.scenario("smoke", {}))(p) for p in demos]
+    job = (str(beside), report["learning"]["model"], world_of_run(beside, demos[:1]), demos, arrays,
+           report["learning"]["selection"])
+    assert not ReportReads(False).start("figures", learning_figures, job, [])
+    with ReportReads(True, at_least=0) as reads:
+        assert reads.start("figures", learning_figures, job, [])
+        assert reads.start("broken", _fail_on_three, ((3, str(tmp_path / "pids")),), [])
+    assert "broken" not in reads.ahead  # a failure there: the figures at the end do it all
+    written, skipped, damaged = reads.ahead["figures"]
+    assert sorted(p.name for p in written) == sorted(p.name for p in (beside / "figures").glob("*.png"))
+    assert "reproduction_00_force_phase_alpha.png" not in {p.name for p in written} and not damaged
+
+    write_figures_and_page(beside, ahead=reads.ahead["figures"])
+    write_figures_and_page(after)
+    drawn = sorted(p.name for p in (after / "figures").glob("*.png"))
+    assert "reproduction_00_force_phase_alpha.png" in drawn and len(drawn) > len(written)
+    assert sorted(p.name for p in (beside / "figures").glob("*.png")) == drawn
+    for name in drawn:
+        assert (beside / "figures" / name).read_bytes() == (after / "figures" / name).read_bytes(), name
+    assert (beside / "figures.skipped").read_text() == (after / "figures.skipped").read_text() and skipped
