@@ -33,7 +33,8 @@ import numpy as np
 from etar import inference
 from etar.demonstrations import StepArrays
 from etar.interrupts import interrupt_behind
-from etar.softmax_regression import preconditioned_steps, softmax_regression_at, softmax_regression_objective
+from etar.softmax_regression import (bohning_factors, preconditioned_steps, softmax_regression_at,
+                                     softmax_regression_objective)
 from kernel_plumbing import blas
 
 LOG_2PI = math.log(2.0 * math.pi)
@@ -252,7 +253,19 @@ def m_step_dynamics(stacked: StackedSteps, gamma: np.ndarray, priors: Priors):
 
 def _bohning_factors(features, targets, l2):
     """Cholesky factors of kron(1/2 (I - 11'/(K+1)), sum_t q_t phi_t phi_t') + l2 I
-    per block: an upper bound on each block's Hessian (Boehning 1992)."""
+    per block: an upper bound on each block's Hessian (Boehning 1992); compiled where that
+    gives these bits (numpy sums fewer than 8 numbers in order, as the kernel sums the trace)."""
+    if features.shape[1] < 8 and _compiled("factors"):
+        factors, info = bohning_factors(np.ascontiguousarray(features), targets.sum(axis=2), float(l2),
+                                        targets.shape[2], blas.GEMM, blas.POTRF)
+        if info == 0:
+            return factors
+        # not positive definite: numpy's own path below raises numpy's error
+    return _bohning_factors_numpy(features, targets, l2)
+
+
+def _bohning_factors_numpy(features, targets, l2):
+    """``_bohning_factors`` in numpy (the reference the kernel is checked against)."""
     N, R, K = targets.shape
     q = targets.sum(axis=2)  # (N, R)
     A = 0.5 * (np.eye(K) - np.ones((K, K)) / (K + 1))
@@ -307,7 +320,7 @@ def fit_softmax_blocks(w, features, targets, l2, solver="gd", max_steps=1, at_w=
         value, grad = softmax_regression_objective(w, features, targets, l2)
     else:
         value, grad = (a.copy() for a in at_w)
-    if _compiled_steps():
+    if _compiled("steps"):
         out, v, g = w.copy(), value.copy(), grad.copy()
         # contiguous, as the check's: one compiled specialisation
         if preconditioned_steps(out, np.ascontiguousarray(features), np.ascontiguousarray(targets), float(l2),
@@ -361,25 +374,36 @@ def _preconditioned_steps_numpy(w, features, targets, l2, factors, value, grad, 
     return w
 
 
-_STEPS_CHECKED: list = []  # [whether the compiled descent gives numpy's bits here], once per process
+# kernel -> whether it gives the numpy path's bits here ("steps": the descent, "factors"
+# Boehning's bound's Cholesky factors), checked once a process
+_CHECKED: dict = {}
+_CHECK_SHAPES = ((1, 2, 1), (3, 2, 40), (4, 3, 300), (7, 6, 200))  # (blocks R, phases K, steps N)
 
 
-def _compiled_steps() -> bool:
-    """Whether ``preconditioned_steps`` may stand in for the numpy path: numpy's BLAS was found
-    and, on random problems of EM's shapes, it gives the numpy path's bits (checked once)."""
-    if not _STEPS_CHECKED:
-        _STEPS_CHECKED.append(blas.AVAILABLE and _same_bits())
-    return _STEPS_CHECKED[0]
+def _compiled(kernel: str) -> bool:
+    """Whether the compiled ``kernel`` may stand in for its numpy path: numpy's BLAS and LAPACK
+    were found and, on random problems of EM's shapes, it gives the numpy path's bits."""
+    if kernel not in _CHECKED:
+        _CHECKED[kernel] = _same_bits(kernel)
+    return _CHECKED[kernel]
 
 
-def _same_bits() -> bool:
+def _same_bits(kernel: str) -> bool:
+    if not blas.AVAILABLE or kernel == "factors" and not blas.POTRF:
+        return False
     rng = np.random.default_rng(31)
     try:
-        for R, K, N in ((1, 2, 1), (3, 2, 40), (4, 3, 300), (7, 6, 200)):
+        for R, K, N in _CHECK_SHAPES:
             features = np.hstack([rng.standard_normal((N, 3)) * 10.0, np.ones((N, 1))])
             targets = rng.dirichlet(np.ones(K), size=(N, R)) * rng.uniform(0.0, 1.0, (N, R, 1))
+            factors = _bohning_factors_numpy(features, targets, 1e-3)
+            if kernel == "factors":
+                for l2 in (1e-3, 0.0):  # without l2, the ridge is the floor made of the trace
+                    got, info = bohning_factors(features, targets.sum(axis=2), l2, K, blas.GEMM, blas.POTRF)
+                    if info != 0 or not np.array_equal(got, _bohning_factors_numpy(features, targets, l2)):
+                        return False
+                continue
             w = rng.standard_normal((R, K, 4)) * 0.1
-            factors = _bohning_factors(features, targets, 1e-3)
             value, grad = softmax_regression_objective(w, features, targets, 1e-3)
             expected = _preconditioned_steps_numpy(w.copy(), features, targets, 1e-3, factors, value.copy(),
                                                    grad.copy(), 3)

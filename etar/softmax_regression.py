@@ -240,3 +240,49 @@ def preconditioned_steps(w, features, targets, l2, factors, value, grad, max_ste
         if not any_active:
             break
     return 0
+
+
+@njit(**_JIT)
+def bohning_factors(features, q, l2, K, gemm, potrf):
+    """``etar.em._bohning_factors`` compiled, for ``q`` = targets.sum(axis=2) (N, R): the same
+    operations in the same order, ``features.T @ (features * q_r)`` by the dgemm numpy's
+    matmul calls (row-major, the first transposed) and the Cholesky factor by its dpotrf on
+    a column-major copy, lower, the upper triangle zero; the trace summed in order, as numpy
+    sums fewer than 8 numbers.  Returns (factors (R, K(d+1), K(d+1)), LAPACK's info of the
+    first factorisation that failed, or 0)."""
+    N, d1 = features.shape
+    R = q.shape[1]
+    n = K * d1
+    factors = np.zeros((R, n, n))
+    S = np.empty((d1, d1))
+    X = np.empty((N, d1))
+    buf = np.empty((n, n))
+    ints = np.array([n, n, 0], dtype=np.int64)  # n, lda, info
+    uplo = np.array([76], dtype=np.uint8)  # 'L'
+    at = ints.ctypes.data
+    c = 1.0 / (K + 1)
+    for r in range(R):
+        for t in range(N):
+            for f in range(d1):
+                X[t, f] = features[t, f] * q[t, r]
+        blas.call_gemm(gemm, np.int32(blas.ROW_MAJOR), np.int32(blas.TRANS), np.int32(blas.NO_TRANS), d1, d1, N, 1.0,
+                       features.ctypes.data, d1, X.ctypes.data, d1, 0.0, S.ctypes.data, d1)
+        trace = S[0, 0]
+        for i in range(1, d1):
+            trace += S[i, i]
+        floor = 1e-12 * (trace + 1.0)
+        ridge = floor if floor > l2 else l2
+        for a in range(K):
+            for b in range(K):
+                weight = 0.5 * ((1.0 if a == b else 0.0) - c)
+                for i in range(d1):
+                    for j in range(d1):
+                        row, col = a * d1 + i, b * d1 + j
+                        buf[col, row] = weight * S[i, j] + ridge * (1.0 if row == col else 0.0)
+        blas.call_potrf(potrf, uplo.ctypes.data, at, buf.ctypes.data, at + 8, at + 16)
+        if ints[2] != 0:
+            return factors, ints[2]
+        for i in range(n):
+            for j in range(i + 1):
+                factors[r, i, j] = buf[j, i]
+    return factors, 0

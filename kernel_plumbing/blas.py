@@ -68,6 +68,8 @@ call_gesv = foreign(types.void, _I64, _I64, _I64, _I64, _I64, _I64, _I64, _I64)
 call_dot = foreign(types.float64, _I64, _I64, _I64, _I64, _I64)
 # cblas_dgemm(order, trans_a, trans_b, m, n, k, alpha, a, lda, b, ldb, beta, c, ldc): numpy's A @ B
 call_gemm = foreign(types.void, _I32, _I32, _I32, _I64, _I64, _I64, _F64, _I64, _I64, _I64, _I64, _F64, _I64, _I64)
+# dpotrf_(&uplo, &n, a, &lda, &info): numpy's cholesky, on a column-major copy
+call_potrf = foreign(types.void, _I64, _I64, _I64, _I64, _I64)
 
 
 @njit(**JIT)
@@ -139,3 +141,5 @@ if _LIB is not None:
     except AttributeError as e:
         WHY = f"numpy's OpenBLAS lacks a function: {e}"
 AVAILABLE = bool(GEMV and SYRK and GESV and DOT and GEMM)
+# learning's Cholesky factors only (etar.softmax_regression): not needed by the cycle's kernels
+POTRF = _address(_LIB, "scipy_dpotrf_64_") if AVAILABLE and hasattr(_LIB, "scipy_dpotrf_64_") else 0

@@ -209,14 +209,14 @@ def test_star_fits_with_state_features():
 def test_compiled_softmax_descent_gives_the_numpy_paths_bits(monkeypatch):
     """The W step's descent compiled (etar.softmax_regression.preconditioned_steps) stands in
     for the numpy path only because it gives the same bits: over a long descent and whole fits."""
-    assert em._compiled_steps()
+    assert em._compiled("steps") and em._compiled("factors")
     _, demos, _ = synthetic(3, n_demos=2, length=300)
     stacked = em.StackedSteps.from_steps([step_arrays(s, f, "effect") for s, f in demos])
     model = ETAR(3).fit(demos, max_iter=5)
     ex = em.e_step(stacked, np.concatenate([model.A, model.B], axis=2), model.Sigma, model.W)
     got = {}
     for compiled in (True, False):
-        monkeypatch.setattr(em, "_STEPS_CHECKED", [compiled])
+        monkeypatch.setattr(em, "_CHECKED", {"steps": compiled, "factors": compiled})
         descent = em.fit_softmax_blocks(np.zeros_like(model.W[1:]), stacked.features, ex.xi, 1e-3, max_steps=200)
         fit = ETAR(4).fit(demos, max_iter=40, seed=3)
         got[compiled] = descent, fit.fit_report_.history, fit.W, fit.A, fit.Sigma
@@ -252,8 +252,8 @@ def test_a_ctrl_c_during_the_compiled_descents_check_is_not_swallowed(monkeypatc
         except KeyboardInterrupt as exc:
             raise SystemError("<numba dispatcher> returned a result with an exception set") from exc
 
-    monkeypatch.setattr(em, "_STEPS_CHECKED", [])
+    monkeypatch.setattr(em, "_CHECKED", {})
     monkeypatch.setattr(em, "preconditioned_steps", interrupted)
     with pytest.raises(KeyboardInterrupt):
-        em._compiled_steps()
-    assert em._STEPS_CHECKED == []  # asked again next time
+        em._compiled("steps")
+    assert em._CHECKED == {}  # asked again next time
