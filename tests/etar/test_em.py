@@ -214,12 +214,19 @@ def test_compiled_softmax_descent_gives_the_numpy_paths_bits(monkeypatch):
     stacked = em.StackedSteps.from_steps([step_arrays(s, f, "effect") for s, f in demos])
     model = ETAR(3).fit(demos, max_iter=5)
     ex = em.e_step(stacked, np.concatenate([model.A, model.B], axis=2), model.Sigma, model.W)
+    import numba
+
     got = {}
-    for compiled in (True, False):
-        monkeypatch.setattr(em, "_CHECKED", {"steps": compiled, "factors": compiled})
-        descent = em.fit_softmax_blocks(np.zeros_like(model.W[1:]), stacked.features, ex.xi, 1e-3, max_steps=200)
-        fit = ETAR(4).fit(demos, max_iter=40, seed=3)
-        got[compiled] = descent, fit.fit_report_.history, fit.W, fit.A, fit.Sigma
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)  # where the descent is compiled: a pool's fits
+    try:
+        for compiled in (True, False):
+            monkeypatch.setattr(em, "_CHECKED", {"steps": compiled, "factors": compiled})
+            descent = em.fit_softmax_blocks(np.zeros_like(model.W[1:]), stacked.features, ex.xi, 1e-3, max_steps=200)
+            fit = ETAR(4).fit(demos, max_iter=40, seed=3)
+            got[compiled] = descent, fit.fit_report_.history, fit.W, fit.A, fit.Sigma
+    finally:
+        numba.set_num_threads(threads)
     for a, b in zip(got[True], got[False]):
         assert np.array_equal(a, b)
     assert not np.array_equal(got[True][0], np.zeros_like(model.W[1:]))  # it did descend
