@@ -3,8 +3,9 @@
     python bench/etar_fit.py [--repeats 3]
 
 Fits 6 demonstrations x 3000 samples (n=3 state, m=3 force, K=3 phases) for
-exactly 50 EM iterations (one initialisation, no early stop) and times the
-online filter's ``update``.  Targets: < 10 ms per EM iteration,
+exactly 50 EM iterations (one initialisation, no early stop), times the
+online filter's ``update``, then the fits a run's phase-count vote makes (K = 1..6
+on one demonstration, one thread) with the W step compiled and in numpy.  Targets: < 10 ms per EM iteration,
 < 10 us per update, on a 2-core machine.  Compilation is timed apart.
 """
 
@@ -62,6 +63,41 @@ def main() -> None:
             filt.update(st, fo)
         samples.append((time.perf_counter() - t) / len(rows) * 1e6)
     print(f"online update: {min(samples):.2f} us per sample (best of 5 x {len(rows)}), target < 10 us")
+    vote_fits(args.repeats)
+
+
+def vote_fits(repeats: int) -> None:
+    """What a run's phase-count vote fits: one demonstration of ~1100 samples, K = 1..6, four
+    restarts and 200 iterations, on one thread (as in the learn stage's pool)."""
+    import numba
+
+    from etar import em
+
+    task = make_task(3, seed=0)
+    demo = [(s, f) for s, f, _ in sample_demonstrations(task, 1, 1100, seed=1)]
+    before = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        available = {kernel: em._compiled(kernel) for kernel in ("steps", "factors")}
+        if not all(available.values()):
+            print(f"the vote's fits: the compiled W step is not used here ({available}): nothing to compare")
+            return
+        print("the vote's fits (1 demonstration x 1100 samples, 4 restarts, 200 iterations, 1 thread), best of "
+              f"{repeats}; numpy's W step (the reference the compiled one is checked against) beside it")
+        for k in range(1, 7):
+            times = {}
+            for compiled in (True, False):
+                em._CHECKED.update(steps=compiled, factors=compiled)
+                best = float("inf")
+                for _ in range(repeats):
+                    t = time.perf_counter()
+                    ETAR(k).fit(demo, max_iter=200, seed=0)
+                    best = min(best, time.perf_counter() - t)
+                times[compiled] = best
+            print(f"  K={k}: {times[True] * 1e3:6.0f} ms compiled, {times[False] * 1e3:6.0f} ms numpy")
+    finally:
+        em._CHECKED.clear()
+        numba.set_num_threads(before)
 
 
 if __name__ == "__main__":

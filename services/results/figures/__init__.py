@@ -32,7 +32,9 @@ What a figure needs and the run does not have (no demonstrations, a fixed phase 
 no selection scores) is skipped with the reason.  Drawn right after a run's report from
 what the report decoded (the run's record), or from a finished run's folder: its
 report.json, scenario.yaml, model.json and recordings, each decoded as the report decodes
-them (``services.results.decoding``).  Writes nothing but the figures.
+them (``services.results.decoding``).  A run whose recordings are worth a process beside
+it draws those that need no reproduction there while it reproduces (``learning_figures``,
+from the learner's arrays: the same files).  Writes nothing but the figures.
 """
 
 from __future__ import annotations
