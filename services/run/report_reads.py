@@ -38,6 +38,9 @@ class ReportReads:
         self._ahead: list = []  # (name, the pool's iterator of its one result)
         self._stack = contextlib.ExitStack()
         self._map = None
+        # why the process beside the run is gone before its time (killed: the pool is broken),
+        # or None; from then on the report does all its work itself, as without it
+        self.lost: str | None = None
 
     def catch_up(self, readings) -> None:
         """Start decoding every reading of ``readings`` (the report's, as of now) not started yet."""
@@ -45,7 +48,10 @@ class ReportReads:
             return
         for reading in readings:
             if not any(reading == started for started, _ in self._started):
-                self._started.append((reading, self._map(decode_episode, [reading])))
+                result = self._submit(decode_episode, reading)
+                if result is None:
+                    return
+                self._started.append((reading, result))
 
     def start(self, name: str, fn, args: tuple, readings) -> bool:
         """Run ``fn(*args)`` in the process beside the run, after what it has been given to
@@ -54,8 +60,20 @@ class ReportReads:
         does it).  Whether it was started."""
         if not self._beside(readings):
             return False
-        self._ahead.append((name, self._map(_call, [(fn, args)])))
-        return True
+        result = self._submit(_call, (fn, args))
+        if result is not None:
+            self._ahead.append((name, result))
+        return result is not None
+
+    def _submit(self, fn, item):
+        """The pool's iterator of ``fn(item)``, or None once the process beside is lost: the
+        work it would do is the report's (a helper's death must not cost the run)."""
+        try:
+            return self._map(fn, [item])
+        except Exception as exc:  # noqa: BLE001 - BrokenProcessPool, or a pool already shut down
+            self.lost = f"the report's reader beside the run stopped ({type(exc).__name__}: {exc})"
+            self.wanted = False
+            return None
 
     def _beside(self, readings) -> bool:
         """Whether the process beside the run is there (started now, if wanted and worth it)."""

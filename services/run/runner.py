@@ -127,6 +127,8 @@ class Runner:
                     for index, stage in enumerate(sc.stages):
                         # the starts the preflight drew and found within reach, drawn once
                         getattr(self, f"stage_{stage.kind}")(stage, self.preflight.stage_starts(index))
+                if self.report_reads.lost:
+                    self.say(f"{self.report_reads.lost}: the report decodes the recordings itself")
             self.episodes.event("run_end", "", -1, {})
         except BaseException as caught:
             # a Ctrl-C inside compiled code (the learn stage's fits) comes as numba's SystemError

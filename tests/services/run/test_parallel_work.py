@@ -275,3 +275,28 @@ def test_the_learning_figures_drawn_beside_a_run_are_those_drawn_after_it(foxglo
     for name in drawn:
         assert (beside / "figures" / name).read_bytes() == (after / "figures" / name).read_bytes(), name
     assert (beside / "figures.skipped").read_text() == (after / "figures.skipped").read_text() and skipped
+
+
+def test_the_report_reads_process_killed_mid_run_costs_the_run_nothing(tmp_path, rng):
+    """The process beside the run (SCHED_IDLE, killable by anyone, the OOM killer first) dies:
+    the run must go on (it failed with BrokenProcessPool), saying so once; the report then
+    decodes what was not decoded there itself."""
+    import signal
+
+    from services.run.report_reads import ReportReads
+
+    readings = []
+    for i in range(2):
+        path = tmp_path / f"reproduction_{i:02d}.mcap"
+        write_episode(path, mixed_messages(60, rng))
+        readings.append(EpisodeReading(str(path)))
+    with ReportReads(True, at_least=0) as reads:
+        reads.catch_up(readings[:1])
+        pid, _ = next(reads._map(_pid_and_square, [2]))
+        os.kill(pid, signal.SIGKILL)
+        assert _gone(pid)
+        time.sleep(0.5)  # the pool notices its worker is gone
+        reads.catch_up(readings)
+        assert not reads.start("figures", _pid_and_square, (3,), readings)
+        assert reads.lost and "BrokenProcessPool" in reads.lost
+    assert [r for r, _ in reads.decoded] in ([], readings[:1])  # what it decoded before, if it had
