@@ -400,13 +400,13 @@ def _same_bits(kernel: str) -> bool:
         for R, K, N in _CHECK_SHAPES:
             features = np.hstack([rng.standard_normal((N, 3)) * 10.0, np.ones((N, 1))])
             targets = rng.dirichlet(np.ones(K), size=(N, R)) * rng.uniform(0.0, 1.0, (N, R, 1))
-            factors = _bohning_factors_numpy(features, targets, 1e-3)
             if kernel == "factors":
                 for l2 in (1e-3, 0.0):  # without l2, the ridge is the floor made of the trace
                     got, info = bohning_factors(features, targets.sum(axis=2), l2, K, blas.GEMM, blas.POTRF)
                     if info != 0 or not np.array_equal(got, _bohning_factors_numpy(features, targets, l2)):
                         return False
                 continue
+            factors = _bohning_factors_numpy(features, targets, 1e-3)
             w = rng.standard_normal((R, K, 4)) * 0.1
             value, grad = softmax_regression_objective(w, features, targets, 1e-3)
             expected = _preconditioned_steps_numpy(w.copy(), features, targets, 1e-3, factors, value.copy(),
