@@ -60,12 +60,7 @@ class Runner:
         # and what the services would find only once they are up: the model file, the starts
         self.preflight = preflight(scenario)
         if options.serve is not None:
-            if scenario.clock != "realtime":
-                raise ValueError("serving a lab's remote needs the realtime clock (etar-bench serve sets it)")
-            start = served_start(scenario, options.serve)
-            problem = start_problem(start)
-            if problem:
-                raise ValueError(f"--start {','.join(f'{v:g}' for v in start)}: {problem}")
+            _check_serving(scenario, options.serve)
         # resolved once, here: every path handed to a service or written in the report
         # follows from this absolute folder (a relative one, joined again by the
         # recorder, doubled itself: out/valley/recordings/out/valley/recordings/)
@@ -87,6 +82,7 @@ class Runner:
         self.ready = threading.Event()  # set once every service is up (tests and benches wait on it)
         self._interrupted = False  # a Ctrl-C or SIGTERM has been taken
         self._late_signal = ""  # one that came once the stages had ended (raised after the report)
+        self._ending_attached = False  # the report written, the attached services being shut down
         self.profile = Grant(parse_profile(options.realtime_profile) if scenario.clock == "realtime"
                              else frozenset())
         check_run_folder(self.out, options.out, replace=options.replace)
@@ -181,6 +177,8 @@ class Runner:
                                                     ahead=self.report_reads.ahead.get("figures")))
             finally:
                 if self.cell is not None:
+                    # attached, this shuts the services down: their runtime's SIGTERM in answer ends a whole run
+                    self._ending_attached = self.options.attach
                     self.cell.stop(self.roles, before_report=False)
         if self._late_signal:  # the stages had ended, the report is whole: the signal is still said
             raise KeyboardInterrupt(self._late_signal)
@@ -338,6 +336,8 @@ class Runner:
 
         def escalate(signum, frame):
             name = signal.Signals(signum).name
+            if self._ending_attached and signum == signal.SIGTERM:
+                return
             if not self._interrupted:
                 self._interrupted, self._late_signal = True, name
                 self.say(f"{name}: the run's stages have ended; the report is being written (again to kill the "
@@ -349,6 +349,16 @@ class Runner:
 
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, escalate)
+
+
+def _check_serving(scenario: Scenario, serve) -> None:
+    """What serving a lab's remote needs of the scenario (ValueError)."""
+    if scenario.clock != "realtime":
+        raise ValueError("serving a lab's remote needs the realtime clock (etar-bench serve sets it)")
+    start = served_start(scenario, serve)
+    problem = start_problem(start)
+    if problem:
+        raise ValueError(f"--start {','.join(f'{v:g}' for v in start)}: {problem}")
 
 
 def run(scenario: Scenario, options: RunOptions, progress=print) -> dict:
