@@ -19,8 +19,11 @@ from etar.task import learn_task
 from services.recordings.demonstrations import load_demonstration
 from services.results.record import LearningRecord, ModelRecord
 from services.runtime.files import write_via
-from services.runtime.threads import learning_threads, process_map
+from services.runtime.threads import FallbackMap, learning_threads, process_map
 from services.scenario import LearnStage, Scenario
+
+
+POOL = "the learn stage's pool of processes"
 
 
 def _reader(scenario: Scenario):
@@ -60,16 +63,17 @@ class DemonstrationReads:
     stage takes the pool over and closes it; as a context manager it is closed with the
     run, its workers terminated when the run failed."""
 
-    def __init__(self, scenario: Scenario, workers: int | None):
+    def __init__(self, scenario: Scenario, workers: int | None, say=print):
         stage = next((s for s in scenario.stages if s.kind == "learn"), None)
         self.wanted = stage is not None and stage.phases == "auto" and scenario.clock == "lockstep"
-        self._workers, self._load = workers, _reader(scenario)
+        self._workers, self._load, self._say = workers, _reader(scenario), say
         # what fit_order's vote runs for each demonstration (services.run.learn._fit)
         self._vote = dict(candidates=stage.candidates, criterion=stage.criterion, transitions=stage.transitions[0],
                           seed=stage.seed, max_iter=stage.max_iter, n_restarts=stage.restarts) \
             if self.wanted and stage.selection == "per_demonstration" else None
         self._stack = contextlib.ExitStack()
         self.work_map = None
+        self._map = None  # the pool's map, done in this process once the pool is broken (a worker killed)
         self._pending: dict[str, object] = {}
         self.fitted: dict[tuple, object] = {}  # job key -> the model fitted ahead
 
@@ -79,9 +83,10 @@ class DemonstrationReads:
             return
         if self.work_map is None:
             self.work_map = self._stack.enter_context(process_map(self._workers))
+            self._map = FallbackMap(self.work_map, self._say, POOL)
         if self.work_map is not map:  # one CPU: the builtin map, which would read it only when asked
-            self._pending[path] = self.work_map(self._load, [path]) if self._vote is None else \
-                self.work_map(_read_and_vote, [(self._load, path, self._vote)])
+            self._pending[path] = self._map(self._load, [path]) if self._vote is None else \
+                self._map(_read_and_vote, [(self._load, path, self._vote)])
 
     @property
     def pending(self) -> tuple:
@@ -93,7 +98,7 @@ class DemonstrationReads:
         demos = []
         for p in paths:
             if p not in self._pending:
-                demos.append(next(self.work_map(self._load, [p])))
+                demos.append(next(self._map(self._load, [p])))
                 continue
             got = next(self._pending.pop(p))
             if self._vote is not None:
@@ -108,7 +113,7 @@ class DemonstrationReads:
         jobs = list(jobs)
         ahead = [self.fitted.pop(_job_key(j), None) if fn is fit_candidate else None for j in jobs]
         missing = [j for j, model in zip(jobs, ahead) if model is None]
-        rest = self.work_map(fn, missing) if missing else iter(())
+        rest = self._map(fn, missing) if missing else iter(())
         for model in ahead:
             yield next(rest) if model is None else model
 
@@ -117,7 +122,7 @@ class DemonstrationReads:
         self._pending.clear()
         self.fitted.clear()
         self._stack.close()
-        self.wanted, self.work_map = False, None
+        self.wanted, self.work_map, self._map = False, None, None
 
     def __enter__(self):
         return self
@@ -138,7 +143,8 @@ def learn(stage: LearnStage, scenario: Scenario, demonstrations: list[str], out:
     # choosing the number of phases is many independent fits: worth a pool of processes,
     # which then reads the demonstrations too (a fixed number of phases is one fit)
     with (contextlib.nullcontext(reads.work_map) if started else
-          process_map(workers if stage.phases == "auto" else 1)) as work_map:
+          process_map(workers if stage.phases == "auto" else 1)) as pool_map:
+        work_map = FallbackMap(pool_map, say, POOL)
         demos = reads.demonstrations(demonstrations) if started else list(work_map(_reader(scenario), demonstrations))
         record.learned_from = [dict(path=path, samples=len(d["states"])) for path, d in zip(demonstrations, demos)]
         record.demonstrations = demos

@@ -119,7 +119,7 @@ class Runner:
             if self.options.serve is not None:
                 self.serve(self.options.serve)
             else:
-                with DemonstrationReads(sc, self.options.workers) as self.reads, self.report_reads:
+                with DemonstrationReads(sc, self.options.workers, self.say) as self.reads, self.report_reads:
                     for index, stage in enumerate(sc.stages):
                         # the starts the preflight drew and found within reach, drawn once
                         getattr(self, f"stage_{stage.kind}")(stage, self.preflight.stage_starts(index))

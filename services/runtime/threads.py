@@ -13,6 +13,7 @@ import contextlib
 import functools
 import os
 import threading
+from concurrent.futures.process import BrokenProcessPool
 
 
 def available_cpus() -> int:
@@ -105,3 +106,42 @@ def process_map(workers: int | None, beside: bool = False):
             process.join(5)
         raise
     pool.shutdown()
+
+
+class FallbackMap:
+    """A pool's ``map`` (``process_map``'s) whose pieces are done in this process once the
+    pool is broken: a worker killed (by anyone, the OOM killer first) must not cost the run
+    work that is a pure function of its input.  The pieces already returned stand; the rest
+    are done here, in order; ``say`` is told once.  Submitting is as eager as the pool's."""
+
+    def __init__(self, pool_map, say, what: str):
+        self.pool_map, self.say, self.what = pool_map, say, what
+        self.lost: str | None = None  # why the pool is gone, once it is
+
+    def __call__(self, fn, *iterables):
+        items = list(zip(*iterables))
+        results = None
+        if self.lost is None and self.pool_map is not map:
+            try:
+                results = self.pool_map(fn, *zip(*items)) if items else iter(())
+            except BrokenProcessPool as exc:
+                self._lose(exc)
+        return self._results(fn, items, results)
+
+    def _results(self, fn, items, results):
+        done = 0
+        if results is not None:
+            try:
+                for result in results:
+                    done += 1
+                    yield result
+                return
+            except BrokenProcessPool as exc:
+                self._lose(exc)
+        for args in items[done:]:
+            yield fn(*args)
+
+    def _lose(self, exc) -> None:
+        if self.lost is None:
+            self.lost = f"{self.what} lost a process ({type(exc).__name__}: {exc})"
+            self.say(f"{self.lost}: the rest of its work is done in this process")

@@ -300,3 +300,59 @@ def test_the_report_reads_process_killed_mid_run_costs_the_run_nothing(tmp_path,
         assert not reads.start("figures", _pid_and_square, (3,), readings)
         assert reads.lost and "BrokenProcessPool" in reads.lost
     assert [r for r, _ in reads.decoded] in ([], readings[:1])  # what it decoded before, if it had
+
+
+def _square_but_die_in_a_worker(job):
+    x, parent = job
+    if x == 2 and os.getpid() != parent:
+        import signal
+
+        os.kill(os.getpid(), signal.SIGKILL)  # as the OOM killer would, mid-piece
+    return x * x
+
+
+def test_a_pool_that_loses_a_worker_mid_map_finishes_the_map_in_this_process():
+    """FallbackMap: the pieces returned before the pool broke stand, the rest are done here,
+    in order, and the loss is said once; a map after it runs here from the start."""
+    from services.runtime.threads import FallbackMap
+
+    said = []
+    with process_map(2) as pool_map:
+        work_map = FallbackMap(pool_map, said.append, "the test's pool")
+        assert list(work_map(_square_but_die_in_a_worker, [(x, os.getpid()) for x in range(6)])) == \
+            [0, 1, 4, 9, 16, 25]
+        assert list(work_map(_pid_and_square, [3, 4])) == [(os.getpid(), 9), (os.getpid(), 16)]
+    assert len(said) == 1 and said[0].startswith("the test's pool lost a process (BrokenProcessPool")
+
+
+def test_the_learn_stages_pool_killed_mid_fit_costs_the_run_nothing(foxglove_run_dir):
+    """The learn stage's pool loses its processes while they read and fit a demonstration
+    (killed by anyone, the OOM killer first): the stage reads and fits it in this process,
+    says so once, and chooses and fits the same model (it failed the run with
+    BrokenProcessPool)."""
+    import signal
+
+    from etar.selection import fit_order
+    from services.run.learn import DemonstrationReads, _reader
+
+    demo = str(foxglove_run_dir / "recordings" / "demonstration_00.mcap")
+    changes = {"learn.phases": "auto", "learn.candidates": [1, 2], "learn.max_iter": 15, "learn.restarts": 1}
+    scenario = support_scenario("smoke", changes)
+    stage = next(s for s in scenario.stages if s.kind == "learn")
+    options = dict(transitions=stage.transitions[0], seed=stage.seed, max_iter=stage.max_iter, n_restarts=1)
+    said = []
+    with DemonstrationReads(scenario, workers=2, say=said.append) as reads:
+        reads.read(demo)
+        pool = reads.work_map.args[0].__self__  # process_map's partial of the executor's map
+        workers = list(pool._processes.values())
+        for process in workers:
+            os.kill(process.pid, signal.SIGKILL)
+        assert all(_gone(process.pid) for process in workers)
+        (got,) = reads.demonstrations([demo])
+        model, vote = fit_order([(got["states"], got["forces"])], [1, 2], "bic", fit_map=reads.fit_map, **options)
+    assert len(said) == 1 and "BrokenProcessPool" in said[0] and "done in this process" in said[0]
+    want = _reader(scenario)(demo)
+    model_here, vote_here = fit_order([(want["states"], want["forces"])], [1, 2], "bic", **options)
+    assert vote == vote_here
+    assert json.dumps({k: v for k, v in model.to_dict().items() if k != "fit"}, sort_keys=True) == \
+        json.dumps({k: v for k, v in model_here.to_dict().items() if k != "fit"}, sort_keys=True)
