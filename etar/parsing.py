@@ -32,16 +32,30 @@ class CommandParser(OneLineErrorParser):
 
     def parse_known_args(self, args=None, namespace=None):
         self._given = list(sys.argv[1:] if args is None else args)
+        # before its command: a flag unknown here is named before the command's own parser
+        # says what the command misses (``etar-bench --bogus run``: not "scenario: required")
+        commands = {name for a in self._actions if isinstance(a, argparse._SubParsersAction) for name in a.choices}
+        if commands:
+            before = next((i for i, a in enumerate(self._given) if a in commands or a == "--"), len(self._given))
+            unknown = self._unknown_flag(self._given[:before])
+            if unknown is not None:
+                self.error(f"unrecognized arguments: {unknown}")
         return super().parse_known_args(args, namespace)
 
     def error(self, message: str):
         if message.startswith("the following arguments are required"):
             given = self._given[:self._given.index("--")] if "--" in self._given else self._given
-            # _parse_optional: None for a value, else (action, ...) of the flag it is, or a list of them
-            found = [(a, self._parse_optional(a)) for a in given]
-            message = next((f"unrecognized arguments: {a}" for a, f in found if f is not None and
-                            all(g[0] is None for g in (f if isinstance(f, list) else [f]))), message)
+            message = next((f"unrecognized arguments: {a}" for a in [self._unknown_flag(given)] if a), message)
         super().error(message)
+
+    def _unknown_flag(self, given: list) -> str | None:
+        """The first of ``given`` that is a flag this parser does not know, or None."""
+        for a in given:
+            # _parse_optional: None for a value, else (action, ...) of the flag it is, or a list of them
+            f = self._parse_optional(a)
+            if f is not None and all(g[0] is None for g in (f if isinstance(f, list) else [f])):
+                return a
+        return None
 
 
 def empty_path(flag: str | None, value, names: str) -> None:

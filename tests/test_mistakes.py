@@ -59,6 +59,7 @@ CASES = [
      "--connect tcp/127.0.0.1:7447: a Zenoh flag; --transport inproc runs every node in this process, without "
      "Zenoh: it needs --transport zenoh"),
     ("etar-bench --bogus", 2, "--bogus: not a flag of this program"),
+    ("etar-bench --bogus run", 2, "--bogus: not a flag of this program"),
     # etar-bench serve
     ("etar-bench serve scenarios/smoke.yaml --out DIR/served --fri-remote nonsense", 2,
      "--fri-remote 'nonsense': expected HOST:PORT, e.g. 127.0.0.1:49938"),
@@ -141,6 +142,7 @@ CASES = [
     ("etar synth --out /proc/x", 2, "--out: cannot write in /proc (no such file or directory), got '/proc/x'"),
     ("etar synth --demos 99999999 --out DIR/synth", 2, "--demos: must be an integer <= 1000, got 99999999"),
     ("etar --bogus", 2, "--bogus: not a flag of this program"),
+    ("etar --bogus learn", 2, "--bogus: not a flag of this program"),
     ("etar inspect FILE", 2, "FILE: not a JSON model file"),
     # the services
     ("etar-robot --run-id x --world free_space", 2, "--world free_space: not one of"),

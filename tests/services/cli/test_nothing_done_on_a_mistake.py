@@ -67,6 +67,9 @@ def test_the_environments_zenoh_mode_is_a_default_not_a_choice(monkeypatch):
     (["run", "--bogus"], "etar-bench run: error: --bogus: not a flag of this program"),
     (["--bogus"], "etar-bench: error: --bogus: not a flag of this program"),
     (["--bogus", "check", "scenarios/smoke.yaml"], "etar-bench: error: --bogus: not a flag of this program"),
+    # before a command whose own argument is missing: the flag, not "scenario: required"
+    (["--bogus", "run"], "etar-bench: error: --bogus: not a flag of this program"),
+    (["--version", "--bogus", "run", "--", "x"], "etar-bench: error: --bogus: not a flag of this program"),
 ])
 def test_a_flag_of_no_program_is_named_before_a_missing_argument_and_a_value_is_no_flag(capsys, argv, says):
     assert refused(capsys, argv).startswith(says)
