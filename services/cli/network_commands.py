@@ -3,6 +3,8 @@ command line is parsed (``services.cli.bench``)."""
 
 from __future__ import annotations
 
+import contextlib
+import os
 import signal
 import time
 
@@ -52,10 +54,41 @@ def cmd_router(args) -> int:
     signal.signal(signal.SIGTERM, interrupt)
     try:  # around all of it: the signal may come while the first line is being said
         with session:
-            say(f"zenoh router listening on {', '.join(opts.listen)}; Ctrl-C to stop")
+            say(f"zenoh router listening on {', '.join(_ports_chosen(opts.listen))}; Ctrl-C to stop")
             while True:
                 time.sleep(1.0)
     except KeyboardInterrupt:
         say("zenoh router stopped")
         return 0
 
+
+def _ports_chosen(listen) -> list[str]:
+    """The endpoints as the router listens on them: a TCP port 0 (the system chooses) as the
+    port chosen, read from this process's listening sockets (Linux's /proc), else as given."""
+    out, given = [], {e.rpartition(":")[2] for e in listen}
+    for endpoint in listen:
+        proto, _, address = endpoint.partition("/")
+        host, _, port = address.rpartition(":")
+        chosen = [p for p in _listening_tcp_ports() if str(p) not in given] \
+            if port == "0" and proto in ("tcp", "tls") else []
+        out.extend([f"{proto}/{host}:{p}" for p in chosen] or [endpoint])
+    return out
+
+
+def _listening_tcp_ports() -> list[int]:
+    """The TCP ports this process listens on (none where /proc does not say)."""
+    mine = set()
+    try:
+        for fd in os.listdir("/proc/self/fd"):
+            with contextlib.suppress(OSError):  # listdir's own descriptor is closed by now
+                mine.add(os.readlink(f"/proc/self/fd/{fd}"))
+        ports = set()
+        for table in ("/proc/self/net/tcp", "/proc/self/net/tcp6"):
+            with open(table) as f:
+                for row in f.read().splitlines()[1:]:
+                    cols = row.split()  # local address (hex ip:port), ..., state (0A: listen), ..., inode
+                    if cols[3] == "0A" and f"socket:[{cols[9]}]" in mine:
+                        ports.add(int(cols[1].rsplit(":", 1)[1], 16))
+        return sorted(ports)
+    except OSError:
+        return []
