@@ -71,7 +71,7 @@ def cmd_diff(args) -> int:
 
 def cmd_recover(args) -> int:
     from services.recordings.format import RecordingError
-    from services.recordings.recovery import recover
+    from services.recordings.recovery import NothingToRecover, recover
 
     if args.out is not None and len(args.files) > 1:
         say("etar-bench recover: --out names one output file: give one FILE with it")
@@ -94,6 +94,9 @@ def cmd_recover(args) -> int:
     for f in args.files:
         try:
             result = recover(f, args.out, overwrite=args.force)
+        except NothingToRecover as exc:  # a finished file among those given: said, and no failure
+            print(exc, flush=True)
+            continue
         except RecordingError as exc:
             say(f"etar-bench recover: error: {exc}")
             failed += 1

@@ -8,7 +8,9 @@ finished file beside the original (which it leaves as it is): the same
 channels, schemas, metadata (plus what was lost, under ``recovered``), the
 scenario attachment, and every recovered message with its log and publish
 times and its payload byte for byte.  The new file is read back and compared
-before ``recover`` says it is done.
+before ``recover`` says it is done.  A finished recording among the files
+given is said and left as it is (no failure: the exit status is 1 only when
+a file could not be recovered).
 """
 
 from __future__ import annotations
@@ -40,6 +42,10 @@ class Recovered:
                 f"(at most {CHUNK_SIZE // 1024} KiB of messages, about 100 ms of an episode)")
 
 
+class NothingToRecover(RecordingError):
+    """The recording is finished: there is nothing to recover (not a failure of ``recover``)."""
+
+
 def default_output(source: Path) -> Path:
     return source.with_name(source.stem + ".recovered.mcap")
 
@@ -47,12 +53,12 @@ def default_output(source: Path) -> Path:
 def recover(source, out=None, *, overwrite: bool = False) -> Recovered:
     """Write the complete chunks of the truncated recording ``source`` as a finished
     file (default ``<name>.recovered.mcap`` beside it).  Raises RecordingError naming
-    the file when there is nothing to recover (the file is finished, or unreadable)
+    the file when there is nothing to recover (NothingToRecover: the file is finished; or unreadable)
     or the output exists (unless ``overwrite``)."""
     source = Path(source)
     episode = read_episode(source)
     if episode.complete:
-        raise RecordingError(f"{source}: a finished recording (footer and summary read through): nothing to recover")
+        raise NothingToRecover(f"{source}: a finished recording (footer and summary read through): nothing to recover")
     path = Path(out) if out is not None else default_output(source)
     if path.resolve() == source.resolve():
         raise RecordingError(f"{path}: the output must not be the truncated file itself (it is kept as it is)")

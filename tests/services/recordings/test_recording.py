@@ -284,8 +284,10 @@ def test_recover_makes_a_truncated_file_a_finished_one_with_every_complete_chunk
     assert bench(["recover", str(cut)]) == 1
     assert "exists (pass --force" in capsys.readouterr().err
     assert bench(["recover", str(cut), "--force"]) == 0
-    assert bench(["recover", str(path)]) == 1
-    assert f"{path}: a finished recording" in capsys.readouterr().err
+    # a finished one (among the files of a folder, say): nothing to do, and no failure
+    assert bench(["recover", str(path)]) == 0
+    assert f"{path}: a finished recording" in capsys.readouterr().out
+    assert bench(["recover", str(path), str(cut), "--force"]) == 0
     # a copy a byte short (only the closing magic cut): every message recovered
     short = tmp_path / "short.mcap"
     short.write_bytes(data[:-1])
