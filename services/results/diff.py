@@ -27,7 +27,7 @@ from pathlib import Path
 
 from services.recordings.format import WALL_CLOCK_TOPICS
 from services.recordings.reader import compared_messages
-from services.results.folder import kept_recordings, read_report
+from services.results.folder import kept_recordings, read_report, report_episodes
 from services.results.info import run_scenario
 from services.runtime.visual_topics import SCHEMA_NAMES as VISUAL_SCHEMA_NAMES
 
@@ -312,10 +312,7 @@ def _named_recordings_present(run: Path, report: dict) -> None:
     if not kept_recordings(run):
         return
     for kind in ("demonstrations", "reproductions", "served"):
-        episodes = report.get(kind) or []
-        if not isinstance(episodes, list):
-            raise DiffError(f"{run / 'report.json'}: {kind} is not a list of episodes")
-        for e in episodes:
+        for e in report_episodes(report, kind, run / "report.json"):
             path = e.get("path") if isinstance(e, dict) else None
             if isinstance(path, str) and not (run / path).is_file():  # an absolute path stays itself
                 raise DiffError(f"{run / path}: named by {run / 'report.json'} ({kind}), missing")

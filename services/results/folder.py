@@ -89,6 +89,15 @@ def read_report(run_dir, *, required: bool = True) -> dict:
     return report
 
 
+def report_episodes(report: dict, kind: str, path) -> list:
+    """The report's episodes of ``kind`` ('demonstrations', 'reproductions', 'served'; none
+    when it has none): a list, or RunFolderError naming the file (``path``) and the field."""
+    episodes = report.get(kind) or []
+    if not isinstance(episodes, list):
+        raise RunFolderError(f"{path}: {kind}: expected a list of episodes, got {type(episodes).__name__}")
+    return episodes
+
+
 def strict_json(value):
     """``value`` as strict JSON can hold it (report.json, ``--json``): numpy scalars as
     Python numbers, paths as strings, tuples as lists, NaN and infinities as None (JSON has

@@ -48,7 +48,7 @@ from services.results.figures.learning import bic_figure, forward_figure, predic
 from services.results.figures.phases import phase_labels, true_phase_names, world_of_run
 from services.results.figures.reproduction import reproduction_figure
 from services.results.figures.tool_paths import path_figure
-from services.results.folder import RunFolderError, kept_recordings, read_report
+from services.results.folder import RunFolderError, kept_recordings, read_report, report_episodes
 from services.results.record import RunRecord
 
 FIGURES_DIR = "figures"
@@ -77,10 +77,12 @@ def read_run_report(run_dir: Path) -> dict:
     if not isinstance(report["learning"], dict):
         raise FiguresError(f"{path}: learning: expected an object, got {type(report['learning']).__name__}")
     for kind in ("demonstrations", "reproductions"):
-        episodes = report.get(kind) or []
-        if not isinstance(episodes, list) or not all(isinstance(e, dict) and isinstance(e.get("path"), str)
-                                                     for e in episodes):
-            raise FiguresError(f"{path}: {kind}: expected a list of episodes, each with its recording's path")
+        try:
+            episodes = report_episodes(report, kind, path)
+        except RunFolderError as exc:
+            raise FiguresError(str(exc)) from None
+        if not all(isinstance(e, dict) and isinstance(e.get("path"), str) for e in episodes):
+            raise FiguresError(f"{path}: {kind}: expected each episode with its recording's path")
     return report
 
 

@@ -14,7 +14,7 @@ from mcap.reader import make_reader
 
 from services.recordings.format import METADATA_NAME, SCENARIO_ATTACHMENT, RecordingError
 from services.recordings.reader import read_episode
-from services.results.folder import SCENARIO_FILE, read_report, strict_json
+from services.results.folder import SCENARIO_FILE, read_report, report_episodes, strict_json
 from services.results.info.common import InfoError, code_line, in_run, scenario_line, scenario_summary, size_text
 
 
@@ -32,9 +32,7 @@ def describe_run(path) -> dict:
 
     episodes, listed = [], set()
     for kind, key in (("demonstration", "demonstrations"), ("reproduction", "reproductions"), ("served", "served")):
-        if not isinstance(report.get(key) or [], list):
-            raise InfoError(f"{report_path}: {key}: expected a list of episodes, got {type(report[key]).__name__}")
-        for i, entry in enumerate(report.get(key) or []):
+        for i, entry in enumerate(report_episodes(report, key, report_path)):
             if not isinstance(entry, dict):
                 continue
             files = [in_run(run_dir, p) for p in [entry.get("path"), *(entry.get("recording_parts") or [])] if p]

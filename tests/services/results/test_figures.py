@@ -125,8 +125,12 @@ def test_the_figures_command_fails_on_damaged_recordings_and_says_which(run_dir,
     report["demonstrations"] = "oops"
     (damaged / "report.json").write_text(json.dumps(report))
     assert bench_cli.main(["figures", str(damaged)]) == 2
+    assert capsys.readouterr().err.strip().endswith("report.json: demonstrations: expected a list of episodes, got str")
+    report["demonstrations"] = [{"index": 0}]
+    (damaged / "report.json").write_text(json.dumps(report))
+    assert bench_cli.main(["figures", str(damaged)]) == 2
     assert capsys.readouterr().err.strip().endswith(
-        "report.json: demonstrations: expected a list of episodes, each with its recording's path")
+        "report.json: demonstrations: expected each episode with its recording's path")
 
 def test_a_run_without_demonstrations_says_which_figures_it_skips(tmp_path):
     report = support.run(support.scenario("fri_dropout", {"reproduce.count": 1}), tmp_path / "run", figures=True, transport="inproc",
