@@ -83,6 +83,7 @@ class Runner:
         self._interrupted = False  # a Ctrl-C or SIGTERM has been taken
         self._late_signal = ""  # one that came once the stages had ended (raised after the report)
         self._ending_attached = False  # the report written, the attached services being shut down
+        self._handlers_before: dict = {}  # SIGINT's and SIGTERM's handlers before escalate took them
         self.profile = Grant(parse_profile(options.realtime_profile) if scenario.clock == "realtime"
                              else frozenset())
         check_run_folder(self.out, options.out, replace=options.replace)
@@ -103,6 +104,14 @@ class Runner:
     # ----------------------------------------------------------------- run
 
     def run(self) -> dict:
+        try:
+            return self._run()
+        finally:  # the handlers it replaced, back (a sweep's worker runs the next with its own); attached,
+            if not self.options.attach:  # SIGTERM stays ignored: the container's end follows (escalate)
+                for sig, handler in self._handlers_before.items():
+                    signal.signal(sig, handler)
+
+    def _run(self) -> dict:
         sc = self.scenario
         t0 = time.monotonic()
         self.say(f"run {self.run_id}: scenario {sc.name} ({sc.source}), clock {sc.clock}, transport "
@@ -112,7 +121,7 @@ class Runner:
         try:
             if sc.model is not None and self.options.serve is None:
                 self.record.learning = stored_model(sc, self.preflight.model, self.say)
-            self._apply_profile()
+            self.profile = _granted(self.profile, self.transport, self.say)
             self._start_cell()
             self.say(f"services ready ({', '.join(self.roles)}) after {time.monotonic() - t0:.1f} s")
             self.ready.set()
@@ -300,21 +309,6 @@ class Runner:
 
     # ------------------------------------------------------------- around the stages
 
-    def _apply_profile(self) -> None:
-        """Find out what the realtime profile is granted, before any service starts, and
-        say in one line what a refusal will cost."""
-        if not self.profile.requested:
-            return
-        if not self.transport.spawns:
-            self.profile.refused = {p: "the services were started by someone else (--attach)"
-                                    for p in sorted(self.profile.requested)}
-        else:
-            self.profile = probe(self.profile.requested)
-        self.say(f"realtime profile: granted {', '.join(sorted(self.profile.granted)) or 'nothing'}")
-        warning = self.profile.warning()
-        if warning:
-            self.say(f"warning: {warning}")
-
     def _on_restart(self, role: str) -> None:
         """A service with a restart policy is back: say so, and it rejoins the episode in progress."""
         r = self.cell.restarts[-1]
@@ -348,7 +342,24 @@ class Runner:
                      "still running now")
 
         for sig in (signal.SIGINT, signal.SIGTERM):
+            self._handlers_before.setdefault(sig, signal.getsignal(sig))
             signal.signal(sig, escalate)
+
+
+def _granted(profile: Grant, transport, say) -> Grant:
+    """What the realtime profile is granted, found out before any service starts; a refusal's
+    cost said in one line."""
+    if not profile.requested:
+        return profile
+    if not transport.spawns:
+        profile.refused = {p: "the services were started by someone else (--attach)" for p in sorted(profile.requested)}
+    else:
+        profile = probe(profile.requested)
+    say(f"realtime profile: granted {', '.join(sorted(profile.granted)) or 'nothing'}")
+    warning = profile.warning()
+    if warning:
+        say(f"warning: {warning}")
+    return profile
 
 
 def _check_serving(scenario: Scenario, serve) -> None:

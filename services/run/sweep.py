@@ -224,6 +224,11 @@ def run_one(spec: RunSpec) -> dict:
     except KeyboardInterrupt as exc:  # its partial report is in its folder (the runner wrote it)
         written = Path(spec.out) / "report.json"
         report = json.loads(written.read_text()) if written.exists() else None
+        if report is None and not any((Path(spec.out) / "recordings").glob("*")):
+            # interrupted while it was being set up, before any stage: it never started (its folder goes)
+            shutil.rmtree(spec.out, ignore_errors=True)
+            return dict(row, error=f"not started: the sweep was interrupted ({str(exc) or 'SIGINT'})",
+                        interrupted="not started", wall_s=0.0)
         if report is None or report.get("error") is not None:
             return dict(row, error=f"interrupted ({str(exc) or 'SIGINT'})", interrupted="interrupted",
                         wall_s=time.monotonic() - t0)
@@ -352,7 +357,11 @@ def execute(specs: list[RunSpec], workers: int, cluster: str | None, say=print) 
     elif workers <= 1:
         say(f"sweep: {len(specs)} runs in this process")
         for spec in specs:
-            done(spec, run_one(spec))
+            row = run_one(spec)
+            done(spec, row)
+            if row.get("interrupted"):  # the Ctrl-C (or SIGTERM) was the sweep's: no run after it
+                bar.close()
+                raise SweepInterrupted(row["error"].rsplit("(", 1)[-1].rstrip(")"), [rows[i] for i in sorted(rows)])
     else:
         say(f"sweep: {len(specs)} runs on {workers} local processes")
         pool = _pool(workers)

@@ -239,3 +239,55 @@ def test_an_interrupted_sweep_keeps_what_finished_and_leaves_no_worker(tmp_path,
         assert json.loads((out / "runs" / run / "report.json").read_text())["error"].startswith("interrupted (")
     for run in summary["not_started"]:
         assert not (out / "runs" / run).exists(), f"{run} started after the signal"
+
+
+def test_a_run_gives_back_the_signal_handlers_it_took(tmp_path):
+    """A run takes SIGINT and SIGTERM while it writes its report (``Runner._escalate_on_next_interrupt``)
+    and gives them back when it returns: a sweep's pool worker starts its next run with its own
+    handlers.  Before, a worker's second run kept the first run's, so the sweep's Ctrl-C did not
+    stop it and the worker then started a run the sweep listed as never started (CI, 2026-12-06)."""
+    def mine(signum, frame):
+        pass
+
+    before = {s: signal.signal(s, mine) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        report = support.run(support.hold(0.3, {"clock": "lockstep"}), tmp_path / "run", transport="inproc",
+                             run_id="handlers")
+        assert report["error"] is None
+        assert signal.getsignal(signal.SIGINT) is mine and signal.getsignal(signal.SIGTERM) is mine
+    finally:
+        for s, handler in before.items():
+            signal.signal(s, handler)
+
+
+@pytest.mark.slow
+@pytest.mark.serial
+def test_a_sweep_in_one_process_stops_at_the_first_ctrl_c(tmp_path):
+    """``--workers 1``: the runs one after the other in the sweep's process.  Ctrl-C while the
+    first runs: it writes its partial report and no other run starts; exit 130 in one line,
+    sweep.json marked incomplete.  Before, the interrupted run was a failed row and the sweep
+    went on with the next runs, exiting 1 once they were done."""
+    scenario_file = tmp_path / "repro.yaml"
+    scenario_file.write_text(reproduction_scenario().to_yaml())
+    out = tmp_path / "sweep"
+    sweeper = support.popen_as_from_a_terminal(
+        [sys.executable, "-m", "services.cli.bench", "sweep", str(scenario_file), "--param",
+         "reproduce.start_perturbation=0.005,0.01,0.015", "--workers", "1", "--record", "summary", "--out", str(out)],
+        cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        # the first run under way: its reproduction is being recorded
+        support.wait_until(lambda: any((out / "runs" / "run000" / "recordings").glob("*.mcap")), 60,
+                           "the first run records its reproduction")
+        os.killpg(sweeper.pid, signal.SIGINT)
+        code = sweeper.wait(timeout=60)
+        said = sweeper.stderr.read()
+    finally:
+        if sweeper.poll() is None:
+            os.killpg(sweeper.pid, signal.SIGKILL)
+    last = said.strip().splitlines()[-1]
+    assert code == 130 and "Traceback" not in said, said
+    assert last.startswith("etar-bench sweep: interrupted (SIGINT)") and "2 not started" in last, last
+    summary = json.loads((out / "sweep.json").read_text())
+    assert summary["interrupted_runs"] == ["run000"] and summary["not_started"] == ["run001", "run002"], summary
+    assert sorted(p.name for p in (out / "runs").iterdir()) == ["run000"]
+    assert json.loads((out / "runs" / "run000" / "report.json").read_text())["error"].startswith("interrupted (")
