@@ -248,3 +248,37 @@ def _figure(run_dir: Path, demo: dict, truth, K: int, evals) -> Path:
     out = run_dir / FIGURES_DIR
     out.mkdir(exist_ok=True)
     return canvas.save(fig, out / COMPARISON_FIGURE)
+
+
+def comparison_over_seeds(rows: list[dict]) -> list[str] | None:
+    """ETAR against STAR over a sweep's runs (one per data seed, its rows as
+    ``services.run.sweep.by_model_rows`` gives them): ``verdict`` on each figure's mean and
+    spread over the runs, for each swept value on its own (a sweep over the sensor's noise
+    compares the models at each noise level, never across them)."""
+    rows = [r for r in rows if r.get("param model") in ("ETAR", "STAR") and not r.get("error")]
+    if not rows:
+        return None
+    swept = [k for k in rows[0] if k.startswith("param ") and k != "param model"]
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        groups.setdefault(tuple(r.get(k) for k in swept), []).append(r)
+    if len(groups) == 1:
+        return _over_seeds(rows)
+    lines = []
+    for values, group in groups.items():
+        at = ", ".join(f"{k.removeprefix('param ')}={v}" for k, v in zip(swept, values))
+        lines += [f"at {at}:", *_over_seeds(group), ""]
+    return lines[:-1]
+
+
+def _over_seeds(rows: list[dict]) -> list[str]:
+    summary = {name: {k: st for k, _, _ in OFFLINE + ONLINE
+                      if (st := spread(r.get(k) for r in rows if r["param model"] == name)) is not None}
+               for name in ("ETAR", "STAR")}
+    seeds = sorted({r["seed"] for r in rows})
+    by_seed = {}
+    for r in rows:
+        by_seed.setdefault(r["seed"], {})[r["param model"]] = r
+    return [f"ETAR against STAR over {len(seeds)} data seed(s) ({', '.join(map(str, seeds))}): each figure's "
+            f"mean over the runs (min..max)", *verdict(summary),
+            "paired by data seed (the same demonstrations and starts for both models):", *paired(by_seed)]

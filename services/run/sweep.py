@@ -29,7 +29,10 @@ each parameter, and each run's directory under ``runs/`` as ``--record`` says:
 Ctrl-C or SIGTERM stops a local sweep: nothing starts after it, each run under way is
 interrupted and writes its partial report, the workers are waited for (and killed after
 20 s), and the table holds the runs that had finished, with ``sweep.json`` marked
-``incomplete`` and naming the runs interrupted and those never started.
+``incomplete`` and naming the runs interrupted and those never started.  On a Dask
+cluster it cancels there the runs not finished (``cancelled_on_cluster`` in
+``sweep.json``); one already under way runs on to its end, as Dask does not stop a
+running task.
 """
 
 from __future__ import annotations
@@ -297,9 +300,11 @@ class SweepInterrupted(KeyboardInterrupt):
     """A sweep stopped by SIGINT or SIGTERM: the rows of the runs it had (``execute``), and
     once they are tabulated, the sweep's summary (``sweep``)."""
 
-    def __init__(self, why: str, rows: list | None = None, summary: dict | None = None):
+    def __init__(self, why: str, rows: list | None = None, summary: dict | None = None,
+                 cancelled: list | None = None):
         super().__init__(why)
         self.why, self.rows, self.summary = why, rows or [], summary
+        self.cancelled = cancelled  # a cluster's sweep: the runs it had not finished, cancelled there
 
 
 # how long the pool's workers get to write their interrupted runs' reports before they are killed
@@ -352,8 +357,18 @@ def execute(specs: list[RunSpec], workers: int, cluster: str | None, say=print) 
                 f"({len(client.scheduler_info()['workers'])} workers)")
             futures = {client.submit(run_one, spec, pure=False, key=f"etar-{spec.name}-{time.time_ns()}"): spec
                        for spec in specs}
-            for fut in dask_completed(futures):
-                done(futures[fut], fut.result())
+            try:
+                for fut in dask_completed(futures):
+                    done(futures[fut], fut.result())
+            except KeyboardInterrupt as exc:
+                bar.close()
+                left = [f for f in futures if not f.done()]
+                client.cancel(left)
+                say(f"sweep: interrupted ({str(exc) or 'SIGINT'}): the {len(left)} run(s) not finished are cancelled "
+                    "on the cluster; one already under way there runs on to its end (Dask does not stop a running "
+                    "task) and may still write into its folder")
+                raise SweepInterrupted(str(exc) or "SIGINT", [rows[i] for i in sorted(rows)],
+                                       cancelled=sorted(futures[f].name for f in left)) from None
     elif workers <= 1:
         say(f"sweep: {len(specs)} runs in this process")
         for spec in specs:
@@ -403,43 +418,6 @@ def by_model_rows(rows: list[dict]) -> list[dict]:
     return out
 
 
-def comparison_over_seeds(rows: list[dict]) -> list[str] | None:
-    """ETAR against STAR over the sweep's runs (one per data seed): the verdict of
-    ``services.results.compare.verdict`` on each figure's mean and spread over the runs,
-    for each swept value on its own (a sweep over the sensor's noise compares the models
-    at each noise level, never across them)."""
-    rows = [r for r in rows if r.get("param model") in ("ETAR", "STAR") and not r.get("error")]
-    if not rows:
-        return None
-    swept = [k for k in rows[0] if k.startswith("param ") and k != "param model"]
-    groups: dict[tuple, list[dict]] = {}
-    for r in rows:
-        groups.setdefault(tuple(r.get(k) for k in swept), []).append(r)
-    if len(groups) == 1:
-        return _comparison(rows)
-    lines = []
-    for values, group in groups.items():
-        at = ", ".join(f"{k.removeprefix('param ')}={v}" for k, v in zip(swept, values))
-        lines += [f"at {at}:", *_comparison(group), ""]
-    return lines[:-1]
-
-
-def _comparison(rows: list[dict]) -> list[str]:
-    from etar.comparison import spread
-    from services.results.compare import OFFLINE, ONLINE, paired, verdict
-
-    summary = {name: {k: st for k, _, _ in OFFLINE + ONLINE
-                      if (st := spread(r.get(k) for r in rows if r["param model"] == name)) is not None}
-               for name in ("ETAR", "STAR")}
-    seeds = sorted({r["seed"] for r in rows})
-    by_seed = {}
-    for r in rows:
-        by_seed.setdefault(r["seed"], {})[r["param model"]] = r
-    return [f"ETAR against STAR over {len(seeds)} data seed(s) ({', '.join(map(str, seeds))}): each figure's "
-            f"mean over the runs (min..max)", *verdict(summary),
-            "paired by data seed (the same demonstrations and starts for both models):", *paired(by_seed)]
-
-
 def _progress(total: int):
     from tqdm import tqdm
 
@@ -457,12 +435,16 @@ def _tabulate_interrupted(stop: SweepInterrupted, specs, out_dir: Path, scenario
     rows = [r for r in stop.rows if not r.get("interrupted")]
     interrupted = [r["run"] for r in stop.rows if r.get("interrupted") == "interrupted"]
     finished = {r["run"] for r in rows}
-    not_started = [s.name for s in specs if s.name not in finished and s.name not in interrupted]
+    cancelled = stop.cancelled or []
+    not_started = [s.name for s in specs if s.name not in finished and s.name not in interrupted
+                   and s.name not in cancelled]
     csv_path, _ = write_table(by_model_rows(rows), out_dir) if rows else (None, None)
     summary = dict(scenario=scenario.source, parameters={p.path: list(p.values) for p in parameters},
                    repeats=repeats, runs=len(rows), failed=sum(1 for r in rows if r.get("error")),
                    wall_seconds=wall, incomplete=f"interrupted ({stop.why})", interrupted_runs=interrupted,
                    not_started=not_started, table=None if csv_path is None else str(csv_path))
+    if stop.cancelled is not None:
+        summary["cancelled_on_cluster"] = cancelled
     write_file(out_dir / "sweep.json", json.dumps(summary, indent=1) + "\n")
     return summary
 
@@ -579,10 +561,13 @@ def sweep(scenario: Scenario, parameters: list, *, repeats: int, out: str, recor
         rows = execute(specs, min(workers, len(specs)), cluster, say)
     except SweepInterrupted as stop:
         raise SweepInterrupted(stop.why, stop.rows, _tabulate_interrupted(stop, specs, out_dir, scenario, parameters,
-                                                                          repeats, time.monotonic() - t0)) from None
+                                                                          repeats, time.monotonic() - t0),
+                               stop.cancelled) from None
     wall = time.monotonic() - t0
     n_runs, n_failed = len(rows), sum(1 for r in rows if r.get("error"))
     rows = by_model_rows(rows)
+    from services.results.compare import comparison_over_seeds
+
     comparison = comparison_over_seeds(rows)
     if comparison:
         write_file(out_dir / "comparison.txt", "\n".join(comparison) + "\n")

@@ -135,6 +135,36 @@ def test_a_sweep_on_a_dask_cluster(tmp_path, dask_cluster):
 
 
 @pytest.mark.slow
+@pytest.mark.serial  # a real SIGINT to the test's own process: not in an xdist worker
+def test_a_sweep_on_a_dask_cluster_interrupted_cancels_what_it_had_not_finished_there(tmp_path, dask_cluster):
+    """Ctrl-C to a sweep on a Dask cluster: the runs not finished are cancelled there, said in
+    one line that a run already under way runs on to its end (Dask does not stop a running
+    task), and sweep.json is marked incomplete with them as cancelled_on_cluster.  Before, the
+    sweep said it was interrupted "before any run started" while its runs went on, and wrote
+    no sweep.json."""
+    import threading
+
+    from services.run.sweep import SweepInterrupted
+
+    out, said = tmp_path / "sweep", []
+
+    def interrupt_once_a_run_records():
+        support.wait_until(lambda: any((out / "runs").glob("run*/recordings/*.mcap")), 120, "a run records")
+        os.kill(os.getpid(), signal.SIGINT)
+
+    threading.Thread(target=interrupt_once_a_run_records, daemon=True).start()
+    with pytest.raises(SweepInterrupted) as stop:
+        sweep(reproduction_scenario(), [Parameter.parse("reproduce.start_perturbation=0.005,0.01,0.015,0.02")],
+              repeats=1, out=str(out), record="summary", workers=2, cluster=dask_cluster, say=said.append)
+    summary = json.loads((out / "sweep.json").read_text())
+    assert summary == stop.value.summary and summary["incomplete"] == "interrupted (SIGINT)"
+    cancelled = summary["cancelled_on_cluster"]
+    assert cancelled and not set(cancelled) & set(summary["not_started"]), summary
+    assert summary["runs"] + len(cancelled) + len(summary["not_started"]) == 4, summary
+    assert any("cancelled on the cluster; one already under way there runs on" in line for line in said), said
+
+
+@pytest.mark.slow
 def test_a_sweep_of_etar_against_star_over_data_seeds(tmp_path):
     """The smoke scenario learning both transition models and reproducing its start with
     each, over two data seeds: a row per run and model, each run's own figures, and the

@@ -3,10 +3,10 @@ scenario keys that ask for both models, on hand-made figures whose answer is kno
 
 import pytest
 
-from services.results.compare import paired, verdict
+from services.results.compare import comparison_over_seeds, paired, verdict
 from services.scenario.checks import ScenarioError
 from services.scenario.loading import load_scenario
-from services.run.sweep import by_model_rows, comparison_over_seeds
+from services.run.sweep import by_model_rows
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[3]
