@@ -294,7 +294,8 @@ def cmd_sweep(args) -> int:
              + (f", their table {s['table']} (sweep.json marked incomplete)" if s.get("table") else ", no table")
              + f"; {len(s.get('interrupted_runs', []))} interrupted (their partial reports under {args.out}/runs), "
              f"{len(s.get('not_started', []))} not started"
-             + (f", {len(s['cancelled_on_cluster'])} cancelled on the cluster" if s.get("cancelled_on_cluster") else ""))
+             + (f", {len(s['cancelled_on_cluster'])} cancelled on the cluster" if s.get("cancelled_on_cluster")
+                else ""))
         return 130
     except KeyboardInterrupt as exc:  # before any run started
         say(f"etar-bench sweep: interrupted ({str(exc) or 'SIGINT'}) before any run started")
