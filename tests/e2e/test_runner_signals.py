@@ -109,8 +109,10 @@ def test_a_second_ctrl_c_kills_the_services_and_the_report_is_still_written(tmp_
 def test_an_in_process_run_interrupted_says_one_line_and_keeps_its_episode(tmp_path, signum):
     """Ctrl-C (SIGINT to the process group, as a terminal sends it) or SIGTERM to an
     in-process run mid-demonstration: no traceback, one line that names the signal, exit
-    130 within 2 s, and the episode recorded so far kept as a finished file (as over
-    Zenoh); the MCAP writer's helper process does not take the signal for itself."""
+    130 within 5 s (0.5 s on a quiet machine; 2.4-4.7 s beside a run over Zenoh in a slow
+    hour of the CI's VM, where a 2 s bound failed once), and the episode recorded so far kept
+    as a finished file (as over Zenoh); the MCAP writer's helper process does not take the
+    signal for itself."""
     from services.recordings.reader import read_episode
 
     out = tmp_path / "run"
@@ -130,7 +132,7 @@ def test_an_in_process_run_interrupted_says_one_line_and_keeps_its_episode(tmp_p
     finally:
         if runner.poll() is None:
             os.killpg(runner.pid, signal.SIGKILL)
-    assert code == 130 and took < 2.0, (code, took, said)
+    assert code == 130 and took < 5.0, (code, took, said)
     assert "Traceback" not in said and "Error" not in said, said
     assert said.strip().splitlines()[-1] == (f"etar-bench run: interrupted ({signum.name}); services stopped; "
                                              f"partial report in {out}"), said
