@@ -48,7 +48,9 @@ def test_the_smoke_scenario_reaches_its_goal_over_fri_udp_and_net_ft(tmp_path):
         rp, = report["reproductions"]
         f = rp["fri"]
         assert remote["answered"] >= f["answered"]
-        if (report["error"] or "").startswith(CLOCK_NOT_HELD):
+        # a machine that stalls shows as the clock not held, or as the estimator starved long enough
+        # for the commander to hold the arm on a stale estimate (a slow hour of CI's VM: 31 cycles old)
+        if (report["error"] or "").startswith(CLOCK_NOT_HELD) or "stale_estimate" in (report["error"] or ""):
             assert proc.returncode == 1, "a run that did not hold its clock must fail"
             assert_a_stall(f, report["error"])  # a machine that stalls, not a remote that does not answer
             return report["error"]
