@@ -12,7 +12,7 @@ OUT ?= out/$(basename $(notdir $(SCENARIO)))
 
 .PHONY: run test test-fast bench venv clean browser foxglove-schemas foxglove-studio
 
-$(STAMP): pyproject.toml setup.py robot_sim/arm/native/pinocchio_inplace.cpp
+$(STAMP): pyproject.toml setup.py robot_sim/arm/native/pinocchio_inplace.cpp kernel_plumbing/native/json_numbers.cpp
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade "pip>=24,<27"
 	$(BIN)/python -m pip install --quiet --no-compile -e ".[test,cluster]"

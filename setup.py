@@ -1,10 +1,14 @@
-"""The project's one compiled part: robot_sim.arm._pinocchio_inplace (see its source).
+"""The project's two compiled parts (see their sources); everything else is in pyproject.toml.
 
-Everything else is in pyproject.toml.  The extension is compiled against the
-headers and libraries of the pin wheel in the build environment (pinned to the
-runtime's version in pyproject.toml) and the Eigen headers of cmeel-eigen.  It
-is optional: without a C++ compiler the install goes on and robot_sim falls back
-to Pinocchio's bindings, which allocate two small vectors per control step.
+- robot_sim.arm._pinocchio_inplace, compiled against the headers and libraries of the
+  pin wheel in the build environment (pinned to the runtime's version in
+  pyproject.toml) and the Eigen headers of cmeel-eigen.  Without it robot_sim falls
+  back to Pinocchio's bindings, which allocate two small vectors per control step.
+- kernel_plumbing._json_numbers, a float64 as orjson writes it, for kernels that write
+  messages' bytes (C++17's std::to_chars; no dependency).  Without it the messages are
+  written by orjson, the same bytes.
+
+Both are optional: without a C++ compiler the install goes on without them.
 """
 
 import shutil
@@ -50,6 +54,11 @@ def pinocchio_inplace() -> Extension:
     )
 
 
+def json_numbers() -> Extension:
+    return Extension("kernel_plumbing._json_numbers", sources=["kernel_plumbing/native/json_numbers.cpp"],
+                     extra_compile_args=["-std=c++17", "-O2", "-g0"], language="c++", optional=True)
+
+
 class BuildExt(build_ext):
     """A wheel's build takes the extension an editable install compiled in place (``make
     venv``), when it is newer than its sources, instead of compiling it again (12 s of one
@@ -68,4 +77,4 @@ class BuildExt(build_ext):
         super().build_extension(ext)
 
 
-setup(ext_modules=[pinocchio_inplace()], cmdclass={"build_ext": BuildExt})
+setup(ext_modules=[pinocchio_inplace(), json_numbers()], cmdclass={"build_ext": BuildExt})
