@@ -91,7 +91,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kernel_plumbing.addresses import HoldsAddresses, address, int64_address
 from robot_sim.cycle import FRI_CYCLE_NS
+from robot_sim.krc import link_books as lb
 from robot_sim.krc.faults import LinkFaults
 from robot_sim.krc.packets import (_CART, _FT, _JNT, CommandPacket, ControlMode, FriQuality, FriState,
                                    MeasurementPacket, command_problem, is_integer)
@@ -180,198 +182,111 @@ class FriStatistics:
     quality: FriQuality
 
 
-_NO_LATENCY = -1
-
-
-class CycleWindow:
-    """The last ``size`` closed cycles of a session: which were missed and each answer's
-    latency, with the running sums the link's figures and quality are taken from.
-
-    A ring indexed by seq % size (seqs are consecutive within a session, so pushing seq
-    s evicts s - size).  Plain lists: scalar access to Python lists is several times
-    faster than to numpy arrays.  Latencies are integer ns, so the sums are exact, with
-    no drift over long runs.
-    """
-
-    __slots__ = ("size", "seqs", "missed", "latencies", "n", "misses", "lat_n", "lat_sum", "lat_sq")
-
-    def __init__(self, size: int):
-        self.size = size
-        self.seqs = [-1] * size
-        self.missed = [False] * size
-        self.latencies = [_NO_LATENCY] * size
-        self.n = 0  # closed cycles in the window
-        self.misses = 0
-        self.lat_n = 0
-        self.lat_sum = 0
-        self.lat_sq = 0
-
-    def push(self, seq: int, missed: bool, latency: int) -> None:
-        """Cycle ``seq`` closed (evicting seq - size)."""
-        i = seq % self.size
-        if self.seqs[i] >= 0:
-            if self.missed[i]:
-                self.misses -= 1
-            old = self.latencies[i]
-            if old != _NO_LATENCY:
-                self.lat_n -= 1
-                self.lat_sum -= old
-                self.lat_sq -= old * old
-        else:
-            self.n += 1
-        self.seqs[i] = seq
-        self.missed[i] = missed
-        self.latencies[i] = latency
-        if latency != _NO_LATENCY:
-            self.lat_n += 1
-            self.lat_sum += latency
-            self.lat_sq += latency * latency
-        if missed:
-            self.misses += 1
-
-    def late_latency(self, seq: int, latency: int) -> None:
-        """A late answer's latency still belongs in the window while its cycle is there."""
-        i = seq % self.size
-        if latency != _NO_LATENCY and self.seqs[i] == seq and self.latencies[i] == _NO_LATENCY:
-            self.latencies[i] = latency
-            self.lat_n += 1
-            self.lat_sum += latency
-            self.lat_sq += latency * latency
-
-    def figures(self) -> tuple[float, float, float, float]:
-        """(answer_rate, miss_rate, latency_s, jitter_s) over the window."""
-        n = self.n
-        if n == 0:
-            return 0.0, 0.0, 0.0, 0.0
-        miss_rate = self.misses / n
-        ln = self.lat_n
-        if ln == 0:
-            return 1.0 - miss_rate, miss_rate, 0.0, 0.0
-        # n*sum(x^2) - sum(x)^2 is exact in integers, so the variance is never negative.
-        var_num = ln * self.lat_sq - self.lat_sum * self.lat_sum
-        return (1.0 - miss_rate, miss_rate, self.lat_sum / ln * 1e-9, math.sqrt(var_num) / ln * 1e-9)
-
-    def quality(self, cfg: FriConfig) -> FriQuality:
-        """The link's quality from the window (the module docstring's table)."""
-        n = self.n
-        if n == 0:
-            return FriQuality.UNACCEPTABLE
-        misses = self.misses
-        if misses == 0:
-            ln = self.lat_n  # == n: every cycle in the window was answered in time
-            cycle = cfg.cycle_ns
-            mean_ok = self.lat_sum < cfg.perfect_max_latency_cycles * cycle * ln
-            var = (ln * self.lat_sq - self.lat_sum * self.lat_sum) / (ln * ln)
-            jitter_ok = var < (cfg.perfect_max_jitter_cycles * cycle) ** 2
-            if mean_ok and jitter_ok:
-                return FriQuality.PERFECT
-            return FriQuality.OK
-        # A small slack so that "at most 2 %" holds for exactly 2 of 100.
-        if misses <= cfg.ok_max_miss_rate * n + 1e-9:
-            return FriQuality.OK
-        if misses <= cfg.bad_max_miss_rate * n + 1e-9:
-            return FriQuality.BAD
-        return FriQuality.UNACCEPTABLE
-
-
-class FriLink:
-    """The KRC's end of one FRI 1.0 connection.  See the module docstring."""
+class FriLink(HoldsAddresses):
+    """The KRC's end of one FRI 1.0 connection.  See the module docstring.  Its books (state,
+    counters, window) are arrays kept by ``robot_sim.krc.link_books``'s kernels; the command
+    packets it keeps are here."""
 
     def __init__(self, config: FriConfig | None = None, faults: LinkFaults | None = None):
-        self.config = config if config is not None else FriConfig()
+        self.config = cfg = config if config is not None else FriConfig()
         self.faults = faults
-        self._seq = 0  # last seq sent; kept across sessions (see module docstring)
-        self._control_mode = self.config.initial_control_mode
-        self._state = FriState.OFF
+        w = cfg.window
+        self._books = books = np.zeros(len(lb.BOOKS), dtype=np.int64)
+        books[lb.CYCLE_NS], books[lb.WINDOW] = cfg.cycle_ns, w
+        books[lb.PERFECT_HOLD], books[lb.MAX_BRIDGED] = cfg.perfect_hold_cycles, cfg.max_bridged_misses
+        books[lb.SMALL_LATENCY] = lb.small_latency(w)
+        books[lb.SEQ] = 0  # last seq sent; kept across sessions (see module docstring)
+        books[lb.CONTROL_MODE] = int(cfg.initial_control_mode)
+        books[lb.STATE] = FriState.OFF
+        self._thresholds = np.array([cfg.perfect_max_latency_cycles, cfg.perfect_max_jitter_cycles,
+                                     cfg.ok_max_miss_rate, cfg.bad_max_miss_rate], dtype=np.float64)
+        self._ring = lb.new_ring(w)
+        self._figures = np.zeros(4)
+        self._books_at, self._ring_at, self._n_ring = int64_address(books), int64_address(self._ring), len(self._ring)
+        self._thresholds_at, self._figures_at = address(self._thresholds), address(self._figures)
         self._reset_session(0)
 
     # ----------------------------------------------------------------- session
     def _reset_session(self, t_ns: int) -> None:
-        w = self.config.window
-        self._started_ns = t_ns
-        self._first_seq = self._seq + 1
-        self._quality = FriQuality.UNACCEPTABLE
-        self._cmd_requested = False
-        self._perfect_run = 0
+        b = self._books
+        b[lb.FIRST_SEQ] = b[lb.SEQ] + 1
+        b[lb.QUALITY] = FriQuality.UNACCEPTABLE
+        b[lb.CMD_REQUESTED] = b[lb.PERFECT_RUN] = 0
+        b[lb.REFLECTED_SEQ] = -1
+        # the open cycle
+        b[lb.OPEN], b[lb.DEADLINE], b[lb.HAS_ANSWER], b[lb.ANSWER_LATENCY] = 0, t_ns, 0, lb.NO_LATENCY
+        b[lb.HAS_LAST_APPLIED] = 0
+        b[lb.SENT:lb.LARGE + 1] = 0  # counters since start(), the window's sums
+        lb.reset_ring(self._ring, self.config.window)
         self._last_applied: CommandPacket | None = None
-        self._reflected_seq = -1
-        # The open cycle.
-        self._open = False
-        self._deadline_ns = t_ns
         self._cur_cmd: CommandPacket | None = None
-        self._cur_lat = _NO_LATENCY
-        self._window = CycleWindow(w)
-        # Send times of the open cycle and the window's cycles, for late answers' latency.
-        self._send_seq = [-1] * (w + 1)
-        self._send_ns = [0] * (w + 1)
-        # Counters since start().
-        self._sent = self._answered = self._missed = self._late = self._corrupt = 0
-        self._duplicate = self._mode_mismatch = self._bridged = self._held = 0
-        self._consecutive = self._longest_run = 0
         self.last_reject_reason = ""
 
     def start(self, t_ns: int) -> None:
         """OFF -> MON.  Resets statistics, quality and any command request."""
-        if self._state != FriState.OFF:
-            raise RuntimeError(f"FriLink.start: link is already {self._state.name}; stop() it first")
+        if self.state != FriState.OFF:
+            raise RuntimeError(f"FriLink.start: link is already {self.state.name}; stop() it first")
         self._reset_session(int(t_ns))
-        self._state = FriState.MON
+        self._books[lb.STATE] = FriState.MON
 
     def stop(self) -> None:
         """Any state -> OFF.  An open cycle is abandoned; statistics stay readable."""
-        self._state = FriState.OFF
-        self._open = False
+        b = self._books
+        b[lb.STATE] = FriState.OFF
+        b[lb.OPEN] = b[lb.CMD_REQUESTED] = b[lb.HAS_LAST_APPLIED] = 0
         self._cur_cmd = None
-        self._cmd_requested = False
         self._last_applied = None
 
     def request_command_mode(self) -> bool:
         """Ask for CMD; it is entered once quality has been PERFECT long enough.  False in OFF."""
-        if self._state == FriState.OFF:
+        state = self.state
+        if state == FriState.OFF:
             return False
-        if self._state == FriState.MON:
-            self._cmd_requested = True
+        if state == FriState.MON:
+            self._books[lb.CMD_REQUESTED] = 1
         return True
 
     def request_monitor_mode(self) -> bool:
         """CMD -> MON now (and forget a pending request).  False in OFF."""
-        if self._state == FriState.OFF:
+        state = self.state
+        if state == FriState.OFF:
             return False
-        self._cmd_requested = False
-        if self._state == FriState.CMD:
+        self._books[lb.CMD_REQUESTED] = 0
+        if state == FriState.CMD:
             self._leave_cmd()
         return True
 
     def switch_control_mode(self, mode: ControlMode) -> bool:
         """Change the control mode; FRI allows this only in MON (False otherwise, nothing changes)."""
         mode = ControlMode(mode)  # an unknown mode is a programming error: ValueError
-        if self._state != FriState.MON:
+        if self.state != FriState.MON:
             return False
-        self._control_mode = mode
+        self._books[lb.CONTROL_MODE] = mode
         return True
 
     def _leave_cmd(self) -> None:
-        self._state = FriState.MON
-        self._cmd_requested = False
+        b = self._books
+        b[lb.STATE] = FriState.MON
+        b[lb.CMD_REQUESTED] = b[lb.HAS_LAST_APPLIED] = 0
         self._last_applied = None  # bridging must never reach back into an earlier CMD session
 
     # --------------------------------------------------------------- read-outs
     @property
     def state(self) -> FriState:
-        return self._state
+        return _STATES[self._books[lb.STATE]]
 
     @property
     def quality(self) -> FriQuality:
-        return self._quality
+        return _QUALITIES[self._books[lb.QUALITY]]
 
     @property
     def control_mode(self) -> ControlMode:
-        return self._control_mode
+        return _MODES[self._books[lb.CONTROL_MODE]]
 
     @property
     def seq(self) -> int:
         """Seq of the last measurement sent (0 before the first)."""
-        return self._seq
+        return int(self._books[lb.SEQ])
 
     @property
     def last_applied(self) -> CommandPacket | None:
@@ -380,56 +295,51 @@ class FriLink:
 
     @property
     def command_requested(self) -> bool:
-        return self._cmd_requested
+        return bool(self._books[lb.CMD_REQUESTED])
 
     @property
     def consecutive_misses(self) -> int:
-        return self._consecutive
+        return int(self._books[lb.CONSECUTIVE])
 
     def statistics(self) -> FriStatistics:
-        answer_rate, miss_rate, latency_s, jitter_s = self._window.figures()
+        lb.FIGURES(self._books_at, self._ring_at, self._n_ring, self._figures_at)
+        answer_rate, miss_rate, latency_s, jitter_s = self._figures.tolist()
+        b = self._books.tolist()
         return FriStatistics(
-            sent=self._sent, answered=self._answered, missed=self._missed, late=self._late,
-            corrupt=self._corrupt, duplicate=self._duplicate, mode_mismatch=self._mode_mismatch,
-            bridged=self._bridged, held=self._held, longest_miss_run=self._longest_run,
-            consecutive_misses=self._consecutive, window_packets=self._window.n,
+            sent=b[lb.SENT], answered=b[lb.ANSWERED], missed=b[lb.MISSED], late=b[lb.LATE], corrupt=b[lb.CORRUPT],
+            duplicate=b[lb.DUPLICATE], mode_mismatch=b[lb.MODE_MISMATCH], bridged=b[lb.BRIDGED], held=b[lb.HELD],
+            longest_miss_run=b[lb.LONGEST_RUN], consecutive_misses=b[lb.CONSECUTIVE], window_packets=b[lb.W_N],
             answer_rate=answer_rate, miss_rate=miss_rate, latency_s=latency_s, jitter_s=jitter_s,
-            state=self._state, quality=self._quality,
+            state=_STATES[b[lb.STATE]], quality=_QUALITIES[b[lb.QUALITY]],
         )
 
     # ------------------------------------------------------------------- cycle
     def measurement(self, t_ns: int, msr_jnt_pos, msr_cart_pos, est_ext_tcp_ft) -> MeasurementPacket:
         """Open the cycle at ``t_ns`` and return the packet the KRC sends."""
         t_ns = int(t_ns)
-        if self._state == FriState.OFF:
-            raise RuntimeError("FriLink.measurement: link is OFF; call start() first")
-        if self._open:
-            raise RuntimeError(f"FriLink.measurement: cycle seq {self._seq} is still open; call end_cycle() first")
-        if self._seq >= self._first_seq and t_ns < self._deadline_ns:
-            raise ValueError(f"FriLink.measurement: t_ns = {t_ns} is before the previous cycle's deadline {self._deadline_ns}")
         q = np.array(msr_jnt_pos, dtype=np.float64)
         x = np.array(msr_cart_pos, dtype=np.float64)
         ft = np.array(est_ext_tcp_ft, dtype=np.float64)
-        if q.shape != (_JNT,) or x.shape != (_CART,) or ft.shape != (_FT,):
+        shapes_ok = q.shape == (_JNT,) and x.shape == (_CART,) and ft.shape == (_FT,)
+        seq = lb.MEASURE(self._books_at, self._ring_at, self._n_ring, t_ns, shapes_ok, self._figures_at)
+        if seq < 0:
+            b = self._books
+            if seq == lb.ERR_OFF:
+                raise RuntimeError("FriLink.measurement: link is OFF; call start() first")
+            if seq == lb.ERR_OPEN:
+                raise RuntimeError(f"FriLink.measurement: cycle seq {b[lb.SEQ]} is still open; call end_cycle() first")
+            if seq == lb.ERR_BEFORE_DEADLINE:
+                raise ValueError(f"FriLink.measurement: t_ns = {t_ns} is before the previous cycle's deadline "
+                                 f"{b[lb.DEADLINE]}")
             raise ValueError(
                 f"FriLink.measurement: shapes msr_jnt_pos {q.shape}, msr_cart_pos {x.shape}, "
                 f"est_ext_tcp_ft {ft.shape}; expected (7,), (12,), (6,)")
-
-        self._seq += 1
-        seq = self._seq
-        j = seq % (self.config.window + 1)
-        self._send_seq[j] = seq
-        self._send_ns[j] = t_ns
-        self._open = True
-        self._deadline_ns = t_ns + self.config.cycle_ns
         self._cur_cmd = None
-        self._cur_lat = _NO_LATENCY
-        self._sent += 1
-
-        answer_rate, miss_rate, latency_s, jitter_s = self._window.figures()
+        answer_rate, miss_rate, latency_s, jitter_s = self._figures.tolist()
+        b = self._books
         return MeasurementPacket(
-            seq, self._reflected_seq, t_ns, self._state, self._quality, self._control_mode,
-            q, x, ft, answer_rate, latency_s, jitter_s, miss_rate,
+            seq, int(b[lb.REFLECTED_SEQ]), t_ns, _STATES[b[lb.STATE]], _QUALITIES[b[lb.QUALITY]],
+            _MODES[b[lb.CONTROL_MODE]], q, x, ft, answer_rate, latency_s, jitter_s, miss_rate,
         )
 
     def deliver_measurement(self, m: MeasurementPacket) -> MeasurementPacket | None:
@@ -447,49 +357,42 @@ class FriLink:
         ``owned``: the caller made the packet for this call, float64 arrays nobody else
         holds and a ControlMode (what ``CommandPacket.copy`` makes): it is kept as it is."""
         t_ns = int(t_ns)
-        if self._state == FriState.OFF:
+        b = self._books
+        if b[lb.STATE] == lb.OFF:  # an int: a numpy integer against an IntEnum takes microseconds
             return self._reject("link is OFF")
         try:
             problem = command_problem(packet)
         except Exception as exc:
             problem = f"unreadable packet ({type(exc).__name__}: {exc})"
         if problem is not None:
-            self._corrupt += 1
+            b[lb.CORRUPT] += 1
             return self._reject(problem)
         s = int(packet.seq)
-        if s > self._seq:
-            self._corrupt += 1
-            return self._reject(f"seq {s} was never sent (last sent {self._seq})")
-        if s < self._first_seq:
-            self._late += 1
-            return self._reject(f"seq {s} belongs to an earlier session")
+        if s > _INT64_MAX:  # past any seq the books can hold: never sent
+            b[lb.CORRUPT] += 1
+            return self._reject(f"seq {s} was never sent (last sent {b[lb.SEQ]})")
+        fate = lb.RECEIVE(self._books_at, self._ring_at, self._n_ring, s, t_ns)
+        if fate == lb.ACCEPTED:
+            # a copy: the sender may reuse its buffers, the wire would not share them
+            self._cur_cmd = packet if owned else packet.copy()
+            self.last_reject_reason = ""
+            return True
+        return self._reject(self._rejected(fate, s, t_ns))
 
-        j = s % (self.config.window + 1)
-        known_send = self._send_seq[j] == s
-        if known_send and t_ns < self._send_ns[j]:
-            self._corrupt += 1
-            return self._reject(f"arrived at {t_ns}, before measurement {s} was sent at {self._send_ns[j]}")
-        self._reflected_seq = s
-        latency = t_ns - self._send_ns[j] if known_send else _NO_LATENCY
-
-        if s == self._seq and self._open:
-            if t_ns < self._deadline_ns:
-                if self._cur_cmd is not None:
-                    self._duplicate += 1
-                    return self._reject(f"duplicate answer to seq {s}")
-                # A copy: the sender may reuse its buffers, the wire would not share them.
-                self._cur_cmd = packet if owned else packet.copy()
-                self._cur_lat = latency
-                self.last_reject_reason = ""
-                return True
-            self._late += 1
-            if self._cur_lat == _NO_LATENCY:
-                self._cur_lat = latency
-            return self._reject(f"answer to seq {s} arrived at {t_ns}, deadline {self._deadline_ns}")
-
-        self._late += 1
-        self._window.late_latency(s, latency)
-        return self._reject(f"answer to seq {s} arrived after its cycle closed (current seq {self._seq})")
+    def _rejected(self, fate: int, s: int, t_ns: int) -> str:
+        b = self._books
+        if fate == lb.NEVER_SENT:
+            return f"seq {s} was never sent (last sent {b[lb.SEQ]})"
+        if fate == lb.EARLIER_SESSION:
+            return f"seq {s} belongs to an earlier session"
+        if fate == lb.BEFORE_SENT:
+            w = self.config.window
+            return f"arrived at {t_ns}, before measurement {s} was sent at {self._ring[4 * w + 1 + s % (w + 1)]}"
+        if fate == lb.DUPLICATE_ANSWER:
+            return f"duplicate answer to seq {s}"
+        if fate == lb.AFTER_DEADLINE:
+            return f"answer to seq {s} arrived at {t_ns}, deadline {b[lb.DEADLINE]}"
+        return f"answer to seq {s} arrived after its cycle closed (current seq {b[lb.SEQ]})"
 
     def deliver(self, packet: CommandPacket, t_sent_ns: int, *, owned: bool = False) -> bool:
         """Send ``packet`` from the remote at ``t_sent_ns`` through the fault hook, then
@@ -506,48 +409,25 @@ class FriLink:
     def end_cycle(self, t_ns: int) -> CycleOutcome:
         """Close the open cycle at its deadline and decide what the KRC applies."""
         t_ns = int(t_ns)
-        if not self._open:
-            raise RuntimeError("FriLink.end_cycle: no open cycle; call measurement() first")
-        if t_ns < self._deadline_ns:
-            raise ValueError(f"FriLink.end_cycle: t_ns = {t_ns} is before the cycle's deadline {self._deadline_ns}")
-        self._open = False
-        seq = self._seq
         cmd = self._cur_cmd
-        answered = cmd is not None
-
-        self._window.push(seq, not answered, self._cur_lat)
-        if answered:
-            self._answered += 1
-            self._consecutive = 0
-        else:
-            self._missed += 1
-            self._consecutive += 1
-            if self._consecutive > self._longest_run:
-                self._longest_run = self._consecutive
-
-        quality = self._quality = self._window.quality(self.config)
-        self._perfect_run = self._perfect_run + 1 if quality == FriQuality.PERFECT else 0
-
-        if self._state == FriState.CMD and quality < FriQuality.OK:
-            self._leave_cmd()
-        elif (self._state == FriState.MON and self._cmd_requested
-              and self._perfect_run >= self.config.perfect_hold_cycles):
-            self._state = FriState.CMD
-            self._cmd_requested = False
+        mode_ok = cmd is not None and int(cmd.requested_mode) == int(self._books[lb.CONTROL_MODE])
+        code = lb.END_CYCLE(self._books_at, self._ring_at, self._n_ring, self._thresholds_at, t_ns, mode_ok)
+        if code < 0:
+            if code == lb.ERR_NOT_OPEN:
+                raise RuntimeError("FriLink.end_cycle: no open cycle; call measurement() first")
+            raise ValueError(f"FriLink.end_cycle: t_ns = {t_ns} is before the cycle's deadline "
+                             f"{self._books[lb.DEADLINE]}")
+        applied = code & 3
+        if applied == lb.APPLY_ANSWER:
+            self._last_applied = cmd
+        elif not code & lb.HAS_LAST:
             self._last_applied = None
+        command = cmd if applied == lb.APPLY_ANSWER else self._last_applied if applied == lb.APPLY_LAST else None
+        b = self._books
+        return CycleOutcome(int(b[lb.SEQ]), cmd is not None, command, applied == lb.APPLY_LAST, command is None,
+                            _STATES[b[lb.STATE]], _QUALITIES[b[lb.QUALITY]], int(b[lb.CONSECUTIVE]))
 
-        bridged = False
-        applied = None
-        if self._state == FriState.CMD:
-            if answered:
-                if cmd.requested_mode == self._control_mode:
-                    applied = self._last_applied = cmd
-                else:
-                    self._mode_mismatch += 1
-            elif self._consecutive <= self.config.max_bridged_misses and self._last_applied is not None:
-                applied = self._last_applied
-                bridged = True
-                self._bridged += 1
-            if applied is None:
-                self._held += 1
-        return CycleOutcome(seq, answered, applied, bridged, applied is None, self._state, quality, self._consecutive)
+
+# the enums by value (their values are 0, 1, ...): faster than calling the enum
+_STATES, _QUALITIES, _MODES = tuple(FriState), tuple(FriQuality), tuple(ControlMode)
+_INT64_MAX = 2**63 - 1
