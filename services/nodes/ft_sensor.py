@@ -39,6 +39,7 @@ from robot_sim.ati.sensor import AtiConfig, AtiSensor
 from robot_sim.wire.netft import CALIBRATION_PORT, HTTP_PORT, RDT_PORT, RDT_RECORD
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import check_seed, option
+from services.runtime.message_bytes import MessageBytes
 from services.runtime.messages import FT_WRENCH, NETFT_RDT, ROBOT_CONTACT
 
 SENSOR_FAULTS = ("none", "stop", "saturate", "nan")
@@ -115,6 +116,10 @@ class FtSensorNode(Node):
         self._episode, self._episode_t0 = None, 0
         self.faulted = 0  # records the injected fault changed (or, stopped, never sent)
         self.publications = [Publication(FT_WRENCH.topic)]
+        self._bytes = MessageBytes(FT_WRENCH, whole=("counts",)) if MessageBytes.available else None
+        if self._bytes is not None:
+            self._bytes.floats[self._bytes.slots["counts_per_force"][1]] = self._cpf
+            self._bytes.floats[self._bytes.slots["counts_per_torque"][1]] = self._cpt
         self.box = None
         if config.netft:
             if config.netft_topic:
@@ -140,9 +145,11 @@ class FtSensorNode(Node):
         if packed is not None:
             self.bus.publish(FT_WRENCH.topic, *packed)
 
-    def sample(self, msg) -> tuple | None:
+    def sample(self, msg, message: bool = True) -> tuple | None:
         """The ATI record of one ``robot/contact``: ``ft/wrench`` as ``pack`` gives it, or None
-        when the injected fault stopped the stream."""
+        when the injected fault stopped the stream.  ``message=False``: nobody in this
+        process reads the dict: the same bytes written by a kernel, and only the message's
+        (seq, sent_ns) beside them (what a recorder needs)."""
         with self._lock:
             self._wrench[:] = msg["wrench"]
             if self._injected(msg):
@@ -154,16 +161,25 @@ class FtSensorNode(Node):
                 else:
                     self._wrench[:] = np.nan
             rec, w = self.ati.sample(self._wrench, msg["stamp_ns"])
-            w = w.tolist()
         if self.box is not None:
             # outside the lock: a client's bias request (the box's thread) takes it
             self._stamp = (msg["seq"], msg["stamp_ns"])
             self.box.publish(rec)
+        if not message and self._bytes is not None:
+            seq, sent, mb = msg["seq"], self.clock.now_ns(), self._bytes
+            # its integers: the header, the sequences, the status (the counts are whole floats)
+            mb.ints[:] = (seq, msg["stamp_ns"], sent, rec.rdt_sequence, rec.ft_sequence, rec.status)
+            floats, (_, c, _), (_, wr, _) = mb.floats, mb.slots["counts"], mb.slots["wrench"]
+            floats[c:c + 6] = rec.counts
+            floats[wr:wr + 6] = w
+            payload = mb.write()
+            if payload is not None:
+                return payload, (seq, sent)
         return FT_WRENCH.pack(
             seq=msg["seq"], stamp_ns=msg["stamp_ns"], sent_ns=self.clock.now_ns(),
             rdt_sequence=int(rec.rdt_sequence), ft_sequence=int(rec.ft_sequence), status=int(rec.status),
             counts=rec.counts.tolist(), counts_per_force=self._cpf, counts_per_torque=self._cpt,
-            wrench=w)
+            wrench=w.tolist())
 
     def handlers(self):
         return {"tare": self.tare}

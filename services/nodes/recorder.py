@@ -110,8 +110,9 @@ class RecorderNode(Node):
 
     def take(self, samples) -> None:
         """Messages of the run in the order they came, each (topic, receive time, payload, the
-        decoded message or None): one at a time from a transport (``on_sample``), or a
-        cycle's at once (``services.transport.fused``)."""
+        decoded message, or only its (seq, sent_ns), or None): one at a time from a transport
+        (``on_sample``), or a cycle's at once (``services.transport.fused``, which makes a
+        message's dict only when a node of the process reads it)."""
         keys = self._keys
         with self.lock:
             writer = self.writer
@@ -121,18 +122,20 @@ class RecorderNode(Node):
                         # no receiver reads it: recording it would only let a foreign peer fill the disk
                         self.oversized += 1
                         continue
-                    if message is not None:
-                        seq = message["seq"]
-                    else:
+                    if message is None:
                         m = SEQ_PREFIX.match(raw)
-                        seq = int(m.group(1)) if m else None
+                        seq, sent = (int(m.group(1)) if m else None), None
+                    elif type(message) is tuple:
+                        seq, sent = message
+                    else:
+                        seq, sent = message["seq"], message["sent_ns"]
                     try:
                         if writer is not None:
                             # a message already decoded (one process) needs no decoding for its publish time
                             key = keys.get(topic)
                             if key is None:
                                 key = keys[topic] = self.prefix + topic
-                            writer.add(key, raw, recv_ns, None if message is None else message["sent_ns"])
+                            writer.add(key, raw, recv_ns, sent)
                             self.total += 1
                     finally:
                         # arrived, even when the file could not take it (a full disk): ending the

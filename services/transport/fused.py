@@ -70,6 +70,9 @@ class FusedCycle:
         for node in self.other_nodes:
             for sub in node.subscriptions:
                 self.others.setdefault(sub.topic, []).append((node.name, sub))
+        # ft/wrench's dict is made when a node here reads it (the estimator at its instants, another
+        # node's subscription, the bus's check); else its bytes come with only (seq, sent_ns)
+        self.wrench_read = bus.check or _WRENCH in self.others or "**" in self.others
         self.recorded: list = []  # the cycle's messages for the recorder, in the order they were made
         self.got: dict[str, int] = {}  # participant -> the seq of its answer this cycle
         self.commands: list = []
@@ -108,11 +111,14 @@ class FusedCycle:
         hand_on = teacher is not None and teacher.listening
         if hand_on:
             self._work(teacher, _STATE, teacher.take_state, s)
-        wrench = self._work(self.sensor, _CONTACT, self.sensor.sample, c) if self.sensor is not None else None
+        wrench = None
+        if self.sensor is not None:
+            read = self.wrench_read or (tenth and estimator is not None)
+            wrench = self._work(self.sensor, _CONTACT, self.sensor.sample, c, read)
         hand = self._work(teacher, _CONTACT, teacher.take_contact, c) if hand_on else None
         if wrench is not None:
             self._record(_WRENCH, wrench)
-            self.got["ft"] = wrench[1]["seq"]
+            self.got["ft"] = c["seq"]  # the sensor's record answers the contact's cycle
             if tenth and estimator is not None and phase is None:
                 phase = self._work(estimator, _WRENCH, estimator.take_wrench, wrench[1])
         if hand is not None:
