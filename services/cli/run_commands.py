@@ -87,13 +87,7 @@ def cmd_run(args) -> int:
     # services it started and writes what it has; otherwise they outlive it as orphans
     signal.signal(signal.SIGTERM, interrupt)
     try:
-        report = runner.run()
-        if options.attach:
-            # the services it attached to are shut down, and their runtime ends this process
-            # in answer (docker-compose's --exit-code-from): the run is whole, its exit status
-            # this command's, not that SIGTERM's (the runner ignored it until here; ignored,
-            # the interpreter's exit does not make it fatal again)
-            signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        report = runner.run()  # attached, it leaves SIGTERM ignored (Runner._ignore_the_ending)
     except FileWriteError as exc:  # a full disk, a folder made read-only: what was kept stays readable
         say(f"etar-bench run: failed: {exc}; what was kept is in {out} (etar-bench info {out})")
         return 1

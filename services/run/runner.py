@@ -82,7 +82,6 @@ class Runner:
         self.ready = threading.Event()  # set once every service is up (tests and benches wait on it)
         self._interrupted = False  # a Ctrl-C or SIGTERM has been taken
         self._late_signal = ""  # one that came once the stages had ended (raised after the report)
-        self._ending_attached = False  # the report written, the attached services being shut down
         self._handlers_before: dict = {}  # SIGINT's and SIGTERM's handlers before escalate took them
         self.profile = Grant(parse_profile(options.realtime_profile) if scenario.clock == "realtime"
                              else frozenset())
@@ -107,7 +106,7 @@ class Runner:
         try:
             return self._run()
         finally:  # the handlers it replaced, back (a sweep's worker runs the next with its own); attached,
-            if not self.options.attach:  # SIGTERM stays ignored: the container's end follows (escalate)
+            if not self.options.attach:  # SIGTERM stays ignored: the container's end follows (_ignore_the_ending)
                 for sig, handler in self._handlers_before.items():
                     signal.signal(sig, handler)
 
@@ -186,8 +185,8 @@ class Runner:
                                                     ahead=self.report_reads.ahead.get("figures")))
             finally:
                 if self.cell is not None:
-                    # attached, this shuts the services down: their runtime's SIGTERM in answer ends a whole run
-                    self._ending_attached = self.options.attach
+                    if self.options.attach:
+                        self._ignore_the_ending()
                     self.cell.stop(self.roles, before_report=False)
         if self._late_signal:  # the stages had ended, the report is whole: the signal is still said
             raise KeyboardInterrupt(self._late_signal)
@@ -319,6 +318,15 @@ class Runner:
             self.say(f"live view: connect Foxglove to ws://127.0.0.1:{port} again")
         self.episodes.rejoin(role)
 
+    def _ignore_the_ending(self) -> None:
+        """Attached, the report is written and stopping the services follows: their runtime
+        answers it by ending a whole run (docker-compose's --exit-code-from stops every
+        container left, this one with SIGTERM).  The run is whole, its exit status the
+        command's: SIGTERM is ignored from here, and stays so (``run`` does not give the
+        handlers back; SIG_IGN, unlike a Python handler, survives the interpreter's exit)."""
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGTERM, signal.SIG_IGN)
+
     def _escalate_on_next_interrupt(self) -> None:
         """The services are being stopped and the report written, after the stages or after
         an interrupt.  A Ctrl-C (or SIGTERM) must not abort that half-way (leaving orphans
@@ -330,8 +338,6 @@ class Runner:
 
         def escalate(signum, frame):
             name = signal.Signals(signum).name
-            if self._ending_attached and signum == signal.SIGTERM:
-                return
             if not self._interrupted:
                 self._interrupted, self._late_signal = True, name
                 self.say(f"{name}: the run's stages have ended; the report is being written (again to kill the "
