@@ -218,22 +218,23 @@ def run_one(spec: RunSpec) -> dict:
     row = dict(run=spec.name, **{f"param {k}": v for k, v in spec.params.items()}, seed=spec.seed)
     if _STOPPING:  # the sweep was interrupted: nothing starts after the signal
         return dict(row, error=f"not started: the sweep was interrupted ({_STOPPING})", interrupted="not started",
-                    wall_s=0.0)
+                    signal=_STOPPING, wall_s=0.0)
     global _RUNNING
     _RUNNING = True  # from here a signal interrupts the run (before, it only stops the worker)
     try:
         runner = Runner(spec.scenario, spec.options(), progress=lines.append)
         report = runner.run()
     except KeyboardInterrupt as exc:  # its partial report is in its folder (the runner wrote it)
+        signal_name = str(exc) or "SIGINT"
         written = Path(spec.out) / "report.json"
         report = json.loads(written.read_text()) if written.exists() else None
         if report is None and not any((Path(spec.out) / "recordings").glob("*")):
             # interrupted while it was being set up, before any stage: it never started (its folder goes)
             shutil.rmtree(spec.out, ignore_errors=True)
-            return dict(row, error=f"not started: the sweep was interrupted ({str(exc) or 'SIGINT'})",
-                        interrupted="not started", wall_s=0.0)
+            return dict(row, error=f"not started: the sweep was interrupted ({signal_name})",
+                        interrupted="not started", signal=signal_name, wall_s=0.0)
         if report is None or report.get("error") is not None:
-            return dict(row, error=f"interrupted ({str(exc) or 'SIGINT'})", interrupted="interrupted",
+            return dict(row, error=f"interrupted ({signal_name})", interrupted="interrupted", signal=signal_name,
                         wall_s=time.monotonic() - t0)
         # the signal came once its stages had ended: the run is whole (its report says so)
     except Exception as exc:  # a run that cannot even start is a row with its error, not a dead sweep
@@ -376,7 +377,7 @@ def execute(specs: list[RunSpec], workers: int, cluster: str | None, say=print) 
             done(spec, row)
             if row.get("interrupted"):  # the Ctrl-C (or SIGTERM) was the sweep's: no run after it
                 bar.close()
-                raise SweepInterrupted(row["error"].rsplit("(", 1)[-1].rstrip(")"), [rows[i] for i in sorted(rows)])
+                raise SweepInterrupted(row["signal"], [rows[i] for i in sorted(rows)])
     else:
         say(f"sweep: {len(specs)} runs on {workers} local processes")
         pool = _pool(workers)
