@@ -142,14 +142,17 @@ def learn(stage: LearnStage, scenario: Scenario, demonstrations: list[str], out:
     started = reads is not None and reads.work_map is not None
     # choosing the number of phases is many independent fits: worth a pool of processes,
     # which then reads the demonstrations too (a fixed number of phases is one fit)
-    with (contextlib.nullcontext(reads.work_map) if started else
-          process_map(workers if stage.phases == "auto" else 1)) as pool_map:
-        work_map = FallbackMap(pool_map, say, POOL)
-        demos = reads.demonstrations(demonstrations) if started else list(work_map(_reader(scenario), demonstrations))
+    # (the pool that read them during the demonstrations, through its own FallbackMap, when it did)
+    with (contextlib.nullcontext() if started else process_map(workers if stage.phases == "auto" else 1)) as pool:
+        if started:
+            demos, fit_map = reads.demonstrations(demonstrations), reads.fit_map
+        else:
+            fit_map = FallbackMap(pool, say, POOL)
+            demos = list(fit_map(_reader(scenario), demonstrations))
         record.learned_from = [dict(path=path, samples=len(d["states"])) for path, d in zip(demonstrations, demos)]
         record.demonstrations = demos
         with learning_threads(threads):
-            models, selection = _fit(stage, demos, reads.fit_map if started else work_map, say)
+            models, selection = _fit(stage, demos, fit_map, say)
     if started:
         reads.close()  # learned: the pool's work is done (on a failure the run's exit terminates it)
     for i, m in enumerate(models):
