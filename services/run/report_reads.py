@@ -13,7 +13,9 @@ CPUs already (``workers`` 1); not before the recordings are worth a process's st
 (``PARALLEL_READ_BYTES``, as the report decides: a smoke's are not).  The same process
 draws the figures that need no reproduction (the demonstrations', the learning's) while
 the reproductions run (``start``): the valley's figures after its report 2.1 -> 0.5 s,
-the same files byte for byte.
+the same files byte for byte.  A process beside the run that is lost (killed) costs the
+run nothing: its work not done is done in the run's process when the reads end
+(``services.runtime.threads.FallbackMap``, as for the learn stage's pool).
 """
 
 from __future__ import annotations
@@ -21,7 +23,9 @@ from __future__ import annotations
 import contextlib
 
 from services.results.decoding import PARALLEL_READ_BYTES, decode_episode, recordings_size
-from services.runtime.threads import process_map
+from services.runtime.threads import FallbackMap, process_map
+
+WHAT = "the report's reader beside the run"
 
 
 class ReportReads:
@@ -29,18 +33,16 @@ class ReportReads:
     ``decoded`` ((reading, DecodedEpisode) pairs, for ``write_report``); on a failure the
     process is terminated with the run and the report decodes everything itself."""
 
-    def __init__(self, wanted: bool, at_least: int = PARALLEL_READ_BYTES):
-        """``at_least``: the bytes of recordings that make starting the process worth it."""
-        self.wanted, self.at_least = wanted, at_least
+    def __init__(self, wanted: bool, at_least: int = PARALLEL_READ_BYTES, say=print):
+        """``at_least``: the bytes of recordings that make starting the process worth it;
+        ``say``: told once if the process is lost."""
+        self.wanted, self.at_least, self._say = wanted, at_least, say
         self.decoded: list = []
         self.ahead: dict = {}  # name -> the result of work done beside (``start``), once the reads end
         self._started: list = []  # (reading, the pool's iterator of its one result)
         self._ahead: list = []  # (name, the pool's iterator of its one result)
         self._stack = contextlib.ExitStack()
         self._map = None
-        # why the process beside the run is gone before its time (killed: the pool is broken),
-        # or None; from then on the report does all its work itself, as without it
-        self.lost: str | None = None
 
     def catch_up(self, readings) -> None:
         """Start decoding every reading of ``readings`` (the report's, as of now) not started yet."""
@@ -48,10 +50,7 @@ class ReportReads:
             return
         for reading in readings:
             if not any(reading == started for started, _ in self._started):
-                result = self._submit(decode_episode, reading)
-                if result is None:
-                    return
-                self._started.append((reading, result))
+                self._started.append((reading, self._map(decode_episode, [reading])))
 
     def start(self, name: str, fn, args: tuple, readings) -> bool:
         """Run ``fn(*args)`` in the process beside the run, after what it has been given to
@@ -60,20 +59,8 @@ class ReportReads:
         does it).  Whether it was started."""
         if not self._beside(readings):
             return False
-        result = self._submit(_call, (fn, args))
-        if result is not None:
-            self._ahead.append((name, result))
-        return result is not None
-
-    def _submit(self, fn, item):
-        """The pool's iterator of ``fn(item)``, or None once the process beside is lost: the
-        work it would do is the report's (a helper's death must not cost the run)."""
-        try:
-            return self._map(fn, [item])
-        except Exception as exc:  # noqa: BLE001 - BrokenProcessPool, or a pool already shut down
-            self.lost = f"the report's reader beside the run stopped ({type(exc).__name__}: {exc})"
-            self.wanted = False
-            return None
+        self._ahead.append((name, self._map(_call, [(fn, args)])))
+        return True
 
     def _beside(self, readings) -> bool:
         """Whether the process beside the run is there (started now, if wanted and worth it)."""
@@ -82,7 +69,7 @@ class ReportReads:
         if self._map is None:
             if recordings_size(readings) < self.at_least:
                 return False
-            self._map = self._stack.enter_context(process_map(1, beside=True))
+            self._map = FallbackMap(self._stack.enter_context(process_map(1, beside=True)), self._say, WHAT)
         return True
 
     def __enter__(self):

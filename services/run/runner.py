@@ -78,7 +78,7 @@ class Runner:
                                 if options.figures else None)
         self.cell = None
         self.episodes = None
-        self.report_reads = ReportReads(scenario.clock == "lockstep" and options.workers != 1)
+        self.report_reads = ReportReads(scenario.clock == "lockstep" and options.workers != 1, say=self.say)
         self.ready = threading.Event()  # set once every service is up (tests and benches wait on it)
         self._interrupted = False  # a Ctrl-C or SIGTERM has been taken
         self._late_signal = ""  # one that came once the stages had ended (raised after the report)
@@ -131,8 +131,6 @@ class Runner:
                     for index, stage in enumerate(sc.stages):
                         # the starts the preflight drew and found within reach, drawn once
                         getattr(self, f"stage_{stage.kind}")(stage, self.preflight.stage_starts(index))
-                if self.report_reads.lost:
-                    self.say(f"{self.report_reads.lost}: the report decodes the recordings itself")
             self.episodes.event("run_end", "", -1, {})
         except BaseException as caught:
             # a Ctrl-C inside compiled code (the learn stage's fits) comes as numba's SystemError
