@@ -48,10 +48,10 @@ def test_a_node_whose_work_raises_is_counted_and_the_run_goes_on_alike(tmp_path,
     answer, and both record the same messages."""
     real = FtSensorNode.sample
 
-    def failing(self, msg):
+    def failing(self, msg, message=True):
         if msg["episode"] >= 0 and msg["seq"] % 50 == 0:
             raise ValueError(f"injected: cycle {msg['seq']}")
-        return real(self, msg)
+        return real(self, msg, message)
 
     monkeypatch.setattr(FtSensorNode, "sample", failing)
     demonstration = support.scenario("smoke").described()
