@@ -28,9 +28,9 @@ from robot_sim.arm.kinematics import (COMPUTE_ALL_TERMS, MEASURED_KINEMATICS, RE
 from robot_sim.ati.rdt import RdtRecord
 from robot_sim.ati.sensor import AtiConfig, AtiSensor
 from robot_sim.krc.faults import LinkFaults
-from robot_sim.krc.link import CycleOutcome, FriConfig, FriLink
+from robot_sim.krc.link import ClosedCycle, CycleOutcome, FriConfig, FriLink
 from robot_sim.krc.packets import CommandPacket, ControlMode, FriState, MeasurementExtras, MeasurementPacket, fri_order
-from robot_sim.krc.law import LAW_DONE, ImpedanceCommand, KrcConfig, KrcController, law_cycle_at
+from robot_sim.krc.law import LAW_DONE, ImpedanceCommand, KrcConfig, KrcController, first_command_jump, law_cycle_at
 from robot_sim.krc.law_arithmetic import pose_at
 from robot_sim.world.physics import MJ_STEP, PhysicsError, Simulation, step_at
 from robot_sim.world.tasks import TIMESTEP, WorldSpec
@@ -225,29 +225,6 @@ class CycleResult:
     t_ns: int  # simulation time after the step
 
 
-def first_command_jump(krc: KrcController, cmd: CommandPacket, m: MeasurementPacket | None) -> str:
-    """Why the first command of a command-mode session jumps too far from the measured
-    state ``m`` to be applied ('' if it does not): its pose (CART_IMP) or its joints."""
-    if m is None:
-        return ""
-    limits = krc.config
-    if krc.mode == ControlMode.CART_IMP:
-        cmd_pose, msr = np.asarray(cmd.cart_pos).reshape(3, 4), np.asarray(m.msr_cart_pos).reshape(3, 4)
-        dist = float(np.linalg.norm(cmd_pose[:, 3] - msr[:, 3]))
-        angle = float(np.linalg.norm(pin.log3(msr[:, :3].T @ cmd_pose[:, :3])))
-        if dist > limits.first_command_max_jump_m or angle > limits.first_command_max_jump_rad:
-            return (f"first command {dist * 1e3:.1f} mm and {np.rad2deg(angle):.1f} deg from the measured pose "
-                    f"(limits {limits.first_command_max_jump_m * 1e3:.0f} mm, "
-                    f"{np.rad2deg(limits.first_command_max_jump_rad):.1f} deg)")
-    elif cmd.jnt_pos is not None:
-        step = np.abs(np.asarray(cmd.jnt_pos) - m.msr_jnt_pos)
-        j = int(np.argmax(step))
-        if step[j] > limits.first_command_max_jump_rad:
-            return (f"first command's joint {j + 1} {np.rad2deg(step[j]):.1f} deg from the measured one "
-                    f"(limit {np.rad2deg(limits.first_command_max_jump_rad):.1f} deg)")
-    return ""
-
-
 class CompiledCycle(HoldsAddresses):
     """A cell's cycle through its two kernels, ``_measure_at`` and ``_physics_cycle_at``:
     the addresses they take, gathered once (the tcp's views of Pinocchio's data among
@@ -278,10 +255,14 @@ class CompiledCycle(HoldsAddresses):
 
     def physics(self, impedance, force_estimate, hand_wrench) -> None:
         """The loop of ``end_cycle``: the same law, the same steps, the same numbers."""
+        self.cell.krc.load(impedance, force_estimate)
+        self.step(impedance is not None, force_estimate is not None, hand_wrench)
+
+    def step(self, has_command: bool, has_force: bool, hand_wrench) -> None:
+        """``physics`` with the command and the force already in the KRC's buffers."""
         cell = self.cell
         krc, sim = cell.krc, cell.sim
-        has_command, has_force, hand = impedance is not None, force_estimate is not None, hand_wrench is not None
-        krc.load(impedance, force_estimate)
+        hand = hand_wrench is not None
         if hand:
             sim.load_hand(hand_wrench)
         steps = cell.steps_per_cycle
@@ -543,6 +524,27 @@ class RobotCell(HoldsAddresses):
         self._sense()
         record = self.ati.read(self._true_wrench, self.t_ns) if self.ati is not None else None
         return CycleResult(outcome, record, self._contact_force.copy(), list(self._touching), tau.copy(), self.t_ns)
+
+    def close(self, hand_wrench: np.ndarray | None = None) -> ClosedCycle:
+        """``end_cycle`` for a caller that needs only how the cycle closed (the robot node): the
+        same cycle; compiled in CART_IMP without a remote's checks, the KRC loads the command
+        from the FRI link's slot and nothing is copied out of the cell."""
+        if self._compiled is None or self.remote_checks or self.krc.mode != ControlMode.CART_IMP or self.ati is not None:
+            return self.end_cycle(hand_wrench).outcome
+        fri, krc, before = self.fri, self.krc, self.fri.has_last_applied
+        closed = fri.close(self.t_ns + self.cycle_ns)
+        if not closed.hold:
+            if not before:
+                self._first_commands = 2  # a command-mode session begins (end_cycle)
+            numbers = fri.applied_numbers
+            krc.load_numbers(numbers[0, :12], numbers[1, :6], numbers[2, :6], numbers[3, :6][FRI_FT_ORDER])
+        m = self._last_measurement
+        if m is not None:
+            krc.load(None, m.est_ext_tcp_ft[:3])  # FRI's order begins Fx Fy Fz, as the law's does
+        self._compiled.step(not closed.hold, m is not None, hand_wrench)
+        self.cycle += 1
+        self._sense()
+        return closed
 
     def _sense(self) -> None:
         """The physics' truth of the current state, read once per step: the tool

@@ -41,7 +41,7 @@ import pinocchio as pin
 from numba import njit
 
 from robot_sim.cycle import FRI_CYCLE_NS
-from robot_sim.krc.packets import ControlMode
+from robot_sim.krc.packets import CommandPacket, ControlMode, MeasurementPacket
 from kernel_plumbing.addresses import (JIT, HoldsAddresses, address, addresses, carray_at, copy_at, entry,
                                        int64_address, int64_array_at)
 from robot_sim.arm.kinematics import COMPUTE_ALL_TERMS, ArmKinematics, call_compute_all_terms
@@ -396,10 +396,14 @@ class KrcController(HoldsAddresses):
         if external_force is not None:
             self._force[...] = external_force
         if command is not None:
-            self._pose_cmd[...] = command.cart_pos
-            self._stiffness[...] = command.cart_stiffness
-            self._damping[...] = command.cart_damping
-            self._wrench[...] = command.add_tcp_ft
+            self.load_numbers(command.cart_pos, command.cart_stiffness, command.cart_damping, command.add_tcp_ft)
+
+    def load_numbers(self, cart_pos, cart_stiffness, cart_damping, add_tcp_ft) -> None:
+        """``load``'s command as its four vectors (add_tcp_ft [F; T], the law's order)."""
+        self._pose_cmd[...] = cart_pos
+        self._stiffness[...] = cart_stiffness
+        self._damping[...] = cart_damping
+        self._wrench[...] = add_tcp_ft
 
     @property
     def torques(self) -> np.ndarray:
@@ -446,3 +450,26 @@ class KrcController(HoldsAddresses):
         """POSITION mode: the interpolated target has arrived at the final target."""
         return (bool(self._state[_HAS_TARGET] and self._state[_INTERPOLATING])
                 and np.allclose(self._q_interp, self._q_target, atol=1e-9))
+
+
+def first_command_jump(krc: KrcController, cmd: CommandPacket, m: MeasurementPacket | None) -> str:
+    """Why the first command of a command-mode session jumps too far from the measured
+    state ``m`` to be applied ('' if it does not): its pose (CART_IMP) or its joints."""
+    if m is None:
+        return ""
+    limits = krc.config
+    if krc.mode == ControlMode.CART_IMP:
+        cmd_pose, msr = np.asarray(cmd.cart_pos).reshape(3, 4), np.asarray(m.msr_cart_pos).reshape(3, 4)
+        dist = float(np.linalg.norm(cmd_pose[:, 3] - msr[:, 3]))
+        angle = float(np.linalg.norm(pin.log3(msr[:, :3].T @ cmd_pose[:, :3])))
+        if dist > limits.first_command_max_jump_m or angle > limits.first_command_max_jump_rad:
+            return (f"first command {dist * 1e3:.1f} mm and {np.rad2deg(angle):.1f} deg from the measured pose "
+                    f"(limits {limits.first_command_max_jump_m * 1e3:.0f} mm, "
+                    f"{np.rad2deg(limits.first_command_max_jump_rad):.1f} deg)")
+    elif cmd.jnt_pos is not None:
+        step = np.abs(np.asarray(cmd.jnt_pos) - m.msr_jnt_pos)
+        j = int(np.argmax(step))
+        if step[j] > limits.first_command_max_jump_rad:
+            return (f"first command's joint {j + 1} {np.rad2deg(step[j]):.1f} deg from the measured one "
+                    f"(limit {np.rad2deg(limits.first_command_max_jump_rad):.1f} deg)")
+    return ""

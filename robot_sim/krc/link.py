@@ -88,6 +88,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -96,7 +97,8 @@ from robot_sim.cycle import FRI_CYCLE_NS
 from robot_sim.krc import link_books as lb
 from robot_sim.krc.faults import LinkFaults
 from robot_sim.krc.packets import (_CART, _FT, _JNT, CommandPacket, ControlMode, FriQuality, FriState,
-                                   MeasurementPacket, command_problem, is_integer)
+                                   CommandChecks, MeasurementPacket, checked_in_place, command_problem,
+                                   is_integer)
 
 @dataclass(frozen=True)
 class FriConfig:
@@ -158,6 +160,19 @@ class CycleOutcome:
     consecutive_misses: int
 
 
+class ClosedCycle(NamedTuple):
+    """How a cycle closed, for a caller that takes the command applied from the link's slot
+    (``FriLink.close``): ``CycleOutcome`` without the packet."""
+
+    seq: int
+    answered: bool
+    bridged: bool
+    hold: bool
+    state: FriState
+    quality: FriQuality
+    consecutive_misses: int
+
+
 @dataclass(frozen=True)
 class FriStatistics:
     """Counters since the last ``start()`` and figures over the window."""
@@ -201,6 +216,11 @@ class FriLink(HoldsAddresses):
         self._thresholds = np.array([cfg.perfect_max_latency_cycles, cfg.perfect_max_jitter_cycles,
                                      cfg.ok_max_miss_rate, cfg.bad_max_miss_rate], dtype=np.float64)
         self._ring = lb.new_ring(w)
+        # the commands it holds, in arrays (link_books' slots); the packets it was given beside them
+        self._commands = np.zeros((3, lb.SLOT_ROWS, lb.SLOT_COLUMNS))
+        self._meta = np.zeros((3, lb.META), dtype=np.int64)
+        self._checks = CommandChecks(self._commands[lb.ARRIVING], self._meta[lb.ARRIVING, :8])
+        self._commands_at, self._meta_at = address(self._commands), int64_address(self._meta)
         self._figures = np.zeros(4)
         self._books_at, self._ring_at, self._n_ring = int64_address(books), int64_address(self._ring), len(self._ring)
         self._thresholds_at, self._figures_at = address(self._thresholds), address(self._figures)
@@ -291,7 +311,13 @@ class FriLink(HoldsAddresses):
     @property
     def last_applied(self) -> CommandPacket | None:
         """The command the KRC applied last in this CMD session (None in MON)."""
+        if self._last_applied is _IN_SLOT:
+            self._last_applied = _slot_packet(self._commands, self._meta, lb.APPLIED)
         return self._last_applied
+
+    @property
+    def has_last_applied(self) -> bool:
+        return bool(self._books[lb.HAS_LAST_APPLIED])
 
     @property
     def command_requested(self) -> bool:
@@ -361,7 +387,7 @@ class FriLink(HoldsAddresses):
         if b[lb.STATE] == lb.OFF:  # an int: a numpy integer against an IntEnum takes microseconds
             return self._reject("link is OFF")
         try:
-            problem = command_problem(packet)
+            problem = command_problem(packet, self._checks)  # its numbers left in the ARRIVING slot
         except Exception as exc:
             problem = f"unreadable packet ({type(exc).__name__}: {exc})"
         if problem is not None:
@@ -371,28 +397,55 @@ class FriLink(HoldsAddresses):
         if s > _INT64_MAX:  # past any seq the books can hold: never sent
             b[lb.CORRUPT] += 1
             return self._reject(f"seq {s} was never sent (last sent {b[lb.SEQ]})")
-        fate = lb.RECEIVE(self._books_at, self._ring_at, self._n_ring, s, t_ns)
+        fate = lb.RECEIVE(self._books_at, self._ring_at, self._n_ring, self._commands_at, self._meta_at, s,
+                          int(packet.requested_mode), t_ns)
         if fate == lb.ACCEPTED:
             # a copy: the sender may reuse its buffers, the wire would not share them
             self._cur_cmd = packet if owned else packet.copy()
             self.last_reject_reason = ""
             return True
-        return self._reject(self._rejected(fate, s, t_ns))
+        return self._reject(_rejection(fate, s, t_ns, self._books, self._ring, self.config.window))
 
-    def _rejected(self, fate: int, s: int, t_ns: int) -> str:
+    def receive_fields(self, seq, mode, cart_pos, cart_stiffness, cart_damping, add_tcp_ft, t_ns: int) -> bool:
+        """``receive`` of the packet these fields make (a ``robot/command`` message's), without
+        making it: the numbers go straight to where they are checked and kept; the packet is
+        made only if it is asked for (``last_applied``, a cycle's outcome).  What the fields
+        of a CART_IMP command (or of no mode) cannot be goes the packet's way, and fares as
+        there."""
+        vectors = (cart_pos, cart_stiffness, cart_damping, add_tcp_ft)
+        if (type(seq) is not int or type(mode) is not int or not (mode == 2 or mode == 0)
+                or [len(v) for v in vectors] != _SLOT_LENGTHS):
+            return self.receive(CommandPacket(seq=seq, cart_pos=np.array(cart_pos, dtype=np.float64),
+                                              cart_stiffness=np.array(cart_stiffness, dtype=np.float64),
+                                              cart_damping=np.array(cart_damping, dtype=np.float64),
+                                              add_tcp_ft=np.array(add_tcp_ft, dtype=np.float64),
+                                              requested_mode=ControlMode(mode)), t_ns, owned=True)
+        t_ns = int(t_ns)
         b = self._books
-        if fate == lb.NEVER_SENT:
-            return f"seq {s} was never sent (last sent {b[lb.SEQ]})"
-        if fate == lb.EARLIER_SESSION:
-            return f"seq {s} belongs to an earlier session"
-        if fate == lb.BEFORE_SENT:
-            w = self.config.window
-            return f"arrived at {t_ns}, before measurement {s} was sent at {self._ring[4 * w + 1 + s % (w + 1)]}"
-        if fate == lb.DUPLICATE_ANSWER:
-            return f"duplicate answer to seq {s}"
-        if fate == lb.AFTER_DEADLINE:
-            return f"answer to seq {s} arrived at {t_ns}, deadline {b[lb.DEADLINE]}"
-        return f"answer to seq {s} arrived after its cycle closed (current seq {b[lb.SEQ]})"
+        if b[lb.STATE] == lb.OFF:
+            return self._reject("link is OFF")
+        problem = f"seq is negative ({seq})" if seq < 0 else None
+        if problem is None:
+            values, present = self._checks.values, self._checks.present
+            values[0, :_CART] = cart_pos
+            values[1, :_FT] = cart_stiffness
+            values[2, :_FT] = cart_damping
+            values[3, :_FT] = add_tcp_ft
+            present[:] = _CART_IMP_PRESENT
+            problem = checked_in_place(self._checks, list(vectors))
+        if problem is not None:
+            b[lb.CORRUPT] += 1
+            return self._reject(problem)
+        if seq > _INT64_MAX:
+            b[lb.CORRUPT] += 1
+            return self._reject(f"seq {seq} was never sent (last sent {b[lb.SEQ]})")
+        fate = lb.RECEIVE(self._books_at, self._ring_at, self._n_ring, self._commands_at, self._meta_at, seq, mode,
+                          t_ns)
+        if fate == lb.ACCEPTED:
+            self._cur_cmd = _IN_SLOT
+            self.last_reject_reason = ""
+            return True
+        return self._reject(_rejection(fate, seq, t_ns, self._books, self._ring, self.config.window))
 
     def deliver(self, packet: CommandPacket, t_sent_ns: int, *, owned: bool = False) -> bool:
         """Send ``packet`` from the remote at ``t_sent_ns`` through the fault hook, then
@@ -408,10 +461,22 @@ class FriLink(HoldsAddresses):
 
     def end_cycle(self, t_ns: int) -> CycleOutcome:
         """Close the open cycle at its deadline and decide what the KRC applies."""
+        closed = self.close(t_ns)
+        if closed.hold:
+            command = None
+        else:
+            command = self._cur_cmd if not closed.bridged else self.last_applied
+            if command is _IN_SLOT:  # the cycle's answer, come as numbers: the APPLIED slot holds it now
+                command = self._last_applied = self._cur_cmd = _slot_packet(self._commands, self._meta, lb.APPLIED)
+        return CycleOutcome(closed.seq, closed.answered, command, closed.bridged, closed.hold, closed.state,
+                            closed.quality, closed.consecutive_misses)
+
+    def close(self, t_ns: int) -> ClosedCycle:
+        """``end_cycle`` for a caller that takes the command applied from the APPLIED slot
+        (``applied_numbers``; robot_sim.cell's compiled close): no packet is made."""
         t_ns = int(t_ns)
-        cmd = self._cur_cmd
-        mode_ok = cmd is not None and int(cmd.requested_mode) == int(self._books[lb.CONTROL_MODE])
-        code = lb.END_CYCLE(self._books_at, self._ring_at, self._n_ring, self._thresholds_at, t_ns, mode_ok)
+        code = lb.END_CYCLE(self._books_at, self._ring_at, self._n_ring, self._thresholds_at, self._commands_at,
+                            self._meta_at, t_ns)
         if code < 0:
             if code == lb.ERR_NOT_OPEN:
                 raise RuntimeError("FriLink.end_cycle: no open cycle; call measurement() first")
@@ -419,15 +484,53 @@ class FriLink(HoldsAddresses):
                              f"{self._books[lb.DEADLINE]}")
         applied = code & 3
         if applied == lb.APPLY_ANSWER:
-            self._last_applied = cmd
+            self._last_applied = self._cur_cmd
         elif not code & lb.HAS_LAST:
             self._last_applied = None
-        command = cmd if applied == lb.APPLY_ANSWER else self._last_applied if applied == lb.APPLY_LAST else None
-        b = self._books
-        return CycleOutcome(int(b[lb.SEQ]), cmd is not None, command, applied == lb.APPLY_LAST, command is None,
-                            _STATES[b[lb.STATE]], _QUALITIES[b[lb.QUALITY]], int(b[lb.CONSECUTIVE]))
+        b = self._books.tolist()
+        return ClosedCycle(b[lb.SEQ], self._cur_cmd is not None, applied == lb.APPLY_LAST, applied == lb.APPLY_NONE,
+                           _STATES[b[lb.STATE]], _QUALITIES[b[lb.QUALITY]], b[lb.CONSECUTIVE])
+
+    @property
+    def applied_numbers(self) -> np.ndarray:
+        """The command applied last, as numbers: (8, 12), a row a vector of its packet
+        (robot_sim.krc.packets' order: cart_pos, cart_stiffness, cart_damping, add_tcp_ft, ...)."""
+        return self._commands[lb.APPLIED]
+
+
+def _rejection(fate: int, s: int, t_ns: int, b: np.ndarray, ring: np.ndarray, w: int) -> str:
+    """Why the answer echoing ``s``, arrived at ``t_ns``, was not this cycle's (``fate``)."""
+    if fate == lb.NEVER_SENT:
+        return f"seq {s} was never sent (last sent {b[lb.SEQ]})"
+    if fate == lb.EARLIER_SESSION:
+        return f"seq {s} belongs to an earlier session"
+    if fate == lb.BEFORE_SENT:
+        return f"arrived at {t_ns}, before measurement {s} was sent at {ring[4 * w + 1 + s % (w + 1)]}"
+    if fate == lb.DUPLICATE_ANSWER:
+        return f"duplicate answer to seq {s}"
+    if fate == lb.AFTER_DEADLINE:
+        return f"answer to seq {s} arrived at {t_ns}, deadline {b[lb.DEADLINE]}"
+    return f"answer to seq {s} arrived after its cycle closed (current seq {b[lb.SEQ]})"
+
+
+def _slot_packet(commands: np.ndarray, meta: np.ndarray, slot: int) -> CommandPacket:
+    """The command in the link's ``slot`` as a packet (float64 arrays of its own)."""
+    values, flags = commands[slot], meta[slot].tolist()
+
+    def joints(row):
+        return values[row, :_JNT].copy() if flags[row] else None
+
+    return CommandPacket(seq=flags[lb.CMD_SEQ], cart_pos=values[0, :_CART].copy(), cart_stiffness=values[1, :_FT].copy(),
+                         cart_damping=values[2, :_FT].copy(), add_tcp_ft=values[3, :_FT].copy(), jnt_pos=joints(4),
+                         requested_mode=_MODES[flags[lb.MODE]], jnt_stiffness=joints(5), jnt_damping=joints(6),
+                         add_jnt_trq=joints(7))
 
 
 # the enums by value (their values are 0, 1, ...): faster than calling the enum
 _STATES, _QUALITIES, _MODES = tuple(FriState), tuple(FriQuality), tuple(ControlMode)
+# a command the link holds only in its slot (it came as a message's numbers): its packet is made when asked for
+_IN_SLOT = object()
+# receive_fields: the vectors' lengths, and which of the eight a CART_IMP command carries
+_SLOT_LENGTHS = [_CART, _FT, _FT, _FT]
+_CART_IMP_PRESENT = np.array([1, 1, 1, 1, 0, 0, 0, 0], dtype=np.int64)
 _INT64_MAX = 2**63 - 1

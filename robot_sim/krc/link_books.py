@@ -44,6 +44,15 @@ BOOKS = ("seq", "first_seq", "state", "quality", "control_mode", "cmd_requested"
 # the thresholds (float64): perfect_max_latency_cycles, perfect_max_jitter_cycles, ok_max_miss_rate, bad_max_miss_rate
 _PML, _PMJ, _OKR, _BADR = range(4)
 
+# The commands the link holds, in slots: an answer as it arrives (where its numbers are
+# checked: robot_sim.krc.packets' check buffers), the cycle's accepted answer, the last
+# command applied in this CMD session.  A slot's numbers are float64 (8, 12), a row a
+# vector of a command packet (packets._VECTORS' order), its meta int64 (10): the eight
+# vectors' presence, the requested mode, the seq.
+ARRIVING, ANSWER, APPLIED = range(3)
+SLOT_ROWS, SLOT_COLUMNS, META = 8, 12, 10
+MODE, CMD_SEQ = 8, 9  # meta's columns after the presence flags
+
 # what a measurement's call says when it cannot open a cycle
 ERR_OFF, ERR_OPEN, ERR_BEFORE_DEADLINE, ERR_SHAPES = -1, -2, -3, -4
 # what becomes of an answer (receive)
@@ -203,10 +212,20 @@ def measure(b, ring, t_ns, shapes_ok, figures):
     return seq
 
 
+@njit(**JIT, inline="always")
+def _copy_slot(commands, meta, src, dst):
+    for r in range(SLOT_ROWS):
+        for c in range(SLOT_COLUMNS):
+            commands[dst, r, c] = commands[src, r, c]
+    for c in range(META):
+        meta[dst, c] = meta[src, c]
+
+
 @njit(**JIT)
-def receive(b, ring, s, t_ns):
-    """A well-formed answer echoing ``s`` arrives at ``t_ns`` (the link is not OFF): ACCEPTED
-    or why not, counted."""
+def receive(b, ring, commands, meta, s, mode, t_ns):
+    """A well-formed answer echoing ``s`` (its numbers checked in the ARRIVING slot), asking
+    for ``mode``, arrives at ``t_ns`` (the link is not OFF): ACCEPTED (it is the cycle's
+    ANSWER now) or why not, counted."""
     if s > b[SEQ]:
         b[CORRUPT] += 1
         return NEVER_SENT
@@ -229,6 +248,8 @@ def receive(b, ring, s, t_ns):
                 return DUPLICATE_ANSWER
             b[HAS_ANSWER] = 1
             b[ANSWER_LATENCY] = latency
+            meta[ARRIVING, MODE], meta[ARRIVING, CMD_SEQ] = mode, s
+            _copy_slot(commands, meta, ARRIVING, ANSWER)
             return ACCEPTED
         b[LATE] += 1
         if b[ANSWER_LATENCY] == NO_LATENCY:
@@ -244,9 +265,9 @@ def receive(b, ring, s, t_ns):
 
 
 @njit(**_KEEPS_GIL)
-def end_cycle(b, ring, thresholds, t_ns, answer_mode_ok):
-    """Close the open cycle at ``t_ns``: APPLY_* (+ HAS_LAST), or ERR_*.  ``answer_mode_ok``:
-    the cycle's answer asks for the KRC's control mode."""
+def end_cycle(b, ring, thresholds, commands, meta, t_ns):
+    """Close the open cycle at ``t_ns``: APPLY_* (+ HAS_LAST), or ERR_*; the answer applied
+    is the APPLIED slot's now."""
     if not b[OPEN]:
         return ERR_NOT_OPEN
     if t_ns < b[DEADLINE]:
@@ -276,9 +297,10 @@ def end_cycle(b, ring, thresholds, t_ns, answer_mode_ok):
     applied = APPLY_NONE
     if b[STATE] == CMD:
         if answered:
-            if answer_mode_ok:
+            if meta[ANSWER, MODE] == b[CONTROL_MODE]:
                 applied = APPLY_ANSWER
                 b[HAS_LAST_APPLIED] = 1
+                _copy_slot(commands, meta, ANSWER, APPLIED)
             else:
                 b[MODE_MISMATCH] += 1
         elif b[CONSECUTIVE] <= b[MAX_BRIDGED] and b[HAS_LAST_APPLIED]:
@@ -295,15 +317,25 @@ def _measure_at(books_at, ring_at, n_ring, t_ns, shapes_ok, figures_at):
                    carray_at(figures_at, (4,)))
 
 
+@njit(**JIT, inline="always")
+def slots_at(commands_at, meta_at):
+    """The command slots at these addresses (a view, in a kernel)."""
+    return (carray_at(commands_at, (3, SLOT_ROWS, SLOT_COLUMNS)),
+            int64_array_at(meta_at, 3 * META).reshape((3, META)))
+
+
 @njit(**JIT)
-def _receive_at(books_at, ring_at, n_ring, s, t_ns):
-    return receive(int64_array_at(books_at, len(BOOKS)), int64_array_at(ring_at, n_ring), s, t_ns)
+def _receive_at(books_at, ring_at, n_ring, commands_at, meta_at, s, mode, t_ns):
+    commands, meta = slots_at(commands_at, meta_at)
+    return receive(int64_array_at(books_at, len(BOOKS)), int64_array_at(ring_at, n_ring), commands, meta, s, mode,
+                   t_ns)
 
 
 @njit(**_KEEPS_GIL)
-def _end_cycle_at(books_at, ring_at, n_ring, thresholds_at, t_ns, answer_mode_ok):
+def _end_cycle_at(books_at, ring_at, n_ring, thresholds_at, commands_at, meta_at, t_ns):
+    commands, meta = slots_at(commands_at, meta_at)
     return end_cycle(int64_array_at(books_at, len(BOOKS)), int64_array_at(ring_at, n_ring),
-                     carray_at(thresholds_at, (4,)), t_ns, answer_mode_ok)
+                     carray_at(thresholds_at, (4,)), commands, meta, t_ns)
 
 
 @njit(**_KEEPS_GIL)
@@ -313,8 +345,8 @@ def _figures_at(books_at, ring_at, n_ring, figures_at):
 
 # called as machine code (kernel_plumbing.addresses.entry)
 MEASURE = entry(_measure_at, f"{addresses(4)}, boolean, int64")
-RECEIVE = entry(_receive_at, addresses(5))
-END_CYCLE = entry(_end_cycle_at, f"{addresses(5)}, boolean")
+RECEIVE = entry(_receive_at, addresses(8))
+END_CYCLE = entry(_end_cycle_at, addresses(7))
 FIGURES = entry(_figures_at, addresses(4))
 
 

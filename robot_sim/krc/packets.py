@@ -236,15 +236,17 @@ def _numbers_at(present_at, values_at, lows_at, highs_at, tolerance, where_at, d
 _NUMBERS = entry(_numbers_at, f"{addresses(4)}, float64, {addresses(2)}")
 
 
-class _CommandChecks(HoldsAddresses):
+class CommandChecks(HoldsAddresses):
     """The buffers ``_numbers_at`` reads and writes, made once for every check, and the lock
     that keeps one check at a time in them (the kernel runs without the GIL, and a KRC's
-    UDP endpoint checks on its own thread)."""
+    UDP endpoint checks on its own thread).  ``values`` (8, 12) and ``present`` (8,): a
+    command's numbers, where they are checked; an FRI link's are its arriving command's
+    slot (robot_sim.krc.link_books), so that a command it accepts is there already."""
 
-    def __init__(self):
+    def __init__(self, values: np.ndarray | None = None, present: np.ndarray | None = None):
         self.lock = threading.Lock()
-        self.present = np.zeros(8, dtype=np.int64)
-        self.values = np.zeros((8, _CART))
+        self.present = np.zeros(8, dtype=np.int64) if present is None else present
+        self.values = np.zeros((8, _CART)) if values is None else values
         self.lows, self.highs = np.ones((8, _JNT)), np.zeros((8, _JNT))  # low > high: no range
         for which, (_, n, limits) in enumerate(_VECTORS):
             if limits is not None:
@@ -255,7 +257,7 @@ class _CommandChecks(HoldsAddresses):
                      ROTATION_TOLERANCE, int64_address(self.where), address(self.det))
 
 
-_CHECKS = _CommandChecks()
+_CHECKS = CommandChecks()
 
 
 def _float_vector(value, n: int, name: str) -> tuple[np.ndarray | None, str | None]:
@@ -278,10 +280,9 @@ def _float_vector(value, n: int, name: str) -> tuple[np.ndarray | None, str | No
     return arr, None
 
 
-def _numbers_problem(originals: list, kept: list) -> str | None:
+def _numbers_problem(originals: list, kept: list, checks: CommandChecks) -> str | None:
     """What ``_numbers_at`` finds wrong with the vectors gathered so far, in words naming
     the field and the value (the original value, as the sender gave it)."""
-    checks = _CHECKS
     present, values, a = checks.present, checks.values, checks.args
     with checks.lock:
         for which in range(8):
@@ -293,6 +294,25 @@ def _numbers_problem(originals: list, kept: list) -> str | None:
                 values[which, :len(vector)] = vector
         problem = _NUMBERS(a[0], a[1], a[2], a[3], a[4], a[5], a[6])
         det, which, i = float(checks.det[0]), int(checks.where[0]), int(checks.where[1])
+    return describe(problem, originals, kept, det, which, i, checks)
+
+
+def checked_in_place(checks: CommandChecks, originals: list) -> str | None:
+    """What ``_numbers_at`` finds wrong with the numbers already in ``checks``' buffers (their
+    presence flags set), in words as ``command_problem`` gives them; ``originals``: the
+    vectors as the sender gave them."""
+    with checks.lock:
+        problem = _NUMBERS(*checks.args)
+        det, which, i = float(checks.det[0]), int(checks.where[0]), int(checks.where[1])
+    if not problem:
+        return None
+    kept = [checks.values[k, :n] if checks.present[k] else None for k, n in enumerate(_LENGTHS)]
+    return describe(problem, originals, kept, det, which, i, checks)
+
+
+def describe(problem: int, originals: list, kept: list, det: float, which: int, i: int,
+             checks: CommandChecks) -> str | None:
+    """``_numbers_at``'s finding in words (None: nothing wrong)."""
     if not problem:
         return None
     if problem == _NOT_ORTHONORMAL:
@@ -313,7 +333,9 @@ def _numbers_problem(originals: list, kept: list) -> str | None:
     return f"{name}[{i}] = {value} outside [0, {checks.highs[which, 0]:g}]"
 
 
-def command_problem(p) -> str | None:
+def command_problem(p, checks: CommandChecks = _CHECKS) -> str | None:
+    """What is wrong with the command packet ``p`` (None: nothing), its numbers checked in
+    ``checks``' buffers (where they are left)."""
     if not isinstance(p, CommandPacket):
         return f"not a CommandPacket ({type(p).__name__})"
     seq = p.seq
@@ -341,8 +363,8 @@ def command_problem(p) -> str | None:
         kept[which], why = _float_vector(value, n, name)
         if why:
             # a problem with the numbers before this vector comes first, as they are checked in order
-            return _numbers_problem(originals, kept) or why
-    return _numbers_problem(originals, kept)
+            return _numbers_problem(originals, kept, checks) or why
+    return _numbers_problem(originals, kept, checks)
 
 
 def is_integer(value) -> bool:

@@ -47,7 +47,7 @@ from services.nodes.robot_inbox import AnswerInbox
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import check_seed, check_stall, nested, option
 from services.runtime.cycle import EpisodePlan
-from services.runtime.fri_messages import command_packet, state_message
+from services.runtime.fri_messages import deliver_command, state_message
 from services.runtime.messages import EPISODE_SUMMARY, FRI_DATAGRAM, ROBOT_CONTACT, ROBOT_STATE
 from services.runtime.roles import PARTICIPANTS, ROLES
 
@@ -349,8 +349,7 @@ class RobotNode(Node):
             ep.estimate_used(est, recv)
             stamp = m.stamp_ns - (m.seq - seq) * cell.cycle_ns
             arrival = stamp + (LOCKSTEP_LATENCY_NS if self.lockstep else recv - sent_at)
-            # the link keeps this packet instead of copying it again
-            cell.deliver(command_packet(msg), arrival, owned=True)
+            deliver_command(cell.fri, msg, arrival)
             if seq == m.seq:
                 goal_reached = bool(msg["goal_reached"])
                 if goal_reached:
@@ -366,7 +365,7 @@ class RobotNode(Node):
             teacher_done = bool(teacher_msg["done"])
         t1 = self.clock.now_ns()
         try:
-            outcome = cell.end_cycle(hand).outcome
+            outcome = cell.close(hand)
         finally:
             t2 = self.clock.now_ns()
             # they crossed the wire, whatever the step did

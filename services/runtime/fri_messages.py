@@ -1,13 +1,14 @@
 """The FRI measurement and command as the bus carries them, converted one way each, here
 only: a ``MeasurementPacket`` (the KRC's) or a measurement datagram (a remote's, over
-UDP) to the ``robot/state`` message, and a ``robot/command`` message to the
-``CommandPacket`` the KRC judges.  The datagrams' own bytes are ``robot_sim.wire``'s."""
+UDP) to the ``robot/state`` message, and a ``robot/command`` message to what the KRC
+judges (its numbers, or the ``CommandPacket`` they make).  The datagrams' own bytes are ``robot_sim.wire``'s."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from robot_sim.krc.krl import TB_EPISODE, TB_GRAVITY_COMPENSATION
+from robot_sim.krc.link import FriLink
 from robot_sim.krc.packets import CommandPacket, ControlMode, MeasurementPacket
 from robot_sim.wire.fri_datagrams import read_krl
 from services.runtime.messages import ROBOT_STATE
@@ -41,6 +42,17 @@ def state_from_datagram(rec, *, seq: int, stamp_ns: int, reflected_seq: int, sen
         miss_rate=float(stat["missRate"]))
     return state_message(m, sent_ns=sent_ns, safety=int(rec["robot"]["error"]),
                          gravity_compensation=krl.flag(TB_GRAVITY_COMPENSATION), episode=int(krl.ints[TB_EPISODE - 1]))
+
+
+def deliver_command(link: FriLink, msg: dict, t_sent_ns: int) -> bool:
+    """A ``robot/command`` message to the KRC's FRI link, sent at ``t_sent_ns``: its numbers
+    straight to where the link checks and keeps them (``FriLink.receive_fields``), or,
+    through the link's faults (which copy, corrupt and hold back packets), as the packet
+    ``command_packet`` makes.  Whether it was accepted as its cycle's answer."""
+    if link.faults is not None:
+        return link.deliver(command_packet(msg), t_sent_ns, owned=True)
+    return link.receive_fields(msg["seq"], msg["requested_mode"], msg["cart_pos"], msg["cart_stiffness"],
+                               msg["cart_damping"], msg["add_tcp_ft"], t_sent_ns)
 
 
 def command_packet(msg: dict) -> CommandPacket:

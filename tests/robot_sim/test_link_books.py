@@ -94,3 +94,50 @@ def test_small_latency_keeps_every_product_of_the_formulas_exact():
         s = lb.small_latency(w)
         assert w * w * s * s < 2**53 <= w * w * (s + 1) * (s + 1)
     assert lb.small_latency(100) == 949_062 == math.isqrt((2**53 - 1) // 10_000)
+
+
+def test_an_answer_given_as_numbers_fares_as_the_packet_they_make():
+    """``receive_fields`` (a robot/command message's numbers, straight into the link's slot)
+    against ``receive`` of the packet they make, link beside link: answers in time, late,
+    twice, for cycles never sent or long gone, with a negative or huge seq, numbers out of
+    range or not a rotation, other modes; the same verdicts and reasons, the same outcomes
+    and statistics, the same packets when asked for."""
+    rng = np.random.default_rng(12)
+    links = [FriLink(FriConfig(perfect_hold_cycles=20)) for _ in range(2)]
+    for link in links:
+        link.start(0)
+        link.request_command_mode()
+    t, bad_pose, applied = 0, POSE.copy(), 0
+    bad_pose[0] = 1.5
+    for k in range(3000):
+        ms = [link.measurement(t, Q, POSE, FT) for link in links]
+        # first the link reaches CMD; then, now and then, after the cycle's answer (or none) anything
+        chaos = k > 600 and rng.random() < 0.2
+        for n in range(2 if chaos else 1):
+            chaos = chaos and (n == 1 or rng.random() < 0.3)
+            seq = int(rng.choice([ms[0].seq, ms[0].seq - 3, ms[0].seq + 2, -4, 2**63 + 5])) if chaos else ms[0].seq
+            mode = int(rng.choice([2, 0, 1, 3])) if chaos else 2
+            pose = bad_pose if chaos and rng.random() < 0.2 else POSE
+            stiffness = np.array([100.0, 1e9] + [100.0] * 4) if chaos and rng.random() < 0.2 else np.full(6, 100.0)
+            add = np.array([float(k), 0.0, 0.0, 0.5, 0.0, 0.0])
+            arrival = t + (int(rng.choice([100_000, 900_000, 1_200_000])) if chaos else 100_000)
+            verdicts = [links[0].receive(CommandPacket(seq, pose.copy(), stiffness.copy(), np.full(6, 0.7), add.copy(),
+                                                       requested_mode=ControlMode(mode)), arrival, owned=True),
+                        links[1].receive_fields(seq, mode, pose.tolist(), stiffness.tolist(), [0.7] * 6, add.tolist(),
+                                                arrival)]
+            assert verdicts[0] == verdicts[1] and links[0].last_reject_reason == links[1].last_reject_reason, k
+        outs = [link.end_cycle(t + CYCLE) for link in links]
+        a, b = outs
+        assert (a.seq, a.answered, a.bridged, a.hold, a.state, a.quality) == \
+            (b.seq, b.answered, b.bridged, b.hold, b.state, b.quality), k
+        assert (a.command is None) == (b.command is None), k
+        if a.command is not None:
+            applied += 1
+            assert a.command.add_tcp_ft.tobytes() == b.command.add_tcp_ft.tobytes()
+            assert a.command.requested_mode == b.command.requested_mode and a.command.seq == b.command.seq
+        assert links[0].statistics() == links[1].statistics(), k
+        t += CYCLE
+    s = links[0].statistics()
+    assert s.corrupt > 50 and s.late > 10 and s.duplicate > 20 and s.bridged >= 1 and applied > 500, (s, applied)
+    with pytest.raises(ValueError, match="is not a valid ControlMode"):
+        links[1].receive_fields(1, 7, POSE.tolist(), [100.0] * 6, [0.7] * 6, [0.0] * 6, t)

@@ -364,3 +364,57 @@ def test_the_valley_teachers_compiled_step_is_its_python_step():
             phases.add(compiled.phase)
             x += [-1e-4, -side * 2e-5, -5e-5]
         assert phases == {0, 1, 2} and compiled.done
+
+
+def test_a_cycle_closed_from_the_links_slot_is_the_cycle_end_cycle_closes():
+    """The robot node's way through a cycle, the command's numbers straight into the FRI
+    link (``receive_fields``) and the cycle closed from its slot (``RobotCell.close``),
+    against the packet's way (``receive``, ``end_cycle``), cell beside cell: a hand
+    pushing, then impedance onto a plate, answers missed now and then (bridged, held) and
+    some refused (a stiffness out of range): the same outcome, joint state and sensed
+    wrench, bit for bit, every cycle."""
+    from robot_sim.cell import RobotCell
+    from robot_sim.krc.packets import CommandPacket, ControlMode
+    from robot_sim.world.teacher import DOWN
+
+    cells = [RobotCell(valley(), seed=3, with_sensor=False) for _ in range(2)]
+    if cells[0]._compiled is None:
+        pytest.skip("no compiled cycle here (MuJoCo's, numpy's BLAS or the extension's C functions are missing)")
+    start = np.array([0.6, -0.08, 0.26])
+    for cell in cells:
+        cell.place_tcp(start, DOWN)
+        cell.start()
+        cell.fri.request_command_mode()
+    target = np.hstack([DOWN, (start - [0.0, 0.0, 0.06])[:, None]]).ravel()
+    hand = np.array([0.0, 8.0, -20.0, 0.0, 0.0, 0.0])
+    in_cmd = bridged = refused = 0
+    for k in range(1500):
+        stiffness = [2e9] * 3 + [150.0] * 3 if k > 700 and k % 97 == 0 else [2000.0] * 3 + [150.0] * 3
+        outcomes = []
+        for i, cell in enumerate(cells):
+            cell.krc.gravity_compensation = k < 300
+            m = cell.begin_cycle()
+            if k < 1000 or k % 7:
+                add = [float(k % 5), 0.0, -1.0, 0.3, -0.2, 0.1]  # FRI order: Tz, Ty, Tx
+                if i == 0:
+                    cell.receive(CommandPacket(m.seq, target.copy(), np.array(stiffness), np.full(6, 0.7), np.array(add),
+                                               requested_mode=ControlMode.CART_IMP), m.stamp_ns + 100_000)
+                else:
+                    cell.fri.receive_fields(m.seq, 2, target.tolist(), stiffness, [0.7] * 6, add, m.stamp_ns + 100_000)
+            out = cell.end_cycle(hand if k < 300 else None).outcome if i == 0 else cell.close(hand if k < 300 else None)
+            outcomes.append((out.seq, out.answered, out.bridged, out.hold, out.state, out.quality,
+                             out.consecutive_misses, cell.fri.last_reject_reason))
+        a, b = cells
+        assert outcomes[0] == outcomes[1], k
+        assert a.sim.data.qpos.tobytes() == b.sim.data.qpos.tobytes(), k
+        assert a.sim.data.qvel.tobytes() == b.sim.data.qvel.tobytes(), k
+        assert a.tool_wrench.tobytes() == b.tool_wrench.tobytes(), k
+        assert a.contact_force.tobytes() == b.contact_force.tobytes() and a.touching == b.touching, k
+        in_cmd += outcomes[0][4] == 2
+        bridged += outcomes[0][2]
+        refused += "outside" in outcomes[0][7]
+        la, lb_ = a.fri.last_applied, b.fri.last_applied  # the packet made from the slot when asked for
+        assert (la is None) == (lb_ is None), k
+        if la is not None and k % 50 == 0:
+            assert la.cart_pos.tobytes() == lb_.cart_pos.tobytes() and la.add_tcp_ft.tobytes() == lb_.add_tcp_ft.tobytes()
+    assert in_cmd > 300 and bridged >= 3 and refused >= 5, (in_cmd, bridged, refused)
