@@ -98,7 +98,7 @@ from robot_sim.krc import link_books as lb
 from robot_sim.krc.faults import LinkFaults
 from robot_sim.krc.packets import (_CART, _FT, _JNT, CommandPacket, ControlMode, FriQuality, FriState,
                                    CommandChecks, MeasurementPacket, checked_in_place, command_problem,
-                                   is_integer)
+                                   control_mode_or_value, is_integer)
 
 @dataclass(frozen=True)
 class FriConfig:
@@ -419,7 +419,7 @@ class FriLink(HoldsAddresses):
                                               cart_stiffness=np.array(cart_stiffness, dtype=np.float64),
                                               cart_damping=np.array(cart_damping, dtype=np.float64),
                                               add_tcp_ft=np.array(add_tcp_ft, dtype=np.float64),
-                                              requested_mode=ControlMode(mode)), t_ns, owned=True)
+                                              requested_mode=control_mode_or_value(mode)), t_ns, owned=True)
         t_ns = int(t_ns)
         b = self._books
         if b[lb.STATE] == lb.OFF:

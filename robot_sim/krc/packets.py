@@ -367,6 +367,15 @@ def command_problem(p, checks: CommandChecks = _CHECKS) -> str | None:
     return _numbers_problem(originals, kept, checks)
 
 
+def control_mode_or_value(mode):
+    """``mode`` as a ControlMode if it is one, else as it came (a packet's checks then say
+    so: ``command_problem``)."""
+    try:
+        return ControlMode(mode)
+    except (ValueError, TypeError):
+        return mode
+
+
 def is_integer(value) -> bool:
     return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
 

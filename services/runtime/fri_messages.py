@@ -9,7 +9,7 @@ import numpy as np
 
 from robot_sim.krc.krl import TB_EPISODE, TB_GRAVITY_COMPENSATION
 from robot_sim.krc.link import FriLink
-from robot_sim.krc.packets import CommandPacket, ControlMode, MeasurementPacket
+from robot_sim.krc.packets import CommandPacket, MeasurementPacket, control_mode_or_value
 from robot_sim.wire.fri_datagrams import read_krl
 from services.runtime.messages import ROBOT_STATE
 
@@ -62,4 +62,4 @@ def command_packet(msg: dict) -> CommandPacket:
                          cart_stiffness=np.array(msg["cart_stiffness"], dtype=np.float64),
                          cart_damping=np.array(msg["cart_damping"], dtype=np.float64),
                          add_tcp_ft=np.array(msg["add_tcp_ft"], dtype=np.float64),
-                         requested_mode=ControlMode(msg["requested_mode"]))
+                         requested_mode=control_mode_or_value(msg["requested_mode"]))

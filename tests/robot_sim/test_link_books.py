@@ -139,5 +139,6 @@ def test_an_answer_given_as_numbers_fares_as_the_packet_they_make():
         t += CYCLE
     s = links[0].statistics()
     assert s.corrupt > 50 and s.late > 10 and s.duplicate > 20 and s.bridged >= 1 and applied > 500, (s, applied)
-    with pytest.raises(ValueError, match="is not a valid ControlMode"):
-        links[1].receive_fields(1, 7, POSE.tolist(), [100.0] * 6, [0.7] * 6, [0.0] * 6, t)
+    # a mode FRI does not have (a foreign peer's command): refused and counted, as a packet's
+    assert not links[1].receive_fields(ms[1].seq, 7, POSE.tolist(), [100.0] * 6, [0.7] * 6, [0.0] * 6, t)
+    assert links[1].last_reject_reason == "requested_mode is not a ControlMode (7)"

@@ -57,3 +57,25 @@ def test_the_fused_cell_ends_each_fault_as_the_per_message_cell_does(case):
     assert fused[1] == per_message[1]  # every node's counters: faulted, skipped, muted, missing estimates
     assert len(fused[2]) == len(per_message[2]) > 1000
     assert sorted(fused[2], key=repr) == sorted(per_message[2], key=repr)
+
+
+def test_a_command_asking_for_a_mode_fri_has_not_is_refused_and_the_episode_goes_on(monkeypatch):
+    """Every 200th robot/command asks for requested_mode 7, no FRI control mode (what a
+    foreign peer may publish): the KRC counts it as a corrupt packet and closes its cycle
+    without it (bridged), the episode going on, alike in both engines (the robot node raised
+    ValueError there before)."""
+    from services.runtime.messages import ROBOT_COMMAND
+
+    real = ROBOT_COMMAND.pack
+
+    def odd_mode(**values):
+        if values["seq"] % 200 == 0:
+            values["requested_mode"] = 7
+        return real(**values)
+
+    monkeypatch.setattr(ROBOT_COMMAND, "pack", odd_mode)
+    per_message = reproduce(InProcessCell, seconds=1.5)
+    fused = reproduce(FusedCell, seconds=1.5)
+    assert fused[0] == per_message[0] and fused[1] == per_message[1]
+    assert sorted(fused[2], key=repr) == sorted(per_message[2], key=repr)
+    assert fused[0]["fri"]["corrupt"] >= 5 and fused[0]["reason"] == "elapsed", fused[0]
