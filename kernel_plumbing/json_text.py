@@ -112,9 +112,9 @@ def write_int(out, pos, value):
 @njit(**JIT, inline="always")
 def write_bool(out, pos, value):
     if value:
-        out[pos:pos + 4] = np.array([116, 114, 117, 101], np.uint8)  # true
+        out[pos], out[pos + 1], out[pos + 2], out[pos + 3] = 116, 114, 117, 101  # true
         return pos + 4
-    out[pos:pos + 5] = np.array([102, 97, 108, 115, 101], np.uint8)  # false
+    out[pos], out[pos + 1], out[pos + 2], out[pos + 3], out[pos + 4] = 102, 97, 108, 115, 101  # false
     return pos + 5
 
 

@@ -529,9 +529,9 @@ class RobotCell(HoldsAddresses):
         """``end_cycle`` for a caller that needs only how the cycle closed (the robot node): the
         same cycle; compiled in CART_IMP without a remote's checks, the KRC loads the command
         from the FRI link's slot and nothing is copied out of the cell."""
-        if self._compiled is None or self.remote_checks or self.krc.mode != ControlMode.CART_IMP or self.ati is not None:
-            return self.end_cycle(hand_wrench).outcome
         fri, krc, before = self.fri, self.krc, self.fri.has_last_applied
+        if self._compiled is None or self.remote_checks or self.ati is not None or krc.mode != ControlMode.CART_IMP:
+            return self.end_cycle(hand_wrench).outcome
         closed = fri.close(self.t_ns + self.cycle_ns)
         if not closed.hold:
             if not before:

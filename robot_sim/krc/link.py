@@ -199,8 +199,9 @@ class FriStatistics:
 
 class FriLink(HoldsAddresses):
     """The KRC's end of one FRI 1.0 connection.  See the module docstring.  Its books (state,
-    counters, window) are arrays kept by ``robot_sim.krc.link_books``'s kernels; the command
-    packets it keeps are here."""
+    counters, window) and the commands it holds (as numbers, in slots) are arrays kept by
+    ``robot_sim.krc.link_books``'s kernels; a command given as a packet is kept beside its
+    numbers, one given as numbers (``receive_fields``) becomes a packet only when asked for."""
 
     def __init__(self, config: FriConfig | None = None, faults: LinkFaults | None = None):
         self.config = cfg = config if config is not None else FriConfig()
@@ -520,10 +521,10 @@ def _slot_packet(commands: np.ndarray, meta: np.ndarray, slot: int) -> CommandPa
     def joints(row):
         return values[row, :_JNT].copy() if flags[row] else None
 
-    return CommandPacket(seq=flags[lb.CMD_SEQ], cart_pos=values[0, :_CART].copy(), cart_stiffness=values[1, :_FT].copy(),
-                         cart_damping=values[2, :_FT].copy(), add_tcp_ft=values[3, :_FT].copy(), jnt_pos=joints(4),
-                         requested_mode=_MODES[flags[lb.MODE]], jnt_stiffness=joints(5), jnt_damping=joints(6),
-                         add_jnt_trq=joints(7))
+    return CommandPacket(seq=flags[lb.CMD_SEQ], cart_pos=values[0, :_CART].copy(),
+                         cart_stiffness=values[1, :_FT].copy(), cart_damping=values[2, :_FT].copy(),
+                         add_tcp_ft=values[3, :_FT].copy(), jnt_pos=joints(4), requested_mode=_MODES[flags[lb.MODE]],
+                         jnt_stiffness=joints(5), jnt_damping=joints(6), add_jnt_trq=joints(7))
 
 
 # the enums by value (their values are 0, 1, ...): faster than calling the enum
