@@ -5,8 +5,10 @@ numba kernels, so that a compiled loop can keep them too.
 int64 array (``BOOKS``, indexed by the names below) holds the link's state, counters,
 the window's running sums and its settings; a second (``new_ring``) the window's cycles and
 the send times a late answer's latency is taken from; a float64 array the quality
-thresholds.  The kernels take the addresses of the three (``kernel_plumbing.addresses``):
-a measurement opens a cycle, an answer arrives, a cycle closes.
+thresholds; and the commands the link holds, as numbers in three slots (below).  The
+kernels take their addresses (``kernel_plumbing.addresses``): a measurement opens a cycle,
+an answer arrives (its numbers checked in place, then kept), a cycle closes (the answer
+applied, or the last one again, kept as the applied command).
 
 The window's figures and quality are computed exactly, as integers: the running sums of
 the latencies (integer ns) never drift.  The kernels keep the sums in int64 for the
