@@ -392,20 +392,10 @@ class FriLink(HoldsAddresses):
         except Exception as exc:
             problem = f"unreadable packet ({type(exc).__name__}: {exc})"
         if problem is not None:
-            b[lb.CORRUPT] += 1
-            return self._reject(problem)
-        s = int(packet.seq)
-        if s > _INT64_MAX:  # past any seq the books can hold: never sent
-            b[lb.CORRUPT] += 1
-            return self._reject(f"seq {s} was never sent (last sent {b[lb.SEQ]})")
-        fate = lb.RECEIVE(self._books_at, self._ring_at, self._n_ring, self._commands_at, self._meta_at, s,
-                          int(packet.requested_mode), t_ns)
-        if fate == lb.ACCEPTED:
-            # a copy: the sender may reuse its buffers, the wire would not share them
-            self._cur_cmd = packet if owned else packet.copy()
-            self.last_reject_reason = ""
-            return True
-        return self._reject(_rejection(fate, s, t_ns, self._books, self._ring, self.config.window))
+            return self._arrive(problem, -1, 0, t_ns, None)
+        # kept if accepted; a copy: the sender may reuse its buffers, the wire would not share them
+        return self._arrive(None, int(packet.seq), int(packet.requested_mode), t_ns,
+                            packet if owned else packet.copy())
 
     def receive_fields(self, seq, mode, cart_pos, cart_stiffness, cart_damping, add_tcp_ft, t_ns: int) -> bool:
         """``receive`` of the packet these fields make (a ``robot/command`` message's), without
@@ -434,19 +424,24 @@ class FriLink(HoldsAddresses):
             values[3, :_FT] = add_tcp_ft
             present[:] = _CART_IMP_PRESENT
             problem = checked_in_place(self._checks, list(vectors))
+        return self._arrive(problem, seq, mode, t_ns, _IN_SLOT)
+
+    def _arrive(self, problem: str | None, s: int, mode: int, t_ns: int, kept) -> bool:
+        """An answer echoing ``s`` whose checks found ``problem`` (its numbers in the ARRIVING
+        slot when they found none) meets the books; ``kept``: what ``_cur_cmd`` holds if it is
+        accepted.  True if it is this cycle's answer."""
+        b = self._books
+        if problem is None and s > _INT64_MAX:  # past any seq the books can hold
+            problem = _rejection(lb.NEVER_SENT, s, t_ns, b, self._ring, self.config.window)
         if problem is not None:
             b[lb.CORRUPT] += 1
             return self._reject(problem)
-        if seq > _INT64_MAX:
-            b[lb.CORRUPT] += 1
-            return self._reject(f"seq {seq} was never sent (last sent {b[lb.SEQ]})")
-        fate = lb.RECEIVE(self._books_at, self._ring_at, self._n_ring, self._commands_at, self._meta_at, seq, mode,
-                          t_ns)
+        fate = lb.RECEIVE(self._books_at, self._ring_at, self._n_ring, self._commands_at, self._meta_at, s, mode, t_ns)
         if fate == lb.ACCEPTED:
-            self._cur_cmd = _IN_SLOT
+            self._cur_cmd = kept
             self.last_reject_reason = ""
             return True
-        return self._reject(_rejection(fate, seq, t_ns, self._books, self._ring, self.config.window))
+        return self._reject(_rejection(fate, s, t_ns, b, self._ring, self.config.window))
 
     def deliver(self, packet: CommandPacket, t_sent_ns: int, *, owned: bool = False) -> bool:
         """Send ``packet`` from the remote at ``t_sent_ns`` through the fault hook, then
