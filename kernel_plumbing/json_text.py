@@ -148,13 +148,13 @@ def write_doubles(fn, out, out_at, pos, values):
 
 @njit(**JIT)
 def write_ints(out, pos, values):
-    """``values`` (int64) as a JSON list; the position after it."""
+    """``values`` (int64, or float64 whole numbers) as a JSON list; the position after it."""
     out[pos] = 91
     pos += 1
     for i in range(len(values)):
         if i:
             out[pos] = 44
             pos += 1
-        pos = write_int(out, pos, values[i])
+        pos = write_int(out, pos, np.int64(values[i]))
     out[pos] = 93
     return pos + 1

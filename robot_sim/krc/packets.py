@@ -283,7 +283,7 @@ def _float_vector(value, n: int, name: str) -> tuple[np.ndarray | None, str | No
 def _numbers_problem(originals: list, kept: list, checks: CommandChecks) -> str | None:
     """What ``_numbers_at`` finds wrong with the vectors gathered so far, in words naming
     the field and the value (the original value, as the sender gave it)."""
-    present, values, a = checks.present, checks.values, checks.args
+    present, values = checks.present, checks.values
     with checks.lock:
         for which in range(8):
             vector = kept[which]
@@ -292,9 +292,15 @@ def _numbers_problem(originals: list, kept: list, checks: CommandChecks) -> str 
             else:
                 present[which] = 1
                 values[which, :len(vector)] = vector
-        problem = _NUMBERS(a[0], a[1], a[2], a[3], a[4], a[5], a[6])
-        det, which, i = float(checks.det[0]), int(checks.where[0]), int(checks.where[1])
-    return describe(problem, originals, kept, det, which, i, checks)
+        found = _found(checks)
+    return describe(*found, originals, kept, checks)
+
+
+def _found(checks: CommandChecks) -> tuple[int, float, int, int]:
+    """``_numbers_at`` on the numbers in ``checks``' buffers (the caller holds its lock): what
+    it found first, the rotation's determinant, the vector and its entry."""
+    problem = _NUMBERS(*checks.args)
+    return problem, float(checks.det[0]), int(checks.where[0]), int(checks.where[1])
 
 
 def checked_in_place(checks: CommandChecks, originals: list) -> str | None:
@@ -302,15 +308,14 @@ def checked_in_place(checks: CommandChecks, originals: list) -> str | None:
     presence flags set), in words as ``command_problem`` gives them; ``originals``: the
     vectors as the sender gave them."""
     with checks.lock:
-        problem = _NUMBERS(*checks.args)
-        det, which, i = float(checks.det[0]), int(checks.where[0]), int(checks.where[1])
-    if not problem:
+        found = _found(checks)
+    if not found[0]:
         return None
     kept = [checks.values[k, :n] if checks.present[k] else None for k, n in enumerate(_LENGTHS)]
-    return describe(problem, originals, kept, det, which, i, checks)
+    return describe(*found, originals, kept, checks)
 
 
-def describe(problem: int, originals: list, kept: list, det: float, which: int, i: int,
+def describe(problem: int, det: float, which: int, i: int, originals: list, kept: list,
              checks: CommandChecks) -> str | None:
     """``_numbers_at``'s finding in words (None: nothing wrong)."""
     if not problem:

@@ -118,8 +118,10 @@ class FtSensorNode(Node):
         self.publications = [Publication(FT_WRENCH.topic)]
         self._bytes = MessageBytes(FT_WRENCH, whole=("counts",)) if MessageBytes.available else None
         if self._bytes is not None:
-            self._bytes.floats[self._bytes.slots["counts_per_force"][1]] = self._cpf
-            self._bytes.floats[self._bytes.slots["counts_per_torque"][1]] = self._cpt
+            slots, floats = self._bytes.slots, self._bytes.floats
+            floats[slots["counts_per_force"][1]], floats[slots["counts_per_torque"][1]] = self._cpf, self._cpt
+            # where a sample's counts and wrench go, every cycle
+            self._counts_at, self._wrench_at = slots["counts"][1], slots["wrench"][1]
         self.box = None
         if config.netft:
             if config.netft_topic:
@@ -169,9 +171,9 @@ class FtSensorNode(Node):
             seq, sent, mb = msg["seq"], self.clock.now_ns(), self._bytes
             # its integers: the header, the sequences, the status (the counts are whole floats)
             mb.ints[:] = (seq, msg["stamp_ns"], sent, rec.rdt_sequence, rec.ft_sequence, rec.status)
-            floats, (_, c, _), (_, wr, _) = mb.floats, mb.slots["counts"], mb.slots["wrench"]
-            floats[c:c + 6] = rec.counts
-            floats[wr:wr + 6] = w
+            c, wr = self._counts_at, self._wrench_at
+            mb.floats[c:c + 6] = rec.counts
+            mb.floats[wr:wr + 6] = w
             payload = mb.write()
             if payload is not None:
                 return payload, (seq, sent)

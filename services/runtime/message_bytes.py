@@ -22,7 +22,7 @@ from numba import njit
 
 from kernel_plumbing.addresses import JIT, address, addresses, carray_at, entry, int64_address, int64_array_at
 from kernel_plumbing.json_text import (AVAILABLE, DOUBLE_BYTES, INT_BYTES, JSON_DOUBLE, bytes_at, uint8_address,
-                                       write_bool, write_double, write_int)
+                                       write_bool, write_double, write_doubles, write_int, write_ints)
 from services.runtime.messages import MessageType
 
 # a field's kind: how its values are written, from which array
@@ -52,23 +52,12 @@ def _write_at(fn, layout_at, n_fields, keys_at, n_keys, ints_at, n_ints, floats_
             pos = write_bool(out, pos, ints[at] != 0)
         elif kind == FLOAT:
             pos = write_double(fn, out_at, pos, floats[at])
+        elif kind == INTS:
+            pos = write_ints(out, pos, ints[at:at + count])
+        elif kind == WHOLE_FLOATS:
+            pos = write_ints(out, pos, floats[at:at + count])
         else:
-            out[pos] = 91  # [
-            pos += 1
-            for i in range(count):
-                if i:
-                    out[pos] = 44  # ,
-                    pos += 1
-                if kind == INTS:
-                    pos = write_int(out, pos, ints[at + i])
-                elif kind == WHOLE_FLOATS:
-                    pos = write_int(out, pos, np.int64(floats[at + i]))
-                else:
-                    pos = write_double(fn, out_at, pos, floats[at + i])
-                    if pos < 0:
-                        return -1
-            out[pos] = 93  # ]
-            pos += 1
+            pos = write_doubles(fn, out, out_at, pos, floats[at:at + count])
         if pos < 0:
             return -1
     out[pos] = 125  # }
