@@ -30,7 +30,7 @@ from services.recordings.reader import Episode, read_episode
 from services.runtime.messages import (BY_TOPIC, ESTIMATOR_PERIOD_NS, ESTIMATOR_PHASE, INT_MAX, INT_MIN,
                                        ROBOT_COMMAND, ROBOT_CONTACT, ROBOT_STATE, STRIDES, loads)
 from services.runtime.threads import process_map
-from services.runtime.timing import SequenceTracker, percentiles
+from services.runtime.timing import SequenceTracker, on_the_clock, percentiles
 
 # what the report reads of each topic: every one an integer (counts, sequence numbers, clocks, labels)
 REPORT_FIELDS = {ROBOT_STATE.topic: ("seq", "sent_ns", "stamp_ns", "fri_quality", "fri_state"),
@@ -99,7 +99,7 @@ class DecodedEpisode:
 
     path: str
     readable: bool = True  # False: its first file did not read, and there are no measures
-    links: dict | None = None  # topic -> latency percentiles, lost, out_of_order
+    links: dict | None = None  # topic -> latency percentiles, lost, out_of_order, off_clock
     phases: dict | None = None  # a reproduction's online phase scores
     fri_quality: tuple | None = None  # (simulated time s, FRI quality, FRI state) of every robot cycle
     undecodable: int = 0  # messages that did not decode
@@ -290,15 +290,22 @@ def decoded_messages(ep) -> tuple[dict, int]:
 
 def episode_links(decoded: dict) -> dict:
     """Per topic of one recorded episode: publish -> recorder latency percentiles,
-    and lost / out-of-order messages judged from the sequence numbers."""
+    lost / out-of-order messages judged from the sequence numbers, and the messages
+    whose publish stamp is not on the recorder's clock (``off_clock``, not among the
+    latencies: ``on_the_clock``)."""
     out = {}
     for topic, items in decoded.items():
         tracker = SequenceTracker(stride=STRIDES.get(topic, 1))
         lat = []
+        off = 0
         for log_time, d in items:
-            lat.append(log_time - d["sent_ns"])
+            latency = log_time - d["sent_ns"]
+            if on_the_clock(latency):
+                lat.append(latency)
+            else:
+                off += 1
             tracker.add(d["seq"])
-        out[topic] = dict(percentiles(lat), lost=tracker.lost, out_of_order=tracker.out_of_order)
+        out[topic] = dict(percentiles(lat), lost=tracker.lost, out_of_order=tracker.out_of_order, off_clock=off)
     return out
 
 

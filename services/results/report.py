@@ -286,11 +286,15 @@ def _received(run: RunRecord) -> dict:
 
 def _timing(run: RunRecord, episodes: list, loops: list, links: dict, received: dict) -> dict:
     """report.json's timing: the robot loop, the links, the closed loop, FRI, the services."""
-    link_summary = {t: {"p50_us": float(np.median([v["p50_us"] for v in vs])),
-                        "p99_us": float(max(v["p99_us"] for v in vs)),
-                        "max_us": float(max(v["max_us"] for v in vs)),
-                        "lost": sum(v["lost"] for v in vs), "out_of_order": sum(v["out_of_order"] for v in vs)}
-                    for t, vs in links.items() if vs and "p50_us" in vs[0]}
+    link_summary = {}
+    for t, vs in links.items():
+        timed = [v for v in vs if "p50_us" in v]  # an episode whose every stamp of t was off the clock has none
+        off = sum(v.get("off_clock", 0) for v in vs)
+        row = {"p50_us": float(np.median([v["p50_us"] for v in timed])), "p99_us": float(max(v["p99_us"] for v in timed)),
+               "max_us": float(max(v["max_us"] for v in timed))} if timed else {}
+        if timed or off:
+            link_summary[t] = dict(row, lost=sum(v["lost"] for v in vs), out_of_order=sum(v["out_of_order"] for v in vs),
+                                   off_clock=off)
     closed = [lp.get("closed_loop_latency", {}) for lp in loops if lp.get("closed_loop_latency", {}).get("count")]
     return {
         # lockstep: simulated time waits for every answer, so every deadline is met by

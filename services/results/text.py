@@ -241,19 +241,33 @@ def _timing(r: dict) -> list[str]:
     if cl.get("p99_us_max") is not None:
         lines.append(f"{host}closed loop (measurement -> sensor -> estimator -> commander -> robot): worst p99 "
                      f"{cl['p99_us_max']:.0f} us over {len(cl['per_episode'])} reproduction(s)")
+    lines += link_lines(t, host)
+    return lines
+
+
+def link_lines(t: dict, host: str = "") -> list[str]:
+    """The links' tables of report.json's ``timing``: each link at its receiver, and publish
+    -> recorder; ``host``: "host " where the latencies are the host's running a lockstep run."""
+    lines = []
     if t.get("links_received"):
         lines.append(f"{(host or 'link ') + 'latency at the receiver (us):':<54}p50      p99    p99.9      max   lost"
-                     "  out-of-order  garbage")
+                     "  out-of-order  garbage  off-clock")
         for name, v in sorted(t["links_received"].items()):
-            lat = v.get("latency", {})
-            if not lat.get("count"):
+            lat, off = v.get("latency", {}), v.get("off_clock", 0)
+            if not lat.get("count") and not off:
                 continue
-            lines.append(f"  {name:<45} {lat['p50_us']:8.0f} {lat['p99_us']:8.0f} {lat['p99_9_us']:8.0f} "
-                         f"{lat['max_us']:8.0f} {v['lost']:6d} {v['out_of_order']:13d} {v['bad']:8d}")
-    lines.append(f"{(host or 'link ') + 'latency, publish -> recorder (us):':<42}p50      p99      max   lost  out-of-order")
+            figures = (f"{lat['p50_us']:8.0f} {lat['p99_us']:8.0f} {lat['p99_9_us']:8.0f} {lat['max_us']:8.0f}"
+                       if lat.get("count") else f"{'-':>8} {'-':>8} {'-':>8} {'-':>8}")
+            lines.append(f"  {name:<45} {figures} {v['lost']:6d} {v['out_of_order']:13d} {v['bad']:8d} {off:10d}")
+    lines.append(f"{(host or 'link ') + 'latency, publish -> recorder (us):':<42}p50      p99      max   lost  out-of-order"
+                 "  off-clock")
     for topic, v in sorted(t["links_publish_to_recorder"].items()):
-        lines.append(f"  {topic:<22} {v['p50_us']:9.0f} {v['p99_us']:8.0f} {v['max_us']:8.0f} {v['lost']:6d} "
-                     f"{v['out_of_order']:6d}")
+        figures = (f"{v['p50_us']:9.0f} {v['p99_us']:8.0f} {v['max_us']:8.0f}" if "p50_us" in v
+                   else f"{'-':>9} {'-':>8} {'-':>8}")
+        lines.append(f"  {topic:<22} {figures} {v['lost']:6d} {v['out_of_order']:6d} {v.get('off_clock', 0):10d}")
+    if any(v.get("off_clock") for v in [*t.get("links_received", {}).values(), *t["links_publish_to_recorder"].values()]):
+        lines.append("  off-clock: messages whose publish stamp is not on the receiver's clock (negative, or over "
+                     "60 s: a foreign peer's, a paused process); not among the latencies")
     return lines
 
 

@@ -6,6 +6,9 @@
   consecutive misses, not on their total).
 - ``SequenceTracker``: lost, out-of-order and duplicated messages of a link,
   judged from the sequence numbers the publisher stamped.
+- ``on_the_clock``: whether a publish stamp can be a latency's start on the receiver's
+  clock; one that cannot (a foreign peer's clock, a process paused for a minute) is
+  counted apart, not put among the latencies.
 """
 
 from __future__ import annotations
@@ -16,6 +19,15 @@ import numpy as np
 
 BIN_NS = 10_000  # 10 us
 DEFAULT_LIMIT_NS = 5_000_000  # 5 ms: everything above lands in the overflow bin
+# the longest a message may take and still count as a latency: past it (or negative) its
+# publish stamp is not on the receiver's clock: a foreign peer stamping sent_ns 1 once
+# made a robot/command "latency" of 78 679 s, the report's maximum
+OFF_CLOCK_NS = 60 * 10**9
+
+
+def on_the_clock(latency_ns: int) -> bool:
+    """A receive time minus a publish stamp that can be a one-way latency (0 .. 60 s)."""
+    return 0 <= latency_ns <= OFF_CLOCK_NS
 
 
 def percentiles(values_ns) -> dict:

@@ -14,7 +14,7 @@ import zenoh
 from services.runtime import topics
 from services.runtime.messages import (BY_TOPIC, ESTIMATOR_STRIDE, STRIDES, MessageError, MessageType,
                                       estimator_instant)
-from services.runtime.timing import FRESH, STALE, Histogram, SequenceTracker
+from services.runtime.timing import FRESH, STALE, Histogram, SequenceTracker, on_the_clock
 
 # the wildcard subscription (the recorder's) takes what has arrived every BATCH_S, from
 # a queue of ~10 s of every message of a run; when full, Zenoh holds further samples
@@ -40,7 +40,9 @@ class LinkCounters:
     ``dropped``: duplicates and messages older than one already delivered, which
     are counted (``duplicates``, ``out_of_order``) but not handed to the node;
     ``resyncs``: times ``RESYNC_AFTER`` older messages in a row made the link take
-    them as its stream again (the newest had been forged far ahead)."""
+    them as its stream again (the newest had been forged far ahead); ``off_clock``:
+    messages whose publish stamp cannot be on this clock (``on_the_clock``), counted
+    instead of their "latency"."""
 
     received: int = 0
     bad: int = 0
@@ -48,6 +50,7 @@ class LinkCounters:
     dropped: int = 0
     resyncs: int = 0
     stale_run: int = 0
+    off_clock: int = 0
     last_error: str = ""
     latency: Histogram = field(default_factory=Histogram)
     sequence: SequenceTracker = field(default_factory=SequenceTracker)
@@ -60,7 +63,7 @@ class LinkCounters:
     def to_dict(self) -> dict:
         seq = self.sequence.to_dict()
         return {"received": self.received, "bad": self.bad, "skipped": self.skipped, "dropped": self.dropped,
-                "resyncs": self.resyncs, "last_error": self.last_error,
+                "resyncs": self.resyncs, "off_clock": self.off_clock, "last_error": self.last_error,
                 "latency": self.latency.summary(), "lost": seq["lost"], "out_of_order": seq["out_of_order"],
                 "duplicates": seq["duplicates"]}
 
@@ -83,7 +86,11 @@ def _judged_delivery(counters: LinkCounters, message_type: MessageType | None, o
                 # looks for them) must not end a latest subscriber's drain thread: counted, named
                 counters.count_bad(f"{type(exc).__name__} while decoding: {exc}")
                 return
-            counters.latency.add(recv - msg["sent_ns"])
+            latency = recv - msg["sent_ns"]
+            if on_the_clock(latency):
+                counters.latency.add(latency)
+            else:
+                counters.off_clock += 1
             verdict = counters.sequence.add(msg["seq"])
             if verdict is STALE:
                 counters.stale_run += 1

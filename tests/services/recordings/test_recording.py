@@ -524,6 +524,35 @@ def test_the_report_reads_past_garbage_in_a_recording_and_counts_it(tmp_path, rn
     assert reproduction_phases(decoded, {1: 1})["accuracy"] == 1.0
 
 
+def test_a_foreign_peers_stamp_is_counted_off_the_clock_not_taken_as_a_latency(tmp_path, rng):
+    """A well-formed robot/command from a foreign peer, stamped on its own clock (sent_ns 1,
+    and one from the future), is no latency of the run's: counted apart, the run's own
+    latencies as they were (it once made the report's maximum 78 679 s)."""
+    from services.results.decoding import decoded_messages, episode_links
+    from services.results.text import link_lines
+
+    messages = mixed_messages(40, rng)
+    clean = episode_links(decoded_messages(read_episode(write_episode(tmp_path / "c.mcap", messages).path))[0])
+    # recorded at a host's uptime of 78 679 s, as it was; the second stamped in the future
+    for sent, at in ((1, 78_679 * 10**9), (9 * 10**18, 5_030_000_000)):
+        messages.append((key("robot/command"), ROBOT_COMMAND.encode(
+            **header(20, sent_ns=sent), cart_pos=rng.normal(size=12), cart_stiffness=[1000.0] * 6,
+            cart_damping=[0.7] * 6, add_tcp_ft=[0.0] * 6, requested_mode=7, phase=0, estimate_seq=-1,
+            goal_reached=False, hold="", episode=0), at))
+    links = episode_links(decoded_messages(read_episode(write_episode(tmp_path / "f.mcap", messages).path))[0])
+    assert links["robot/command"]["off_clock"] == 2 and clean["robot/command"]["off_clock"] == 0
+    for figure in ("p50_us", "p99_us", "max_us", "count"):
+        assert links["robot/command"][figure] == clean["robot/command"][figure]
+    assert links["robot/state"]["off_clock"] == 0
+    timing = {"links_publish_to_recorder": {t: v for t, v in links.items() if t == "robot/command"},
+              "links_received": {"robot/command -> robot": {"latency": {}, "lost": 0, "out_of_order": 0, "bad": 0,
+                                                            "off_clock": 2}}}
+    text = "\n".join(link_lines(timing))
+    assert "off-clock" in text and "a foreign peer's" in text
+    row = [line for line in text.splitlines() if line.strip().startswith("robot/command -> robot")]
+    assert row and row[0].split()[-1] == "2" and row[0].split()[3] == "-"
+
+
 def test_a_topics_columns_give_back_each_message_as_added_after_a_restarted_recorders_part():
     """The report's fields per topic held as columns: iterated, every message's (log time,
     fields) in order, the known text values where they were, across a part appended."""

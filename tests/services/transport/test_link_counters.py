@@ -1,0 +1,29 @@
+"""What a subscriber counts of each message it receives (services.transport.subscriptions)."""
+
+import numpy as np
+
+from services.runtime.messages import ROBOT_CONTACT
+from services.transport.subscriptions import LinkCounters, _judged_delivery
+
+
+def contact(seq: int, sent_ns: int) -> bytes:
+    return ROBOT_CONTACT.encode(seq=seq, stamp_ns=seq * 1_000_000, sent_ns=sent_ns, wrench=np.zeros(6),
+                                contact_force=np.zeros(3), touching=[], true_phase=0, episode=0)
+
+
+def test_a_stamp_off_the_receivers_clock_is_counted_apart_and_the_message_still_handed_on():
+    """A foreign peer's stamp (sent_ns 1 on a host up 78 679 s, or one from the future) is no
+    latency: counted as off the clock, the run's own latencies as they were; the message
+    itself is judged by its seq as any other."""
+    counters, got = LinkCounters(), []
+    deliver = _judged_delivery(counters, ROBOT_CONTACT, lambda msg, recv, raw: got.append(msg["seq"]))
+    now = 78_679 * 10**9
+    deliver(contact(1, now - 300_000), now)
+    deliver(contact(2, 1), now + 1_000_000)
+    deliver(contact(3, now + 5 * 10**9), now + 2_000_000)
+    deliver(contact(4, now + 2_900_000), now + 3_000_000)
+    assert got == [1, 2, 3, 4]
+    links = counters.to_dict()
+    assert links["off_clock"] == 2
+    assert links["latency"]["count"] == 2 and links["latency"]["max_us"] == 300.0
+    assert links["latency"]["min_us"] == 100.0
