@@ -32,7 +32,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_LOG = ROOT / "out" / "make-test-shared.log"
-PYTEST = [sys.executable, "-m", "pytest", "-q"]
+# each lane ends with its ten longest tests: where CI's minutes went, in its own log
+PYTEST = [sys.executable, "-m", "pytest", "-q", "--durations=10", "--durations-min=5"]
 SHARED = [*PYTEST, "-n", "2", "--dist", "loadscope", "--no-loadscope-reorder", "-m", "not serial"]
 ALONE = [*PYTEST, "-m", "alone"]
 SERIAL = [*PYTEST, "-m", "serial and not alone"]
