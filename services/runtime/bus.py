@@ -58,6 +58,8 @@ class FakeClock:
 
 
 class Bus(Protocol):
+    carries_dicts: bool  # whether a published message's dict reaches anyone (in memory), or only its bytes
+
     def publish(self, topic: str, payload: bytes, message: dict | None = None) -> None:
         """``payload``: the bytes that cross the wire and are recorded; ``message``,
         when given, what they decode to (``MessageType.pack``), which a bus that

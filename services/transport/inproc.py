@@ -56,6 +56,8 @@ class InProcessBus:
     """``check``: verify that every message handed over in memory is exactly what
     decoding its bytes gives (the tests run with it; ETAR_INPROC_CHECK=1 turns it on)."""
 
+    carries_dicts = True  # a subscriber in this process takes the publisher's dict
+
     def __init__(self, clock=None, check: bool | None = None):
         self.clock = clock or MonotonicClock()
         self.check = bool(int(os.environ.get("ETAR_INPROC_CHECK", "0"))) if check is None else check

@@ -74,7 +74,10 @@ def fifo_words(requested, granted, refusal: str | None) -> str:
 
 
 class ZenohBus:
-    """Publishes a node's messages on its service's Zenoh publishers."""
+    """Publishes a node's messages on its service's Zenoh publishers.  Only the bytes
+    cross: a node need not make the dict beside them (``carries_dicts``)."""
+
+    carries_dicts = False
 
     def __init__(self, svc: Service, realtime: bool):
         self.svc = svc

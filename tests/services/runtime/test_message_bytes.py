@@ -58,3 +58,35 @@ def test_a_value_json_cannot_hold_is_left_to_pack_which_names_the_field():
 def test_a_message_with_a_field_it_cannot_write_is_refused_when_made():
     with pytest.raises(ValueError, match="touching"):
         MessageBytes(ROBOT_CONTACT)
+
+
+def test_the_sensor_over_a_bus_of_bytes_alone_publishes_the_bytes_it_publishes_in_memory():
+    """Over Zenoh (a bus that carries no dict) the sensor writes ft/wrench's bytes without
+    the dict; the same seed and clock give the same bytes as in memory, a NaN gauge included."""
+    from services.nodes.ft_sensor import FtSensorConfig, FtSensorNode
+    from services.runtime.bus import FakeClock
+
+    class Bus:
+        def __init__(self, carries_dicts):
+            self.carries_dicts, self.sent = carries_dicts, []
+
+        def publish(self, topic, payload, message=None):
+            self.sent.append((topic, payload, message))
+
+    rng = np.random.default_rng(5)
+    contacts = [dict(seq=k, stamp_ns=k * 1_000_000, sent_ns=0, wrench=rng.normal(size=6).tolist(), episode=0)
+                for k in range(1, 40)]
+    contacts[20]["wrench"][2] = float("nan")
+    buses = []
+    for carries in (True, False):
+        bus = Bus(carries)
+        node = FtSensorNode(FtSensorConfig(seed=3), bus, FakeClock(7))
+        for msg in contacts:
+            node.on_contact(msg, 0, b"")
+        buses.append(bus)
+    in_memory, bytes_only = buses
+    assert [s[1] for s in in_memory.sent] == [s[1] for s in bytes_only.sent] and len(in_memory.sent) == 39
+    assert all(type(s[2]) is dict for s in in_memory.sent)
+    assert all(type(s[2]) is tuple for s in bytes_only.sent)
+    # the NaN reached the model, whose record says so in its status bits, the same both ways
+    assert FT_WRENCH.decode(bytes_only.sent[20][1])["status"] != 0 == FT_WRENCH.decode(bytes_only.sent[19][1])["status"]
