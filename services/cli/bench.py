@@ -308,7 +308,9 @@ def build_parser() -> CommandParser:
     p.set_defaults(func=cmd_certs)
 
     p = sub.add_parser("router", help="run a Zenoh router (for docker-compose or several hosts)")
-    p.add_argument("--listen", action="append", help=f"endpoint(s), default tcp/0.0.0.0:{ZENOH_PORT}")
+    p.add_argument("--listen", action="append", help=f"endpoint(s), default tcp/0.0.0.0:{ZENOH_PORT}; port 0: the "
+                                                     "system chooses, and the first line says which (its read-only "
+                                                     "admin space, as zenohd's, says so)")
     p.set_defaults(func=cmd_router)
     return parser
 

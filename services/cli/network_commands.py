@@ -4,7 +4,6 @@ command line is parsed (``services.cli.bench``)."""
 from __future__ import annotations
 
 import contextlib
-import os
 import signal
 import time
 
@@ -42,6 +41,9 @@ def cmd_router(args) -> int:
     opts = ZenohOptions(mode="router", connect=(), listen=tuple(args.listen or [f"tcp/0.0.0.0:{ZENOH_PORT}"]))
     try:
         conf = opts.config()
+        # read-only, as zenohd's default: where a port 0 was given, the router's own locators say
+        # which port the system chose
+        conf.insert_json5("adminspace", '{"enabled": true, "permissions": {"read": true, "write": false}}')
         session = zenoh.open(conf)
     except ValueError as exc:  # names the flag and the value
         say(f"etar-bench router: error: {exc}")
@@ -54,7 +56,7 @@ def cmd_router(args) -> int:
     signal.signal(signal.SIGTERM, interrupt)
     try:  # around all of it: the signal may come while the first line is being said
         with session:
-            say(f"zenoh router listening on {', '.join(_ports_chosen(opts.listen))}; Ctrl-C to stop")
+            say(f"zenoh router listening on {', '.join(_ports_chosen(session, opts.listen))}; Ctrl-C to stop")
             while True:
                 time.sleep(1.0)
     except KeyboardInterrupt:
@@ -62,33 +64,28 @@ def cmd_router(args) -> int:
         return 0
 
 
-def _ports_chosen(listen) -> list[str]:
-    """The endpoints as the router listens on them: a TCP port 0 (the system chooses) as the
-    port chosen, read from this process's listening sockets (Linux's /proc), else as given."""
-    out, given = [], {e.rpartition(":")[2] for e in listen}
+def _ports_chosen(session, listen) -> list[str]:
+    """The endpoints as the router listens on them: a port 0 (the system chooses) as the port
+    chosen, from Zenoh's own list of the router's locators (its admin space, read-only);
+    an endpoint with its port given, or when Zenoh does not say, as given."""
+    import json
+
+    locators = []
+    with contextlib.suppress(Exception):  # no answer is no reason to stop a router: it says what it was given
+        for reply in session.get(f"@/{session.info.zid()}/router", timeout=2.0):
+            locators += json.loads(reply.ok.payload.to_bytes()).get("locators", [])
+    given = {e.rpartition(":")[2] for e in listen}
+    out, taken = [], set()
     for endpoint in listen:
         proto, _, address = endpoint.partition("/")
         host, _, port = address.rpartition(":")
-        chosen = [p for p in _listening_tcp_ports() if str(p) not in given] \
-            if port == "0" and proto in ("tcp", "tls") else []
-        out.extend([f"{proto}/{host}:{p}" for p in chosen] or [endpoint])
+        if port == "0":
+            for loc in locators:
+                loc_proto, _, loc_address = loc.partition("/")
+                chosen = loc_address.rpartition(":")[2]
+                if loc_proto == proto and chosen not in given and (proto, chosen) not in taken:
+                    taken.add((proto, chosen))
+                    endpoint = f"{proto}/{host}:{chosen}"
+                    break
+        out.append(endpoint)
     return out
-
-
-def _listening_tcp_ports() -> list[int]:
-    """The TCP ports this process listens on (none where /proc does not say)."""
-    mine = set()
-    try:
-        for fd in os.listdir("/proc/self/fd"):
-            with contextlib.suppress(OSError):  # listdir's own descriptor is closed by now
-                mine.add(os.readlink(f"/proc/self/fd/{fd}"))
-        ports = set()
-        for table in ("/proc/self/net/tcp", "/proc/self/net/tcp6"):
-            with open(table) as f:
-                for row in f.read().splitlines()[1:]:
-                    cols = row.split()  # local address (hex ip:port), ..., state (0A: listen), ..., inode
-                    if cols[3] == "0A" and f"socket:[{cols[9]}]" in mine:
-                        ports.add(int(cols[1].rsplit(":", 1)[1], 16))
-        return sorted(ports)
-    except OSError:
-        return []

@@ -37,23 +37,27 @@ def test_the_router_stops_at_once_on_sigterm_and_ctrl_c(sig):
 
 @pytest.mark.zenoh
 def test_a_router_told_port_0_says_the_port_it_listens_on_and_a_peer_connects_there():
-    """--listen tcp/HOST:0 lets the system choose the port: the first line names that port
-    (it said ':0', which nobody can connect to), and a client session connects to it."""
+    """--listen PROTO/HOST:0 lets the system choose the port: the first line names the port
+    chosen for each endpoint, TCP and UDP, two port 0s two ports (it said ':0', which nobody
+    can connect to; then UDP's stayed ':0' and two TCP ones both named every port), and a
+    client session connects to each."""
     import re
 
     import zenoh
 
-    proc = subprocess.Popen([sys.executable, "-m", "services.cli.bench", "router", "--listen", "tcp/127.0.0.1:0"],
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli.bench", "router", "--listen", "tcp/127.0.0.1:0",
+                             "--listen", "udp/127.0.0.1:0", "--listen", "tcp/127.0.0.1:0"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         first = proc.stderr.readline()
-        m = re.search(r"listening on tcp/127\.0\.0\.1:(\d+);", first)
-        assert m and int(m.group(1)) > 0, first
-        conf = zenoh.Config()
-        conf.insert_json5("mode", '"client"')
-        conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{m.group(1)}"]')
-        with zenoh.open(conf) as session:
-            assert str(session.info.routers_zid()[0])  # joined that router
+        m = re.search(r"listening on tcp/127\.0\.0\.1:(\d+), udp/127\.0\.0\.1:(\d+), tcp/127\.0\.0\.1:(\d+);", first)
+        assert m and all(int(p) > 0 for p in m.groups()) and m.group(1) != m.group(3), first
+        for endpoint in (f"tcp/127.0.0.1:{m.group(1)}", f"udp/127.0.0.1:{m.group(2)}", f"tcp/127.0.0.1:{m.group(3)}"):
+            conf = zenoh.Config()
+            conf.insert_json5("mode", '"client"')
+            conf.insert_json5("connect/endpoints", f'["{endpoint}"]')
+            with zenoh.open(conf) as session:
+                assert str(session.info.routers_zid()[0]), endpoint  # joined that router
     finally:
         proc.send_signal(signal.SIGTERM)
         proc.communicate(timeout=10)
