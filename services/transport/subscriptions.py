@@ -22,8 +22,10 @@ from services.runtime.timing import FRESH, STALE, Histogram, SequenceTracker, on
 BATCH_S = 0.005
 BATCH_CAPACITY = 50_000
 # older messages in a row after which a link takes them as its stream again: a replayed
-# copy comes between new ones, the real stream behind a forged far-ahead seq does not
-# (50 cycles: FRI command mode drops, and comes back, rather than the link going silent)
+# copy comes between new ones, the real stream behind a seq forged ahead does not (50
+# cycles: FRI command mode drops, and comes back, rather than the link going silent).  One
+# forged more than a segment's gap ahead is left at once (SequenceTracker); this is for
+# one forged closer, and only a stream that keeps coming (realtime) comes back by it
 RESYNC_AFTER = 50
 
 
@@ -39,8 +41,9 @@ class LinkCounters:
     a ``latest`` subscriber passed over for a newer one (also in ``lost``).
     ``dropped``: duplicates and messages older than one already delivered, which
     are counted (``duplicates``, ``out_of_order``) but not handed to the node;
-    ``resyncs``: times ``RESYNC_AFTER`` older messages in a row made the link take
-    them as its stream again (the newest had been forged far ahead); ``off_clock``:
+    ``resyncs``: times the link took older messages as its stream again, the newest
+    having been forged ahead: at once when it had come by a jump nothing followed
+    (``SequenceTracker``), or after ``RESYNC_AFTER`` of them in a row; ``off_clock``:
     messages whose publish stamp cannot be on this clock (``on_the_clock``), counted
     instead of their "latency"."""
 
@@ -48,7 +51,6 @@ class LinkCounters:
     bad: int = 0
     skipped: int = 0
     dropped: int = 0
-    resyncs: int = 0
     stale_run: int = 0
     off_clock: int = 0
     last_error: str = ""
@@ -63,7 +65,7 @@ class LinkCounters:
     def to_dict(self) -> dict:
         seq = self.sequence.to_dict()
         return {"received": self.received, "bad": self.bad, "skipped": self.skipped, "dropped": self.dropped,
-                "resyncs": self.resyncs, "off_clock": self.off_clock, "last_error": self.last_error,
+                "resyncs": seq["resyncs"], "off_clock": self.off_clock, "last_error": self.last_error,
                 "latency": self.latency.summary(), "lost": seq["lost"], "out_of_order": seq["out_of_order"],
                 "duplicates": seq["duplicates"]}
 
@@ -98,7 +100,6 @@ def _judged_delivery(counters: LinkCounters, message_type: MessageType | None, o
                     # this many older ones in a row are the stream itself: the newest
                     # seen was forged far ahead, and would otherwise silence the link
                     counters.sequence.resync(msg["seq"])
-                    counters.resyncs += 1
                     verdict = FRESH
             if verdict is not FRESH:
                 # a copy, or older than what was acted on: within a run every topic's
