@@ -8,7 +8,14 @@ receivers drop duplicates and older messages by seq, so the lockstep results mus
 be the same to the last digit; the table says what was replayed, what the services
 dropped, and the results side by side.
 
-    python bench/replay_duplicates.py [--share 0.1] [--late-ms 30] [--seed 0]
+``--forge``: the peer also forges, every 0.3 s and twice each, a well-formed
+robot/command 997 cycles past its last (seq 1, 998, ...: from the start, so a receiver
+may see the forger's stream before the run's own), asking for a control mode FRI has
+not (7), stamped sent_ns 1, beside garbage on robot/command and ft/wrench.  The
+receivers must take the run's own stream again at once (``resyncs``), refuse the mode,
+count the stamps off their clock, and the results still be the clean run's.
+
+    python bench/replay_duplicates.py [--share 0.1] [--late-ms 30] [--seed 0] [--forge]
 """
 
 from __future__ import annotations
@@ -80,11 +87,49 @@ class Replayer:
             s.undeclare()
 
 
-def one_run(label: str, out: Path, share: float, late_s: float, seed: int) -> tuple[dict, dict]:
+class Forger:
+    """Publishes, every ``every_s``, a robot/command far ahead of its last one and garbage,
+    each twice; ``rounds``: how many times."""
+
+    STEP = 997  # cycles past the forger's last: more than a segment's gap (SequenceTracker.max_gap)
+
+    def __init__(self, session, run_id: str, every_s: float = 0.3):
+        import numpy as np
+
+        self.command = session.declare_publisher(topics.key(run_id, ROBOT_COMMAND.topic))
+        self.wrench = session.declare_publisher(topics.key(run_id, FT_WRENCH.topic))
+        self.pose = np.eye(3, 4).reshape(12)
+        self.every_s, self.rounds = every_s, 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+        self._thread.start()
+
+    def _loop(self):
+        seq = 1
+        while not self._stop.wait(self.every_s):
+            forged = ROBOT_COMMAND.encode(seq=seq, stamp_ns=seq * 1_000_000, sent_ns=1, cart_pos=self.pose,
+                                          cart_stiffness=[1000.0] * 6, cart_damping=[0.7] * 6, add_tcp_ft=[0.0] * 6,
+                                          requested_mode=7, phase=0, estimate_seq=-1, goal_reached=True, hold="",
+                                          episode=0)
+            for _ in range(2):
+                self.command.put(forged)
+                self.command.put(b"\x00garbage{")
+                self.wrench.put(b'{"seq": "x"}')
+            self.rounds += 1
+            seq += self.STEP
+
+    def close(self):
+        self._stop.set()
+        self._thread.join(1)
+
+
+def one_run(label: str, out: Path, share: float, late_s: float, seed: int,
+            forge: bool = False) -> tuple[dict, dict, int]:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     run_id = f"replay-{label}-{int(time.time() * 1000)}"
     peer = open_session(ZenohOptions(listen=(endpoint,)))
     replayer = Replayer(peer, run_id, share, late_s, seed) if share > 0 else None
+    forger = Forger(peer, run_id) if forge else None
     try:
         report = run(load_scenario(ROOT / "scenarios" / "smoke.yaml"),
                      RunOptions(out=str(out / label), run_id=run_id, zenoh=ZenohOptions(connect=(endpoint,))),
@@ -92,8 +137,10 @@ def one_run(label: str, out: Path, share: float, late_s: float, seed: int) -> tu
     finally:
         if replayer is not None:
             replayer.close()
+        if forger is not None:
+            forger.close()
         peer.close()
-    return report, (replayer.replayed if replayer else {t: 0 for t in TOPICS})
+    return report, (replayer.replayed if replayer else {t: 0 for t in TOPICS}), (forger.rounds if forger else 0)
 
 
 def main(argv=None) -> int:
@@ -101,13 +148,22 @@ def main(argv=None) -> int:
     p.add_argument("--share", type=float, default=0.1, help="share of the messages re-published (default 0.1)")
     p.add_argument("--late-ms", type=float, default=30.0, help="delay of the stale copy, ms (default 30)")
     p.add_argument("--seed", type=int, default=0, help="seed of which messages are re-published")
+    p.add_argument("--forge", action="store_true",
+                   help="also forge robot/commands far ahead (mode 7, sent_ns 1) and garbage, every 0.3 s")
     args = p.parse_args(argv)
     out = Path(tempfile.mkdtemp(prefix="replay_"))
-    clean, _ = one_run("clean", out, 0.0, 0.0, args.seed)
-    dirty, replayed = one_run("replayed", out, args.share, args.late_ms / 1e3, args.seed)
+    clean, _, _ = one_run("clean", out, 0.0, 0.0, args.seed)
+    dirty, replayed, forged = one_run("replayed", out, args.share, args.late_ms / 1e3, args.seed, args.forge)
     print(f"smoke scenario, lockstep over Zenoh; a foreign peer re-published {args.share:.0%} of the messages on "
           f"{', '.join(TOPICS)}, each at once and {args.late_ms:g} ms later")
     print("replayed copies: " + ", ".join(f"{t} {n}" for t, n in replayed.items()))
+    if args.forge:
+        print(f"forged: {forged} rounds, each twice: a robot/command {Forger.STEP} cycles past the last (mode 7, "
+              "sent_ns 1), garbage on robot/command and ft/wrench")
+        judged = {k: {n: v.get(n, 0) for n in ("bad", "ahead", "off_clock")}
+                  for k, v in dirty["timing"]["links_received"].items()
+                  if k.startswith((ROBOT_COMMAND.topic, FT_WRENCH.topic))}
+        print("judged by the receivers: " + "; ".join(f"{k}: {v}" for k, v in sorted(judged.items())))
     dropped = {k: v.get("dropped", 0) for k, v in dirty["timing"]["links_received"].items() if v.get("dropped")}
     print("dropped by the receivers (duplicates and older than the newest): "
           + (", ".join(f"{k} {v}" for k, v in sorted(dropped.items())) or "none"))

@@ -163,12 +163,17 @@ class RobotNode(Node):
         # realtime needs only what it applies; lockstep also waits on the sensor and the estimator;
         # over UDP the commands come on the FRI socket
         applied = ("teacher",) if self.udp is not None else ("command", "teacher")
-        self.subscriptions = [Subscription(topic, self.inbox.handler(name)) for name, topic in ANSWER_TOPICS.items()
-                              if self.lockstep or name in applied]
+        # an answer echoes a measurement: none can be past the latest the KRC sent
+        self.subscriptions = [Subscription(topic, self.inbox.handler(name), horizon=self._measured)
+                              for name, topic in ANSWER_TOPICS.items() if self.lockstep or name in applied]
 
     @property
     def sections(self):
         return self.ep.sections
+
+    def _measured(self) -> int:
+        """The seq of the latest measurement the KRC sent (the FRI link's)."""
+        return self.cell.fri.seq
 
     def answered(self, names, seq) -> bool:
         if self.udp is not None and not self.udp.answered():

@@ -129,10 +129,15 @@ class Episodes:
 
     def run(self, answers_from, stop_on, max_seconds: float, label: str = "episode", listening=()) -> dict:
         """One episode of cycles (the robot's 'run'); returns the robot's summary.  In
-        lockstep each cycle waits for ``answers_from``; in realtime a cycle closes as soon
+        lockstep each cycle waits for ``answers_from`` and the sensor; in realtime a cycle closes as soon
         as they have answered, or at its deadline.  On a terminal a bar shows its simulated
         time and real-time factor."""
         bar = EpisodeProgress(label, max_seconds)
+        if self.clock == "lockstep" and answers_from and "ft" not in answers_from:
+            # and the sensor's record of it: a cycle run ahead of the sensor let a foreign peer's
+            # copy of a later robot/contact reach it before the real ones, which it then dropped
+            # as older; its noise drew for other cycles and the run's results changed
+            answers_from = [*answers_from, "ft"]
         try:
             summary = self.cell.run_episode(answers_from, stop_on, max_seconds,
                                             progress=bar.update if bar.enabled else None, listening=listening)

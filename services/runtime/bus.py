@@ -79,6 +79,10 @@ class Subscription:
     latest: bool = False
     # with latest: a tenth cycle's message in the backlog is delivered, not skipped
     keep_tenth: bool = False
+    # the newest seq a genuine message can carry now (the robot's answers: its own latest
+    # measurement), or None: one past it is a foreign peer's, counted and dropped before it
+    # can make the real stream look old
+    horizon: Callable[[], int] | None = None
 
 
 @dataclass(frozen=True)

@@ -185,14 +185,7 @@ class SequenceTracker:
     estimator publishes every tenth robot cycle).  A gap of more than
     ``max_gap`` strides starts a new segment (the next episode) rather than
     counting as loss.  A message older than the newest seen is out of order and
-    fills its gap: it is not lost after all.  Unless the newest came by such a jump
-    (or was the first) and nothing followed it, and the older one is newer than where
-    the stream was last seen going on: then the newest was forged far ahead (a foreign
-    peer's own stream of them, even, seen before the real one), not the stream's next
-    segment, and the stream is taken again at once (``resyncs``).  In
-    lockstep the stream waits on its receiver: the 50 older messages in a row that
-    also resynchronise a link (``services.transport.subscriptions``) never came, and one
-    foreign robot/command 997 cycles ahead ended a reproduction as unanswered.
+    fills its gap: it is not lost after all.
     """
 
     stride: int = 1
@@ -202,14 +195,8 @@ class SequenceTracker:
     out_of_order: int = 0
     duplicates: int = 0
     segments: int = 0
-    resyncs: int = 0
     _lost: int = 0
     _seen: set = field(default_factory=set)
-    # where the stream was last seen going on (the newest reached by a step within max_gap, or
-    # taken again), and whether the newest since came by such a step: a jump, or the first
-    # message, is not the stream's own until the stream follows it
-    _anchor: int | None = None
-    _followed: bool = False
 
     def add(self, seq: int) -> str:
         """Count one message; says what it is: ``FRESH`` (the newest so far: what a
@@ -227,19 +214,13 @@ class SequenceTracker:
             self.segments = 1
             return FRESH
         if seq < self.highest:
-            if not self._followed and (self._anchor is None or seq > self._anchor):
-                self.resync(seq)  # the stream a forged jump left behind (or came before), going on
-                return FRESH
             self.out_of_order += 1
             self._lost = max(0, self._lost - 1)
             return STALE
         missing = (seq - self.highest) // self.stride - 1
         if missing > self.max_gap:
             self.segments += 1
-            self._followed = False
-        else:
-            self._anchor, self._followed = seq, True
-        if 0 < missing <= self.max_gap:
+        elif missing > 0:
             self._lost += missing
         self.highest = seq
         return FRESH
@@ -249,8 +230,6 @@ class SequenceTracker:
         far was not part of this link's stream (a message forged far ahead)."""
         self.highest = seq
         self.segments += 1
-        self.resyncs += 1
-        self._anchor, self._followed = seq, True
 
     @property
     def lost(self) -> int:
@@ -258,4 +237,4 @@ class SequenceTracker:
 
     def to_dict(self) -> dict:
         return {"received": self.received, "lost": self.lost, "out_of_order": self.out_of_order,
-                "duplicates": self.duplicates, "segments": self.segments, "resyncs": self.resyncs}
+                "duplicates": self.duplicates, "segments": self.segments}

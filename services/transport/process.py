@@ -159,7 +159,8 @@ class NodeInputs:
         want = self.node.listening or not (self.realtime or self.on_demand)
         if want and not self.declared:
             self.declared = [self.svc.subscribe(s.topic, s.handler, decode=s.decode, every_tenth=s.every_tenth,
-                                                latest=s.latest and self.realtime, keep_tenth=s.keep_tenth)
+                                                latest=s.latest and self.realtime, keep_tenth=s.keep_tenth,
+                                                horizon=s.horizon)
                              for s in self.node.subscriptions]
         elif not want and self.declared:
             for s in self.declared:

@@ -224,7 +224,7 @@ class Service:
             subscriber.undeclare()
 
     def subscribe(self, topic: str, on_message, *, decode: bool = True, every_tenth: bool = False,
-                  latest: bool = False, keep_tenth: bool = False):
+                  latest: bool = False, keep_tenth: bool = False, horizon=None):
         """Deliver (message dict, receive time ns, raw bytes) for every valid sample on
         etar/<run_id>/<topic>, its link counted in ``links``; ``"**"``: every topic of the
         run, undecoded, in batches (``services.transport.subscriptions``).  Returns the
@@ -233,7 +233,7 @@ class Service:
             sub = subscribe_all(self.session, self.run_id, on_message, self.links, self.profile, self.stop)
         else:
             sub = subscribe(self.session, self.run_id, topic, on_message, self.links, self.profile, decode=decode,
-                            every_tenth=every_tenth, latest=latest, keep_tenth=keep_tenth)
+                            every_tenth=every_tenth, latest=latest, keep_tenth=keep_tenth, horizon=horizon)
         self._subscribers.append(sub)
         return sub
 

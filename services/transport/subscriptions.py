@@ -22,10 +22,8 @@ from services.runtime.timing import FRESH, STALE, Histogram, SequenceTracker, on
 BATCH_S = 0.005
 BATCH_CAPACITY = 50_000
 # older messages in a row after which a link takes them as its stream again: a replayed
-# copy comes between new ones, the real stream behind a seq forged ahead does not (50
-# cycles: FRI command mode drops, and comes back, rather than the link going silent).  One
-# forged more than a segment's gap ahead is left at once (SequenceTracker); this is for
-# one forged closer, and only a stream that keeps coming (realtime) comes back by it
+# copy comes between new ones, the real stream behind a forged far-ahead seq does not
+# (50 cycles: FRI command mode drops, and comes back, rather than the link going silent)
 RESYNC_AFTER = 50
 
 
@@ -41,17 +39,19 @@ class LinkCounters:
     a ``latest`` subscriber passed over for a newer one (also in ``lost``).
     ``dropped``: duplicates and messages older than one already delivered, which
     are counted (``duplicates``, ``out_of_order``) but not handed to the node;
-    ``resyncs``: times the link took older messages as its stream again, the newest
-    having been forged ahead: at once when it had come by a jump nothing followed
-    (``SequenceTracker``), or after ``RESYNC_AFTER`` of them in a row; ``off_clock``:
+    ``resyncs``: times ``RESYNC_AFTER`` older messages in a row made the link take
+    them as its stream again (the newest had been forged far ahead); ``off_clock``:
     messages whose publish stamp cannot be on this clock (``on_the_clock``), counted
-    instead of their "latency"."""
+    instead of their "latency"; ``ahead``: messages past the link's ``horizon`` (a seq
+    no genuine one can have yet), dropped."""
 
     received: int = 0
     bad: int = 0
     skipped: int = 0
     dropped: int = 0
+    resyncs: int = 0
     stale_run: int = 0
+    ahead: int = 0
     off_clock: int = 0
     last_error: str = ""
     latency: Histogram = field(default_factory=Histogram)
@@ -65,12 +65,12 @@ class LinkCounters:
     def to_dict(self) -> dict:
         seq = self.sequence.to_dict()
         return {"received": self.received, "bad": self.bad, "skipped": self.skipped, "dropped": self.dropped,
-                "resyncs": seq["resyncs"], "off_clock": self.off_clock, "last_error": self.last_error,
+                "resyncs": self.resyncs, "ahead": self.ahead, "off_clock": self.off_clock, "last_error": self.last_error,
                 "latency": self.latency.summary(), "lost": seq["lost"], "out_of_order": seq["out_of_order"],
                 "duplicates": seq["duplicates"]}
 
 
-def _judged_delivery(counters: LinkCounters, message_type: MessageType | None, on_message):
+def _judged_delivery(counters: LinkCounters, message_type: MessageType | None, on_message, horizon=None):
     """``deliver(raw, recv)``: decoded with ``message_type`` (None: not decoded), judged by its
     ``seq`` (duplicates, replays and stale ones dropped and counted), then handed on; a bad
     message is counted in ``counters``, never raised."""
@@ -93,6 +93,12 @@ def _judged_delivery(counters: LinkCounters, message_type: MessageType | None, o
                 counters.latency.add(latency)
             else:
                 counters.off_clock += 1
+            if horizon is not None and msg["seq"] > horizon():
+                # past anything the publisher's counterpart has sent: acting on it, or letting
+                # it set the newest, is what a forger wants
+                counters.ahead += 1
+                counters.dropped += 1
+                return
             verdict = counters.sequence.add(msg["seq"])
             if verdict is STALE:
                 counters.stale_run += 1
@@ -100,6 +106,7 @@ def _judged_delivery(counters: LinkCounters, message_type: MessageType | None, o
                     # this many older ones in a row are the stream itself: the newest
                     # seen was forged far ahead, and would otherwise silence the link
                     counters.sequence.resync(msg["seq"])
+                    counters.resyncs += 1
                     verdict = FRESH
             if verdict is not FRESH:
                 # a copy, or older than what was acted on: within a run every topic's
@@ -154,7 +161,7 @@ def _subscribe_newest(session, key: str, topic: str, deliver, counters: LinkCoun
 
 
 def subscribe(session, run_id: str, topic: str, on_message, links: dict, profile, *, decode: bool = True,
-              every_tenth: bool = False, latest: bool = False, keep_tenth: bool = False):
+              every_tenth: bool = False, latest: bool = False, keep_tenth: bool = False, horizon=None):
     """Deliver (message dict, receive time ns, raw bytes) for every valid
     sample on etar/<run_id>/<topic>; garbage (including payloads over
     ``MAX_PAYLOAD_BYTES``) is counted in ``links``, never raised, and so are
@@ -181,6 +188,10 @@ def subscribe(session, run_id: str, topic: str, on_message, links: dict, profile
     before the newest instead of skipped (the sensor: the estimator needs the
     wrench of every tenth cycle); the ring then holds 10.
 
+    ``horizon``: ``horizon()`` is the newest seq a genuine message can carry now; one
+    past it is counted (``ahead``) and dropped before the sequence is judged: a foreign
+    peer's forged far ahead would otherwise make every real one after it look old.
+
     ``"**"`` (every topic of the run, undecoded: the recorder's): Zenoh queues
     the samples (``FifoChannel``) and one thread takes what has come every
     ``BATCH_S``, so a consumer that needs every message but not at once wakes a
@@ -190,7 +201,7 @@ def subscribe(session, run_id: str, topic: str, on_message, links: dict, profile
     stride = ESTIMATOR_STRIDE if every_tenth else STRIDES.get(topic, 1)
     counters = links.setdefault(topic, LinkCounters(sequence=SequenceTracker(stride=stride)))
 
-    deliver = _judged_delivery(counters, message_type if decode else None, on_message)
+    deliver = _judged_delivery(counters, message_type if decode else None, on_message, horizon)
     key = topics.key(run_id, topic)
     if latest:
         return _subscribe_newest(session, key, topic, profile.wrap(deliver), counters, every_tenth=every_tenth,

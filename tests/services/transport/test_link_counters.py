@@ -27,3 +27,26 @@ def test_a_stamp_off_the_receivers_clock_is_counted_apart_and_the_message_still_
     assert links["off_clock"] == 2
     assert links["latency"]["count"] == 2 and links["latency"]["max_us"] == 300.0
     assert links["latency"]["min_us"] == 100.0
+
+
+def test_an_answer_past_the_robots_latest_measurement_is_dropped_and_the_real_ones_go_on():
+    """A foreign peer's forged answers 997 cycles past each other, from before the run's own
+    answers began, never make the real ones look old: past the horizon (the robot's latest
+    measurement) they are counted as ahead and dropped; without the horizon the link would
+    drop every real answer as older (it once ended a lockstep reproduction as unanswered)."""
+    measured = [0]
+    got, counters = [], LinkCounters()
+    deliver = _judged_delivery(counters, ROBOT_CONTACT, lambda msg, recv, raw: got.append(msg["seq"]),
+                               horizon=lambda: measured[0])
+    blind = LinkCounters()
+    blind_deliver = _judged_delivery(blind, ROBOT_CONTACT, lambda msg, recv, raw: None)
+    forged = iter(range(10968, 10**6, 997))
+    for seq in range(5693, 5713):
+        for d in (deliver, blind_deliver):
+            d(contact(next(forged), 1), 0)  # the forger's, then the run's own answer to cycle seq
+        measured[0] = seq
+        for d in (deliver, blind_deliver):
+            d(contact(seq, 10), 20)
+    assert got == list(range(5693, 5713))
+    assert counters.to_dict()["ahead"] == 20 and counters.sequence.out_of_order == 0
+    assert blind.sequence.out_of_order == 20  # what the robot's link did before it had a horizon
