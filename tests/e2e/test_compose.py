@@ -72,9 +72,6 @@ def _podman_ready() -> tuple[bool, str]:
 @pytest.mark.compose
 @pytest.mark.slow
 @pytest.mark.zenoh
-# in make test's serial lane, at normal priority: in the shared lane (SCHED_IDLE, which its
-# podman build and containers inherit) it took 208 s under the serial lane's browsers, 46 s alone
-@pytest.mark.serial
 def test_smoke_scenario_on_docker_compose_with_podman(tmp_path):
     ok, why = _podman_ready()
     if not ok:
