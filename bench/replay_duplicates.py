@@ -11,9 +11,9 @@ dropped, and the results side by side.
 ``--forge``: the peer also forges, every 0.3 s and twice each, a well-formed
 robot/command 997 cycles past its last (seq 1, 998, ...: from the start, so a receiver
 may see the forger's stream before the run's own), asking for a control mode FRI has
-not (7), stamped sent_ns 1, beside garbage on robot/command and ft/wrench.  The
-receivers must take the run's own stream again at once (``resyncs``), refuse the mode,
-count the stamps off their clock, and the results still be the clean run's.
+not (7), stamped sent_ns 1, beside garbage on robot/command and ft/wrench.  The robot
+must drop the forgeries as past its latest measurement (``ahead``), count the garbage
+and the stamps off its clock, and the results still be the clean run's.
 
     python bench/replay_duplicates.py [--share 0.1] [--late-ms 30] [--seed 0] [--forge]
 """
@@ -91,7 +91,7 @@ class Forger:
     """Publishes, every ``every_s``, a robot/command far ahead of its last one and garbage,
     each twice; ``rounds``: how many times."""
 
-    STEP = 997  # cycles past the forger's last: more than a segment's gap (SequenceTracker.max_gap)
+    STEP = 997  # cycles past the forger's last: soon far past the run's own
 
     def __init__(self, session, run_id: str, every_s: float = 0.3):
         import numpy as np

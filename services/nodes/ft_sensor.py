@@ -116,6 +116,8 @@ class FtSensorNode(Node):
         self._episode, self._episode_t0 = None, 0
         self.faulted = 0  # records the injected fault changed (or, stopped, never sent)
         self.publications = [Publication(FT_WRENCH.topic)]
+        # over Zenoh only the bytes cross: the dict beside them would be made for nobody
+        self._dicts = getattr(bus, "carries_dicts", True)
         self._bytes = MessageBytes(FT_WRENCH, whole=("counts",)) if MessageBytes.available else None
         if self._bytes is not None:
             slots, floats = self._bytes.slots, self._bytes.floats
@@ -143,8 +145,7 @@ class FtSensorNode(Node):
         return msg["stamp_ns"] - self._episode_t0 >= self.fault_after_ns
 
     def on_contact(self, msg, recv_ns, raw) -> None:
-        # over Zenoh only the bytes cross: the dict beside them would be made for nobody
-        packed = self.sample(msg, message=getattr(self.bus, "carries_dicts", True))
+        packed = self.sample(msg, message=self._dicts)
         if packed is not None:
             self.bus.publish(FT_WRENCH.topic, *packed)
 
