@@ -129,7 +129,8 @@ class Episodes:
 
     def run(self, answers_from, stop_on, max_seconds: float, label: str = "episode", listening=()) -> dict:
         """One episode of cycles (the robot's 'run'); returns the robot's summary.  In
-        lockstep each cycle waits for ``answers_from`` and the sensor; in realtime a cycle closes as soon
+        lockstep each cycle waits for ``answers_from`` and the sensor (while it records:
+        ``services.runtime.cycle.IN_STEP_ONLY``); in realtime a cycle closes as soon
         as they have answered, or at its deadline.  On a terminal a bar shows its simulated
         time and real-time factor."""
         bar = EpisodeProgress(label, max_seconds)

@@ -43,6 +43,12 @@ from services.runtime.roles import PARTICIPANTS as ROLE_OF_PARTICIPANT
 CLOCKS = ("lockstep", "realtime")
 PARTICIPANTS = tuple(ROLE_OF_PARTICIPANT)
 LOCKSTEP_GIVE_UP = 2  # consecutive timed-out cycles before a lockstep episode ends as unanswered
+# the sensor's record of a cycle: a lockstep cycle waits for it to keep the sensor in step
+# with the arm (services.run.episode), not for an answer the arm needs.  One that lets a
+# cycle time out (a sensor stopped, its stream cut, its link fooled by a foreign peer) is not
+# waited for again until it records a cycle, and its silence does not end the episode: what
+# the missing wrench means is the commander's to say (a stale estimate holds the arm)
+IN_STEP_ONLY = ("ft",)
 
 
 @dataclass(frozen=True)
@@ -98,6 +104,7 @@ class CycleEngine:
         self._every = list(plan.answers_from)
         self._most = [w for w in plan.answers_from if w != "phase"]
         self._need = self._most
+        self._unwaited: set = set()  # IN_STEP_ONLY participants that timed out and have not recorded since
 
     # ------------------------------------------------------------- state
 
@@ -142,6 +149,8 @@ class CycleEngine:
                 self.missed_answers += 1
                 if not quiescent:
                     silent = [w for w in self._needed() if not self.p.answered([w], self._open_seq)]
+            if silent or self._unwaited:
+                silent = self._keep_in_step(silent)
             self._timeouts = self._timeouts + 1 if silent else 0
             self.p.sections.add("wait", now - self._opened_at)
             self._close(self.plan.stop_on)
@@ -154,6 +163,17 @@ class CycleEngine:
         self._open()
         self._opened_at = self.clock.now_ns()
         return self._opened_at + self.answer_timeout
+
+    def _keep_in_step(self, silent: list) -> list:
+        """``IN_STEP_ONLY``: one silent at this timeout is no longer waited for, one that recorded
+        this cycle is waited for again.  The participants whose silence counts."""
+        back = {w for w in self._unwaited if self.p.answered([w], self._open_seq)}
+        gone = {w for w in silent if w in IN_STEP_ONLY}
+        if back or gone:
+            self._unwaited = (self._unwaited - back) | gone
+            self._every = [w for w in self.plan.answers_from if w not in self._unwaited]
+            self._most = [w for w in self._every if w != "phase"]
+        return [w for w in silent if w not in IN_STEP_ONLY]
 
     def _tick_realtime(self, now: int) -> int | None:
         if self._deadline is None:

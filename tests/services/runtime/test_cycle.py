@@ -73,20 +73,51 @@ def test_lockstep_counts_a_missed_answer_at_the_timeout_or_at_once_when_nothing_
 def test_lockstep_ends_the_episode_when_a_participant_is_silent_twice_in_a_row():
     clock = FakeClock()
     arm = Arm(clock)
-    e = engine(arm, clock, "lockstep", answers_from=("command", "ft"))
+    e = engine(arm, clock, "lockstep", answers_from=("teacher", "ft"))
     e.tick(0)
     for seq in range(1, 4):  # both answer the first three cycles
+        arm.answers |= {("teacher", seq), ("ft", seq)}
+        e.tick(clock.t)
+    arm.answers.add(("ft", 4))  # then the teacher goes silent
+    clock.advance(5 * MS)
+    e.tick(clock.t)
+    assert not e.done and e.missed_answers == 1  # one timeout: a slow cycle, not yet a silent teacher
+    arm.answers.add(("ft", 5))
+    clock.advance(5 * MS)
+    e.tick(clock.t)
+    assert e.done and e.reason == "unanswered:teacher" and e.k == 5 and e.missed_answers == 2
+    assert e.tick(clock.t) is None
+
+
+def test_a_silent_sensor_is_waited_for_once_and_again_when_it_records():
+    """The sensor's record keeps it in step with the arm; a sensor that stops costs one
+    timeout, not the episode (the commander's stale estimate is what holds the arm), and
+    once it records a cycle again its records are waited for again."""
+    clock = FakeClock()
+    arm = Arm(clock)
+    e = engine(arm, clock, "lockstep", answers_from=("command", "ft"))
+    e.tick(0)
+    for seq in range(1, 4):
         arm.answers |= {("command", seq), ("ft", seq)}
         e.tick(clock.t)
-    arm.answers.add(("command", 4))  # then the sensor goes silent
-    clock.advance(5 * MS)
+    for seq in range(4, 9):  # the sensor stops at cycle 4
+        arm.answers.add(("command", seq))
+        before = clock.t
+        e.tick(clock.t)
+        if seq == 4:
+            assert e.k == 3 and e.open_seq == 4  # waited for its record...
+            clock.advance(5 * MS)
+            e.tick(clock.t)
+        assert clock.t - before == (5 * MS if seq == 4 else 0)  # ...once: then the command alone closes a cycle
+    assert not e.done and e.k == 8 and e.missed_answers == 1
+    arm.answers |= {("command", 9), ("ft", 9)}  # it records again
     e.tick(clock.t)
-    assert not e.done and e.missed_answers == 1  # one timeout: a slow cycle, not yet a silent sensor
-    arm.answers.add(("command", 5))
-    clock.advance(5 * MS)
+    arm.answers.add(("command", 10))
     e.tick(clock.t)
-    assert e.done and e.reason == "unanswered:ft" and e.k == 5 and e.missed_answers == 2
-    assert e.tick(clock.t) is None
+    assert e.k == 9 and e.open_seq == 10 and e.awaiting()  # cycle 10 waits for its record again
+    arm.answers.add(("ft", 10))
+    e.tick(clock.t)
+    assert e.k == 10 and not e.done and e.missed_answers == 1
 
 
 def test_lockstep_timeouts_that_are_not_in_a_row_do_not_end_the_episode():
