@@ -165,10 +165,16 @@ class FtSensorNode(Node):
                 else:
                     self._wrench[:] = np.nan
             rec, w = self.ati.sample(self._wrench, msg["stamp_ns"])
+            # the record's bytes too: Zenoh may hand over two contacts at once (a foreign peer's
+            # copy beside the real one), and both would write the one byte buffer
+            packed = self._packed(msg, rec, w, message)
         if self.box is not None:
             # outside the lock: a client's bias request (the box's thread) takes it
             self._stamp = (msg["seq"], msg["stamp_ns"])
             self.box.publish(rec)
+        return packed
+
+    def _packed(self, msg, rec, w, message: bool) -> tuple:
         if not message and self._bytes is not None:
             seq, sent, mb = msg["seq"], self.clock.now_ns(), self._bytes
             # its integers: the header, the sequences, the status (the counts are whole floats)
