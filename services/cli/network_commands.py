@@ -75,17 +75,21 @@ def _ports_chosen(session, listen) -> list[str]:
         for reply in session.get(f"@/{session.info.zid()}/router", timeout=2.0):
             locators += json.loads(reply.ok.payload.to_bytes()).get("locators", [])
     given = {e.rpartition(":")[2] for e in listen}
-    out, taken = [], set()
-    for endpoint in listen:
-        proto, _, address = endpoint.partition("/")
-        host, _, port = address.rpartition(":")
-        if port == "0":
-            for loc in locators:
-                loc_proto, _, loc_address = loc.partition("/")
-                chosen = loc_address.rpartition(":")[2]
-                if loc_proto == proto and chosen not in given and (proto, chosen) not in taken:
-                    taken.add((proto, chosen))
-                    endpoint = f"{proto}/{host}:{chosen}"
+    found = [(proto, host, port) for proto, _, rest in (loc.partition("/") for loc in locators)
+             for host, _, port in [rest.rpartition(":")] if port not in given]
+    out = list(listen)
+    # a port 0 on a host takes the locator on that host; one on every address (0.0.0.0, [::])
+    # or by a name Zenoh resolved (localhost) takes the first of its protocol left over
+    for exact in (True, False):
+        for i, endpoint in enumerate(out):
+            proto, _, address = endpoint.partition("/")
+            host, _, port = address.rpartition(":")
+            if port != "0":
+                continue
+            for loc in found:
+                if loc[0] == proto and (loc[1] == host or not exact):
+                    # one endpoint's port is one locator per address it listens on: taken together
+                    found = [f for f in found if (f[0], f[2]) != (proto, loc[2])]
+                    out[i] = f"{proto}/{host}:{loc[2]}"
                     break
-        out.append(endpoint)
     return out

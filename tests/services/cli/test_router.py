@@ -40,19 +40,22 @@ def test_a_router_told_port_0_says_the_port_it_listens_on_and_a_peer_connects_th
     """--listen PROTO/HOST:0 lets the system choose the port: the first line names the port
     chosen for each endpoint, TCP and UDP, two port 0s two ports (it said ':0', which nobody
     can connect to; then UDP's stayed ':0' and two TCP ones both named every port), and a
-    client session connects to each."""
+    client session connects to each: on three addresses, each its own port (Zenoh lists its
+    locators in an order of its own, not the order they were given in)."""
     import re
 
     import zenoh
 
-    proc = subprocess.Popen([sys.executable, "-m", "services.cli.bench", "router", "--listen", "tcp/127.0.0.1:0",
-                             "--listen", "udp/127.0.0.1:0", "--listen", "tcp/127.0.0.1:0"],
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli.bench", "router", "--listen", "tcp/127.0.0.3:0",
+                             "--listen", "tcp/127.0.0.1:0", "--listen", "udp/127.0.0.1:0", "--listen", "tcp/127.0.0.2:0"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         first = proc.stderr.readline()
-        m = re.search(r"listening on tcp/127\.0\.0\.1:(\d+), udp/127\.0\.0\.1:(\d+), tcp/127\.0\.0\.1:(\d+);", first)
-        assert m and all(int(p) > 0 for p in m.groups()) and m.group(1) != m.group(3), first
-        for endpoint in (f"tcp/127.0.0.1:{m.group(1)}", f"udp/127.0.0.1:{m.group(2)}", f"tcp/127.0.0.1:{m.group(3)}"):
+        m = re.search(r"listening on tcp/127\.0\.0\.3:(\d+), tcp/127\.0\.0\.1:(\d+), udp/127\.0\.0\.1:(\d+), "
+                      r"tcp/127\.0\.0\.2:(\d+);", first)
+        assert m and all(int(p) > 0 for p in m.groups()) and len({m[1], m[2], m[4]}) == 3, first
+        for endpoint in (f"tcp/127.0.0.3:{m[1]}", f"tcp/127.0.0.1:{m[2]}", f"udp/127.0.0.1:{m[3]}",
+                         f"tcp/127.0.0.2:{m[4]}"):
             conf = zenoh.Config()
             conf.insert_json5("mode", '"client"')
             conf.insert_json5("connect/endpoints", f'["{endpoint}"]')
