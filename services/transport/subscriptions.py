@@ -12,8 +12,8 @@ from dataclasses import dataclass, field
 import zenoh
 
 from services.runtime import topics
-from services.runtime.messages import (BY_TOPIC, ESTIMATOR_STRIDE, STRIDES, MessageError, MessageType,
-                                      estimator_instant)
+from services.runtime.messages import (BY_TOPIC, ESTIMATOR_STRIDE, ROBOT_CONTACT, ROBOT_STATE, STRIDES, MessageError,
+                                      MessageType, estimator_instant)
 from services.runtime.timing import FRESH, STALE, Histogram, SequenceTracker, on_the_clock
 
 # the wildcard subscription (the recorder's) takes what has arrived every BATCH_S, from
@@ -25,6 +25,12 @@ BATCH_CAPACITY = 50_000
 # copy comes between new ones, the real stream behind a forged far-ahead seq does not
 # (50 cycles: FRI command mode drops, and comes back, rather than the link going silent)
 RESYNC_AFTER = 50
+# the robot's measurements: one every cycle of the run, so their seq never jumps.  A receiver
+# of one takes a jump as the stream only once the next message continues it, and a newest
+# that nothing continued as a forgery once the stream shows up far below it
+# (``_measurement_judged``): one robot/state forged far ahead once ended a lockstep run
+# ("service teacher stopped answering"; bench/replay_duplicates.py --forge-measurements)
+CONTIGUOUS = (ROBOT_STATE.topic, ROBOT_CONTACT.topic)
 
 
 def now_ns() -> int:
@@ -43,7 +49,8 @@ class LinkCounters:
     them as its stream again (the newest had been forged far ahead); ``off_clock``:
     messages whose publish stamp cannot be on this clock (``on_the_clock``), counted
     instead of their "latency"; ``ahead``: messages past the link's ``horizon`` (a seq
-    no genuine one can have yet), dropped."""
+    no genuine one can have yet) or, on a ``CONTIGUOUS`` stream, far past its newest with
+    nothing continuing them yet, dropped."""
 
     received: int = 0
     bad: int = 0
@@ -54,6 +61,9 @@ class LinkCounters:
     ahead: int = 0
     off_clock: int = 0
     last_error: str = ""
+    jump: int | None = None  # a contiguous stream's seq far past the newest, not yet continued
+    continued: bool = False  # a contiguous stream's newest was followed by the next
+    subscribed: bool = True  # (re)subscribed since the last message: a jump is the time it was not
     latency: Histogram = field(default_factory=Histogram)
     sequence: SequenceTracker = field(default_factory=SequenceTracker)
 
@@ -70,10 +80,40 @@ class LinkCounters:
                 "duplicates": seq["duplicates"]}
 
 
-def _judged_delivery(counters: LinkCounters, message_type: MessageType | None, on_message, horizon=None):
+def _measurement_judged(counters: LinkCounters, seq: int) -> bool:
+    """A ``CONTIGUOUS`` stream's message before its sequence is judged: False to drop it (a
+    jump far past the newest, counted ``ahead`` until the next message continues from it);
+    the newest is dropped for ``seq`` when nothing ever continued it and ``seq`` is far
+    below it (a forged first message; the link resynchronises at once)."""
+    tracker = counters.sequence
+    newest, reach = tracker.highest, tracker.max_gap * tracker.stride
+    if counters.subscribed:
+        # the first since the link was (re)declared (the teacher's, episode by episode): a jump
+        # is the cycles it did not listen to; a forger's first is left behind once the stream comes
+        counters.subscribed, counters.continued, counters.jump = False, False, None
+        return True
+    if newest is None or abs(seq - newest) <= reach:
+        counters.continued = counters.continued or (newest is not None and newest < seq)
+        return True
+    if seq > newest:
+        held, counters.jump = counters.jump, seq
+        if held is not None and 0 < seq - held <= reach:
+            counters.jump, counters.continued = None, True  # the stream went on from there
+            return True
+        counters.ahead += 1
+        return False
+    if not counters.continued:
+        tracker.resync(seq)  # so that seq is the newest: judged FRESH below
+        counters.resyncs += 1
+    return True
+
+
+def _judged_delivery(counters: LinkCounters, message_type: MessageType | None, on_message, horizon=None,
+                     contiguous: bool = False):
     """``deliver(raw, recv)``: decoded with ``message_type`` (None: not decoded), judged by its
-    ``seq`` (duplicates, replays and stale ones dropped and counted), then handed on; a bad
-    message is counted in ``counters``, never raised."""
+    ``seq`` (duplicates, replays and stale ones dropped and counted; ``contiguous``: a stream
+    whose seq never jumps, ``_measurement_judged``), then handed on; a bad message is counted
+    in ``counters``, never raised."""
 
     def deliver(raw: bytes, recv: int) -> None:
         counters.received += 1
@@ -97,6 +137,9 @@ def _judged_delivery(counters: LinkCounters, message_type: MessageType | None, o
                 # past anything the publisher's counterpart has sent: acting on it, or letting
                 # it set the newest, is what a forger wants
                 counters.ahead += 1
+                counters.dropped += 1
+                return
+            if contiguous and not _measurement_judged(counters, msg["seq"]):
                 counters.dropped += 1
                 return
             verdict = counters.sequence.add(msg["seq"])
@@ -200,8 +243,10 @@ def subscribe(session, run_id: str, topic: str, on_message, links: dict, profile
     message_type: MessageType | None = BY_TOPIC.get(topic)
     stride = ESTIMATOR_STRIDE if every_tenth else STRIDES.get(topic, 1)
     counters = links.setdefault(topic, LinkCounters(sequence=SequenceTracker(stride=stride)))
+    counters.subscribed = True
 
-    deliver = _judged_delivery(counters, message_type if decode else None, on_message, horizon)
+    deliver = _judged_delivery(counters, message_type if decode else None, on_message, horizon,
+                               contiguous=topic in CONTIGUOUS)
     key = topics.key(run_id, topic)
     if latest:
         return _subscribe_newest(session, key, topic, profile.wrap(deliver), counters, every_tenth=every_tenth,
