@@ -43,11 +43,13 @@ from services.runtime.roles import PARTICIPANTS as ROLE_OF_PARTICIPANT
 CLOCKS = ("lockstep", "realtime")
 PARTICIPANTS = tuple(ROLE_OF_PARTICIPANT)
 LOCKSTEP_GIVE_UP = 2  # consecutive timed-out cycles before a lockstep episode ends as unanswered
-# the sensor's record of a cycle: a lockstep cycle waits for it to keep the sensor in step
-# with the arm (services.run.episode), not for an answer the arm needs.  One that lets a
-# cycle time out (a sensor stopped, its stream cut, its link fooled by a foreign peer) is not
-# waited for again until it records a cycle, and its silence does not end the episode: what
-# the missing wrench means is the commander's to say (a stale estimate holds the arm)
+# the sensor's record of a cycle: beside the commander's answer, a lockstep cycle waits for it
+# to keep the sensor in step with the arm (services.run.episode), not for an answer the arm
+# needs.  One that lets a cycle time out there (a sensor stopped, its stream cut, its link
+# fooled by a foreign peer) is not waited for again until it records a cycle, and its silence
+# does not end the episode: what the missing wrench means is the commander's to say (a stale
+# estimate holds the arm).  Elsewhere (a demonstration, whose recording is what it is for; a
+# settle) a silent sensor ends the episode as anyone's silence does
 IN_STEP_ONLY = ("ft",)
 
 
@@ -105,6 +107,7 @@ class CycleEngine:
         self._most = [w for w in plan.answers_from if w != "phase"]
         self._need = self._most
         self._unwaited: set = set()  # IN_STEP_ONLY participants that timed out and have not recorded since
+        self._in_step_only = IN_STEP_ONLY if "command" in plan.answers_from else ()
 
     # ------------------------------------------------------------- state
 
@@ -165,15 +168,15 @@ class CycleEngine:
         return self._opened_at + self.answer_timeout
 
     def _keep_in_step(self, silent: list) -> list:
-        """``IN_STEP_ONLY``: one silent at this timeout is no longer waited for, one that recorded
-        this cycle is waited for again.  The participants whose silence counts."""
+        """``IN_STEP_ONLY`` (beside the commander): one silent at this timeout is no longer waited
+        for, one that recorded this cycle is waited for again.  The participants whose silence counts."""
         back = {w for w in self._unwaited if self.p.answered([w], self._open_seq)}
-        gone = {w for w in silent if w in IN_STEP_ONLY}
+        gone = {w for w in silent if w in self._in_step_only}
         if back or gone:
             self._unwaited = (self._unwaited - back) | gone
             self._every = [w for w in self.plan.answers_from if w not in self._unwaited]
             self._most = [w for w in self._every if w != "phase"]
-        return [w for w in silent if w not in IN_STEP_ONLY]
+        return [w for w in silent if w not in self._in_step_only]
 
     def _tick_realtime(self, now: int) -> int | None:
         if self._deadline is None:

@@ -70,28 +70,31 @@ def test_lockstep_counts_a_missed_answer_at_the_timeout_or_at_once_when_nothing_
     assert e.missed_answers == 2 and [s for s, _ in arm.closed] == [1, 2]
 
 
-def test_lockstep_ends_the_episode_when_a_participant_is_silent_twice_in_a_row():
+@pytest.mark.parametrize("silent", ["teacher", "ft"])
+def test_lockstep_ends_the_episode_when_a_participant_is_silent_twice_in_a_row(silent):
+    """In a demonstration the sensor's silence ends it too: its recording is what it is for."""
     clock = FakeClock()
     arm = Arm(clock)
+    other = {"teacher": "ft", "ft": "teacher"}[silent]
     e = engine(arm, clock, "lockstep", answers_from=("teacher", "ft"))
     e.tick(0)
     for seq in range(1, 4):  # both answer the first three cycles
         arm.answers |= {("teacher", seq), ("ft", seq)}
         e.tick(clock.t)
-    arm.answers.add(("ft", 4))  # then the teacher goes silent
+    arm.answers.add((other, 4))  # then one goes silent
     clock.advance(5 * MS)
     e.tick(clock.t)
-    assert not e.done and e.missed_answers == 1  # one timeout: a slow cycle, not yet a silent teacher
-    arm.answers.add(("ft", 5))
+    assert not e.done and e.missed_answers == 1  # one timeout: a slow cycle, not yet a silent participant
+    arm.answers.add((other, 5))
     clock.advance(5 * MS)
     e.tick(clock.t)
-    assert e.done and e.reason == "unanswered:teacher" and e.k == 5 and e.missed_answers == 2
+    assert e.done and e.reason == f"unanswered:{silent}" and e.k == 5 and e.missed_answers == 2
     assert e.tick(clock.t) is None
 
 
 def test_a_silent_sensor_is_waited_for_once_and_again_when_it_records():
-    """The sensor's record keeps it in step with the arm; a sensor that stops costs one
-    timeout, not the episode (the commander's stale estimate is what holds the arm), and
+    """Beside the commander, the sensor's record keeps it in step with the arm; a sensor that
+    stops costs one timeout, not the episode (the commander's stale estimate holds the arm), and
     once it records a cycle again its records are waited for again."""
     clock = FakeClock()
     arm = Arm(clock)
