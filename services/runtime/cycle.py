@@ -103,11 +103,10 @@ class CycleEngine:
         self._deadline = None  # realtime: the start of the next cycle
         self._idle_since = None
         self._timeouts = 0  # lockstep: consecutive cycles closed at the answer timeout
-        self._every = list(plan.answers_from)
-        self._most = [w for w in plan.answers_from if w != "phase"]
-        self._need = self._most
         self._unwaited: set = set()  # IN_STEP_ONLY participants that timed out and have not recorded since
         self._in_step_only = IN_STEP_ONLY if "command" in plan.answers_from else ()
+        self._wait_for_all_but(self._unwaited)
+        self._need = self._most
 
     # ------------------------------------------------------------- state
 
@@ -174,9 +173,14 @@ class CycleEngine:
         gone = {w for w in silent if w in self._in_step_only}
         if back or gone:
             self._unwaited = (self._unwaited - back) | gone
-            self._every = [w for w in self.plan.answers_from if w not in self._unwaited]
-            self._most = [w for w in self._every if w != "phase"]
+            self._wait_for_all_but(self._unwaited)
         return [w for w in silent if w not in self._in_step_only]
+
+    def _wait_for_all_but(self, unwaited) -> None:
+        """What a cycle waits for: the plan's answers but ``unwaited``, the estimator's only
+        at its instants (``_open`` picks one of the two)."""
+        self._every = [w for w in self.plan.answers_from if w not in unwaited]
+        self._most = [w for w in self._every if w != "phase"]
 
     def _tick_realtime(self, now: int) -> int | None:
         if self._deadline is None:
