@@ -13,8 +13,13 @@ Beside it, in the same process, the floor ``bench/lockstep_rtf.py`` divides by (
 law and MuJoCo's step with the arm pressed on a plate, ``bench/sim_step.py``).
 
 Prints microseconds per 1 ms cycle for each part, what a cycle within 5x the floor would
-leave for everything else, and the physics of the run against the floor's.  Each timed call
-costs a timer's pair of clock reads, measured and taken off.
+leave for everything else, and the physics of the run against the floor's.  Then the same
+cycle node by node: the time inside each method the fused engine calls a node's work
+through (``services.transport.fused``: the robot's measurement and close, the commander's,
+the sensor's, the estimator's, the recorder's), their kernels included, and the engine's
+own share (the cycle engine, the hand-overs between the nodes): which node's Python a
+compiled cycle would have to take over, and how much of it.  Each timed call costs a
+timer's pair of clock reads, measured and taken off.
 """
 
 from __future__ import annotations
@@ -41,10 +46,23 @@ KERNELS = (
     ("sensing: the tool's wrench, joint torques", "robot_sim.world.physics", "_sensed"),
     ("sensing: the tip's contacts", "robot_sim.world.physics", "_tip_contacts"),
     ("the ATI sample", "robot_sim.ati.sensor", "_sample"),
+    ("the ATI sample and ft/wrench's bytes", "services.nodes.ft_sensor", "_RECORD"),
     ("the KRC's command checks", "robot_sim.krc.packets", "_NUMBERS"),
     ("orjson: every message's JSON", "services.runtime.messages", "_dumps"),
 )
 POLICY = "the commander's policy"
+# (label, module, class, methods): what the fused engine calls a node's per-cycle work through
+NODE_WORK = (
+    ("robot: measure, robot/state", "services.nodes.robot", "RobotNode", ("measure_state",)),
+    ("robot: the truth, robot/contact", "services.nodes.robot", "RobotNode", ("measure_contact",)),
+    ("robot: close (answers, KRC, step, judge)", "services.nodes.robot", "RobotNode", ("apply",)),
+    ("commander: answer, robot/command", "services.nodes.impedance_commander", "ImpedanceCommanderNode",
+     ("take_state", "take_phase", "give_up", "deliver")),
+    ("sensor: the ATI sample, ft/wrench", "services.nodes.ft_sensor", "FtSensorNode", ("sample",)),
+    ("estimator (100 Hz)", "services.nodes.phase_estimator", "PhaseEstimatorNode", ("take_state", "take_wrench")),
+    ("teacher", "services.nodes.teacher", "TeacherNode", ("take_state", "take_contact")),
+    ("recorder: the hand-over", "services.nodes.recorder", "RecorderNode", ("take",)),
+)
 PIPE = "the pipe to the MCAP writer"
 
 
@@ -88,6 +106,10 @@ def install(timers: Timers) -> None:
     policy_kernel._step_entry = lambda: timers.wrap(POLICY, make_policy_kernel())
     send = offload.WriterProcess._send
     offload.WriterProcess._send = timers.wrap(PIPE, send)
+    for label, module, cls_name, methods in NODE_WORK:
+        cls = getattr(importlib.import_module(module), cls_name)
+        for name in methods:
+            setattr(cls, name, timers.wrap(label, getattr(cls, name)))
 
 
 def reproduce_only(n: int, out: Path) -> Path:
@@ -163,6 +185,24 @@ def main():
     print(f"a cycle within 5x the floor: {budget:.1f} us; the parts above take {parts:.1f} of it, "
           f"leaving {budget - parts:.1f} us for the nodes and the engine (now {rest:.1f})")
     print(f"15x real time: {1000 / 15:.1f} us a cycle; leaving {1000 / 15 - parts:.1f} us beyond the parts")
+    by_node(timers, overhead, stepped, cycle_us, floor)
+
+
+def by_node(timers: Timers, overhead: float, stepped: int, cycle_us: float, floor: float) -> None:
+    """The cycle node by node, each with its kernels, and the engine's share (the rest)."""
+    print(f"\n{'the cycle by node (kernels included)':<44} {'calls/cycle':>11} {'us/call':>8} {'us/cycle':>9} "
+          f"{'x floor':>8}")
+    total = 0.0
+    for label, *_ in NODE_WORK:
+        calls = timers.calls.get(label, 0)
+        if not calls:
+            continue  # (the teacher in a reproduction)
+        ns = timers.ns[label] - overhead * calls
+        per_cycle = ns / stepped / 1e3
+        total += per_cycle
+        print(f"{label:<44} {calls / stepped:11.2f} {ns / calls / 1e3:8.2f} {per_cycle:9.2f} {per_cycle / floor:8.2f}")
+    rest = cycle_us - total
+    print(f"{'the engines: cycle, hand-overs, timing':<44} {'':11} {'':8} {rest:9.2f} {rest / floor:8.2f}")
 
 
 if __name__ == "__main__":

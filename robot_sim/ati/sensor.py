@@ -316,11 +316,12 @@ def _sample_at(x_at, const_at, state_at, tare_at, noise_at, ni, drift_at, di, dr
     advanced), raw = x + bias + drift + noise * std, saturation, tare, quantisation; the
     same operations in the same order as the numpy version had.  ``tare`` = [samples
     still to average, samples in the average].  Writes ``out`` = [counts (whole numbers,
-    as float64); the wrench, counts / counts-per-unit] and returns the status word, or
-    -1 for a non-finite ``x`` (then only the drift has stepped: the noise is not drawn).
+    as float64); the wrench, counts / counts-per-unit; the counts again, kept as the last
+    finite sample's] and returns the status word, or -1 for a non-finite ``x`` (then only
+    the drift has stepped: the noise is not drawn, the last counts stay).
     By address (kernel_plumbing.addresses): with arrays it cost more than the sample."""
     const, state, tare = carray_at(const_at, (8, 6)), carray_at(state_at, (3, 6)), carray_at(tare_at, (2,))
-    x, out = carray_at(x_at, (6,)), carray_at(out_at, (2, 6))
+    x, out = carray_at(x_at, (6,)), carray_at(out_at, (3, 6))
     if drift_scale > 0.0:
         drift_noise = carray_at(drift_at, (di + 1, 6))
         for i in range(6):
@@ -366,10 +367,14 @@ def _sample_at(x_at, const_at, state_at, tare_at, noise_at, ni, drift_at, di, dr
         out[0, i] = v
         # int32 counts to float64 and divided: what counts / counts_per_unit gives
         out[1, i] = v / const[_CPU, i]
+        out[2, i] = v
     return status
 
 
 _sample = entry(_sample_at, f"{addresses(8)}, float64, boolean, int64")
+# the sample kernel and its signature, for a kernel that does more with the sample in the
+# same call (``AtiSensor.sample_through``)
+SAMPLE_AT, SAMPLE_SIGNATURE = _sample_at, f"{addresses(8)}, float64, boolean, int64"
 
 
 class AtiSensor(HoldsAddresses):
@@ -423,8 +428,9 @@ class AtiSensor(HoldsAddresses):
         self._drift, self._tare, self._tare_acc = self._state  # views
         # [samples still to average, samples in the average], whole numbers in float64 for the kernel
         self._tare_state = np.zeros(2)
-        self._last_counts = np.zeros(6, dtype=np.int32)
-        self._out = np.zeros((2, 6))  # a sample's counts and wrench
+        # a sample's counts and wrench, and the last finite sample's counts (repeated by a
+        # non-finite one), all whole numbers in float64 where counts
+        self._out = np.zeros((3, 6))
         self._const_at, self._state_at = address(self._const), address(self._state)
         self._tare_at, self._out_at = address(self._tare_state), address(self._out)
         # normals drawn a block at a time (exactly the numbers 6 per sample would give)
@@ -484,6 +490,36 @@ class AtiSensor(HoldsAddresses):
     def sample(self, true_wrench: np.ndarray, t_ns: int) -> tuple[RdtRecord, np.ndarray]:
         """``read``, with the record's wrench in N / Nm (``RdtRecord.wrench``'s values; may
         be a view of a buffer the next call overwrites: copy it to keep it)."""
+        rdt, ft, args = self._begin(true_wrench, t_ns)
+        status = _sample(*args)
+        if status >= 0:
+            self._noise_i += 1
+        return self.record(rdt, ft, status)
+
+    def sample_through(self, kernel, true_wrench: np.ndarray, t_ns: int, *extra) -> tuple[int, int, int]:
+        """``sample``'s numbers made by ``kernel``, which takes ``_sample_at``'s arguments, the
+        record's rdt and ft sequences and ``extra``, calls ``_sample_at`` first and returns
+        -1 when it did (nothing sampled: a non-finite input), else what it makes of the
+        sample (a message's bytes: services.nodes.ft_sensor).  Returns (rdt_sequence,
+        ft_sequence, what the kernel returned); ``record`` makes the record after it."""
+        rdt, ft, args = self._begin(true_wrench, t_ns)
+        result = kernel(*args, rdt, ft, *extra)
+        if result != -1:
+            self._noise_i += 1
+        return rdt, ft, result
+
+    def record(self, rdt: int, ft: int, status: int) -> tuple[RdtRecord, np.ndarray]:
+        """The record of the sample just taken, whose ``_sample_at`` status was ``status``
+        (-1: a non-finite input, the last counts repeated), and its wrench."""
+        out = self._out
+        if status < 0:
+            return RdtRecord(rdt, ft, _STATUS_NONFINITE, out[2].astype(np.int32)), out[2] / self._cpu
+        return RdtRecord.trusted(rdt, ft, int(status), out[0].astype(np.int32)), out[1]
+
+    def _begin(self, true_wrench: np.ndarray, t_ns: int) -> tuple[int, int, tuple]:
+        """A sample's bookkeeping before its kernel: the true wrench where the kernel reads it,
+        the clock advanced, the record's sequences, this sample's rows of drift and noise
+        (drawn a block at a time).  Returns (rdt_sequence, ft_sequence, ``_sample_at``'s arguments)."""
         x = self._x
         if np.shape(true_wrench) != (6,):
             raise ValueError(f"true_wrench must have shape (6,), got {np.shape(true_wrench)}")
@@ -507,15 +543,8 @@ class AtiSensor(HoldsAddresses):
             self._noise_block = self._noise_rng.standard_normal((_BLOCK, 6))
             self._noise_at = address(self._noise_block)
             ni = self._noise_i = 0
-        status = _sample(self._x_at, self._const_at, self._state_at, self._tare_at, self._noise_at, ni,
+        return rdt, ft, (self._x_at, self._const_at, self._state_at, self._tare_at, self._noise_at, ni,
                          self._drift_at, di, drift_scale, self._clip, self._out_at)
-        if status < 0:
-            return RdtRecord(rdt, ft, _STATUS_NONFINITE, self._last_counts.copy()), self._last_counts / self._cpu
-        self._noise_i = ni + 1
-        out = self._out
-        counts = out[0].astype(np.int32)
-        self._last_counts[:] = counts
-        return RdtRecord.trusted(rdt, ft, int(status), counts), out[1]
 
     def _advance_time(self, t_ns: int) -> float:
         """Advance the sensor's clock to ``t_ns``; the drift step's sqrt(dt) (0: no drift step)."""

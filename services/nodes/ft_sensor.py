@@ -34,12 +34,14 @@ import threading
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
-from robot_sim.ati.sensor import AtiConfig, AtiSensor
+from kernel_plumbing.addresses import JIT, addresses, carray_at, entry, int64_array_at
+from robot_sim.ati.sensor import SAMPLE_AT, SAMPLE_SIGNATURE, AtiConfig, AtiSensor
 from robot_sim.wire.netft import CALIBRATION_PORT, HTTP_PORT, RDT_PORT, RDT_RECORD
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import check_seed, option
-from services.runtime.message_bytes import MessageBytes
+from services.runtime.message_bytes import WRITE_AT, MessageBytes
 from services.runtime.messages import FT_WRENCH, NETFT_RDT, ROBOT_CONTACT
 
 SENSOR_FAULTS = ("none", "stop", "saturate", "nan")
@@ -52,6 +54,36 @@ def rdt_fields(data: bytes) -> dict:
     records = [dict(zip(("rdt_sequence", "ft_sequence", "status"), r[:3]), counts=list(r[3:]))
                for r in RDT_RECORD.iter_unpack(data[:len(data) - len(data) % RDT_RECORD.size])]
     return {"bytes": base64.b64encode(data).decode("ascii"), "records": records}
+
+
+# ft/wrench's integers in its MessageBytes, in the message's order (checked where it is made)
+_RECORD_INTS = ("seq", "stamp_ns", "sent_ns", "rdt_sequence", "ft_sequence", "status")
+_STATUS = _RECORD_INTS.index("status")
+
+
+@njit(**JIT)
+def _record_at(x_at, const_at, state_at, tare_at, noise_at, ni, drift_at, di, drift_scale, clip, out_at,
+               rdt, ft, seq, stamp_ns, sent_ns, counts_at, wrench_at,
+               fn, layout_at, n_fields, keys_at, n_keys, ints_at, n_ints, floats_at, n_floats, bytes_at, n_bytes):
+    """One ATI sample and its ``ft/wrench`` bytes in one call (``AtiSensor.sample_through``):
+    the sensor's kernel, then the record's numbers where the message's MessageBytes keeps
+    them (its counts and wrench at ``counts_at`` and ``wrench_at`` of its floats) and the
+    message written.  -1: a non-finite input (nothing sampled); -2: sampled, but the
+    message could not be written (its status in the ints); else the message's length."""
+    status = SAMPLE_AT(x_at, const_at, state_at, tare_at, noise_at, ni, drift_at, di, drift_scale, clip, out_at)
+    if status < 0:
+        return -1
+    ints = int64_array_at(ints_at, n_ints)
+    ints[0], ints[1], ints[2], ints[3], ints[4], ints[5] = seq, stamp_ns, sent_ns, rdt, ft, status
+    floats, out = carray_at(floats_at, (n_floats,)), carray_at(out_at, (3, 6))
+    for i in range(6):
+        floats[counts_at + i] = out[0, i]
+        floats[wrench_at + i] = out[1, i]
+    n = WRITE_AT(fn, layout_at, n_fields, keys_at, n_keys, ints_at, n_ints, floats_at, n_floats, bytes_at, n_bytes)
+    return n if n >= 0 else -2
+
+
+_RECORD = entry(_record_at, f"{SAMPLE_SIGNATURE}, {addresses(18)}") if MessageBytes.available else None
 
 
 @dataclass(frozen=True)
@@ -124,6 +156,10 @@ class FtSensorNode(Node):
             floats[slots["counts_per_force"][1]], floats[slots["counts_per_torque"][1]] = self._cpf, self._cpt
             # where a sample's counts and wrench go, every cycle
             self._counts_at, self._wrench_at = slots["counts"][1], slots["wrench"][1]
+            if [slots[name] for name in _RECORD_INTS] != [("ints", i, 1) for i in range(len(_RECORD_INTS))]:
+                raise RuntimeError(f"ft/wrench's integers are no longer {_RECORD_INTS} in this order: _record_at "
+                                   f"writes them so")
+            self._record_args = (self._counts_at, self._wrench_at, *self._bytes.kernel_args)
         self.box = None
         if config.netft:
             if config.netft_topic:
@@ -164,9 +200,18 @@ class FtSensorNode(Node):
                     self._wrench[:] = SATURATING_LOAD * float(np.max(self.ati_config.ranges))
                 else:
                     self._wrench[:] = np.nan
-            rec, w = self.ati.sample(self._wrench, msg["stamp_ns"])
             # the record's bytes too: Zenoh may hand over two contacts at once (a foreign peer's
             # copy beside the real one), and both would write the one byte buffer
+            if not message and self.box is None and _RECORD is not None and self._bytes is not None:
+                # nobody here needs the record itself: the sample and its bytes in one kernel call
+                seq, stamp, sent = msg["seq"], msg["stamp_ns"], self.clock.now_ns()
+                rdt, ft, n = self.ati.sample_through(_RECORD, self._wrench, stamp, seq, stamp, sent,
+                                                     *self._record_args)
+                if n >= 0:
+                    return self._bytes.written(n), (seq, sent)
+                rec, w = self.ati.record(rdt, ft, -1 if n == -1 else int(self._bytes.ints[_STATUS]))
+            else:
+                rec, w = self.ati.sample(self._wrench, msg["stamp_ns"])
             packed = self._packed(msg, rec, w, message)
         if self.box is not None:
             # outside the lock: a client's bias request (the box's thread) takes it

@@ -65,6 +65,9 @@ def _write_at(fn, layout_at, n_fields, keys_at, n_keys, ints_at, n_ints, floats_
 
 
 _WRITE = entry(_write_at, addresses(11))
+# for a kernel that computes a message's numbers and writes it in the same call: it takes
+# ``MessageBytes.kernel_args`` and returns what ``_write_at`` does
+WRITE_AT = _write_at
 
 
 class MessageBytes:
@@ -119,6 +122,15 @@ class MessageBytes:
         """The message's bytes from the value arrays; None when a float is not finite."""
         n = _WRITE(*self._args)
         return None if n < 0 else self._out[:n].tobytes()
+
+    @property
+    def kernel_args(self) -> tuple:
+        """``WRITE_AT``'s arguments for these arrays; after it, ``written(n)`` is the message."""
+        return self._args
+
+    def written(self, n: int) -> bytes:
+        """The first ``n`` bytes ``WRITE_AT`` wrote."""
+        return self._out[:n].tobytes()
 
     def message(self) -> dict:
         """The dict ``pack`` returns with these bytes (what they decode to)."""

@@ -61,8 +61,10 @@ def test_a_message_with_a_field_it_cannot_write_is_refused_when_made():
 
 
 def test_the_sensor_over_a_bus_of_bytes_alone_publishes_the_bytes_it_publishes_in_memory():
-    """Over Zenoh (a bus that carries no dict) the sensor writes ft/wrench's bytes without
-    the dict; the same seed and clock give the same bytes as in memory, a NaN gauge included."""
+    """Over Zenoh (a bus that carries no dict) the sensor samples and writes ft/wrench's bytes
+    in one kernel call, without the dict; the same seed and clock give the same bytes as in
+    memory: NaN gauges (one, then three in a row), loads past the range, a tare, and more
+    samples than a block of drawn noise."""
     from services.nodes.ft_sensor import FtSensorConfig, FtSensorNode
     from services.runtime.bus import FakeClock
 
@@ -75,17 +77,24 @@ def test_the_sensor_over_a_bus_of_bytes_alone_publishes_the_bytes_it_publishes_i
 
     rng = np.random.default_rng(5)
     contacts = [dict(seq=k, stamp_ns=k * 1_000_000, sent_ns=0, wrench=rng.normal(size=6).tolist(), episode=0)
-                for k in range(1, 40)]
+                for k in range(1, 1300)]
     contacts[20]["wrench"][2] = float("nan")
+    for k in (600, 601, 602):
+        contacts[k]["wrench"][0] = float("nan")
+    for k in range(700, 720):
+        contacts[k]["wrench"][1] = 1e4  # past the Mini45's range: saturated, clipped
     buses = []
     for carries in (True, False):
         bus = Bus(carries)
         node = FtSensorNode(FtSensorConfig(seed=3), bus, FakeClock(7))
-        for msg in contacts:
+        for k, msg in enumerate(contacts):
+            if k == 300:
+                node.tare({"samples": 50})
             node.on_contact(msg, 0, b"")
         buses.append(bus)
     in_memory, bytes_only = buses
-    assert [s[1] for s in in_memory.sent] == [s[1] for s in bytes_only.sent] and len(in_memory.sent) == 39
+    assert [s[1] for s in in_memory.sent] == [s[1] for s in bytes_only.sent] and len(in_memory.sent) == 1299
+    assert FT_WRENCH.decode(bytes_only.sent[710][1])["status"] != 0
     assert all(type(s[2]) is dict for s in in_memory.sent)
     assert all(type(s[2]) is tuple for s in bytes_only.sent)
     # the NaN reached the model, whose record says so in its status bits, the same both ways
