@@ -551,7 +551,7 @@ class RobotCell(HoldsAddresses):
         wrench on the sensor, the external joint torques, the contact force on the tip,
         what it touches."""
         self.sim.sense_at(self._true_wrench_at, self._tau_ext_at)
-        self._contact_force, _, self._touching = self.sim.contacts()
+        self._contact_force, self._touching = self.sim.tip_contacts()
 
     @property
     def tool_wrench(self) -> np.ndarray:

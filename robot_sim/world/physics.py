@@ -170,6 +170,7 @@ def step_at(table_at, nv, arm_dof, hand, step_fn):
 
 # the geom ids of the contacts on the tip a kernel call can report; more go the Python way
 _MAX_TIP_CONTACTS = 64
+_TOUCHED_KEPT = 256  # sets of geoms whose names are kept (a world has a few the tip meets)
 
 _apply_forces = entry(_applied_forces, f"{addresses(6)}, boolean, {addresses(4)}")
 _sensed = entry(_sensed_at, addresses(9))
@@ -211,6 +212,8 @@ class Simulation(HoldsAddresses):
         self._contact_total = np.zeros(3)
         self._tip_others = np.zeros(_MAX_TIP_CONTACTS)
         self._contact_layout: tuple[int, ...] | None = None
+        self._contact_args: tuple | None = None
+        self._touched: dict[bytes, tuple[frozenset, tuple]] = {}  # the kernel's geom ids -> (roles, names)
         self._tau = np.zeros(7)
         self._hand_wrench = np.zeros(6)
         # the per-step arrays, viewed once: each index or slice would make a new array
@@ -352,28 +355,54 @@ class Simulation(HoldsAddresses):
         touched and their names.  One kernel call over MuJoCo's contact array where
         MuJoCo's library and numpy's BLAS can be called from one (``contacts_numpy``
         otherwise: the same numbers)."""
+        touched = self._tip_touches()
+        if touched is None:
+            return self.contacts_numpy()
+        roles, names = touched
+        return self._contact_total.copy(), set(roles), list(names)
+
+    def tip_contacts(self) -> tuple[np.ndarray, list[str]]:
+        """``contacts`` without the roles (the cell's, every step): the force and the names."""
+        touched = self._tip_touches()
+        if touched is None:
+            total, _, names = self.contacts_numpy()
+            return total, names
+        return self._contact_total.copy(), list(touched[1])
+
+    def _tip_touches(self) -> tuple[frozenset, tuple] | None:
+        """The kernel's pass over the contacts: the total force in ``_contact_total``, and the
+        roles and names of the geoms the tip touches (None: no contact, or no kernel, or more
+        than it keeps: ``contacts_numpy``'s to say).  The names of a set of geoms are made
+        once: from one step to the next the tip mostly touches what it touched."""
         n = self.data.ncon
         if n == 0 or _tip_contacts is None:
-            return self.contacts_numpy()
-        layout = self._contact_layout or self._locate_contacts()
-        at = self._at
-        count = _tip_contacts(n, *layout, self._tip_geom, _CONTACT_FORCE, at["model"], at["data"], blas.GEMV,
-                              at["contact6"], at["force3"], at["total"], at["others"], _MAX_TIP_CONTACTS)
+            return None
+        count = _tip_contacts(n, *(self._contact_args or self._locate_contacts()))
         if count > _MAX_TIP_CONTACTS:
-            return self.contacts_numpy()
-        others = self._tip_others[:count].tolist()
-        roles = {self._role_of_geom.get(int(g), "other") for g in others}
-        return self._contact_total.copy(), roles, [self._geom_names[int(g)] for g in others]
+            return None
+        key = self._tip_others[:count].tobytes()
+        touched = self._touched.get(key)
+        if touched is None:
+            others = [int(g) for g in self._tip_others[:count].tolist()]
+            touched = (frozenset(self._role_of_geom.get(g, "other") for g in others),
+                       tuple(self._geom_names[g] for g in others))
+            if len(self._touched) < _TOUCHED_KEPT:
+                self._touched[key] = touched
+        return touched
 
     def _locate_contacts(self) -> tuple[int, ...]:
         """Where the contact array is and where an mjContact keeps the fields the kernel
-        reads, from the bindings' views of the first contact (there must be one)."""
+        reads, from the bindings' views of the first contact (there must be one); with the
+        rest of the kernel's arguments after the contact count, gathered once."""
         c = self.data.contact
         start = c.dist.__array_interface__["data"][0]  # dist: the struct's first field
         self._contact_layout = (start, c.geom1.strides[0], c.geom1.__array_interface__["data"][0] - start,
                                 c.geom2.__array_interface__["data"][0] - start,
                                 c.frame.__array_interface__["data"][0] - start)
-        return self._contact_layout
+        at = self._at
+        self._contact_args = (*self._contact_layout, self._tip_geom, _CONTACT_FORCE, at["model"], at["data"],
+                              blas.GEMV, at["contact6"], at["force3"], at["total"], at["others"], _MAX_TIP_CONTACTS)
+        return self._contact_args
 
     def contacts_numpy(self) -> tuple[np.ndarray, set, list[str]]:
         """``contacts`` through the bindings and numpy, contact by contact."""

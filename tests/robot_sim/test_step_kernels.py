@@ -214,6 +214,11 @@ def test_the_contact_kernel_reads_what_the_python_loop_reads():
             expected_force, expected_roles, expected_names = sim.contacts_numpy()
             assert force.tobytes() == expected_force.tobytes(), (world.name, force, expected_force)
             assert (roles, names) == (expected_roles, expected_names)
+            # the cell's call (no roles), twice: the second takes the names made by the first
+            for _ in range(2):
+                force, names = sim.tip_contacts()
+                assert force.tobytes() == expected_force.tobytes() and names == expected_names
+                names.append("not a geom")  # what a caller does with its list stays its own
             states += 1
         assert states >= 10, f"{world.name}: the tip touched something in {states} of 60 placements"
     assert all(seen.values()), seen
