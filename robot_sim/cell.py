@@ -568,6 +568,12 @@ class RobotCell(HoldsAddresses):
         """Names of the geoms the tip touches now."""
         return list(self._touching)
 
+    def truth_views(self) -> tuple[np.ndarray, np.ndarray, list, np.ndarray, np.ndarray]:
+        """``tool_wrench``, ``contact_force``, ``touching``, ``true_tcp_pose`` and ``true_tcp_twist``
+        as the cell's own buffers, not copies: for a caller that copies them at once (a message's
+        pack, every cycle) and changes none; the next cycle overwrites them."""
+        return self._true_wrench, self._contact_force, self._touching, self._true_pose.reshape(12), self._true_twist
+
     # ------------------------------------------------------------ helpers
 
     def switch_control_mode(self, mode: ControlMode) -> bool:

@@ -306,14 +306,14 @@ class RobotNode(Node):
         """The open cycle's physics' truth, ``robot/contact``."""
         cell, ep, m, now = self.cell, self.ep, self._m, self.clock.now_ns
         t0 = now()
-        wrench, contact, touching = cell.tool_wrench, cell.contact_force, cell.touching
+        # the cell's own buffers: pack copies them into the message (the touching list too)
+        wrench, contact, touching, pose, twist = cell.truth_views()
         true_phase = self.labeler.update(touching)
         ep.measured(m.seq, self._sent, math.hypot(contact[0], contact[1], contact[2]))
         t1 = now()
         packed = ROBOT_CONTACT.pack(
             seq=m.seq, stamp_ns=m.stamp_ns, sent_ns=t1, wrench=wrench, contact_force=contact,
-            touching=touching, true_phase=true_phase, tcp_pose=cell.true_tcp_pose, tcp_twist=cell.true_tcp_twist,
-            episode=self.episode)
+            touching=list(touching), true_phase=true_phase, tcp_pose=pose, tcp_twist=twist, episode=self.episode)
         ep.sections.add("measure", t1 - t0)
         ep.sections.add("encode", now() - t1)
         return packed
