@@ -104,8 +104,9 @@ class Forger:
         self.command = session.declare_publisher(topics.key(run_id, ROBOT_COMMAND.topic))
         self.wrench = session.declare_publisher(topics.key(run_id, FT_WRENCH.topic))
         self.measurements = measurements
-        self.state = session.declare_publisher(topics.key(run_id, ROBOT_STATE.topic))
-        self.contact = session.declare_publisher(topics.key(run_id, ROBOT_CONTACT.topic))
+        if measurements:  # (a declared publisher is a route Zenoh keeps: none the forger does not use)
+            self.state = session.declare_publisher(topics.key(run_id, ROBOT_STATE.topic))
+            self.contact = session.declare_publisher(topics.key(run_id, ROBOT_CONTACT.topic))
         self.pose = np.eye(3, 4).reshape(12)
         self.every_s, self.rounds = every_s, 0
         self._stop = threading.Event()
