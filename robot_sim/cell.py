@@ -420,9 +420,8 @@ class RobotCell(HoldsAddresses):
         return self._true_twist.copy()
 
     def external_wrench_tcp(self) -> np.ndarray:
-        """The KRC's estimate of the external wrench at the tcp, tcp axes,
-        [F; T] (from joint torques: F = (J^T)^+ tau_ext, the torques read with the rest
-        of the state after the last step)."""
+        """The KRC's estimate of the external wrench at the tcp, tcp axes, [F; T] (from joint torques:
+        F = (J^T)^+ tau_ext, the torques read with the rest of the state after the last step)."""
         return self._external_wrench_tcp().copy()
 
     def _external_wrench_tcp(self) -> np.ndarray:
@@ -439,15 +438,13 @@ class RobotCell(HoldsAddresses):
                                       self._JJt, self._Jtau)
 
     def fri_extras(self) -> MeasurementExtras:
-        """What an FRI 1.0 measurement datagram carries beyond the packet, for the cycle
-        just opened (call after ``begin_cycle``), from the one kinematic model at the
-        measured joint positions: the Jacobian in the tcp frame (the frame of
-        ``estExtTcpFT``, KUKA's row order), the joint-space inertia, the gravity torques,
-        the estimated external joint torques, the drives' torques of the last cycle as
-        ``msrJntTrq`` (the joint torque sensors' reading, friction aside), and the
-        commanded poses: in command mode the last applied command's, in monitor mode the
-        measured ones (what a KRC holding its pose reports).  Allocates: for the UDP
-        endpoint (``etar-bench serve``), not the lockstep loop."""
+        """What an FRI 1.0 measurement datagram carries beyond the packet, for the cycle just opened
+        (call after ``begin_cycle``), from the one kinematic model at the measured joint positions:
+        the Jacobian in the tcp frame (the frame of ``estExtTcpFT``, KUKA's row order), the joint-space
+        inertia, the gravity torques, the estimated external joint torques, the drives' torques of the
+        last cycle as ``msrJntTrq`` (the joint torque sensors' reading, friction aside), and the
+        commanded poses: in command mode the last applied command's, in monitor mode the measured ones
+        (what a KRC holding its pose reports).  Allocates: for the UDP endpoint (``etar-bench serve``)."""
         if self._extras_data is None:
             self._extras_data = self.kin.model.createData()
         model, data, q = self.kin.model, self._extras_data, self._q_msr
@@ -472,9 +469,8 @@ class RobotCell(HoldsAddresses):
         return self.fri.receive(command, t_arrival_ns)
 
     def deliver(self, command: CommandPacket, t_sent_ns: int, *, owned: bool = False) -> bool:
-        """A command sent at ``t_sent_ns`` through the link's fault model (loss, delay,
-        corruption; ``faults``), then received; without faults the same as ``receive``
-        (``owned``: see ``FriLink.receive``)."""
+        """A command sent at ``t_sent_ns`` through the link's fault model (loss, delay, corruption;
+        ``faults``), then received; without faults the same as ``receive`` (``owned``: see ``FriLink.receive``)."""
         return self.fri.deliver(command, t_sent_ns, owned=owned)
 
     def end_cycle(self, hand_wrench: np.ndarray | None = None) -> CycleResult:
@@ -547,9 +543,8 @@ class RobotCell(HoldsAddresses):
         return closed
 
     def _sense(self) -> None:
-        """The physics' truth of the current state, read once per step: the tool
-        wrench on the sensor, the external joint torques, the contact force on the tip,
-        what it touches."""
+        """The physics' truth of the current state, read once per step: the tool wrench on the
+        sensor, the external joint torques, the contact force on the tip, what it touches."""
         self.sim.sense_at(self._true_wrench_at, self._tau_ext_at)
         self._contact_force, self._touching = self.sim.tip_contacts()
 
@@ -569,9 +564,8 @@ class RobotCell(HoldsAddresses):
         return list(self._touching)
 
     def truth_views(self) -> tuple[np.ndarray, np.ndarray, list, np.ndarray, np.ndarray]:
-        """``tool_wrench``, ``contact_force``, ``touching``, ``true_tcp_pose`` and ``true_tcp_twist``
-        as the cell's own buffers, not copies: for a caller that copies them at once (a message's
-        pack, every cycle) and changes none; the next cycle overwrites them."""
+        """``tool_wrench``, ``contact_force``, ``touching``, ``true_tcp_pose``, ``true_tcp_twist`` as the cell's
+        own buffers, not copies: for a caller that copies them at once (a message's pack) and changes none."""
         return self._true_wrench, self._contact_force, self._touching, self._true_pose.reshape(12), self._true_twist
 
     # ------------------------------------------------------------ helpers
