@@ -152,10 +152,16 @@ def test_a_sweep_on_a_dask_cluster_interrupted_cancels_what_it_had_not_finished_
         support.wait_until(lambda: any((out / "runs").glob("run*/recordings/*.mcap")), 120, "a run records")
         os.kill(os.getpid(), signal.SIGINT)
 
+    # this process's SIGINT as a terminal's: a shell that started the tests in the background without job
+    # control left it ignored (every process under it inherits that), and the sweep would run to its end
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
     threading.Thread(target=interrupt_once_a_run_records, daemon=True).start()
-    with pytest.raises(SweepInterrupted) as stop:
-        sweep(reproduction_scenario(), [Parameter.parse("reproduce.start_perturbation=0.005,0.01,0.015,0.02")],
-              repeats=1, out=str(out), record="summary", workers=2, cluster=dask_cluster, say=said.append)
+    try:
+        with pytest.raises(SweepInterrupted) as stop:
+            sweep(reproduction_scenario(), [Parameter.parse("reproduce.start_perturbation=0.005,0.01,0.015,0.02")],
+                  repeats=1, out=str(out), record="summary", workers=2, cluster=dask_cluster, say=said.append)
+    finally:
+        signal.signal(signal.SIGINT, before)
     summary = json.loads((out / "sweep.json").read_text())
     assert summary == stop.value.summary and summary["incomplete"] == "interrupted (SIGINT)"
     cancelled = summary["cancelled_on_cluster"]
