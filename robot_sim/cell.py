@@ -29,8 +29,9 @@ from robot_sim.ati.rdt import RdtRecord
 from robot_sim.ati.sensor import AtiConfig, AtiSensor
 from robot_sim.krc.faults import LinkFaults
 from robot_sim.krc.link import ClosedCycle, CycleOutcome, FriConfig, FriLink
-from robot_sim.krc.packets import CommandPacket, ControlMode, FriState, MeasurementExtras, MeasurementPacket, fri_order
-from robot_sim.krc.law import LAW_DONE, ImpedanceCommand, KrcConfig, KrcController, first_command_jump, law_cycle_at
+from robot_sim.krc.packets import CommandPacket, ControlMode, FriState, MeasurementExtras, MeasurementPacket
+from robot_sim.krc.law import (LAW_DONE, ImpedanceCommand, KrcConfig, KrcController, first_command_jump, law_cycle_at,
+                               measurement_extras)
 from robot_sim.krc.law_arithmetic import pose_at
 from robot_sim.world.physics import MJ_STEP, PhysicsError, Simulation, step_at
 from robot_sim.world.tasks import TIMESTEP, WorldSpec
@@ -323,7 +324,9 @@ class RobotCell(HoldsAddresses):
         self._joint_noise_i = 0
         self._true_wrench = np.zeros(6)
         self._true_wrench_at, self._tau_ext_at = address(self._true_wrench), address(self._tau_ext)
-        self._wrench_scratch = ExternalWrenchScratch(self._tau_ext)
+        self._wrench_scratch = ExternalWrenchScratch(self._tau_ext)  # the measurement's estimate
+        self._probe_scratch = None  # external_wrench_tcp's
+        self._measured = False  # a cycle has been measured: the KRC's law has a force estimate
         self._noise_block_at = 0
         self._last_measurement: MeasurementPacket | None = None
         self._extras_data = None  # Pinocchio data of its own for fri_extras
@@ -361,6 +364,23 @@ class RobotCell(HoldsAddresses):
     # --------------------------------------------------------------- cycle
 
     def begin_cycle(self) -> MeasurementPacket:
+        self._measure_numbers()
+        m = self.fri.measurement(self.t_ns, *self.measured_views())
+        self._last_measurement = m
+        return m
+
+    def measure(self) -> int:
+        """``begin_cycle`` without its packet (made only for a lab remote's checks, which judge
+        its first command against it): the seq; the numbers are ``measured_views``', the rest
+        of the packet ``FriLink.sent_header``'s."""
+        if self.remote_checks:
+            return self.begin_cycle().seq
+        self._measure_numbers()
+        self._last_measurement = None
+        return self.fri.open_cycle(self.t_ns)
+
+    def _measure_numbers(self) -> None:
+        """What the KRC measures, into the cell's buffers (``measured_views``, the tcp's true motion)."""
         sim, kin = self.sim, self.kin
         if self._compiled is None:
             sim.joint_positions(self._q)
@@ -373,26 +393,27 @@ class RobotCell(HoldsAddresses):
             self._noise_block_at = address(self._joint_noise_block)
             i = 0
         self._joint_noise_i = i + 1
+        self._measured = True
         if self._compiled is not None:
-            self._compiled.measure(self._noise_block_at + i * 56)  # this cycle's row of 7 float64
-            wrench, cart = self._wrench_scratch.out, self._cart_pos
+            return self._compiled.measure(self._noise_block_at + i * 56)  # this cycle's row of 7 float64
+        np.multiply(self._joint_noise_block[i], self.joint_noise, out=self._q_msr)
+        self._q_msr += self._q
+        self._true_motion()
+        if _EXTERNAL_WRENCH is not None:
+            kin.update_with_jacobian(self._q_msr, "tcp", self._wrench_scratch.jacobian)
+            self._wrench_scratch.solve(_EXTERNAL_WRENCH)
         else:
-            np.multiply(self._joint_noise_block[i], self.joint_noise, out=self._q_msr)
-            self._q_msr += self._q
-            self._true_motion()
-            if _EXTERNAL_WRENCH is not None:
-                kin.update_with_jacobian(self._q_msr, "tcp", self._wrench_scratch.jacobian)
-                wrench = self._wrench_scratch.solve(_EXTERNAL_WRENCH)
-            else:
-                kin.update(self._q_msr)
-                wrench = self._external_wrench_tcp()
-            R, p = kin.frame_views("tcp")
-            cart = self._cart_pos
-            cart[:, :3] = R
-            cart[:, 3] = p
-        m = self.fri.measurement(self.t_ns, self._q_msr, cart.reshape(12), standard_to_fri(wrench))
-        self._last_measurement = m
-        return m
+            kin.update(self._q_msr)
+            self._wrench_scratch.out[:] = _external_wrench_numpy(kin.jacobian("tcp", pin.ReferenceFrame.LOCAL),
+                                                                 self._tau_ext, self._JJt, self._Jtau)
+        R, p = kin.frame_views("tcp")
+        self._cart_pos[:, :3] = R
+        self._cart_pos[:, 3] = p
+
+    def measured_views(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The open cycle's measured joint positions (7,), tcp pose (12,) and external wrench (6,)
+        as FRI's packet has them (torques Tz Ty Tx): the first two the cell's buffers, to copy at once."""
+        return self._q_msr, self._cart_pos.reshape(12), standard_to_fri(self._wrench_scratch.out)
 
     def _true_motion(self) -> None:
         """The tcp's true pose and velocity at the cycle's start, from the true joint state
@@ -421,49 +442,27 @@ class RobotCell(HoldsAddresses):
 
     def external_wrench_tcp(self) -> np.ndarray:
         """The KRC's estimate of the external wrench at the tcp, tcp axes, [F; T] (from joint torques:
-        F = (J^T)^+ tau_ext, the torques read with the rest of the state after the last step)."""
-        return self._external_wrench_tcp().copy()
-
-    def _external_wrench_tcp(self) -> np.ndarray:
-        """``external_wrench_tcp``, in a buffer the next call overwrites."""
+        F = (J^T)^+ tau_ext, the torques read with the rest of the state after the last step), from
+        the kinematics as they are now; a copy, made in buffers of its own (not the measurement's)."""
         kin = self.kin
         # least squares J^T F = tau through the normal equations: J has full row
         # rank away from singularities, and this is 6x cheaper than lstsq
-        if _EXTERNAL_WRENCH is not None:
-            scratch = self._wrench_scratch
-            np.copyto(scratch.jacobian, pin.getFrameJacobian(kin.model, kin.data, kin.frame_ids["tcp"],
-                                                             pin.ReferenceFrame.LOCAL))
-            return scratch.solve(_EXTERNAL_WRENCH)
-        return _external_wrench_numpy(kin.jacobian("tcp", pin.ReferenceFrame.LOCAL), self._tau_ext,
-                                      self._JJt, self._Jtau)
+        if _EXTERNAL_WRENCH is None:
+            return _external_wrench_numpy(kin.jacobian("tcp", pin.ReferenceFrame.LOCAL), self._tau_ext,
+                                          self._JJt, self._Jtau).copy()
+        scratch = self._probe_scratch = self._probe_scratch or ExternalWrenchScratch(self._tau_ext)
+        np.copyto(scratch.jacobian, pin.getFrameJacobian(kin.model, kin.data, kin.frame_ids["tcp"],
+                                                         pin.ReferenceFrame.LOCAL))
+        return scratch.solve(_EXTERNAL_WRENCH).copy()
 
     def fri_extras(self) -> MeasurementExtras:
         """What an FRI 1.0 measurement datagram carries beyond the packet, for the cycle just opened
-        (call after ``begin_cycle``), from the one kinematic model at the measured joint positions:
-        the Jacobian in the tcp frame (the frame of ``estExtTcpFT``, KUKA's row order), the joint-space
-        inertia, the gravity torques, the estimated external joint torques, the drives' torques of the
-        last cycle as ``msrJntTrq`` (the joint torque sensors' reading, friction aside), and the
-        commanded poses: in command mode the last applied command's, in monitor mode the measured ones
-        (what a KRC holding its pose reports).  Allocates: for the UDP endpoint (``etar-bench serve``)."""
+        (call after ``begin_cycle``): ``robot_sim.krc.law.measurement_extras`` at the measured joint
+        positions, with a Pinocchio data of its own.  Allocates: for the UDP endpoint."""
         if self._extras_data is None:
             self._extras_data = self.kin.model.createData()
-        model, data, q = self.kin.model, self._extras_data, self._q_msr
-        pin.computeFrameJacobian(model, data, q, self.kin.frame_ids["tcp"], pin.ReferenceFrame.LOCAL)
-        jacobian = pin.getFrameJacobian(model, data, self.kin.frame_ids["tcp"], pin.ReferenceFrame.LOCAL)
-        mass = pin.crba(model, data, q)
-        mass = np.triu(mass) + np.triu(mass, 1).T
-        gravity = pin.computeGeneralizedGravity(model, data, q)
-        applied = self.fri.last_applied
-        cmd_cart = cmd_jnt = None
-        if applied is not None:
-            cmd_cart = np.array(applied.cart_pos)
-            if applied.jnt_pos is not None and self.krc.mode != ControlMode.CART_IMP:
-                cmd_jnt = np.array(applied.jnt_pos)
-        return MeasurementExtras(
-            cmd_jnt_pos=cmd_jnt, cmd_cart_pos=cmd_cart if self.krc.mode == ControlMode.CART_IMP else None,
-            msr_jnt_trq=self.krc.last_tau.copy(), est_ext_jnt_trq=self._tau_ext.copy(),
-            jacobian=fri_order(jacobian), mass_matrix=mass, gravity=gravity.copy(),
-            miss_counter=self.fri.statistics().missed, error=int(self.krc.safety), sample_time_s=self.cycle_ns * 1e-9)
+        return measurement_extras(self.kin, self._extras_data, self._q_msr, self.krc, self.fri, self._tau_ext,
+                                  self.cycle_ns)
 
     def receive(self, command: CommandPacket, t_arrival_ns: int) -> bool:
         return self.fri.receive(command, t_arrival_ns)
@@ -499,9 +498,7 @@ class RobotCell(HoldsAddresses):
                 self.krc.set_joint_impedance(cmd.jnt_pos, cmd.jnt_stiffness, cmd.jnt_damping, cmd.add_jnt_trq)
             impedance = ImpedanceCommand(cmd.cart_pos, cmd.cart_stiffness, cmd.cart_damping,
                                          fri_to_standard(cmd.add_tcp_ft))
-        force_estimate = None
-        if self._last_measurement is not None:
-            force_estimate = fri_to_standard(self._last_measurement.est_ext_tcp_ft)[:3]
+        force_estimate = self._wrench_scratch.out[:3].copy() if self._measured else None
         if self._compiled is not None and not self.remote_checks and self.krc.mode != ControlMode.JNT_IMP:
             self._compiled.physics(impedance, force_estimate, hand_wrench)
         else:
@@ -534,10 +531,9 @@ class RobotCell(HoldsAddresses):
                 self._first_commands = 2  # a command-mode session begins (end_cycle)
             numbers = fri.applied_numbers
             krc.load_numbers(numbers[0, :12], numbers[1, :6], numbers[2, :6], numbers[3, :6][FRI_FT_ORDER])
-        m = self._last_measurement
-        if m is not None:
-            krc.load(None, m.est_ext_tcp_ft[:3])  # FRI's order begins Fx Fy Fz, as the law's does
-        self._compiled.step(not closed.hold, m is not None, hand_wrench)
+        if self._measured:
+            krc.load(None, self._wrench_scratch.out[:3])
+        self._compiled.step(not closed.hold, self._measured, hand_wrench)
         self.cycle += 1
         self._sense()
         return closed

@@ -41,7 +41,7 @@ import pinocchio as pin
 from numba import njit
 
 from robot_sim.cycle import FRI_CYCLE_NS
-from robot_sim.krc.packets import CommandPacket, ControlMode, MeasurementPacket
+from robot_sim.krc.packets import CommandPacket, ControlMode, MeasurementExtras, MeasurementPacket, fri_order
 from kernel_plumbing.addresses import (JIT, HoldsAddresses, address, addresses, carray_at, copy_at, entry,
                                        int64_address, int64_array_at)
 from robot_sim.arm.kinematics import COMPUTE_ALL_TERMS, ArmKinematics, call_compute_all_terms
@@ -473,3 +473,32 @@ def first_command_jump(krc: KrcController, cmd: CommandPacket, m: MeasurementPac
             return (f"first command's joint {j + 1} {np.rad2deg(step[j]):.1f} deg from the measured one "
                     f"(limit {np.rad2deg(limits.first_command_max_jump_rad):.1f} deg)")
     return ""
+
+
+def measurement_extras(kin: ArmKinematics, data, q_msr: np.ndarray, krc: KrcController, link, tau_ext: np.ndarray,
+                       cycle_ns: int) -> MeasurementExtras:
+    """What an FRI 1.0 measurement datagram carries beyond the packet, from the one kinematic
+    model at the measured joint positions ``q_msr`` (Pinocchio's ``data`` a scratch of the
+    caller's): the Jacobian in the tcp frame (the frame of ``estExtTcpFT``, KUKA's row order),
+    the joint-space inertia, the gravity torques, the estimated external joint torques
+    ``tau_ext``, the drives' torques of the last cycle as ``msrJntTrq`` (the joint torque
+    sensors' reading, friction aside), and the commanded poses: in command mode the last
+    command the FRI ``link`` applied, in monitor mode the measured ones (what a KRC holding
+    its pose reports)."""
+    model, tcp = kin.model, kin.frame_ids["tcp"]
+    pin.computeFrameJacobian(model, data, q_msr, tcp, pin.ReferenceFrame.LOCAL)
+    jacobian = pin.getFrameJacobian(model, data, tcp, pin.ReferenceFrame.LOCAL)
+    mass = pin.crba(model, data, q_msr)
+    mass = np.triu(mass) + np.triu(mass, 1).T
+    gravity = pin.computeGeneralizedGravity(model, data, q_msr)
+    applied = link.last_applied
+    cmd_cart = cmd_jnt = None
+    if applied is not None:
+        cmd_cart = np.array(applied.cart_pos)
+        if applied.jnt_pos is not None and krc.mode != ControlMode.CART_IMP:
+            cmd_jnt = np.array(applied.jnt_pos)
+    return MeasurementExtras(
+        cmd_jnt_pos=cmd_jnt, cmd_cart_pos=cmd_cart if krc.mode == ControlMode.CART_IMP else None,
+        msr_jnt_trq=krc.last_tau.copy(), est_ext_jnt_trq=tau_ext.copy(), jacobian=fri_order(jacobian),
+        mass_matrix=mass, gravity=gravity.copy(), miss_counter=link.statistics().missed, error=int(krc.safety),
+        sample_time_s=cycle_ns * 1e-9)

@@ -347,27 +347,32 @@ class FriLink(HoldsAddresses):
         q = np.array(msr_jnt_pos, dtype=np.float64)
         x = np.array(msr_cart_pos, dtype=np.float64)
         ft = np.array(est_ext_tcp_ft, dtype=np.float64)
-        shapes_ok = q.shape == (_JNT,) and x.shape == (_CART,) and ft.shape == (_FT,)
-        seq = lb.MEASURE(self._books_at, self._ring_at, self._n_ring, t_ns, shapes_ok, self._figures_at)
+        seq = self.open_cycle(t_ns, q.shape == (_JNT,) and x.shape == (_CART,) and ft.shape == (_FT,))
         if seq < 0:
-            b = self._books
-            if seq == lb.ERR_OFF:
-                raise RuntimeError("FriLink.measurement: link is OFF; call start() first")
-            if seq == lb.ERR_OPEN:
-                raise RuntimeError(f"FriLink.measurement: cycle seq {b[lb.SEQ]} is still open; call end_cycle() first")
-            if seq == lb.ERR_BEFORE_DEADLINE:
-                raise ValueError(f"FriLink.measurement: t_ns = {t_ns} is before the previous cycle's deadline "
-                                 f"{b[lb.DEADLINE]}")
-            raise ValueError(
-                f"FriLink.measurement: shapes msr_jnt_pos {q.shape}, msr_cart_pos {x.shape}, "
-                f"est_ext_tcp_ft {ft.shape}; expected (7,), (12,), (6,)")
+            raise ValueError(f"FriLink.measurement: shapes msr_jnt_pos {q.shape}, msr_cart_pos {x.shape}, "
+                             f"est_ext_tcp_ft {ft.shape}; expected (7,), (12,), (6,)")
+        reflected, state, quality, mode, answer_rate, latency_s, jitter_s, miss_rate = self.sent_header()
+        return MeasurementPacket(seq, reflected, t_ns, _STATES[state], _QUALITIES[quality], _MODES[mode], q, x, ft,
+                                 answer_rate, latency_s, jitter_s, miss_rate)
+
+    def open_cycle(self, t_ns: int, shapes_ok: bool = True) -> int:
+        """``measurement`` without the packet, for a sender that keeps the numbers (``RobotCell.measure``):
+        the seq sent (-1: numbers of the wrong shapes); what else the packet says: ``sent_header``."""
+        seq = lb.MEASURE(self._books_at, self._ring_at, self._n_ring, t_ns, shapes_ok, self._figures_at)
+        if seq == lb.ERR_SHAPES:
+            return -1
+        if seq < 0:
+            raise _not_opened(seq, t_ns, self._books)
         self._cur_cmd = None
-        answer_rate, miss_rate, latency_s, jitter_s = self._figures.tolist()
+        return seq
+
+    def sent_header(self) -> tuple[int, int, int, int, float, float, float, float]:
+        """The open cycle's packet but its seq, time and numbers, read before its answer comes:
+        reflected seq, state, quality, control mode, answer rate, latency, jitter, miss rate."""
         b = self._books
-        return MeasurementPacket(
-            seq, int(b[lb.REFLECTED_SEQ]), t_ns, _STATES[b[lb.STATE]], _QUALITIES[b[lb.QUALITY]],
-            _MODES[b[lb.CONTROL_MODE]], q, x, ft, answer_rate, latency_s, jitter_s, miss_rate,
-        )
+        answer_rate, miss_rate, latency_s, jitter_s = self._figures.tolist()
+        return (int(b[lb.REFLECTED_SEQ]), int(b[lb.STATE]), int(b[lb.QUALITY]), int(b[lb.CONTROL_MODE]), answer_rate,
+                latency_s, jitter_s, miss_rate)
 
     def deliver_measurement(self, m: MeasurementPacket) -> MeasurementPacket | None:
         """``m`` as the remote gets it: None if the fault hook lost it."""
@@ -492,6 +497,15 @@ class FriLink(HoldsAddresses):
         """The command applied last, as numbers: (8, 12), a row a vector of its packet
         (robot_sim.krc.packets' order: cart_pos, cart_stiffness, cart_damping, add_tcp_ft, ...)."""
         return self._commands[lb.APPLIED]
+
+
+def _not_opened(code: int, t_ns: int, b: np.ndarray) -> Exception:
+    """Why ``link_books.MEASURE`` opened no cycle at ``t_ns`` (``code``), as the error to raise."""
+    if code == lb.ERR_OFF:
+        return RuntimeError("FriLink.measurement: link is OFF; call start() first")
+    if code == lb.ERR_OPEN:
+        return RuntimeError(f"FriLink.measurement: cycle seq {b[lb.SEQ]} is still open; call end_cycle() first")
+    return ValueError(f"FriLink.measurement: t_ns = {t_ns} is before the previous cycle's deadline {b[lb.DEADLINE]}")
 
 
 def _rejection(fate: int, s: int, t_ns: int, b: np.ndarray, ring: np.ndarray, w: int) -> str:

@@ -47,7 +47,7 @@ from services.nodes.robot_inbox import AnswerInbox
 from services.runtime.bus import Node, Publication, Subscription
 from services.runtime.config import check_seed, check_stall, nested, option
 from services.runtime.cycle import EpisodePlan
-from services.runtime.fri_messages import deliver_command, state_message
+from services.runtime.fri_messages import deliver_command, measured_state, state_message
 from services.runtime.messages import EPISODE_SUMMARY, FRI_DATAGRAM, ROBOT_CONTACT, ROBOT_STATE
 from services.runtime.roles import PARTICIPANTS, ROLES
 
@@ -153,8 +153,8 @@ class RobotNode(Node):
         self.inbox = AnswerInbox(ANSWER_TOPICS)
         self.ep = EpisodeJudge(0, self.cell.fri.statistics(), 0, self.cell.cycle_ns)
         self._episode_after = None
-        self._m = None
-        self._sent = 0
+        self._m = None  # the open cycle's measurement packet, where one is made (FRI over UDP)
+        self._seq = self._stamp = self._sent = 0
         self.publications = [Publication(ROBOT_STATE.topic, drop_when_congested=True),
                              Publication(ROBOT_CONTACT.topic, drop_when_congested=True),
                              Publication(EPISODE_SUMMARY.topic, express=False)]
@@ -281,7 +281,7 @@ class RobotNode(Node):
         t = now()
         bus.publish(ROBOT_CONTACT.topic, *contact)
         self.ep.sections.add("publish", now() - t)
-        return self._m.seq, self._m.stamp_ns
+        return self._seq, self._stamp
 
     # what opening a cycle measures, each as ``pack`` gives it (payload, message), for whoever
     # carries them: ``open_cycle``, or an engine that steps the nodes itself (services.transport.fused)
@@ -289,30 +289,39 @@ class RobotNode(Node):
     def measure_state(self) -> tuple:
         """Open a cycle: the FRI measurement, ``robot/state``."""
         cell, sec, now = self.cell, self.ep.sections, self.clock.now_ns
+        krc = cell.krc
         t0 = now()
-        m = cell.begin_cycle()
-        if self.udp is not None:
-            self.udp.send(m, episode=self.episode, kind=self.kind,
-                          gravity_compensation=bool(cell.krc.gravity_compensation))
+        stamp = cell.t_ns
+        if self.udp is not None:  # the datagram is made from the packet
+            m = cell.begin_cycle()
+            self.udp.send(m, episode=self.episode, kind=self.kind, gravity_compensation=bool(krc.gravity_compensation))
+            seq = m.seq
+        else:
+            m, seq = None, cell.measure()
         sent = now()
         sec.add("measure", sent - t0)
-        state = state_message(m, sent_ns=sent, safety=int(cell.krc.safety),
-                              gravity_compensation=bool(cell.krc.gravity_compensation), episode=self.episode)
+        if m is not None:
+            state = state_message(m, sent_ns=sent, safety=int(krc.safety),
+                                  gravity_compensation=bool(krc.gravity_compensation), episode=self.episode)
+        else:
+            state = measured_state(cell.fri, seq, stamp, *cell.measured_views(), sent_ns=sent,
+                                   safety=int(krc.safety), gravity_compensation=bool(krc.gravity_compensation),
+                                   episode=self.episode)
         sec.add("encode", now() - sent)
-        self._m, self._sent = m, sent
+        self._m, self._seq, self._stamp, self._sent = m, seq, stamp, sent
         return state
 
     def measure_contact(self) -> tuple:
         """The open cycle's physics' truth, ``robot/contact``."""
-        cell, ep, m, now = self.cell, self.ep, self._m, self.clock.now_ns
+        cell, ep, seq, now = self.cell, self.ep, self._seq, self.clock.now_ns
         t0 = now()
         # the cell's own buffers: pack copies them into the message (the touching list too)
         wrench, contact, touching, pose, twist = cell.truth_views()
         true_phase = self.labeler.update(touching)
-        ep.measured(m.seq, self._sent, math.hypot(contact[0], contact[1], contact[2]))
+        ep.measured(seq, self._sent, math.hypot(contact[0], contact[1], contact[2]))
         t1 = now()
         packed = ROBOT_CONTACT.pack(
-            seq=m.seq, stamp_ns=m.stamp_ns, sent_ns=t1, wrench=wrench, contact_force=contact,
+            seq=seq, stamp_ns=self._stamp, sent_ns=t1, wrench=wrench, contact_force=contact,
             touching=list(touching), true_phase=true_phase, tcp_pose=pose, tcp_twist=twist, episode=self.episode)
         ep.sections.add("measure", t1 - t0)
         ep.sections.add("encode", now() - t1)
@@ -321,12 +330,12 @@ class RobotNode(Node):
     def close_cycle(self, stop_on) -> str | None:
         """Hand the open cycle's answers to the FRI link, apply the hand, step; the judge
         says whether the episode ends (why, or None)."""
-        return self.apply(*self.inbox.take(self._m.seq), stop_on)
+        return self.apply(*self.inbox.take(self._seq), stop_on)
 
     def apply(self, commands, teacher_entry, latest_teacher, stop_on) -> str | None:
         """Close the open cycle with these answers (``AnswerInbox.take``'s three): the commands
         to the FRI link, the hand, the step; the judge says whether the episode ends."""
-        cell, ep, m, sent = self.cell, self.ep, self._m, self._sent
+        cell, ep, open_seq, sent = self.cell, self.ep, self._seq, self._sent
         sec = ep.sections
         t0 = self.clock.now_ns()
         faults = cell.fri.faults
@@ -336,7 +345,7 @@ class RobotNode(Node):
         cycle_hold = None  # this cycle's command: why it holds ('' it does not); None: no command
         cycle_estimate = -1  # the estimate this cycle's command used
         if self.udp is not None:
-            taken = self.udp.take(m)
+            taken = self.udp.take(self._m)
             if taken is not None:
                 ep.answer.add(taken.latency_ns)
             if taken is not None and self.relayed:
@@ -346,16 +355,16 @@ class RobotNode(Node):
                     ep.goal_reached()
                 ep.estimate_used(cycle_estimate, taken.arrived_ns)
         for seq, (msg, recv) in commands:
-            sent_at = sent if seq == m.seq else ep.sent.get(seq)
+            sent_at = sent if seq == open_seq else ep.sent.get(seq)
             if sent_at is None:  # an answer to a cycle of no episode of ours
                 continue
             ep.answer.add(recv - sent_at)
             est = msg.get("estimate_seq", -1)
             ep.estimate_used(est, recv)
-            stamp = m.stamp_ns - (m.seq - seq) * cell.cycle_ns
+            stamp = self._stamp - (open_seq - seq) * cell.cycle_ns
             arrival = stamp + (LOCKSTEP_LATENCY_NS if self.lockstep else recv - sent_at)
             deliver_command(cell.fri, msg, arrival)
-            if seq == m.seq:
+            if seq == open_seq:
                 goal_reached = bool(msg["goal_reached"])
                 if goal_reached:
                     ep.goal_reached()
@@ -378,6 +387,6 @@ class RobotNode(Node):
                 sec.add("publish", self.clock.now_ns() - t2)
         sec.add("answers", t1 - t0)
         sec.add("step", t2 - t1)
-        return ep.judge(cell, outcome, m.seq, kind=self.kind, stop_on=stop_on, teacher_done=teacher_done,
+        return ep.judge(cell, outcome, open_seq, kind=self.kind, stop_on=stop_on, teacher_done=teacher_done,
                         goal_reached=goal_reached, hold=cycle_hold, estimate_seq=cycle_estimate,
                         track_states=self.udp is not None)

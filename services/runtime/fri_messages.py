@@ -17,12 +17,28 @@ from services.runtime.messages import ROBOT_STATE
 def state_message(m: MeasurementPacket, *, sent_ns: int, safety: int, gravity_compensation: bool,
                   episode: int) -> tuple[bytes, dict]:
     """``robot/state`` (payload, message) for the KRC's measurement ``m``."""
+    header = (m.reflected_seq, int(m.state), int(m.quality), int(m.control_mode), m.answer_rate, m.latency_s,
+              m.jitter_s, m.miss_rate)
+    return _state(m.seq, m.stamp_ns, header, m.msr_jnt_pos, m.msr_cart_pos, m.est_ext_tcp_ft, sent_ns, safety,
+                  gravity_compensation, episode)
+
+
+def measured_state(link: FriLink, seq: int, stamp_ns: int, msr_jnt_pos, msr_cart_pos, est_ext_tcp_ft, *,
+                   sent_ns: int, safety: int, gravity_compensation: bool, episode: int) -> tuple[bytes, dict]:
+    """``robot/state`` for the cycle the KRC opened without a packet (``RobotCell.measure``):
+    the packet's numbers as given, the rest from the link's ``sent_header``: what
+    ``state_message`` of the packet gives."""
+    return _state(seq, stamp_ns, link.sent_header(), msr_jnt_pos, msr_cart_pos, est_ext_tcp_ft, sent_ns, safety,
+                  gravity_compensation, episode)
+
+
+def _state(seq, stamp_ns, header, q, x, ft, sent_ns, safety, gravity_compensation, episode) -> tuple[bytes, dict]:
+    reflected_seq, state, quality, mode, answer_rate, latency_s, jitter_s, miss_rate = header
     return ROBOT_STATE.pack(
-        seq=m.seq, stamp_ns=m.stamp_ns, sent_ns=sent_ns, reflected_seq=m.reflected_seq,
-        fri_state=int(m.state), fri_quality=int(m.quality), control_mode=int(m.control_mode),
-        msr_jnt_pos=m.msr_jnt_pos, msr_cart_pos=m.msr_cart_pos, est_ext_tcp_ft=m.est_ext_tcp_ft,
-        answer_rate=m.answer_rate, latency_s=m.latency_s, jitter_s=m.jitter_s, miss_rate=m.miss_rate,
-        safety=safety, gravity_compensation=gravity_compensation, episode=episode)
+        seq=seq, stamp_ns=stamp_ns, sent_ns=sent_ns, reflected_seq=reflected_seq, fri_state=state, fri_quality=quality,
+        control_mode=mode, msr_jnt_pos=q, msr_cart_pos=x, est_ext_tcp_ft=ft, answer_rate=answer_rate,
+        latency_s=latency_s, jitter_s=jitter_s, miss_rate=miss_rate, safety=safety,
+        gravity_compensation=gravity_compensation, episode=episode)
 
 
 def state_from_datagram(rec, *, seq: int, stamp_ns: int, reflected_seq: int, sent_ns: int) -> tuple[bytes, dict]:

@@ -141,3 +141,39 @@ def test_a_safety_stop_does_not_carry_into_the_next_placement():
         cell.end_cycle()
         assert cell.krc.safety == 0
     assert np.linalg.norm(fri_order(m.est_ext_tcp_ft)[:3]) < 5.0
+
+
+def test_a_measurement_without_its_packet_is_the_packet_and_the_next_cycles_are_the_same():
+    """``measure`` + ``measured_views`` + ``FriLink.sent_header`` say what ``begin_cycle``'s packet
+    says, cycle by cycle, through MON, a command-mode request, CMD and missed answers; and an
+    ``external_wrench_tcp`` read between measuring and closing, at other joint positions, does not
+    change the estimate the KRC's law takes (the two cells stay bit for bit the same)."""
+    a, b = RobotCell(free_space(), seed=3), RobotCell(free_space(), seed=3)
+    for cell in (a, b):
+        cell.start()
+    states = set()
+    for k in range(700):
+        if k == 600:
+            assert a.fri.request_command_mode() and b.fri.request_command_mode()
+        m = a.begin_cycle()
+        seq = b.measure()
+        b.kin.update_with_jacobian(np.zeros(7), "tcp", np.empty((6, 7)))  # the estimate here is another
+        b.external_wrench_tcp()
+        q, x, ft = b.measured_views()
+        reflected, state, quality, mode, *figures = b.fri.sent_header()
+        assert (seq, reflected, state, quality, mode) == (m.seq, m.reflected_seq, m.state, m.quality, m.control_mode)
+        assert figures == [m.answer_rate, m.latency_s, m.jitter_s, m.miss_rate]
+        assert q.tolist() == m.msr_jnt_pos.tolist() and x.tolist() == m.msr_cart_pos.tolist()
+        assert ft.tolist() == m.est_ext_tcp_ft.tolist()
+        states.add(m.state)
+        if k < 660 or k % 7:  # then every seventh cycle unanswered
+            for cell in (a, b):
+                cmd = CommandPacket.from_measurement(m, cart_stiffness=STIFF, cart_damping=np.full(6, 0.7))
+                cell.receive(cmd, m.stamp_ns + 200_000)
+        hand = np.array([3.0, -2.0, -8.0, 0.0, 0.0, 0.0])  # a hand on the tool: the estimate is not zero
+        a.close(hand)
+        b.close(hand)
+        assert a.krc._force.tolist() == b.krc._force.tolist() == ft[:3].tolist()  # the estimate the law took
+    assert states == {FriState.MON, FriState.CMD}
+    assert a.sim.data.qpos.tolist() == b.sim.data.qpos.tolist()
+    assert a.krc.torques.tolist() == b.krc.torques.tolist()
