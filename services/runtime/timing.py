@@ -65,46 +65,29 @@ class Histogram:
 
     limit_ns: int = DEFAULT_LIMIT_NS
     bin_ns: int = BIN_NS
-    overflow: int = 0
-    samples: list | None = field(default_factory=list)  # None once past EXACT_SAMPLES
 
     def __post_init__(self):
         if self.limit_ns % self.bin_ns:
             raise ValueError(f"limit {self.limit_ns} ns is not a whole number of {self.bin_ns} ns bins")
         self._counts = np.zeros(self.limit_ns // self.bin_ns, dtype=np.int64)
         self._fine = np.zeros(-(-self.limit_ns // FINE_NS), dtype=np.int64)
-        # values below the limit not yet counted into the bins: counted in bulk (``_flush``), since
-        # one increment of a numpy bin from Python cost a 1 kHz loop about a microsecond per value
+        # the values not yet counted: counted in bulk (``_flush``), since counting each as it came
+        # (its bins, sum, extremes) cost a 1 kHz loop about half a microsecond per value
         self._pending: list = []
         self._over: list = []  # the overflow's values (the largest kept past MAX_OVERFLOW_VALUES)
+        self._overflow = 0
+        self._samples: list | None = []  # None once past EXACT_SAMPLES
         self._n = 0
         self._sum = 0
         self._min = None
         self._max = 0
 
     def add(self, value_ns: int) -> None:
-        v = int(value_ns)
-        if v < 0:
-            v = 0  # a clock can step backwards by a hair across cores
-        self._n += 1
-        self._sum += v
-        if v > self._max:
-            self._max = v
-        if self._min is None or v < self._min:
-            self._min = v
-        if v >= self.limit_ns:
-            self.overflow += 1
-            self._over.append(v)
-            if len(self._over) > 2 * MAX_OVERFLOW_VALUES:
-                self._over = sorted(self._over)[-MAX_OVERFLOW_VALUES:]
-        else:
-            self._pending.append(v)
-            if len(self._pending) >= _PENDING:
-                self._flush()
-        if self.samples is not None:
-            self.samples.append(v)
-            if len(self.samples) > EXACT_SAMPLES:
-                self.samples = None
+        # a loop adds several values a cycle: each is only queued here, and counted with the
+        # others in bulk (``_flush``), in the order they came
+        self._pending.append(int(value_ns))
+        if len(self._pending) >= _PENDING:
+            self._flush()
 
     @property
     def counts(self) -> np.ndarray:
@@ -112,20 +95,56 @@ class Histogram:
         self._flush()
         return self._counts
 
+    @property
+    def overflow(self) -> int:
+        """How many values were at or past the limit (a caller may add to it)."""
+        self._flush()
+        return self._overflow
+
+    @overflow.setter
+    def overflow(self, n: int) -> None:
+        self._flush()
+        self._overflow = n
+
+    @property
+    def samples(self) -> list | None:
+        """Every value, for exact percentiles; None once past EXACT_SAMPLES."""
+        self._flush()
+        return self._samples
+
     def _flush(self) -> None:
-        """Count the pending values into the bins and the 1 us bins (``counts`` and the
-        percentiles call it before they read them)."""
-        if self._pending:
-            values = np.asarray(self._pending, dtype=np.int64)
-            self._pending = []
-            self._counts += np.bincount(values // self.bin_ns, minlength=self._counts.size)
-            self._fine += np.bincount(values // FINE_NS, minlength=self._fine.size)
+        """Count the queued values: their sum, extremes and exact samples, the overflow's
+        values, the bins and the 1 us bins (whatever reads them calls this first)."""
+        if not self._pending:
+            return
+        values = np.asarray(self._pending, dtype=np.int64)
+        self._pending = []
+        np.maximum(values, 0, out=values)  # a clock can step backwards by a hair across cores
+        self._n += values.size
+        self._sum += int(values.sum())
+        low, high = int(values.min()), int(values.max())
+        self._max = max(self._max, high)
+        self._min = low if self._min is None else min(self._min, low)
+        if self._samples is not None:
+            self._samples.extend(values.tolist())
+            if len(self._samples) > EXACT_SAMPLES:
+                self._samples = None
+        if high >= self.limit_ns:
+            over = values >= self.limit_ns
+            for v in values[over].tolist():  # rare: one by one, as they came, the largest kept
+                self._overflow += 1
+                self._over.append(v)
+                if len(self._over) > 2 * MAX_OVERFLOW_VALUES:
+                    self._over = sorted(self._over)[-MAX_OVERFLOW_VALUES:]
+            values = values[~over]
+        self._counts += np.bincount(values // self.bin_ns, minlength=self._counts.size)
+        self._fine += np.bincount(values // FINE_NS, minlength=self._fine.size)
 
     def _percentiles(self) -> dict:
         """percentiles() from the 1 us bins (bin centres, linearly between ranks) and the
         overflow's values, for a histogram past EXACT_SAMPLES."""
-        n = self._n
         self._flush()
+        n = self._n
         fine = self._fine
         cum = np.cumsum(fine)
         over = np.sort(np.asarray(self._over, dtype=np.float64))
@@ -151,6 +170,7 @@ class Histogram:
         return int(self.counts.sum()) + self.overflow
 
     def summary(self) -> dict:
+        self._flush()
         exact = percentiles(self.samples) if self.samples is not None else self._percentiles()
         return dict(exact, overflow=self.overflow, bin_us=self.bin_ns / 1e3, limit_us=self.limit_ns / 1e3)
 
