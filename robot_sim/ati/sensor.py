@@ -491,9 +491,7 @@ class AtiSensor(HoldsAddresses):
         """``read``, with the record's wrench in N / Nm (``RdtRecord.wrench``'s values; may
         be a view of a buffer the next call overwrites: copy it to keep it)."""
         rdt, ft, args = self._begin(true_wrench, t_ns)
-        status = _sample(*args)
-        if status >= 0:
-            self._noise_i += 1
+        status = self._sampled(_sample(*args))
         return self.record(rdt, ft, status)
 
     def sample_through(self, kernel, true_wrench: np.ndarray, t_ns: int, *extra) -> tuple[int, int, int]:
@@ -503,10 +501,14 @@ class AtiSensor(HoldsAddresses):
         sample (a message's bytes: services.nodes.ft_sensor).  Returns (rdt_sequence,
         ft_sequence, what the kernel returned); ``record`` makes the record after it."""
         rdt, ft, args = self._begin(true_wrench, t_ns)
-        result = kernel(*args, rdt, ft, *extra)
+        return rdt, ft, self._sampled(kernel(*args, rdt, ft, *extra))
+
+    def _sampled(self, result: int) -> int:
+        """After a sample's kernel returned ``result``: its row of noise is used, unless it sampled
+        nothing (-1: a non-finite input draws none).  Returns ``result``."""
         if result != -1:
             self._noise_i += 1
-        return rdt, ft, result
+        return result
 
     def record(self, rdt: int, ft: int, status: int) -> tuple[RdtRecord, np.ndarray]:
         """The record of the sample just taken, whose ``_sample_at`` status was ``status``

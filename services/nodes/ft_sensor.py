@@ -202,7 +202,7 @@ class FtSensorNode(Node):
                     self._wrench[:] = np.nan
             # the record's bytes too: Zenoh may hand over two contacts at once (a foreign peer's
             # copy beside the real one), and both would write the one byte buffer
-            if not message and self.box is None and _RECORD is not None and self._bytes is not None:
+            if not message and self.box is None and self._bytes is not None:  # _RECORD is built with it
                 # nobody here needs the record itself: the sample and its bytes in one kernel call
                 seq, stamp, sent = msg["seq"], msg["stamp_ns"], self.clock.now_ns()
                 rdt, ft, n = self.ati.sample_through(_RECORD, self._wrench, stamp, seq, stamp, sent,

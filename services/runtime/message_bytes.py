@@ -121,7 +121,7 @@ class MessageBytes:
     def write(self) -> bytes | None:
         """The message's bytes from the value arrays; None when a float is not finite."""
         n = _WRITE(*self._args)
-        return None if n < 0 else self._out[:n].tobytes()
+        return None if n < 0 else self.written(n)
 
     @property
     def kernel_args(self) -> tuple:
