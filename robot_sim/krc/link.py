@@ -408,9 +408,8 @@ class FriLink(HoldsAddresses):
         made only if it is asked for (``last_applied``, a cycle's outcome).  What the fields
         of a CART_IMP command (or of no mode) cannot be goes the packet's way, and fares as
         there."""
-        vectors = (cart_pos, cart_stiffness, cart_damping, add_tcp_ft)
-        if (type(seq) is not int or type(mode) is not int or not (mode == 2 or mode == 0)
-                or [len(v) for v in vectors] != _SLOT_LENGTHS):
+        if (type(seq) is not int or type(mode) is not int or not (mode == 2 or mode == 0) or len(cart_pos) != _CART
+                or len(cart_stiffness) != _FT or len(cart_damping) != _FT or len(add_tcp_ft) != _FT):
             return self.receive(CommandPacket(seq=seq, cart_pos=np.array(cart_pos, dtype=np.float64),
                                               cart_stiffness=np.array(cart_stiffness, dtype=np.float64),
                                               cart_damping=np.array(cart_damping, dtype=np.float64),
@@ -428,7 +427,7 @@ class FriLink(HoldsAddresses):
             values[2, :_FT] = cart_damping
             values[3, :_FT] = add_tcp_ft
             present[:] = _CART_IMP_PRESENT
-            problem = checked_in_place(self._checks, list(vectors))
+            problem = checked_in_place(self._checks, (cart_pos, cart_stiffness, cart_damping, add_tcp_ft))
         return self._arrive(problem, seq, mode, t_ns, _IN_SLOT)
 
     def _arrive(self, problem: str | None, s: int, mode: int, t_ns: int, kept) -> bool:
@@ -541,6 +540,5 @@ _STATES, _QUALITIES, _MODES = tuple(FriState), tuple(FriQuality), tuple(ControlM
 # a command the link holds only in its slot (it came as a message's numbers): its packet is made when asked for
 _IN_SLOT = object()
 # receive_fields: the vectors' lengths, and which of the eight a CART_IMP command carries
-_SLOT_LENGTHS = [_CART, _FT, _FT, _FT]
 _CART_IMP_PRESENT = np.array([1, 1, 1, 1, 0, 0, 0, 0], dtype=np.int64)
 _INT64_MAX = 2**63 - 1

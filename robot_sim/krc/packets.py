@@ -303,14 +303,14 @@ def _found(checks: CommandChecks) -> tuple[int, float, int, int]:
     return problem, float(checks.det[0]), int(checks.where[0]), int(checks.where[1])
 
 
-def checked_in_place(checks: CommandChecks, originals: list) -> str | None:
+def checked_in_place(checks: CommandChecks, originals) -> str | None:
     """What ``_numbers_at`` finds wrong with the numbers already in ``checks``' buffers (their
     presence flags set), in words as ``command_problem`` gives them; ``originals``: the
     vectors as the sender gave them."""
     with checks.lock:
+        if not _NUMBERS(*checks.args):  # the common case: nothing else to read
+            return None
         found = _found(checks)
-    if not found[0]:
-        return None
     kept = [checks.values[k, :n] if checks.present[k] else None for k, n in enumerate(_LENGTHS)]
     return describe(*found, originals, kept, checks)
 
