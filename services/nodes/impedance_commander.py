@@ -55,8 +55,6 @@ import math
 import threading
 from dataclasses import dataclass
 
-import numpy as np
-
 from etar.policy import LEAD, ReproductionPolicy
 from etar.policy_kernel import compiled_policy
 from etar.task import load_task
@@ -132,7 +130,6 @@ class ImpedanceCommanderNode(Node):
         self.sections = Sections("decode", "law", "encode", "publish")
         self.answer_time = Histogram()
         self._recv_ns = 0
-        self._cart_pos = np.empty((3, 4))  # the setpoint pose [R | p], packed into each command
         self.task = load_task(config.model) if config.model else None
         self.publications = [Publication(ROBOT_COMMAND.topic, drop_when_congested=True)]
         self.subscriptions = [Subscription(ESTIMATOR_PHASE.topic, self.on_phase, latest=True)]
@@ -273,30 +270,26 @@ class ImpedanceCommanderNode(Node):
         # the policy holds stiffly where the tool is when it knows no phase; it takes the KRC's
         # estimate of the external force (tcp axes, FRI order Fx Fy Fz first): it slides a
         # free-space phase along a surface it meets (etar.policy)
-        F, R_set, x = self.policy.tool_step(state["msr_cart_pos"], state["est_ext_tcp_ft"][:3],
-                                            None if self.hold else self._latest_phase, cycles * FRI_CYCLE_NS / 1e9)
+        policy = self.policy
+        F, R_set, x = policy.tool_step(state["msr_cart_pos"], state["est_ext_tcp_ft"][:3],
+                                       None if self.hold else self._latest_phase, cycles * FRI_CYCLE_NS / 1e9)
         # the force in tcp axes; FRI orders the torques Tz, Ty, Tx (all zero here)
         add = F.tolist() + [0.0, 0.0, 0.0]
-        cart = self._cart_pos
-        cart[:, :3] = R_set
-        cart[:, 3] = x
+        r, p = R_set.tolist(), x.tolist()
+        cart = [*r[0], p[0], *r[1], p[1], *r[2], p[2]]  # the setpoint pose, 3x4 row-major [R | p]
+        goal_reached, hold = bool(policy.goal_reached), self.hold["reason"] if self.hold else ""
         t1 = now()
         packed = ROBOT_COMMAND.pack(
-            seq=state["seq"], stamp_ns=state["stamp_ns"], sent_ns=t1,
-            cart_pos=cart.reshape(12),
-            cart_stiffness=CART_STIFFNESS, cart_damping=CART_DAMPING,
-            add_tcp_ft=add, requested_mode=2,
+            seq=seq, stamp_ns=state["stamp_ns"], sent_ns=t1, cart_pos=cart, cart_stiffness=CART_STIFFNESS,
+            cart_damping=CART_DAMPING, add_tcp_ft=add, requested_mode=2,
             # the law that made this force: the estimate's, its successor's while that one is
             # blocked (etar.policy), or none (-1) while holding, at the goal included
-            phase=-1 if self.policy.applied is None else int(self.policy.applied),
-            estimate_seq=self._latest_phase_seq,
-            goal_reached=bool(self.policy.goal_reached), hold=self.hold["reason"] if self.hold else "",
-            episode=state["episode"])
+            phase=-1 if policy.applied is None else int(policy.applied), estimate_seq=self._latest_phase_seq,
+            goal_reached=goal_reached, hold=hold, episode=state["episode"])
         t2 = now()
         if self.fri is not None:
             # the answer to the KRC first; the bus's copy is for the recording
-            self.fri.answer(state, cart.reshape(12), CART_STIFFNESS, CART_DAMPING, add,
-                            goal_reached=bool(self.policy.goal_reached), hold=self.hold["reason"] if self.hold else "",
+            self.fri.answer(state, cart, CART_STIFFNESS, CART_DAMPING, add, goal_reached=goal_reached, hold=hold,
                             estimate_seq=self._latest_phase_seq)
             self.sections.add("publish", now() - t2)
         sec = self.sections
