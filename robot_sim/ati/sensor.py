@@ -494,12 +494,13 @@ class AtiSensor(HoldsAddresses):
         status = self._sampled(_sample(*args))
         return self.record(rdt, ft, status)
 
-    def sample_through(self, kernel, true_wrench: np.ndarray, t_ns: int, *extra) -> tuple[int, int, int]:
+    def sample_through(self, kernel, true_wrench: np.ndarray | None, t_ns: int, *extra) -> tuple[int, int, int]:
         """``sample``'s numbers made by ``kernel``, which takes ``_sample_at``'s arguments, the
         record's rdt and ft sequences and ``extra``, calls ``_sample_at`` first and returns
         -1 when it did (nothing sampled: a non-finite input), else what it makes of the
         sample (a message's bytes: services.nodes.ft_sensor).  Returns (rdt_sequence,
-        ft_sequence, what the kernel returned); ``record`` makes the record after it."""
+        ft_sequence, what the kernel returned); ``record`` makes the record after it.
+        ``true_wrench`` None: the caller has written it in ``input``."""
         rdt, ft, args = self._begin(true_wrench, t_ns)
         return rdt, ft, self._sampled(kernel(*args, rdt, ft, *extra))
 
@@ -518,14 +519,19 @@ class AtiSensor(HoldsAddresses):
             return RdtRecord(rdt, ft, _STATUS_NONFINITE, out[2].astype(np.int32)), out[2] / self._cpu
         return RdtRecord.trusted(rdt, ft, int(status), out[0].astype(np.int32)), out[1]
 
-    def _begin(self, true_wrench: np.ndarray, t_ns: int) -> tuple[int, int, tuple]:
+    @property
+    def input(self) -> np.ndarray:
+        """(6,) where the kernel reads the sample's true wrench (``sample_through`` with None)."""
+        return self._x
+
+    def _begin(self, true_wrench: np.ndarray | None, t_ns: int) -> tuple[int, int, tuple]:
         """A sample's bookkeeping before its kernel: the true wrench where the kernel reads it,
         the clock advanced, the record's sequences, this sample's rows of drift and noise
         (drawn a block at a time).  Returns (rdt_sequence, ft_sequence, ``_sample_at``'s arguments)."""
-        x = self._x
-        if np.shape(true_wrench) != (6,):
-            raise ValueError(f"true_wrench must have shape (6,), got {np.shape(true_wrench)}")
-        x[:] = true_wrench
+        if true_wrench is not None:
+            if np.shape(true_wrench) != (6,):
+                raise ValueError(f"true_wrench must have shape (6,), got {np.shape(true_wrench)}")
+            self._x[:] = true_wrench
         drift_scale = self._advance_time(int(t_ns))
         rdt = self._next_rdt
         self._next_rdt = (rdt + 1) & UINT32_MASK

@@ -142,7 +142,7 @@ class FtSensorNode(Node):
         self._cpf = float(self.ati_config.counts_per_force)
         self._cpt = float(self.ati_config.counts_per_torque)
         self._lock = threading.Lock()
-        self._wrench = np.zeros(6)
+        self._wrench = self.ati.input  # a record's true wrench, written where the sensor's kernel reads it
         self.fault = config.fault
         self.fault_after_ns = int(config.fault_after * 1e9)
         self._episode, self._episode_t0 = None, 0
@@ -205,7 +205,7 @@ class FtSensorNode(Node):
             if not message and self.box is None and self._bytes is not None:  # _RECORD is built with it
                 # nobody here needs the record itself: the sample and its bytes in one kernel call
                 seq, stamp, sent = msg["seq"], msg["stamp_ns"], self.clock.now_ns()
-                rdt, ft, n = self.ati.sample_through(_RECORD, self._wrench, stamp, seq, stamp, sent,
+                rdt, ft, n = self.ati.sample_through(_RECORD, None, stamp, seq, stamp, sent,
                                                      *self._record_args)
                 if n >= 0:
                     return self._bytes.written(n), (seq, sent)
