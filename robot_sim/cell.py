@@ -167,9 +167,9 @@ def _physics_cycle_at(steps, law_state_at, law_table_at, q_at, qd_at, arm_qpos_a
 
 # The buffers the measurement kernel reaches (``RobotCell._measure_table``), by index
 MEASURE_BUFFERS = ("arm_qpos", "arm_qvel", "q", "qd", "noise", "q_msr", "true_jacobian", "rotation", "translation",
-                   "true_pose", "local", "true_twist", "wrench_jacobian", "wrench", "cart")
+                   "true_pose", "local", "true_twist", "wrench_jacobian", "wrench", "cart", "wrench_fri")
 (_ARM_QPOS, _ARM_QVEL, _QT, _QDT, _NOISE, _Q_MSR, _TRUE_JACOBIAN, _ROTATION, _TRANSLATION, _TRUE_POSE, _LOCAL,
- _TRUE_TWIST, _WRENCH_JACOBIAN, _WRENCH, _CART) = range(len(MEASURE_BUFFERS))
+ _TRUE_TWIST, _WRENCH_JACOBIAN, _WRENCH, _CART, _WRENCH_FRI) = range(len(MEASURE_BUFFERS))
 
 
 @njit(**JIT)
@@ -179,8 +179,8 @@ def _measure_at(table_at, joint_noise, kinematics_fn, model_at, data_at, frame, 
     of noise); the tcp's true pose and twist (Pinocchio at the true joints, the twist
     through the dgemv numpy's matmul calls, so the same bits); then Pinocchio at the
     measured joints, the external wrench estimate (``_external_wrench_at``, its arguments
-    in the int64 table at ``wrench_args_at``) and the measured tcp pose.  Returns False if
-    Pinocchio failed."""
+    in the int64 table at ``wrench_args_at``; also in FRI's order) and the measured tcp pose.
+    Returns False if Pinocchio failed."""
     at = int64_array_at(table_at, len(MEASURE_BUFFERS))
     copy_at(at[_ARM_QPOS], at[_QT], 7)
     copy_at(at[_ARM_QVEL], at[_QDT], 7)
@@ -200,9 +200,11 @@ def _measure_at(table_at, joint_noise, kinematics_fn, model_at, data_at, frame, 
     if call_measured_kinematics(kinematics_fn, model_at, data_at, at[_Q_MSR], frame, at[_WRENCH_JACOBIAN]) != 0:
         return False
     w = int64_array_at(wrench_args_at, 12)
+    wrench, fri = carray_at(at[_WRENCH], (6,)), carray_at(at[_WRENCH_FRI], (6,))
     if _external_wrench_at(w[0], w[1], w[2], w[3], w[4], w[5], w[6], w[7], w[8], w[9], w[10], w[11]):
-        wrench = carray_at(at[_WRENCH], (6,))
         wrench[:] = np.nan  # a singular system: NaN, as numpy's solve kernel gives
+    for i in range(6):
+        fri[i] = wrench[FRI_FT_ORDER[i]]
     pose_at(at[_ROTATION], at[_TRANSLATION], at[_CART])
     return True
 
@@ -240,7 +242,8 @@ class CompiledCycle(HoldsAddresses):
                        rotation=address(rotation), translation=address(translation),
                        true_pose=address(cell._true_pose), local=address(cell._local_twist),
                        true_twist=address(cell._true_twist), wrench_jacobian=address(scratch.jacobian),
-                       wrench=address(scratch.out), cart=address(cell._cart_pos))
+                       wrench=address(scratch.out), cart=address(cell._cart_pos),
+                       wrench_fri=address(cell._est_ext_tcp_ft))
         self._table = np.array([buffers[name] for name in MEASURE_BUFFERS], dtype=np.int64)
         self._table_at = int64_address(self._table)
         self._wrench_args = np.array(scratch.args, dtype=np.int64)
@@ -316,6 +319,7 @@ class RobotCell(HoldsAddresses):
         self._JJt = np.empty((6, 6))
         self._Jtau = np.empty(6)
         self._cart_pos = np.empty((3, 4))  # FRI's 3x4 row-major [R | p], filled from views of the kinematics
+        self._est_ext_tcp_ft = np.empty(6)  # the wrench estimate in FRI's order
         self._true_jacobian = np.empty((6, 7))
         self._true_pose = np.zeros((3, 4))
         self._true_twist = np.zeros(6)
@@ -406,14 +410,15 @@ class RobotCell(HoldsAddresses):
             kin.update(self._q_msr)
             self._wrench_scratch.out[:] = _external_wrench_numpy(kin.jacobian("tcp", pin.ReferenceFrame.LOCAL),
                                                                  self._tau_ext, self._JJt, self._Jtau)
+        np.take(self._wrench_scratch.out, FRI_FT_ORDER, out=self._est_ext_tcp_ft)
         R, p = kin.frame_views("tcp")
         self._cart_pos[:, :3] = R
         self._cart_pos[:, 3] = p
 
     def measured_views(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The open cycle's measured joint positions (7,), tcp pose (12,) and external wrench (6,)
-        as FRI's packet has them (torques Tz Ty Tx): the first two the cell's buffers, to copy at once."""
-        return self._q_msr, self._cart_pos.reshape(12), standard_to_fri(self._wrench_scratch.out)
+        as FRI's packet has them (torques Tz Ty Tx): the cell's own buffers, to copy at once."""
+        return self._q_msr, self._cart_pos.reshape(12), self._est_ext_tcp_ft
 
     def _true_motion(self) -> None:
         """The tcp's true pose and velocity at the cycle's start, from the true joint state
