@@ -252,6 +252,8 @@ class Simulation(HoldsAddresses):
         self.table_at = int64_address(self._table)
         self.arm_qpos_at, self.arm_qvel_at = address(self._arm_qpos), address(self._arm_qvel)
         self.tau_at, self.nv, self.arm_dof = self._at["tau"], self._nv, self._arm_dof
+        self._sense_args = (self._at["sensordata"], self._force_adr, self._torque_adr, self._at["constraint"],
+                            self._at["hand"], self._nv, self._arm_dof)  # sense_at's, but for the outputs
 
     @property
     def time(self) -> float:
@@ -345,9 +347,7 @@ class Simulation(HoldsAddresses):
     def sense_at(self, wrench_at: int, torques_at: int) -> None:
         """``sense`` into the buffers at these addresses (kernel_plumbing.addresses): the cell's,
         every cycle."""
-        at = self._at
-        _sensed(at["sensordata"], self._force_adr, self._torque_adr, at["constraint"], at["hand"], self._nv,
-                self._arm_dof, wrench_at, torques_at)
+        _sensed(*self._sense_args, wrench_at, torques_at)
 
     def contacts(self) -> tuple[np.ndarray, set, list[str]]:
         """What the tool tip touches, read once: the total force the environment
