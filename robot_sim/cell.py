@@ -29,7 +29,8 @@ from robot_sim.ati.rdt import RdtRecord
 from robot_sim.ati.sensor import AtiConfig, AtiSensor
 from robot_sim.krc.faults import LinkFaults
 from robot_sim.krc.link import ClosedCycle, CycleOutcome, FriConfig, FriLink
-from robot_sim.krc.packets import CommandPacket, ControlMode, FriState, MeasurementExtras, MeasurementPacket
+from robot_sim.krc.packets import (FRI_AXIS_ORDER, CommandPacket, ControlMode, FriState, MeasurementExtras,
+                                   MeasurementPacket, fri_order)
 from robot_sim.krc.law import (LAW_DONE, ImpedanceCommand, KrcConfig, KrcController, first_command_jump, law_cycle_at,
                                measurement_extras)
 from robot_sim.krc.law_arithmetic import pose_at
@@ -45,15 +46,6 @@ from robot_sim.world.tasks import TIMESTEP, WorldSpec
 # extra phases to model it.
 JOINT_POSITION_NOISE = 2.5e-5
 
-# FRI orders torques Tz, Ty, Tx; the physics and the law use Tx, Ty, Tz
-FRI_FT_ORDER = np.array([0, 1, 2, 5, 4, 3])
-
-
-def fri_to_standard(ft) -> np.ndarray:
-    return np.asarray(ft, dtype=np.float64)[FRI_FT_ORDER]
-
-
-standard_to_fri = fri_to_standard  # the permutation is its own inverse
 
 _NOISE_BLOCK = 1000
 _REGULARISATION = 1e-9 * np.eye(6)
@@ -204,7 +196,7 @@ def _measure_at(table_at, joint_noise, kinematics_fn, model_at, data_at, frame, 
     if _external_wrench_at(w[0], w[1], w[2], w[3], w[4], w[5], w[6], w[7], w[8], w[9], w[10], w[11]):
         wrench[:] = np.nan  # a singular system: NaN, as numpy's solve kernel gives
     for i in range(6):
-        fri[i] = wrench[FRI_FT_ORDER[i]]
+        fri[i] = wrench[FRI_AXIS_ORDER[i]]  # FRI orders the torques Tz, Ty, Tx
     pose_at(at[_ROTATION], at[_TRANSLATION], at[_CART])
     return True
 
@@ -410,7 +402,7 @@ class RobotCell(HoldsAddresses):
             kin.update(self._q_msr)
             self._wrench_scratch.out[:] = _external_wrench_numpy(kin.jacobian("tcp", pin.ReferenceFrame.LOCAL),
                                                                  self._tau_ext, self._JJt, self._Jtau)
-        np.take(self._wrench_scratch.out, FRI_FT_ORDER, out=self._est_ext_tcp_ft)
+        np.take(self._wrench_scratch.out, FRI_AXIS_ORDER, out=self._est_ext_tcp_ft)
         R, p = kin.frame_views("tcp")
         self._cart_pos[:, :3] = R
         self._cart_pos[:, 3] = p
@@ -502,7 +494,7 @@ class RobotCell(HoldsAddresses):
             elif mode == ControlMode.JNT_IMP and cmd.jnt_pos is not None:
                 self.krc.set_joint_impedance(cmd.jnt_pos, cmd.jnt_stiffness, cmd.jnt_damping, cmd.add_jnt_trq)
             impedance = ImpedanceCommand(cmd.cart_pos, cmd.cart_stiffness, cmd.cart_damping,
-                                         fri_to_standard(cmd.add_tcp_ft))
+                                         fri_order(cmd.add_tcp_ft))
         force_estimate = self._wrench_scratch.out[:3].copy() if self._measured else None
         if self._compiled is not None and not self.remote_checks and self.krc.mode != ControlMode.JNT_IMP:
             self._compiled.physics(impedance, force_estimate, hand_wrench)
@@ -534,8 +526,7 @@ class RobotCell(HoldsAddresses):
         if not closed.hold:
             if not before:
                 self._first_commands = 2  # a command-mode session begins (end_cycle)
-            numbers = fri.applied_numbers
-            krc.load_numbers(numbers[0, :12], numbers[1, :6], numbers[2, :6], numbers[3, :6][FRI_FT_ORDER])
+            krc.load_applied(fri.applied_numbers_at)
         if self._measured:
             krc.load(None, self._wrench_scratch.out[:3])
         self._compiled.step(not closed.hold, self._measured, hand_wrench)

@@ -41,7 +41,8 @@ import pinocchio as pin
 from numba import njit
 
 from robot_sim.cycle import FRI_CYCLE_NS
-from robot_sim.krc.packets import CommandPacket, ControlMode, MeasurementExtras, MeasurementPacket, fri_order
+from robot_sim.krc.packets import (FRI_AXIS_ORDER, CommandPacket, ControlMode, MeasurementExtras, MeasurementPacket,
+                                   fri_order)
 from kernel_plumbing.addresses import (JIT, HoldsAddresses, address, addresses, carray_at, copy_at, entry,
                                        int64_address, int64_array_at)
 from robot_sim.arm.kinematics import COMPUTE_ALL_TERMS, ArmKinematics, call_compute_all_terms
@@ -244,6 +245,26 @@ _SAFETY_REASONS = tuple(SafetyReason)  # indexed by the state's value: looking a
 _MODES = {int(m): m for m in ControlMode}
 
 
+@njit(**JIT)
+def _load_applied_at(numbers_at, pose_at, stiffness_at, damping_at, wrench_at):
+    """A command's numbers as an FRI link keeps them (robot_sim.krc.link_books' slot: rows
+    cart_pos, cart_stiffness, cart_damping, add_tcp_ft, 12 wide; the wrench in FRI's order)
+    into the law's buffers (the wrench in the standard order): ``KrcController.load_numbers``
+    of the slot's rows, in one call."""
+    n = carray_at(numbers_at, (4, 12))
+    pose, k, d, w = (carray_at(pose_at, (12,)), carray_at(stiffness_at, (6,)), carray_at(damping_at, (6,)),
+                     carray_at(wrench_at, (6,)))
+    for i in range(12):
+        pose[i] = n[0, i]
+    for i in range(6):
+        k[i] = n[1, i]
+        d[i] = n[2, i]
+        w[i] = n[3, FRI_AXIS_ORDER[i]]
+
+
+_LOAD_APPLIED = entry(_load_applied_at, addresses(5))
+
+
 class KrcController(HoldsAddresses):
     """Computes joint torques each cycle from the measured state and the FRI outcome.
 
@@ -397,6 +418,10 @@ class KrcController(HoldsAddresses):
             self._force[...] = external_force
         if command is not None:
             self.load_numbers(command.cart_pos, command.cart_stiffness, command.cart_damping, command.add_tcp_ft)
+
+    def load_applied(self, numbers_at: int) -> None:
+        """``load_numbers`` of a command as an FRI link keeps it, at ``numbers_at`` (``_load_applied_at``)."""
+        _LOAD_APPLIED(numbers_at, self._at["pose"], self._at["k"], self._at["d"], self._at["ft"])
 
     def load_numbers(self, cart_pos, cart_stiffness, cart_damping, add_tcp_ft) -> None:
         """``load``'s command as its four vectors (add_tcp_ft [F; T], the law's order)."""

@@ -473,7 +473,7 @@ class FriLink(HoldsAddresses):
 
     def close(self, t_ns: int) -> ClosedCycle:
         """``end_cycle`` for a caller that takes the command applied from the APPLIED slot
-        (``applied_numbers``; robot_sim.cell's compiled close): no packet is made."""
+        (``applied_numbers_at``; robot_sim.cell's compiled close): no packet is made."""
         t_ns = int(t_ns)
         code = lb.END_CYCLE(self._books_at, self._ring_at, self._n_ring, self._thresholds_at, self._commands_at,
                             self._meta_at, t_ns)
@@ -492,10 +492,10 @@ class FriLink(HoldsAddresses):
                            _STATES[b[lb.STATE]], _QUALITIES[b[lb.QUALITY]], b[lb.CONSECUTIVE])
 
     @property
-    def applied_numbers(self) -> np.ndarray:
-        """The command applied last, as numbers: (8, 12), a row a vector of its packet
-        (robot_sim.krc.packets' order: cart_pos, cart_stiffness, cart_damping, add_tcp_ft, ...)."""
-        return self._commands[lb.APPLIED]
+    def applied_numbers_at(self) -> int:
+        """Where the command applied last is, as numbers: (8, 12) float64, C-contiguous, a row a
+        vector of its packet (robot_sim.krc.packets' order: cart_pos, cart_stiffness, ...)."""
+        return self._commands_at + lb.APPLIED * lb.SLOT_ROWS * lb.SLOT_COLUMNS * 8
 
 
 def _not_opened(code: int, t_ns: int, b: np.ndarray) -> Exception:

@@ -5,7 +5,7 @@ import numpy as np
 
 import pytest
 
-from robot_sim.cell import JOINT_POSITION_NOISE, RobotCell, standard_to_fri
+from robot_sim.cell import JOINT_POSITION_NOISE, RobotCell
 from robot_sim.krc.packets import CommandPacket, ControlMode, FriQuality, FriState, fri_order
 from robot_sim.world.tasks import free_space
 
@@ -157,7 +157,7 @@ def test_a_measurement_without_its_packet_is_the_packet_and_the_next_cycles_are_
             assert a.fri.request_command_mode() and b.fri.request_command_mode()
         m = a.begin_cycle()
         # the estimate in FRI's order (torques Tz Ty Tx), as the KRC's kinematics give it now
-        assert m.est_ext_tcp_ft.tolist() == standard_to_fri(a.external_wrench_tcp()).tolist()
+        assert m.est_ext_tcp_ft.tolist() == fri_order(a.external_wrench_tcp()).tolist()
         seq = b.measure()
         b.kin.update_with_jacobian(np.zeros(7), "tcp", np.empty((6, 7)))  # the estimate here is another
         b.external_wrench_tcp()

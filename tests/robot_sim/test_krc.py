@@ -140,3 +140,20 @@ def test_saturated_torques_stop_the_arm(arm):
     assert krc.safety in (SafetyReason.TORQUE_SATURATION, SafetyReason.JOINT_LIMIT)
     assert np.all(np.isfinite(q))
     assert np.abs(sim.joint_velocities()).max() < 0.5
+
+
+def test_a_command_loaded_from_the_fri_links_slot_is_load_numbers_of_its_rows():
+    """``load_applied`` reads the link's slot (rows cart_pos, cart_stiffness, cart_damping,
+    add_tcp_ft; the wrench in FRI's order Tz Ty Tx) as ``load_numbers`` of the rows, the
+    wrench turned to the law's order: every buffer the same, bit for bit."""
+    from kernel_plumbing.addresses import address
+    from robot_sim.krc.packets import fri_order
+
+    kin = ArmKinematics()
+    a, b = KrcController(kin), KrcController(ArmKinematics())
+    slot = np.random.default_rng(5).standard_normal((8, 12))
+    a.load_applied(address(slot))
+    b.load_numbers(slot[0], slot[1, :6], slot[2, :6], fri_order(slot[3, :6]))
+    for name in ("_pose_cmd", "_stiffness", "_damping", "_wrench"):
+        assert getattr(a, name).tolist() == getattr(b, name).tolist(), name
+    assert a._wrench.tolist() != slot[3, :6].tolist()  # the torques did turn
