@@ -336,6 +336,7 @@ class KrcController(HoldsAddresses):
         self._buffers = buffers  # what the addresses point into, kept alive
         self.state_at, self.table_at = int64_address(self._state), int64_address(self._table)
         self.force_at, self.tau_at = self._at["force"], self._at["tau"]
+        self._command_at = (self._at["pose"], self._at["k"], self._at["d"], self._at["ft"])  # load_applied's
         self._model_at, self._data_at = kinematics.native  # the C++ Model and Data, for _law_cycle
 
     # ------------------------------------------------------------- the state
@@ -421,7 +422,7 @@ class KrcController(HoldsAddresses):
 
     def load_applied(self, numbers_at: int) -> None:
         """``load_numbers`` of a command as an FRI link keeps it, at ``numbers_at`` (``_load_applied_at``)."""
-        _LOAD_APPLIED(numbers_at, self._at["pose"], self._at["k"], self._at["d"], self._at["ft"])
+        _LOAD_APPLIED(numbers_at, *self._command_at)
 
     def load_numbers(self, cart_pos, cart_stiffness, cart_damping, add_tcp_ft) -> None:
         """``load``'s command as its four vectors (add_tcp_ft [F; T], the law's order)."""

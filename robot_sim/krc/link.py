@@ -539,6 +539,6 @@ def _slot_packet(commands: np.ndarray, meta: np.ndarray, slot: int) -> CommandPa
 _STATES, _QUALITIES, _MODES = tuple(FriState), tuple(FriQuality), tuple(ControlMode)
 # a command the link holds only in its slot (it came as a message's numbers): its packet is made when asked for
 _IN_SLOT = object()
-# receive_fields: the vectors' lengths, and which of the eight a CART_IMP command carries
+# receive_fields: which of the eight vectors a CART_IMP command carries
 _CART_IMP_PRESENT = np.array([1, 1, 1, 1, 0, 0, 0, 0], dtype=np.int64)
 _INT64_MAX = 2**63 - 1
