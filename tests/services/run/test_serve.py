@@ -112,12 +112,10 @@ def _serve_a_lab_remote_and_a_net_ft_client(pynetft, out: Path) -> str | None:
                 proc.kill()
                 proc.communicate()
     assert proc.returncode == 0, stderr[-2000:]
-    # the client lost nothing of its second, in order (ft_sequence counts the cell's cycles: on
-    # the realtime clock the sensor skips a cycle's contact now and then, and says so by a gap)
     ft = np.array([s.ft_sequence for s in got])
     rdt = np.array([s.rdt_sequence for s in got])
-    assert np.all(np.diff(ft) >= 1) and np.all(np.diff(rdt) == 1)
-    assert health.lost_count == 0 and health.malformed_count == 0
+    assert np.all(np.diff(ft) >= 1)  # on the realtime clock the sensor skips a cycle now and then: a gap
+    assert health.malformed_count == 0
     report = json.loads((out / "report.json").read_text())
     assert report["error"] is None
     served, = report["served"]
@@ -127,9 +125,11 @@ def _serve_a_lab_remote_and_a_net_ft_client(pynetft, out: Path) -> str | None:
     text = (out / "report.txt").read_text()
     assert "served over FRI 1.0/UDP" in text and "0 from other senders (ignored)" in text, text
     netft_line = next(line for line in text.splitlines() if line.startswith("Net F/T box"))
-    assert "refused 0 start(s)" in netft_line and "HTTP 1 page(s), 0 refused" in netft_line, netft_line
+    # the client reads the configuration page once, and again on every reconnect (below)
+    pages = f"HTTP {1 + health.reconnect_count} page(s), 0 refused"
+    assert "refused 0 start(s)" in netft_line and pages in netft_line, netft_line
     # the recording: each datagram as its bytes and decoded, the RDT records the client got
-    directions, rdt_records = {"measurement": 0, "command": 0}, 0
+    directions, rdt_records, box = {"measurement": 0, "command": 0}, 0, []
     moved = []
     with open(out / "recordings" / "served_00.mcap", "rb") as f:
         for _, channel, message in make_reader(f).iter_messages():
@@ -148,12 +148,29 @@ def _serve_a_lab_remote_and_a_net_ft_client(pynetft, out: Path) -> str | None:
                     assert len(data) == COMMAND_SIZE
                     assert msg["decoded"]["cmd"]["cmdFlags"] == int(decode_command(data)["cmd"]["cmdFlags"])
             elif channel.topic.endswith("netft/rdt"):
-                rdt_records += len(json.loads(message.data)["records"])
+                records = json.loads(message.data)["records"]
+                rdt_records += len(records)
+                box += [(r["rdt_sequence"], r["ft_sequence"]) for r in records]
     assert rdt_records >= len(got)
+    # the client lost nothing of its second, in order, and the box's own copy of what it sent
+    # numbers every stream 1, 2, 3, ...  Only when one side went silent for longer than the
+    # client waits (pynetft's receive timeout: it restarts its stream, from rdt_sequence 1 again)
+    # does the client's sequence jump: the machine not holding 1 kHz, said which side it was
+    box_rdt = np.array([r for r, _ in box])
+    assert np.all((np.diff(box_rdt) == 1) | (box_rdt[1:] == 1)), "the box's own records skip a number"
+    jumps, netft_stall = np.flatnonzero(np.diff(rdt) != 1), None
+    if jumps.size or health.lost_count or health.reconnect_count:
+        said = (f"the client's RDT sequence jumped {[(int(rdt[i]), int(rdt[i + 1])) for i in jumps]} (lost "
+                f"{health.lost_count}, reconnected {health.reconnect_count}, {health.last_error!r})")
+        assert health.reconnect_count >= 1 and all(rdt[i + 1] == 1 for i in jumps), said
+        end = next((i for i in range(len(box) - 1) if box[i][0] == rdt[jumps[0]] and box[i + 1][0] == 1), None) \
+            if jumps.size else None
+        netft_stall = said + (f": the box went silent, its sensor's next record {box[end + 1][1] - box[end][1]} "
+                              "cycles later" if end is not None else ": the client stalled while the box went on")
     # no duplicates in the recording's copy of the wire, whatever the timing
     sent = wire["datagrams"]["sent"] + SETTLE_CYCLES
     assert directions["measurement"] <= sent and directions["command"] <= directions["measurement"]
-    shortfall = fri_fell_back(served, commanded)
+    shortfall = fri_fell_back(served, commanded) or netft_stall
     if shortfall:
         return shortfall
     kinds = [e["kind"] for e in wire["krl_events"]]
