@@ -79,7 +79,7 @@ def load_npz_demonstration(path) -> dict:
         raise DemonstrationError(f"{path}: no such file") from None
     except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
         raise DemonstrationError(f"{path}: not a readable .npz file ({exc})") from None
-    except AttributeError:  # np.load of a non-archive (a plain .npy) has no .files
+    except (AttributeError, TypeError):  # np.load of a plain .npy gives an array: no .files, no `with`
         raise DemonstrationError(f"{path}: not a .npz archive (a single array?)") from None
     for key in ("states", "forces"):
         if key not in out:
@@ -372,6 +372,11 @@ def check_inspect(args):
     from etar.model import ETAR
 
     model = ETAR.load(args.model)  # a ValueError naming the file and the field
+    if model.metadata.get("impedance"):
+        # a model that carries its task is printed only if the nodes would take it (load_task's checks)
+        from etar.task import LearnedTask
+
+        LearnedTask.from_model(model, args.model)
     loaded = []
     if args.demos:
         loaded = _load(_check_files(args.demos, "--demos"))

@@ -80,8 +80,14 @@ def model_from_dict(cls, data: dict, source: str):
         except (TypeError, ValueError, OverflowError) as exc:  # JSON's integers have no bound
             raise ValueError(f"{source}: field 'parameters.{key}' is not a numeric array ({exc})") from None
     goal = params.get("goal")
-    model.goal = None if goal is None else np.array(goal, dtype=np.float64)
-    model.metadata = dict(data.get("metadata", {}))
+    try:
+        model.goal = None if goal is None else np.array(goal, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise ValueError(f"{source}: field 'parameters.goal' is not a numeric array ({exc})") from None
+    metadata = data.get("metadata", {})
+    if not isinstance(metadata, dict):
+        raise ValueError(f"{source}: field 'metadata' must be a JSON object, got {json.dumps(metadata)[:80]}")
+    model.metadata = dict(metadata)
     try:
         _, Sigma, _, _ = model._checked_parameters()
     except ValueError as exc:
@@ -111,6 +117,9 @@ def read_model_file(path: Path) -> dict:
         raise ValueError(f"{path}: cannot read the model file ({exc})") from None
     except json.JSONDecodeError as exc:
         raise ValueError(f"{path}: not a JSON model file ({exc})") from None
+    except RecursionError:  # the parser's own bound on nesting
+        raise ValueError(f"{path}: not a JSON model file (nested too deeply)") from None
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a JSON object (an etar-model file), got a {type(data).__name__}")
     return data
+

@@ -121,6 +121,11 @@ class LearnedTask:
                                {k: v})
                 mapping[kk] = vv
             object.__setattr__(self, "phase_to_truth", mapping or None)
+        sel = self.selection
+        if sel is not None and not (isinstance(sel, dict) and isinstance(sel.get("criterion", ""), str)
+                                    and isinstance(sel.get("per_demonstration", []), list)):
+            self._fail("metadata.selection", "expected how the number of phases was chosen (an object with "
+                                             "criterion, best, scores) or null", sel)
         object.__setattr__(self, "demonstrations", tuple(str(d) for d in self.demonstrations))
 
     # ------------------------------------------------------------ files

@@ -362,11 +362,14 @@ def _model(run: Path) -> str | None:
         return None
     try:
         model = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:  # two runs' unreadable models must not compare equal
+    except (OSError, ValueError, RecursionError) as exc:  # two runs' unreadable models must not compare equal
         raise DiffError(f"{path}: not a JSON model ({type(exc).__name__}: {exc})") from None
     if isinstance(model, dict):
-        (model.get("fit") or {}).pop("seconds", None)
-        meta = model.get("metadata") or {}
+        fit, meta = model.get("fit"), model.get("metadata")
+        if isinstance(fit, dict):
+            fit.pop("seconds", None)
+        if not isinstance(meta, dict):
+            meta = {}
         meta.pop("made_by", None)
         if isinstance(meta.get("demonstrations"), list):  # where each run's folder is: by name only
             meta["demonstrations"] = [Path(str(d)).name for d in meta["demonstrations"]]

@@ -76,6 +76,9 @@ def test_save_load_round_trip_is_exact(tmp_path, task_and_demos):
         (lambda d: d["parameters"]["A"][0][0].__setitem__(0, 10**400), r"parameters.A' is not a numeric array"),
         (lambda d: d["hyperparameters"].update(w_l2=10**400), "w_l2 must be a finite number >= 0"),
         (lambda d: d["hyperparameters"].update(ab_prior=-1.0), "ab_prior must be a finite number >= 0"),
+        # both raised TypeError, with no file named
+        (lambda d: d.update(metadata=[1]), r"field 'metadata' must be a JSON object, got \[1\]"),
+        (lambda d: d["parameters"].update(goal={}), r"field 'parameters.goal' is not a numeric array"),
     ],
 )
 def test_corrupt_model_file_names_file_and_field(tmp_path, task_and_demos, mutate, match):

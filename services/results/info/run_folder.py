@@ -186,7 +186,7 @@ def _model(run_dir: Path, report: dict) -> dict | None:
             entry.update(phases=m.get("n_phases"), transitions=m.get("transitions"),
                          state=(m.get("metadata") or {}).get("state"),
                          features=(m.get("metadata") or {}).get("features"))
-        except (OSError, ValueError, AttributeError) as exc:
+        except (OSError, ValueError, AttributeError, RecursionError) as exc:  # nested past the parser's bound
             entry["problem"] = f"{rel}: {exc.strerror if isinstance(exc, OSError) else 'not a model file'}"
         models.append(entry)
     return {"phases_chosen": selection.get("best", (report.get("summary") or {}).get("phases_chosen")),
