@@ -84,6 +84,9 @@ CASES = [
     ("etar-bench sweep scenarios/smoke.yaml --out FILE", 2, "--out FILE: FILE is a file; --out names the sweep's folder"),
     ("etar-bench sweep scenarios/smoke.yaml --out SWEEP_DIR", 2, "--out SWEEP_DIR: SWEEP_DIR already holds a sweep "
                                                                   "(sweep.json); choose another folder, or --replace"),
+    ("etar-bench sweep scenarios/smoke.yaml --out RUN_DIR --replace", 2,
+     "--out RUN_DIR: RUN_DIR holds a run (its report, recordings or model), not a sweep; choose another folder"),
+    ("etar-bench compare RUN_DIR --seeds 100000000", 2, "--seeds must be 1..1000, got 100000000"),
     ("etar-bench sweep scenarios/smoke.yaml --param cell.sensor_noise=, --out DIR/sweep", 2,
      "--param 'cell.sensor_noise=,': no values"),
     ("etar-bench sweep scenarios/smoke.yaml --param cell.sensor_noise=[1, --out DIR/sweep", 2,
@@ -144,6 +147,10 @@ CASES = [
     ("etar --bogus", 2, "--bogus: not a flag of this program"),
     ("etar --bogus learn", 2, "--bogus: not a flag of this program"),
     ("etar inspect FILE", 2, "FILE: not a JSON model file"),
+    ("etar inspect DEEP.json", 2, "DEEP.json: not a JSON model file (nested too deeply)"),
+    ("etar inspect BAD_TASK.json", 2, "BAD_TASK.json: metadata.impedance[0].successor: expected a phase 0..2 or "
+                                      "null, got 99"),
+    ("etar learn ARRAY.npz --out DIR/m.json", 2, "ARRAY.npz: not a .npz archive (a single array?)"),
     # the services
     ("etar-robot --run-id x --world free_space", 2, "--world free_space: not one of"),
     ("etar-robot --run-id x --sched-fifo 1000", 2, "--sched-fifo 1000: a SCHED_FIFO priority is 1..99 (0: off)"),
@@ -189,6 +196,16 @@ def placeholders(base: Path) -> dict:
         (p[key] / "report.txt").write_text("a report\n")
     np.savez(base / "demo.npz", states=np.zeros((50, 3)), forces=np.zeros((50, 3)))
     p["DEMO.npz"] = base / "demo.npz"
+    p["ARRAY.npz"] = base / "array.npz"  # one array saved with np.save, named as an archive
+    with open(p["ARRAY.npz"], "wb") as f:
+        np.save(f, np.zeros((50, 3)))
+    # model files: nested past JSON's parser, and the smoke's model with a phase's successor out of range
+    p["DEEP.json"] = base / "deep.json"
+    p["DEEP.json"].write_text("[" * 100_000 + "]" * 100_000)
+    task = json.loads((ROOT / "scenarios" / "models" / "smoke.json").read_text())
+    task["metadata"]["impedance"][0]["successor"] = 99
+    p["BAD_TASK.json"] = base / "bad_task.json"
+    p["BAD_TASK.json"].write_text(json.dumps(task))
     # a reproduction's recording: what etar learn reads of it first is its metadata record
     from services.recordings.writer import EpisodeWriter
 

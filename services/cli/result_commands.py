@@ -9,6 +9,9 @@ from pathlib import Path
 from services.cli.output import say
 from services.runtime.visual_topics import check_visual_rate
 
+# each seed is a whole EM fit per transition model: more than this is a mistyped number
+MAX_COMPARE_SEEDS = 1000
+
 
 def cmd_report(args) -> int:
     from services.results.folder import RunFolderError, read_report
@@ -180,10 +183,13 @@ def cmd_export(args) -> int:
 
 def cmd_compare(args) -> int:
     from services.results.compare import compare_run
+    from etar.demonstrations import DemonstrationError
+    from etar.task import TaskError
+    from services.recordings.format import RecordingError
     from services.results.figures import FiguresError
 
-    if args.seeds < 1:
-        say(f"etar-bench compare: error: --seeds must be >= 1, got {args.seeds}")
+    if not 1 <= args.seeds <= MAX_COMPARE_SEEDS:
+        say(f"etar-bench compare: error: --seeds must be 1..{MAX_COMPARE_SEEDS}, got {args.seeds}")
         return 2
     try:
         pair = tuple(int(x) for x in args.pair.split(","))
@@ -194,7 +200,8 @@ def cmd_compare(args) -> int:
         return 2
     try:
         compare_run(args.run_dir, seeds=tuple(range(args.seeds)), progress=say, pair=pair)
-    except FiguresError as exc:
+    except (FiguresError, RecordingError, TaskError, DemonstrationError) as exc:
+        # a damaged recording or model of the run: its own error names the file
         say(f"etar-bench compare: error: {exc}")
         return 2
     print((Path(args.run_dir) / "comparison.txt").read_text(), end="", flush=True)

@@ -53,6 +53,7 @@ from pathlib import Path
 
 import yaml
 
+from services.results.folder import holds_a_run
 from services.scenario import Scenario, ScenarioError
 from services.scenario.loading import StrictLoader
 from services.runtime.files import write_file, write_via
@@ -194,6 +195,9 @@ SWEEP_PRODUCTS = ("sweep.json", "table.csv", "table.json", "comparison.txt", "sc
 def _prepare(out_dir: Path, flag_value, replace: bool) -> None:
     if out_dir.exists() and not out_dir.is_dir():
         raise SweepError(f"--out {flag_value}: {out_dir} is a file; --out names the sweep's folder")
+    if out_dir.is_dir() and holds_a_run(out_dir):  # --replace removes a sweep, never a run
+        raise SweepError(f"--out {flag_value}: {out_dir} holds a run (its report, recordings or model), not a "
+                         "sweep; choose another folder")
     held = [name for name in SWEEP_PRODUCTS if (out_dir / name).exists()]
     if held and not replace:
         raise SweepError(f"--out {flag_value}: {out_dir} already holds a sweep ({', '.join(held)}); choose another "

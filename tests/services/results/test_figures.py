@@ -233,3 +233,17 @@ def test_compare_scores_etar_against_star_on_the_runs_demonstrations_and_draws_f
     assert "Table C1 check: demonstrations 0 and 1" in (run_dir / "comparison.txt").read_text()
     for bad in ("0", "0,0", "0,2", "a,b"):
         assert bench_cli.main(["compare", str(run_dir), "--seeds", "1", "--pair", bad]) == 2, bad
+
+
+def test_compare_of_a_run_whose_demonstration_is_cut_short_names_the_file(run_dir, tmp_path, capsys):
+    """A damaged recording is one line naming it, exit 2 (it was a RecordingError's traceback)."""
+    import shutil
+
+    damaged = tmp_path / "damaged"
+    shutil.copytree(run_dir, damaged)
+    recording = damaged / "recordings" / "demonstration_00.mcap"
+    recording.write_bytes(recording.read_bytes()[:recording.stat().st_size // 2])
+    capsys.readouterr()
+    assert bench_cli.main(["compare", str(damaged), "--seeds", "1"]) == 2
+    said = capsys.readouterr().err.strip().splitlines()
+    assert len(said) == 1 and said[0].startswith(f"etar-bench compare: error: {recording}: incomplete recording"), said
