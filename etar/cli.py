@@ -84,6 +84,21 @@ def load_npz_demonstration(path) -> dict:
     for key in ("states", "forces"):
         if key not in out:
             raise DemonstrationError(f"{path}: field '{key}' is missing (found: {sorted(out)})")
+        if np.iscomplexobj(out[key]):  # float64 would drop the imaginary part with only a warning
+            raise DemonstrationError(f"{path}: field '{key}' is complex ({out[key].dtype}); expected real numbers")
+    if "phases" in out:  # true labels: one per sample or per step, whole numbers >= 0 (etar.task.learn_task)
+        labels, samples = out["phases"], np.shape(out["states"])[0] if np.ndim(out["states"]) else 0
+        try:
+            whole = np.asarray(labels, dtype=np.float64)
+            ok = whole.ndim == 1 and bool(np.all(np.isfinite(whole) & (whole >= 0) & (whole == np.round(whole))))
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise DemonstrationError(f"{path}: field 'phases' must be whole numbers >= 0 in one row (true labels), "
+                                     f"got {labels.dtype} of shape {labels.shape}")
+        if len(labels) not in (samples, samples - 1):
+            raise DemonstrationError(f"{path}: field 'phases' has {len(labels)} labels; expected one per sample "
+                                     f"({samples}) or per step ({samples - 1})")
     return out
 
 
@@ -268,6 +283,10 @@ def check_learn(args) -> LearnJob:
             dt = math.nan
         if not (math.isfinite(dt) and dt > 0):
             raise UsageError(str(path), "field 'dt' must be a sample period > 0 s (or pass --dt)", first["dt"])
+        for other, d in loaded[1:]:  # one model, one sample period: the first's would be taken for all
+            if "dt" in d and not np.isclose(float(np.asarray(d["dt"], dtype=np.float64)), dt, rtol=1e-9, atol=0.0):
+                raise UsageError(str(other), f"field 'dt' differs from {path}'s {dt:g} s: demonstrations learned "
+                                             "together must share their sample period (or pass --dt)", d["dt"])
     candidates = tuple(range(1, args.max_phases + 1)) if phases is None else ()
     _check_data_size(loaded, pairs, phases, args.transitions, args.selection)
     return LearnJob(files=files, loaded=loaded, pairs=pairs, out=out, phases=phases, candidates=candidates,

@@ -151,6 +151,12 @@ CASES = [
     ("etar inspect BAD_TASK.json", 2, "BAD_TASK.json: metadata.impedance[0].successor: expected a phase 0..2 or "
                                       "null, got 99"),
     ("etar learn ARRAY.npz --out DIR/m.json", 2, "ARRAY.npz: not a .npz archive (a single array?)"),
+    ("etar learn COMPLEX.npz --out DIR/m.json", 2, "COMPLEX.npz: field 'states' is complex (complex128); expected "
+                                                   "real numbers"),
+    ("etar learn LABELS.npz --out DIR/m.json", 2, "LABELS.npz: field 'phases' has 10 labels; expected one per "
+                                                  "sample (50) or per step (49)"),
+    ("etar learn DEMO.npz DT2.npz --out DIR/m.json", 2, "DT2.npz: field 'dt' differs from DEMO.npz's 0.01 s: "
+                                                        "demonstrations learned together must share their sample period"),
     # the services
     ("etar-robot --run-id x --world free_space", 2, "--world free_space: not one of"),
     ("etar-robot --run-id x --sched-fifo 1000", 2, "--sched-fifo 1000: a SCHED_FIFO priority is 1..99 (0: off)"),
@@ -196,6 +202,11 @@ def placeholders(base: Path) -> dict:
         (p[key] / "report.txt").write_text("a report\n")
     np.savez(base / "demo.npz", states=np.zeros((50, 3)), forces=np.zeros((50, 3)))
     p["DEMO.npz"] = base / "demo.npz"
+    # a demonstration with complex states, one with 10 true labels for 50 samples, one sampled at 50 Hz
+    for name, extra in (("COMPLEX", dict(states=np.zeros((50, 3), complex))), ("LABELS", dict(phases=np.zeros(10, int))),
+                        ("DT2", dict(dt=0.02))):
+        p[f"{name}.npz"] = base / f"{name.lower()}.npz"
+        np.savez(p[f"{name}.npz"], **{"states": np.zeros((50, 3)), "forces": np.zeros((50, 3)), **extra})
     p["ARRAY.npz"] = base / "array.npz"  # one array saved with np.save, named as an archive
     with open(p["ARRAY.npz"], "wb") as f:
         np.save(f, np.zeros((50, 3)))
