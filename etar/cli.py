@@ -28,7 +28,7 @@ from typing import Callable
 
 import numpy as np
 
-from etar.demonstrations import DemonstrationError, check_demonstration
+from etar.demonstrations import DemonstrationError, check_demonstration, check_true_labels
 from etar.interrupts import interrupt_behind
 from etar.parsing import CommandParser, cannot_write_in, one_line, reader_gone
 from etar.vocabulary import CRITERIA, FEATURES, MAX_PHASES, STATES, TRANSITIONS
@@ -84,21 +84,8 @@ def load_npz_demonstration(path) -> dict:
     for key in ("states", "forces"):
         if key not in out:
             raise DemonstrationError(f"{path}: field '{key}' is missing (found: {sorted(out)})")
-        if np.iscomplexobj(out[key]):  # float64 would drop the imaginary part with only a warning
-            raise DemonstrationError(f"{path}: field '{key}' is complex ({out[key].dtype}); expected real numbers")
-    if "phases" in out:  # true labels: one per sample or per step, whole numbers >= 0 (etar.task.learn_task)
-        labels, samples = out["phases"], np.shape(out["states"])[0] if np.ndim(out["states"]) else 0
-        try:
-            whole = np.asarray(labels, dtype=np.float64)
-            ok = whole.ndim == 1 and bool(np.all(np.isfinite(whole) & (whole >= 0) & (whole == np.round(whole))))
-        except (TypeError, ValueError):
-            ok = False
-        if not ok:
-            raise DemonstrationError(f"{path}: field 'phases' must be whole numbers >= 0 in one row (true labels), "
-                                     f"got {labels.dtype} of shape {labels.shape}")
-        if len(labels) not in (samples, samples - 1):
-            raise DemonstrationError(f"{path}: field 'phases' has {len(labels)} labels; expected one per sample "
-                                     f"({samples}) or per step ({samples - 1})")
+    if "phases" in out:
+        check_true_labels(out["phases"], np.shape(out["states"])[0] if np.ndim(out["states"]) else 0, str(path))
     return out
 
 
@@ -391,10 +378,8 @@ def check_inspect(args):
     from etar.model import ETAR
 
     model = ETAR.load(args.model)  # a ValueError naming the file and the field
-    if model.metadata.get("impedance"):
-        # a model that carries its task is printed only if the nodes would take it (load_task's checks)
+    if model.metadata.get("impedance"):  # with its task: printed only if the nodes would take it
         from etar.task import LearnedTask
-
         LearnedTask.from_model(model, args.model)
     loaded = []
     if args.demos:

@@ -33,6 +33,8 @@ def check_demonstration(states, forces, *, index: int = 0, n: int | None = None,
     where = f"demonstration {index}"
     arrays = []
     for name, value, width in (("states", states, n), ("forces", forces, m)):
+        if np.iscomplexobj(value):  # float64 would drop the imaginary part with only a warning
+            raise DemonstrationError(f"{where}: {name} is complex ({np.asarray(value).dtype}); expected real numbers")
         try:
             arr = np.array(value, dtype=np.float64, copy=True, order="C")
         except (TypeError, ValueError) as exc:
@@ -64,6 +66,22 @@ def check_demonstration(states, forces, *, index: int = 0, n: int | None = None,
     if s.shape[1] == 0:
         raise DemonstrationError(f"{where}: states has no columns")
     return s, f
+
+
+def check_true_labels(labels, samples: int, where: str) -> None:
+    """A demonstration's true phases (``etar.task.learn_task`` matches the learned ones to them):
+    whole numbers >= 0 in one row, one per sample or per step, or a DemonstrationError."""
+    try:
+        whole = np.asarray(labels, dtype=np.float64)
+        ok = whole.ndim == 1 and bool(np.all(np.isfinite(whole) & (whole >= 0) & (whole == np.round(whole))))
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise DemonstrationError(f"{where}: field 'phases' must be whole numbers >= 0 in one row (true labels), "
+                                 f"got {np.asarray(labels).dtype} of shape {np.shape(labels)}")
+    if len(labels) not in (samples, samples - 1):
+        raise DemonstrationError(f"{where}: field 'phases' has {len(labels)} labels; expected one per sample "
+                                 f"({samples}) or per step ({samples - 1})")
 
 
 def check_demonstrations(demos: Sequence, *, n: int | None = None, m: int | None = None):

@@ -96,7 +96,10 @@ def one_line_error(message: str) -> str:
             return f"{m.group(1)}: required"
         m = re.fullmatch(r"unrecognized arguments: (.*)", message)
         if m:
-            return f"{m.group(1)}: not a flag of this program (see --help)"
+            first = m.group(1).split()[0]
+            if first.startswith("-"):
+                return f"{m.group(1)}: not a flag of this program (see --help)"
+            return f"{m.group(1)}: more arguments than this program takes (see --help)"
         return message
     flag, rest = m.group("flag").split("/")[-1], m.group("rest")
     if rest.startswith((flag + " ", flag + ":")):

@@ -75,6 +75,7 @@ CASES = [
     ("etar-bench check FAR.yaml", 2, "would start at a point the arm cannot reach with the tool pointing down"),
     ("etar-bench check NO_MODEL.yaml", 2, "model: the model file does not exist"),
     ("etar-bench check FILE", 2, "FILE: the file is empty"),
+    ("etar-bench check scenarios/smoke.yaml extra", 2, "extra: more arguments than this program takes (see --help)"),
     # etar-bench report / figures
     ("etar-bench report FAILED_RUN", 1, "etar-bench report: the run failed: RuntimeError: the recorder died"),
     ("etar-bench report DIR", 2, "DIR/report.txt not found (is DIR a run directory?)"),
@@ -151,8 +152,8 @@ CASES = [
     ("etar inspect BAD_TASK.json", 2, "BAD_TASK.json: metadata.impedance[0].successor: expected a phase 0..2 or "
                                       "null, got 99"),
     ("etar learn ARRAY.npz --out DIR/m.json", 2, "ARRAY.npz: not a .npz archive (a single array?)"),
-    ("etar learn COMPLEX.npz --out DIR/m.json", 2, "COMPLEX.npz: field 'states' is complex (complex128); expected "
-                                                   "real numbers"),
+    ("etar learn COMPLEX.npz --out DIR/m.json", 2, "COMPLEX.npz: states is complex (complex128); expected real "
+                                                   "numbers"),
     ("etar learn LABELS.npz --out DIR/m.json", 2, "LABELS.npz: field 'phases' has 10 labels; expected one per "
                                                   "sample (50) or per step (49)"),
     ("etar learn DEMO.npz DT2.npz --out DIR/m.json", 2, "DT2.npz: field 'dt' differs from DEMO.npz's 0.01 s: "

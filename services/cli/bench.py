@@ -60,15 +60,17 @@ def _xyz(text: str) -> tuple:
     return values
 
 
-def add_ros2_arguments(p, live: bool) -> None:
-    """``--ros2 [DOMAIN]`` (``live``: a run or a serve) and the rates of the ROS 2 topics."""
+def add_ros2_arguments(p, live: bool, transport_flag: bool = True) -> None:
+    """``--ros2 [DOMAIN]`` (``live``: a run or a serve) and the rates of the ROS 2 topics;
+    ``transport_flag``: the command has ``--transport``, which --ros2 needs to be zenoh."""
     from services.ros2.convert import Ros2Rates
 
     if live:
         p.add_argument("--ros2", nargs="?", const=0, type=int, metavar="DOMAIN",
                        help="the cell on ROS 2's Zenoh wire (rmw_zenoh, Jazzy >= 0.2.4, Kilted, Rolling) as node "
                             "/etar_cell in ROS 2 domain DOMAIN (default 0): /joint_states, /tf, /robot_description, "
-                            "/tcp_pose, /ft_sensor/wrench, /etar/phase, /clock (docs/ros2.md); --transport zenoh")
+                            "/tcp_pose, /ft_sensor/wrench, /etar/phase, /clock (docs/ros2.md)" +
+                            ("; with --transport zenoh" if transport_flag else ""))
     for name, what in (("state", "/joint_states, /tf and /tcp_pose"), ("wrench", "/ft_sensor/wrench"),
                        ("clock", "/clock")):
         p.add_argument(f"--ros2-{name}-rate-hz", type=float, default=getattr(Ros2Rates, f"{name}_rate_hz"),
@@ -117,7 +119,7 @@ def build_parser() -> CommandParser:
     p.add_argument("--attach", action="store_true",
                    help="drive services that are already running (docker-compose) instead of starting them")
     p.add_argument("--ready-timeout", type=float, default=RunOptions.ready_timeout,
-                   help="seconds to wait for the services")
+                   help=f"seconds to wait for the services (default {RunOptions.ready_timeout:g})")
     p.add_argument("--realtime-profile", default="auto", type=_profile, metavar="auto|none|PARTS",
                    help="with --clock realtime, what the run asks of the machine, each where permitted: fifo "
                         f"(SCHED_FIFO for the FRI chain: {fifo}), isolate (the robot alone on the last CPU), "
@@ -187,7 +189,7 @@ def build_parser() -> CommandParser:
     p.add_argument("--robot-flag", action="append", metavar="FLAG",
                    help="a further flag for the robot, e.g. --robot-flag=--fri-packet-loss=0.01 (repeatable): the "
                         "link's faults apply to the UDP link too")
-    add_ros2_arguments(p, live=True)
+    add_ros2_arguments(p, live=True, transport_flag=False)
     p.set_defaults(func=cmd_serve)
     p = sub.add_parser("check", help="validate a scenario without running it (the model file, every start) and "
                                      "print it with every default filled in")
@@ -241,7 +243,7 @@ def build_parser() -> CommandParser:
                    help="numba threads per run's learner (default: the CPUs divided among the workers)")
     p.set_defaults(func=cmd_sweep)
     p = sub.add_parser("report", help="print the report of a finished run")
-    p.add_argument("run_dir")
+    p.add_argument("run_dir", help="a run's folder (its report.txt, or report.json with --json)")
     p.add_argument("--json", action="store_true", help="print report.json instead of the text")
     p.set_defaults(func=cmd_report)
     p = sub.add_parser("info", help="what a recording or a run holds: topics with schema, counts, rates, duration, "
