@@ -23,7 +23,7 @@ DOC = ROOT / "docs" / "mistakes.md"
 
 # (command, exit code, what its one line says); placeholders: FILE an existing file, DIR an
 # existing folder, RUN_DIR a finished run's folder, FAILED_RUN a failed run's, FAR.yaml,
-# LOW.yaml, NO_MODEL.yaml, BAD_MODEL.yaml scenarios with the mistake their name says,
+# LOW.yaml, NO_MODEL.yaml, BAD_MODEL.yaml, SHORT.yaml scenarios with the mistake their name says,
 # DEMO.npz a demonstration, REPRO.mcap a reproduction's recording, SWEEP_DIR a sweep's folder
 CASES = [
     # etar-bench run
@@ -75,6 +75,8 @@ CASES = [
     ("etar-bench check FAR.yaml", 2, "would start at a point the arm cannot reach with the tool pointing down"),
     ("etar-bench check NO_MODEL.yaml", 2, "model: the model file does not exist"),
     ("etar-bench check FILE", 2, "FILE: the file is empty"),
+    ("etar-bench check SHORT.yaml", 2, "stages[0].demonstrate.max_seconds: a demonstration is recorded at 100 Hz for "
+                                       "the learner: expected at least 0.02 s (two samples), got 0.001"),
     ("etar-bench check scenarios/smoke.yaml extra", 2, "extra: more arguments than this program takes (see --help)"),
     # etar-bench report / figures
     ("etar-bench report FAILED_RUN", 1, "etar-bench report: the run failed: RuntimeError: the recorder died"),
@@ -191,7 +193,8 @@ def placeholders(base: Path) -> dict:
             ("FAR", "", "demonstrate: {count: 1, start: [5.0, -0.1, 0.3]}"),
             ("LOW", "", "demonstrate: {count: 1, start: [0.5, -0.1, -0.1]}"),
             ("NO_MODEL", "model: nosuch.json\n", "reproduce: {count: 1}"),
-            ("BAD_MODEL", "model: bad.json\n", "reproduce: {count: 1}")):
+            ("BAD_MODEL", "model: bad.json\n", "reproduce: {count: 1}"),
+            ("SHORT", "", "demonstrate: {count: 1, max_seconds: 0.001}")):
         p[f"{name}.yaml"] = base / f"{name}.yaml"
         p[f"{name}.yaml"].write_text(scenario.format(name=name.lower(), model=model, stage=stage))
     (base / "bad.json").write_text("garbage")

@@ -227,7 +227,11 @@ def cmd_demo(args) -> int:
     except OSError as exc:  # a disk that filled during the run: the recording is kept
         say(f"etar-bench demo: failed: {exc}; the recording is kept: {recording}")
         return 1
-    return 0 if d["reason"] == "teacher_done" else 1
+    if d["reason"] != "teacher_done":
+        say(f"etar-bench demo: the teacher did not finish the task (the demonstration ended {d['reason']}): exit 1; "
+            f"its recording and files are kept")
+        return 1
+    return 0
 
 
 def output_file(flag: str, path) -> None:

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from typing import Any, Union
 
 from robot_sim.cycle import FRI_CYCLE_NS
+from services.runtime.messages import ESTIMATOR_PERIOD_NS, SAMPLE_RATE_HZ
 from robot_sim.krc.faults import LinkFaultError, LinkFaultSpec
 from robot_sim.world.tasks import HoseCoupler, Valley
 from services.scenario.checks import (CRITERIA, MAX_EM_ITERATIONS, MAX_EPISODE_SECONDS, MAX_EPISODES, MAX_PHASES,
@@ -23,6 +24,8 @@ def doc(text: str, default: Any = dataclasses.MISSING) -> Any:
     return dataclasses.field(default=default, metadata={"doc": text})
 
 
+# the learner's samples are the estimator's (100 Hz): a demonstration must hold two of them
+MIN_DEMONSTRATION_SECONDS = 2 * ESTIMATOR_PERIOD_NS / 1e9
 FRI_PREFIX = "fri_"  # the cell's keys for the FRI link's faults (robot_sim.krc.faults.LinkFaultSpec)
 DEFAULT_STARTS = {"valley": Valley.start_left, "hose_coupler": HoseCoupler.start_left}
 VALLEY_GOAL_X = Valley.goal_x
@@ -78,7 +81,8 @@ class DemonstrateStage(_MotionStage):
     start: Xyz | None = doc("[x, y, z] tcp start for the LEFT side, m, base frame (the right side mirrors y); default: the world's (see the world defaults)", None)
     start_spread: float = doc('m >= 0: a uniform random offset per axis', 0.01)
     goal_x: float | None = doc("valley only: the teacher stops sliding at this x (below every start's x); default the valley's", None)
-    max_seconds: float = doc(f'simulated-time limit per demonstration, s, > 0 and <= {MAX_EPISODE_SECONDS:g}', 40.0)
+    max_seconds: float = doc(f'simulated-time limit per demonstration, s, >= {MIN_DEMONSTRATION_SECONDS:g} and <= '
+                             f'{MAX_EPISODE_SECONDS:g}', 40.0)
     seed: int | None = doc(f"int >= 0; default the scenario's seed + {DEMONSTRATE_SEED_OFFSET} (+ j for the j-th "
                            "demonstrate stage)", None)
 
@@ -95,6 +99,10 @@ class DemonstrateStage(_MotionStage):
         if self.goal_x is not None:
             _set(self, "goal_x", _number(self.goal_x, "goal_x"))
         _set(self, "max_seconds", _seconds(self.max_seconds, "max_seconds"))
+        if self.max_seconds < MIN_DEMONSTRATION_SECONDS:
+            raise ScenarioError(f"a demonstration is recorded at {SAMPLE_RATE_HZ:g} Hz for the learner: expected at "
+                                f"least {MIN_DEMONSTRATION_SECONDS:g} s (two samples)", path="max_seconds",
+                                value=self.max_seconds)
         if self.seed is not None:
             _set(self, "seed", _seed(self.seed, "seed"))
 

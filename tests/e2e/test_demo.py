@@ -31,6 +31,7 @@ def test_demo_writes_png_and_npz_that_etar_learns_from(tmp_path, capsys):
 @pytest.mark.parametrize("flags, names", [
     (["--world", "hose_coupler", "--side", "right"], "--side"),
     (["--max-seconds", "-1"], "--max-seconds"),
+    (["--max-seconds", "0.001"], "--max-seconds"),  # under two of the learner's samples
     (["--spread", "nan"], "--spread"),
     (["--png", "{tmp}/missing/x.png"], "--png"),
 ])
@@ -45,3 +46,12 @@ def test_bad_flags_are_one_line_and_exit_2_before_anything_is_made(tmp_path, cap
     assert "Traceback" not in captured.err and captured.out == ""
     assert not out.exists()
     assert not (tmp_path / "missing").exists()
+
+
+@pytest.mark.slow
+def test_a_demonstration_the_teacher_did_not_finish_exits_1_and_says_so(tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["demo", "--max-seconds", "2", "--out", str(out)]) == 1
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.startswith("etar-bench demo: the teacher did not finish the task (the demonstration ended timeout)")
+    assert (out / "recordings" / "demonstration_00.mcap").is_file()
