@@ -37,7 +37,8 @@ def describe_run(path) -> dict:
                 continue
             files = [in_run(run_dir, p) for p in [entry.get("path"), *(entry.get("recording_parts") or [])] if p]
             listed.update(files)
-            stats = [_file_stats(f) for f in files]
+            # no recordings/ at all: the run kept none by choice (a sweep's --record summary), none is lost
+            stats = [_file_stats(f) for f in files] if recordings.is_dir() else [_NOT_KEPT] if files else []
             episodes.append(_episode(kind, entry.get("index", i), entry, files, stats, run_dir))
     for f in sorted(recordings.glob("*.mcap")) if recordings.is_dir() else ():
         if f.resolve() in listed:
@@ -52,7 +53,7 @@ def describe_run(path) -> dict:
               "messages": sum(e["messages"] or 0 for e in episodes),
               "size_bytes": sum(e["size_bytes"] or 0 for e in episodes),
               "sim_seconds": sum(e["sim_seconds"] or 0 for e in episodes),
-              "incomplete": sum(not e["complete"] for e in episodes)}
+              "incomplete": sum(e["complete"] is False for e in episodes)}
     return strict_json({
         "kind": "run",
         "path": str(run_dir),
@@ -112,6 +113,10 @@ def _attached_scenario(path: Path) -> str | None:
     return None
 
 
+# an episode's recording when the run kept none: neither complete nor lost
+_NOT_KEPT = {"size_bytes": None, "messages": None, "complete": None, "problem": "not kept: the run has no recordings/"}
+
+
 def _file_stats(path: Path) -> dict:
     """A recording's size, message count and episode, from its MCAP summary (the footer's
     statistics and metadata index: no message is read); a file without one (truncated) is
@@ -163,7 +168,8 @@ def _episode(kind: str, index, entry: dict, files: list, stats: list, run_dir: P
             "size_bytes": sum(s["size_bytes"] or 0 for s in stats),
             # the parts before the last are cut by design (a recorder restarted mid-episode, the
             # report's recording_gaps): the episode is whole when every part reads and the last is finished
-            "complete": bool(stats) and stats[-1]["complete"] and all(s["messages"] is not None for s in stats),
+            "complete": None if stats == [_NOT_KEPT] else
+            bool(stats) and stats[-1]["complete"] and all(s["messages"] is not None for s in stats),
             "problem": "; ".join(problems) or None}
 
 
@@ -241,7 +247,8 @@ def run_text(d: dict) -> str:
               "       size  file"]
     for e in d["episodes"]:
         success = "-" if e["success"] is None else ("yes" if e["success"] else "NO")
-        file = ", ".join(e["files"]) + ("" if e["complete"] else f"  INCOMPLETE: {e['problem']}")
+        file = ", ".join(e["files"]) + ("" if e["complete"] else f"  ({e['problem']})" if e["complete"] is None
+                                        else f"  INCOMPLETE: {e['problem']}")
         lines.append(f"  {e['kind']:<14} {str(e['index']):>3} {str(e['reason'] or '-'):<19} {success:>7}  "
                      f"{_num(e['phase_accuracy'], '.4f'):>9}  {_num(e['sim_seconds'], '.3f'):>7}  "
                      f"{_num(e['wall_seconds'], '.2f'):>8}  {_num(e['messages'], 'd'):>8}  "

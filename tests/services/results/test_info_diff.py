@@ -163,7 +163,7 @@ def test_info_of_a_run_folder_and_its_report_verdict(tmp_path):
     assert describe(run_dir / "report.json")["kind"] == "run"
 
 
-def test_info_of_a_cut_recording_and_a_run_folder_without_report(tmp_path):
+def test_info_of_a_cut_recording_and_a_run_folder_without_report(tmp_path, capsys):
     run_dir = tmp_path / "cut"
     full = write_recording(tmp_path / "full.mcap", "r1", cycles=3000)
     data = full.read_bytes()
@@ -197,7 +197,10 @@ def test_info_of_a_cut_recording_and_a_run_folder_without_report(tmp_path):
     (kept / "recordings" / "reproduction_00.mcap").unlink()  # lost
     assert bench_cli.main(["info", str(kept)]) == 1
     shutil.rmtree(kept / "recordings")  # none kept, by choice (a sweep's --record summary)
+    capsys.readouterr()
     assert bench_cli.main(["info", str(kept)]) == 0
+    said = capsys.readouterr().out
+    assert "not kept: the run has no recordings/" in said and "INCOMPLETE" not in said and " incomplete" not in said
 
 
 def test_info_errors_name_the_path(tmp_path):
