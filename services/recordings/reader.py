@@ -133,8 +133,10 @@ def recording_kind(path) -> str | None:
     return None
 
 
-def read_episode(path) -> Episode:
-    """Read one recording; see the module docstring for truncated files."""
+def read_episode(path, *, salvage: bool = False) -> Episode:
+    """Read one recording; see the module docstring for truncated files.  ``salvage``: a
+    finished file damaged inside (a chunk that fails its CRC or does not decompress) gives
+    what was read before the damage, incomplete, instead of a RecordingError (``recover``)."""
     path = Path(path)
     if path.exists() and not path.is_file():  # a FIFO would block the open, /dev/zero never end
         raise RecordingError(f"{path}: not a regular file" + (" (a folder)" if path.is_dir() else ""))
@@ -171,8 +173,8 @@ def read_episode(path) -> Episode:
         problem = (f"the closing magic bytes are cut or damaged ({_describe(error)}); every record before them "
                    "was read")
     elif error is not None:
-        if scan.footer is not None or ends_with_magic:
-            # the writer finished this file, so it is damaged, not cut short
+        damaged = scan.footer is not None or ends_with_magic  # the writer finished it: damaged, not cut short
+        if damaged and not (salvage and scan.metadata and (scan.chunks or scan.data_end)):
             raise RecordingError(f"{path}: corrupt MCAP file ({_describe(error)}); {scan.chunks} chunk(s), "
                                  f"{len(scan.rows)} message(s) read before the damage") from error
         if not scan.metadata:
@@ -182,7 +184,11 @@ def read_episode(path) -> Episode:
         recovered = ("the data section is complete: every message was recovered, only the summary is lost"
                      if scan.data_end else f"{scan.chunks} complete chunk(s) recovered; the messages of the "
                      "chunk being written when the file ended are lost")
-        problem = (f"no MCAP footer: the writer did not finish (killed, or the file copied while recording); "
+        salvaged = ("every message recovered, only the summary after the data section is lost" if scan.data_end
+                    else f"the {scan.chunks} chunk(s) before the damage recovered, the messages from the damaged "
+                    "chunk on are lost")
+        problem = (f"corrupt MCAP file ({_describe(error)}): {salvaged}" if damaged else
+                   f"no MCAP footer: the writer did not finish (killed, or the file copied while recording); "
                    f"{_describe(error)}; {recovered}")
     if (error is None or magic_cut) and scan.statistics is not None and \
             scan.statistics.message_count != len(scan.rows):

@@ -1,4 +1,5 @@
-"""Recovering a truncated recording: every complete chunk, written out as a finished MCAP file.
+"""Recovering a truncated or damaged recording: every complete chunk before the end or the
+damage, written out as a finished MCAP file.
 
 A recorder killed mid-episode leaves a file without its footer and summary:
 ``read_episode`` reads what it kept (the metadata, the scenario, every chunk
@@ -8,9 +9,11 @@ finished file beside the original (which it leaves as it is): the same
 channels, schemas, metadata (plus what was lost, under ``recovered``), the
 scenario attachment, and every recovered message with its log and publish
 times and its payload byte for byte.  The new file is read back and compared
-before ``recover`` says it is done.  A finished recording among the files
-given is said and left as it is (no failure: the exit status is 1 only when
-a file could not be recovered).
+before ``recover`` says it is done.  A finished file damaged inside (a chunk
+that fails its CRC or does not decompress, a damaged summary), which every
+other reader refuses, gives the chunks before the damage the same way.  A
+finished recording among the files given is said and left as it is (no
+failure: the exit status is 1 only when a file could not be recovered).
 """
 
 from __future__ import annotations
@@ -37,9 +40,12 @@ class Recovered:
 
     def describe(self) -> str:
         seq = "" if self.last_robot_seq is None else f", robot cycles up to {self.last_robot_seq}"
+        lost = (("only the damaged summary" if "every message recovered" in self.problem else
+                 "the damaged chunk and every message after it") if self.problem.startswith("corrupt") else
+                f"what the recorder had not yet written as a whole chunk (at most {CHUNK_SIZE // 1024} KiB of "
+                "messages, about 100 ms of an episode)")
         return (f"{self.source}: recovered {self.messages} messages from {self.chunks} complete chunk(s){seq} "
-                f"into {self.path}; lost: what the recorder had not yet written as a whole chunk "
-                f"(at most {CHUNK_SIZE // 1024} KiB of messages, about 100 ms of an episode)")
+                f"into {self.path}; lost: {lost}")
 
 
 class NothingToRecover(RecordingError):
@@ -56,7 +62,7 @@ def recover(source, out=None, *, overwrite: bool = False) -> Recovered:
     the file when there is nothing to recover (NothingToRecover: the file is finished; or unreadable)
     or the output exists (unless ``overwrite``)."""
     source = Path(source)
-    episode = read_episode(source)
+    episode = read_episode(source, salvage=True)
     if episode.complete:
         raise NothingToRecover(f"{source}: a finished recording (footer and summary read through): nothing to recover")
     path = Path(out) if out is not None else default_output(source)

@@ -313,6 +313,35 @@ def test_recover_makes_a_truncated_file_a_finished_one_with_every_complete_chunk
     assert list(folder.iterdir()) == [] and not list(tmp_path.glob("*.part"))
 
 
+def test_recover_keeps_the_chunks_before_damage_inside_a_finished_file(tmp_path, long_episode, capsys):
+    from services.cli.bench import main as bench
+    from services.recordings.recovery import recover
+
+    path, want = long_episode
+    data = bytearray(path.read_bytes())
+    damaged = tmp_path / "damaged.mcap"
+    data[len(data) // 2:len(data) // 2 + 64] = bytes(64)  # zeros in the middle of the data section
+    damaged.write_bytes(bytes(data))
+    with pytest.raises(RecordingError, match="corrupt MCAP file"):
+        read_episode(damaged)  # what every reader but recover says of it
+    result = recover(damaged)
+    back = read_episode(result.path)
+    assert back.complete and 0 < len(back.messages) == result.messages < len(want)
+    assert [tuple(m)[:3] for m in back.messages] == want[:len(back.messages)]  # a prefix, byte for byte
+    assert back.metadata["recovered"].startswith("corrupt MCAP file") and "before the damage" in \
+        back.metadata["recovered"]
+    assert "lost: the damaged chunk and every message after it" in result.describe()
+    # damage in the first chunk: nothing before it to keep, a failure naming the file
+    first = tmp_path / "first.mcap"
+    data = bytearray(path.read_bytes())
+    with open(path, "rb") as f:
+        start = make_reader(f).get_summary().chunk_indexes[0].chunk_start_offset
+    data[start + 100:start + 164] = bytes(64)
+    first.write_bytes(bytes(data))
+    assert bench(["recover", str(first)]) == 1
+    assert str(first) in capsys.readouterr().err
+
+
 def test_killed_writer_leaves_its_complete_chunks(tmp_path):
     path = tmp_path / "killed.mcap"
     script = f"""
