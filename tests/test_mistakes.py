@@ -69,6 +69,8 @@ CASES = [
      "--netft example.org: not an IPv4 address"),
     ("etar-bench serve scenarios/smoke.yaml --out DIR/served --krl testbench", 2,
      "--krl testbench: not one of frilibrary, lwr_hw"),
+    ("etar-bench serve scenarios/smoke.yaml --out DIR/served --max-seconds 1e12", 2,
+     "--max-seconds must be a number of seconds > 0 and <= 3600, got 1000000000000.0"),
     ("etar-bench serve scenarios/smoke.yaml --out DIR/served --robot-flag=--bogus", 2,
      "--robot-flag --bogus: not a flag of etar-robot"),
     # etar-bench check

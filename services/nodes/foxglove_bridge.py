@@ -17,6 +17,7 @@ Lichtblick until December 2025) -- the same wire format under its older name.
 
 from __future__ import annotations
 
+import errno
 import json
 import threading
 from dataclasses import dataclass
@@ -68,8 +69,10 @@ class FoxgloveBridgeNode(Node):
             self.door = SubprotocolDoor(config.host, config.port, self.server.port)
         except OSError as exc:
             self.server.stop()
-            raise OSError(f"the live view cannot listen on {config.host}:{config.port}: {exc.strerror or exc} "
-                          "(--foxglove PORT: another port, or 0 for any free one)") from None
+            # the port's flag differs by command (etar-bench run --foxglove PORT, this node's --port)
+            hint = "; another port, or 0 for any free one" if exc.errno == errno.EADDRINUSE else ""
+            raise OSError(f"the live view cannot listen on {config.host}:{config.port}: {exc.strerror or exc}"
+                          f"{hint}") from None
         self.port = self.door.port
         self.channels = {topic: foxglove.Channel(topic, schema=json.loads(schema_bytes(topic)),
                                                  message_encoding="json")

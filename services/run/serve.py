@@ -23,6 +23,7 @@ from robot_sim.wire.fri_udp import host_port
 from robot_sim.wire.fri_datagrams import REMOTE_PORT
 from robot_sim.krc.krl import LAB_CONVENTIONS
 from services.scenario import Scenario
+from services.scenario.checks import MAX_EPISODE_SECONDS
 from services.scenario.starts import reproduction_starts
 from services.runtime.messages import FT_WRENCH, ROBOT_CONTACT, ROBOT_STATE
 
@@ -52,8 +53,10 @@ class ServeOptions:
             except ValueError:
                 raise ValueError(f"--netft {self.netft}: not an IPv4 address (e.g. 127.0.0.1; 'none': no box)") from None
         if not (isinstance(self.max_seconds, (int, float)) and math.isfinite(self.max_seconds)
-                and self.max_seconds > 0):
-            raise ValueError(f"--max-seconds must be a number of seconds > 0, got {self.max_seconds!r}")
+                and 0 < self.max_seconds <= MAX_EPISODE_SECONDS):
+            # one served session is one episode, one recording: bounded as a scenario's episode is
+            raise ValueError(f"--max-seconds must be a number of seconds > 0 and <= {MAX_EPISODE_SECONDS:g}, "
+                             f"got {self.max_seconds!r}")
         self._check_ports()
         if isinstance(self.fri_cycle_ms, bool) or not isinstance(self.fri_cycle_ms, int) \
                 or not 1 <= self.fri_cycle_ms <= 100:

@@ -240,3 +240,11 @@ def test_output_whose_reader_is_gone_ends_quietly(argv):
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 141, (proc.returncode, err.decode())
     assert err == b"", err.decode()
+
+
+def test_the_live_views_bridge_on_a_host_it_cannot_listen_on_names_no_flag_of_another_command(capsys):
+    """The node's own program has --host and --port, not etar-bench run's --foxglove."""
+    assert exit_code(lambda: roles.main("foxglove_bridge", ["--run-id", "x", "--host", "not a host"])) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("etar-foxglove-bridge: error: the live view cannot listen on not a host:"), err
+    assert "--foxglove" not in err[-1] and not any("Traceback" in line for line in err)
