@@ -112,7 +112,10 @@ def zenoh_reason(exc: Exception) -> str:
     if m:
         text = m.group(1)
     text = re.sub(r" at /\S+\.rs:\d+\.?", "", text).strip()
-    return re.sub(r'^Str\("(.*)"\)$', r"\1", text)
+    text = re.sub(r'^Str\("(.*)"\)$', r"\1", text)
+    # a JSON5 parser's error drawn over lines (escaped in Zenoh's message): its verdict and where
+    drawn = re.search(r"-->\s*(\d+:\d+).*\\n\s*=\s*(.*)$", text)
+    return f"{drawn.group(2)} (at line:column {drawn.group(1)} of the value)" if drawn else text
 
 
 def _insert(conf: zenoh.Config, key: str, value: str, flag: str) -> None:

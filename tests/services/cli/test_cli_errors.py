@@ -16,6 +16,9 @@ SERVICE_CASES = [
     ("ft_sensor", ["--run-id", "x", "--bogus"], "--bogus: not a flag of this program"),
     ("ft_sensor", ["--run-id", "x", "--cfg", "nosuch/key:1"], "--cfg nosuch/key:1: unknown key"),
     ("ft_sensor", ["--run-id", "x", "--cfg", "nocolon"], "--cfg nocolon: expected KEY:VALUE"),
+    # JSON5's error was drawn over lines, escaped into the one line as \n sequences
+    ("ft_sensor", ["--run-id", "x", "--cfg", "a:{bad json"],
+     "--cfg a:{bad json: expected array, boolean, null, number, object, or string (at line:column 1:1 of the value)"),
     ("ft_sensor", ["--run-id", "x", "--cpus", "99"], "--cpus 99: this process may use CPUs"),
     ("ft_sensor", ["--run-id", "x", "--cpus", "a-b"], "--cpus a-b: expected CPUs like 1 or 0,2-3"),
     ("robot", ["--run-id", "x", "--sched-fifo", "1000"], "--sched-fifo 1000: a SCHED_FIFO priority is 1..99 (0: off)"),
