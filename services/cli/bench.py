@@ -1,12 +1,13 @@
 """``etar-bench``: run scenarios and read their reports.
 
-    etar-bench run SCENARIO [--out DIR] [--clock realtime|lockstep] [--transport zenoh|inproc] [--foxglove [PORT]]
-                   [--ros2 [DOMAIN]]
+    etar-bench run SCENARIO [--out DIR] [--clock realtime|lockstep] [--transport zenoh|inproc]
+                   [--engine fused|per-message] [--foxglove [PORT]] [--ros2 [DOMAIN]]
     etar-bench check SCENARIO
     etar-bench serve SCENARIO --out DIR [--fri-remote HOST:PORT] [--krl frilibrary|lwr_hw] [--netft HOST]
                      [--start X,Y,Z] [--max-seconds S] [--ros2 [DOMAIN]]
     etar-bench demo [--world valley|hose_coupler] [--side left|right] [--png FILE] [--npz FILE]
-    etar-bench sweep SCENARIO --param PATH=V1,V2,... [--repeats N] --out DIR [--cluster ADDRESS]
+    etar-bench sweep SCENARIO --out DIR [--param PATH=V1,V2,...] [--repeats N] [--engine fused|per-message]
+                     [--cluster ADDRESS]
     etar-bench report RUN_DIR [--json]
     etar-bench info PATH [--json]
     etar-bench diff RUN_A RUN_B [--json]
@@ -191,13 +192,17 @@ def build_parser() -> CommandParser:
                         "link's faults apply to the UDP link too")
     add_ros2_arguments(p, live=True, transport_flag=False)
     p.set_defaults(func=cmd_serve)
-    p = sub.add_parser("check", help="validate a scenario without running it (the model file, every start) and "
-                                     "print it with every default filled in")
+    what = "validate a scenario without running it (the model file, every start) and print it with every " \
+           "default filled in"
+    p = sub.add_parser("check", help=what, description=what[0].upper() + what[1:] + "; exit 2 and one line naming "
+                       "the file, the field and the value when it is not valid.")
     p.add_argument("scenario", help="scenario YAML file (see docs/scenarios.md)")
     p.set_defaults(func=cmd_check)
-    p = sub.add_parser("demo", help="one demonstration by the simulated teacher, in one process: its recording, "
-                                    "and on request a picture and the arrays etar learn reads")
-    p.add_argument("--world", choices=TASK_WORLDS, default="valley", help="the task world")
+    what = "one demonstration by the simulated teacher, in one process: its recording, and on request a " \
+           "picture and the arrays etar learn reads"
+    p = sub.add_parser("demo", help=what, description=what[0].upper() + what[1:] + "; exit 1 when the teacher "
+                       "did not finish the task (its files are kept), 2 on a bad flag.")
+    p.add_argument("--world", choices=TASK_WORLDS, default="valley", help="the task world (default valley)")
     p.add_argument("--side", choices=SIDES, default=SIDES[0], help=f"valley: starting side (default {SIDES[0]})")
     p.add_argument("--seed", type=int, default=0, help="the scenario's seed (default 0)")
     p.add_argument("--spread", type=float, default=0.0, help="random start offset per axis, m (default 0)")
@@ -309,7 +314,8 @@ def build_parser() -> CommandParser:
                    help="a further certificate beside the run's roles (repeatable)")
     p.set_defaults(func=cmd_certs)
 
-    p = sub.add_parser("router", help="run a Zenoh router (for docker-compose or several hosts)")
+    what = "run a Zenoh router (for docker-compose or several hosts)"
+    p = sub.add_parser("router", help=what, description=what[0].upper() + what[1:] + ", until Ctrl-C or SIGTERM.")
     p.add_argument("--listen", action="append", help=f"endpoint(s), default tcp/0.0.0.0:{ZENOH_PORT}; port 0: the "
                                                      "system chooses, and the first line says which (its read-only "
                                                      "admin space, as zenohd's, says so)")
