@@ -263,17 +263,18 @@ def check_learn(args) -> LearnJob:
     loaded = _load(files)
     pairs = _checked_arrays(loaded)
     if dt is None:
-        path, first = loaded[0]
-        try:
-            dt = float(first.get("dt", 0.01))
-        except (TypeError, ValueError):
-            dt = math.nan
-        if not (math.isfinite(dt) and dt > 0):
-            raise UsageError(str(path), "field 'dt' must be a sample period > 0 s (or pass --dt)", first["dt"])
-        for other, d in loaded[1:]:  # one model, one sample period: the first's would be taken for all
-            if "dt" in d and not np.isclose(float(np.asarray(d["dt"], dtype=np.float64)), dt, rtol=1e-9, atol=0.0):
-                raise UsageError(str(other), f"field 'dt' differs from {path}'s {dt:g} s: demonstrations learned "
-                                             "together must share their sample period (or pass --dt)", d["dt"])
+        for i, (path, d) in enumerate(loaded):  # one model, one sample period: the files' must agree
+            try:
+                period = float(d.get("dt", 0.01))
+            except (TypeError, ValueError):
+                period = math.nan
+            if not (math.isfinite(period) and period > 0):
+                raise UsageError(str(path), "field 'dt' must be a sample period > 0 s (or pass --dt)", d["dt"])
+            if i == 0:
+                first, dt = path, period
+            elif "dt" in d and not math.isclose(period, dt, rel_tol=1e-9):
+                raise UsageError(str(path), f"field 'dt' differs from {first}'s {dt:g} s: demonstrations learned "
+                                            "together must share their sample period (or pass --dt)", d["dt"])
     candidates = tuple(range(1, args.max_phases + 1)) if phases is None else ()
     _check_data_size(loaded, pairs, phases, args.transitions, args.selection)
     return LearnJob(files=files, loaded=loaded, pairs=pairs, out=out, phases=phases, candidates=candidates,

@@ -160,6 +160,8 @@ CASES = [
                                                    "numbers"),
     ("etar learn LABELS.npz --out DIR/m.json", 2, "LABELS.npz: field 'phases' has 10 labels; expected one per "
                                                   "sample (50) or per step (49)"),
+    ("etar learn DEMO.npz DTX.npz --out DIR/m.json", 2, "DTX.npz: field 'dt' must be a sample period > 0 s (or "
+                                                        "pass --dt), got 'x'"),
     ("etar learn DEMO.npz DT2.npz --out DIR/m.json", 2, "DT2.npz: field 'dt' differs from DEMO.npz's 0.01 s: "
                                                         "demonstrations learned together must share their sample period"),
     # the services
@@ -208,9 +210,9 @@ def placeholders(base: Path) -> dict:
         (p[key] / "report.txt").write_text("a report\n")
     np.savez(base / "demo.npz", states=np.zeros((50, 3)), forces=np.zeros((50, 3)))
     p["DEMO.npz"] = base / "demo.npz"
-    # a demonstration with complex states, one with 10 true labels for 50 samples, one sampled at 50 Hz
+    # demonstrations with complex states, with 10 true labels for 50 samples, sampled at 50 Hz, with a dt of 'x'
     for name, extra in (("COMPLEX", dict(states=np.zeros((50, 3), complex))), ("LABELS", dict(phases=np.zeros(10, int))),
-                        ("DT2", dict(dt=0.02))):
+                        ("DT2", dict(dt=0.02)), ("DTX", dict(dt="x"))):
         p[f"{name}.npz"] = base / f"{name.lower()}.npz"
         np.savez(p[f"{name}.npz"], **{"states": np.zeros((50, 3)), "forces": np.zeros((50, 3)), **extra})
     p["ARRAY.npz"] = base / "array.npz"  # one array saved with np.save, named as an archive
