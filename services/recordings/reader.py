@@ -183,11 +183,9 @@ def read_episode(path, *, salvage: bool = False) -> Episode:
                                  f"({_describe(error)})") from error
         recovered = ("the data section is complete: every message was recovered, only the summary is lost"
                      if scan.data_end else f"{scan.chunks} complete chunk(s) recovered; the messages of the "
-                     "chunk being written when the file ended are lost")
-        salvaged = ("every message recovered, only the summary after the data section is lost" if scan.data_end
-                    else f"the {scan.chunks} chunk(s) before the damage recovered, the messages from the damaged "
-                    "chunk on are lost")
-        problem = (f"corrupt MCAP file ({_describe(error)}): {salvaged}" if damaged else
+                     "chunk " + ("found damaged and after it" if damaged else "being written when the file ended") +
+                     " are lost")
+        problem = (f"corrupt MCAP file ({_describe(error)}); {recovered}" if damaged else
                    f"no MCAP footer: the writer did not finish (killed, or the file copied while recording); "
                    f"{_describe(error)}; {recovered}")
     if (error is None or magic_cut) and scan.statistics is not None and \

@@ -40,12 +40,12 @@ class Recovered:
 
     def describe(self) -> str:
         seq = "" if self.last_robot_seq is None else f", robot cycles up to {self.last_robot_seq}"
-        lost = (("only the damaged summary" if "every message recovered" in self.problem else
-                 "the damaged chunk and every message after it") if self.problem.startswith("corrupt") else
-                f"what the recorder had not yet written as a whole chunk (at most {CHUNK_SIZE // 1024} KiB of "
+        # a damaged file: the reader's own account of what was read and what was lost
+        lost = (self.problem if self.problem.startswith("corrupt") else
+                f"lost: what the recorder had not yet written as a whole chunk (at most {CHUNK_SIZE // 1024} KiB of "
                 "messages, about 100 ms of an episode)")
         return (f"{self.source}: recovered {self.messages} messages from {self.chunks} complete chunk(s){seq} "
-                f"into {self.path}; lost: {lost}")
+                f"into {self.path}; {lost}")
 
 
 class NothingToRecover(RecordingError):
