@@ -122,4 +122,3 @@ def read_model_file(path: Path) -> dict:
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a JSON object (an etar-model file), got a {type(data).__name__}")
     return data
-

@@ -182,10 +182,10 @@ def cmd_export(args) -> int:
 
 
 def cmd_compare(args) -> int:
-    from services.results.compare import compare_run
     from etar.demonstrations import DemonstrationError
     from etar.task import TaskError
     from services.recordings.format import RecordingError
+    from services.results.compare import compare_run
     from services.results.figures import FiguresError
 
     if not 1 <= args.seeds <= MAX_COMPARE_SEEDS:

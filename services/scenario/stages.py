@@ -10,9 +10,9 @@ from dataclasses import dataclass
 from typing import Any, Union
 
 from robot_sim.cycle import FRI_CYCLE_NS
-from services.runtime.messages import ESTIMATOR_PERIOD_NS, SAMPLE_RATE_HZ
 from robot_sim.krc.faults import LinkFaultError, LinkFaultSpec
 from robot_sim.world.tasks import HoseCoupler, Valley
+from services.runtime.messages import ESTIMATOR_PERIOD_NS, SAMPLE_RATE_HZ
 from services.scenario.checks import (CRITERIA, MAX_EM_ITERATIONS, MAX_EPISODE_SECONDS, MAX_EPISODES, MAX_PHASES,
                                       MAX_PHYSICS_SUBSTEPS, MAX_RESTARTS, SELECTIONS, ScenarioError, Xyz, _bool,
                                       _candidates, _choice, _int, _number, _phases, _seconds, _seed, _set, _sides,
