@@ -10,7 +10,6 @@ parallelism comes from running several at a time.
 from __future__ import annotations
 
 import contextlib
-import functools
 import os
 import threading
 from concurrent.futures.process import BrokenProcessPool
@@ -94,7 +93,7 @@ def process_map(workers: int | None, beside: bool = False):
     pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_start,
                                initargs=(beside,))
     try:
-        yield functools.partial(_spawning, pool.map)
+        yield PoolMap(pool)
     except BaseException:
         # interrupted or failed: no piece is worth waiting for, and none may outlive the run
         # (the executor has no public way to stop its workers before Python 3.14)
@@ -106,6 +105,20 @@ def process_map(workers: int | None, beside: bool = False):
             process.join(5)
         raise
     pool.shutdown()
+
+
+class PoolMap:
+    """A pool's ``map`` (results in order, as ``map``'s), and its ``submit`` for a piece whose
+    caller may take it back while it has not begun (``Future.cancel``) and do it itself."""
+
+    def __init__(self, pool):
+        self._pool = pool
+
+    def __call__(self, fn, *iterables):
+        return _spawning(self._pool.map, fn, *iterables)
+
+    def submit(self, fn, *args):
+        return _spawning(self._pool.submit, fn, *args)
 
 
 class FallbackMap:
@@ -125,7 +138,7 @@ class FallbackMap:
             try:
                 results = self.pool_map(fn, *zip(*items)) if items else iter(())
             except BrokenProcessPool as exc:
-                self._lose(exc)
+                self.lose(exc)
         return self._results(fn, items, results)
 
     def _results(self, fn, items, results):
@@ -137,11 +150,11 @@ class FallbackMap:
                     yield result
                 return
             except BrokenProcessPool as exc:
-                self._lose(exc)
+                self.lose(exc)
         for args in items[done:]:
             yield fn(*args)
 
-    def _lose(self, exc) -> None:
+    def lose(self, exc) -> None:
         if self.lost is None:
             self.lost = f"{self.what} lost a process ({type(exc).__name__}: {exc})"
             self.say(f"{self.lost}: the rest of its work is done in this process")

@@ -159,6 +159,33 @@ def test_the_reports_recordings_are_decoded_beside_the_run_and_only_a_changed_re
     assert _gone(pid), "the decoding process outlived the run"
 
 
+def _slow_square(x):
+    time.sleep(1.0)
+    return x * x
+
+
+def test_the_recordings_the_process_beside_has_not_begun_are_decoded_here_from_the_end(tmp_path, rng):
+    """When the reads end, this process takes back from the end of the queue what the process
+    beside has not begun and decodes it itself while that one goes on from the front: every
+    reading decoded once, in order, the same as decoding it here."""
+    from services.run.report_reads import ReportReads
+
+    readings = []
+    for i in range(5):
+        path = tmp_path / f"reproduction_{i:02d}.mcap"
+        write_episode(path, mixed_messages(40 + 10 * i, rng))
+        readings.append(EpisodeReading(str(path), phase_to_truth={0: 0, 1: 1}))
+    with ReportReads(True, at_least=0) as reads:
+        assert reads.start("busy", _slow_square, (3,), readings)  # the process beside busy for a second
+        reads.catch_up(readings)
+    # the executor hands a process at most two pieces ahead: the other three were taken back
+    assert reads.taken_back >= 3 and reads.ahead == {"busy": 9}
+    assert [r for r, _ in reads.decoded] == readings
+    for (_, got), reading in zip(reads.decoded, readings):
+        want = decode_episode(reading)
+        assert got.links == want.links and json.dumps(got.phases, sort_keys=True) == json.dumps(want.phases, sort_keys=True)
+
+
 def test_a_failed_run_ends_the_report_reads_at_once(tmp_path, rng):
     from services.run.report_reads import ReportReads
 
@@ -348,7 +375,7 @@ def test_the_learn_stages_pool_killed_mid_fit_costs_the_run_nothing(foxglove_run
     said = []
     with DemonstrationReads(scenario, workers=2, say=said.append) as reads:
         reads.read(demo)
-        pool = reads.work_map.args[0].__self__  # process_map's partial of the executor's map
+        pool = reads.work_map._pool  # process_map's PoolMap: the executor
         workers = list(pool._processes.values())
         for process in workers:
             os.kill(process.pid, signal.SIGKILL)
