@@ -224,16 +224,16 @@ class _Scan:
             mark = len(self.rows)
             try:
                 for inner in breakup_chunk(record, validate_crc=True):
-                    self.take(inner)
+                    if isinstance(inner, Message):  # nearly every record of a chunk: asked first
+                        self._message(inner)
+                    else:
+                        self.take(inner)
             except _READ_ERRORS:
                 del self.rows[mark:]
                 raise
             self.chunks += 1
         elif isinstance(record, Message):
-            ch = self.channels.get(record.channel_id)
-            if ch is None:
-                raise McapError(f"message on unknown channel {record.channel_id}")
-            self.rows.append(RecordedMessage(ch.topic, record.log_time, record.data, record.publish_time))
+            self._message(record)
         elif isinstance(record, Channel):
             if record.schema_id != 0 and record.schema_id not in self.schemas:
                 raise McapError(f"channel {record.topic!r} refers to unknown schema {record.schema_id}")
@@ -253,6 +253,12 @@ class _Scan:
             self.statistics = record
         elif isinstance(record, Footer):
             self.footer = record
+
+    def _message(self, record) -> None:
+        ch = self.channels.get(record.channel_id)
+        if ch is None:
+            raise McapError(f"message on unknown channel {record.channel_id}")
+        self.rows.append(RecordedMessage(ch.topic, record.log_time, record.data, record.publish_time))
 
 
 def _describe(exc: BaseException | None) -> str:

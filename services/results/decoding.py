@@ -236,6 +236,10 @@ class TopicColumns:
         if len(values) > len(self.names):
             self.text[at] = {k: v for k, v in values.items() if k not in self.names}
 
+    def column(self, name: str) -> array:
+        """The values of field ``name``, in the order the messages were added."""
+        return self.columns[self.names.index(name)]
+
     def extend(self, other: "TopicColumns") -> None:
         offset = len(self.log_time)
         self.log_time.extend(other.log_time)
@@ -264,28 +268,42 @@ def decoded_messages(ep) -> tuple[dict, int]:
     read: one bad message must not cost a run its report."""
     per: dict[str, TopicColumns] = {}
     bad = 0
+    plans: dict = {}  # the recording's topic -> (topic, its fields, its text fields) or None: not read
     for msg in ep.messages:
-        topic = msg.topic.lstrip("/")
-        if topic not in BY_TOPIC:
+        plan = plans.get(msg.topic, _UNSEEN)
+        if plan is _UNSEEN:
+            topic = msg.topic.lstrip("/")
+            plan = plans[msg.topic] = (topic, REPORT_FIELDS.get(topic, _HEADER), tuple(REPORT_TEXT.get(
+                topic, {}).items())) if topic in BY_TOPIC else None
+        if plan is None:
             continue
-        names = REPORT_FIELDS.get(topic, _HEADER)
+        topic, names, texts = plan
         try:
             d = loads(msg.payload)
-            values = {k: d[k] for k in names}
+            row = [d[k] for k in names]
         except (ValueError, TypeError, KeyError, UnicodeDecodeError):
             bad += 1
             continue
-        if not all(type(v) is int and INT_MIN <= v <= INT_MAX for v in values.values()):
-            bad += 1  # the wire's integers are 64-bit; a bigger one would overflow the arrays below
+        for v in row:
+            if type(v) is not int or not INT_MIN <= v <= INT_MAX:
+                break  # the wire's integers are 64-bit; a bigger one would overflow the arrays below
+        else:
+            columns = per.get(topic)
+            if columns is None:
+                columns = per[topic] = TopicColumns(names)
+            at = len(columns.log_time)
+            columns.log_time.append(msg.log_time_ns)
+            for column, v in zip(columns.columns, row):
+                column.append(v)
+            for name, known in texts:
+                if d.get(name) in known:
+                    columns.text.setdefault(at, {})[name] = d[name]
             continue
-        for name, known in REPORT_TEXT.get(topic, {}).items():
-            if d.get(name) in known:
-                values[name] = d[name]
-        columns = per.get(topic)
-        if columns is None:
-            columns = per[topic] = TopicColumns(names)
-        columns.append(msg.log_time_ns, values)
+        bad += 1
     return per, bad
+
+
+_UNSEEN = object()
 
 
 def episode_links(decoded: dict) -> dict:
@@ -298,20 +316,21 @@ def episode_links(decoded: dict) -> dict:
         tracker = SequenceTracker(stride=STRIDES.get(topic, 1))
         lat = []
         off = 0
-        for log_time, d in items:
-            latency = log_time - d["sent_ns"]
+        for log_time, sent_ns, seq in zip(items.log_time, items.column("sent_ns"), items.column("seq")):
+            latency = log_time - sent_ns
             if on_the_clock(latency):
                 lat.append(latency)
             else:
                 off += 1
-            tracker.add(d["seq"])
+            tracker.add(seq)
         out[topic] = dict(percentiles(lat), lost=tracker.lost, out_of_order=tracker.out_of_order, off_clock=off)
     return out
 
 
 def reproduction_phases(decoded: dict, phase_to_truth: dict, dt: float = ESTIMATOR_PERIOD_NS / 1e9) -> dict:
     """Accuracy and transition-time error of the online estimate in one recorded reproduction."""
-    truth_by_seq = {d["seq"]: d["true_phase"] for _, d in decoded.get(ROBOT_CONTACT.topic, ())}
+    contact = decoded.get(ROBOT_CONTACT.topic)
+    truth_by_seq = {} if contact is None else dict(zip(contact.column("seq"), contact.column("true_phase")))
     est_by_seq = {d["seq"]: d for _, d in decoded.get(ESTIMATOR_PHASE.topic, ())}
     seqs = sorted(s for s in est_by_seq if s in truth_by_seq)
     if not seqs:
@@ -332,10 +351,11 @@ def reproduction_phases(decoded: dict, phase_to_truth: dict, dt: float = ESTIMAT
 
 def fri_quality_series(decoded: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(simulated time s, FRI quality, FRI state) of every robot_state in one recorded episode."""
-    t, q, st = [], [], []
-    for _, d in decoded.get(ROBOT_STATE.topic, ()):
-        t.append(d["stamp_ns"] / 1e9)
-        q.append(d["fri_quality"])
-        st.append(d["fri_state"])
+    states = decoded.get(ROBOT_STATE.topic)
+    if states is None:
+        t, q, st = [], [], []
+    else:
+        t = [stamp / 1e9 for stamp in states.column("stamp_ns")]
+        q, st = states.column("fri_quality"), states.column("fri_state")
     order = np.argsort(t, kind="stable")
     return np.asarray(t)[order], np.asarray(q, dtype=np.int64)[order], np.asarray(st, dtype=np.int64)[order]

@@ -602,7 +602,13 @@ def test_a_topics_columns_give_back_each_message_as_added_after_a_restarted_reco
 
 
 def test_the_report_counts_each_unconditioned_estimate_once_and_only_the_values_it_knows():
-    from services.results.decoding import reproduction_phases
+    from services.results.decoding import TopicColumns, reproduction_phases
+
+    def columns(names, pairs):
+        got = TopicColumns(names)
+        for log_time, fields in pairs:
+            got.append(log_time, fields)
+        return got
 
     truth = [(0, {"seq": s, "sent_ns": 0, "true_phase": 0}) for s in (10, 20, 30, 40)]
     estimates = [(0, {"seq": 10, "sent_ns": 0, "phase": 0}),
@@ -611,7 +617,8 @@ def test_the_report_counts_each_unconditioned_estimate_once_and_only_the_values_
                  (0, {"seq": 30, "sent_ns": 0, "phase": 0, "unconditioned": "gap"}),
                  (0, {"seq": 50, "sent_ns": 0, "phase": 0, "unconditioned": "gap"}),  # no truth: not scored
                  (0, {"seq": 40, "sent_ns": 0, "phase": 0, "unconditioned": "sideways"})]
-    phases = reproduction_phases({"robot/contact": truth, "estimator/phase": estimates}, {0: 0})
+    phases = reproduction_phases({"robot/contact": columns(("seq", "sent_ns", "true_phase"), truth),
+                                  "estimator/phase": columns(("seq", "sent_ns", "phase"), estimates)}, {0: 0})
     assert phases["updates"] == 4 and phases["unconditioned"] == {"arm_held": 1, "gap": 1}
     assert reproduction_phases({}, {0: 0})["unconditioned"] == {"arm_held": 0, "gap": 0}
 
