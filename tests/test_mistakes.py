@@ -76,6 +76,9 @@ CASES = [
     # etar-bench check
     ("etar-bench check FAR.yaml", 2, "would start at a point the arm cannot reach with the tool pointing down"),
     ("etar-bench check NO_MODEL.yaml", 2, "model: the model file does not exist"),
+    ("etar-bench check TRUTH7.yaml", 2, "TRUTH7.yaml: model: the model matches its phase 0 to true phase 7; the "
+                                        "valley world's true phases are 0..2 (free motion, sliding along a plate, "
+                                        "sliding along the groove) (metadata.phase_to_truth)"),
     ("etar-bench check FILE", 2, "FILE: the file is empty"),
     ("etar-bench check SHORT.yaml", 2, "stages[0].demonstrate.max_seconds: a demonstration is recorded at 100 Hz for "
                                        "the learner: expected at least 0.02 s (two samples), got 0.001"),
@@ -198,10 +201,15 @@ def placeholders(base: Path) -> dict:
             ("LOW", "", "demonstrate: {count: 1, start: [0.5, -0.1, -0.1]}"),
             ("NO_MODEL", "model: nosuch.json\n", "reproduce: {count: 1}"),
             ("BAD_MODEL", "model: bad.json\n", "reproduce: {count: 1}"),
+            ("TRUTH7", "model: truth7.json\n", "reproduce: {count: 1}"),
             ("SHORT", "", "demonstrate: {count: 1, max_seconds: 0.001}")):
         p[f"{name}.yaml"] = base / f"{name}.yaml"
         p[f"{name}.yaml"].write_text(scenario.format(name=name.lower(), model=model, stage=stage))
     (base / "bad.json").write_text("garbage")
+    # the valley's model with its first phase matched to a true phase the valley does not have
+    valley = json.loads((ROOT / "scenarios" / "models" / "valley.json").read_text())
+    valley["metadata"]["phase_to_truth"]["0"] = 7
+    (base / "truth7.json").write_text(json.dumps(valley))
     # a finished run's folder and a failed one: what the commands read of them
     report = {"scenario": "smoke", "run_id": "smoke-1", "error": None, "summary": {}}
     for key, error in (("RUN_DIR", None), ("FAILED_RUN", "RuntimeError: the recorder died")):

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from etar.task import LearnedTask, TaskError, load_task
+from robot_sim.world.labels import LABELERS
 from services.scenario import Scenario, ScenarioError, demonstration_starts, reproduction_starts
 
 FLOOR_Z = 0.0  # the floor plane of every task world (robot_sim.world.tasks), m
@@ -58,6 +59,16 @@ def _stored_model(scenario: Scenario) -> LearnedTask:
         raise ScenarioError(f"the model was learned on a state rounded to {task.state_resolution:g} m, the scenario "
                             f"asks for {scenario.state_resolution:g} m (state_resolution)", path="model",
                             value=str(path), source=scenario.source)
+    labeler = LABELERS.get(scenario.world)
+    # which true phase each learned one is: the reproductions are scored by it (a phase the
+    # world does not have scores every estimate wrong, as a model of another world would)
+    unknown = sorted((k, v) for k, v in (task.phase_to_truth or {}).items()
+                     if labeler is not None and v >= len(labeler.names))
+    if unknown:
+        k, v = unknown[0]
+        raise ScenarioError(f"the model matches its phase {k} to true phase {v}; the {scenario.world} world's true "
+                            f"phases are 0..{len(labeler.names) - 1} ({', '.join(labeler.names)}) "
+                            f"(metadata.phase_to_truth)", path="model", value=str(path), source=scenario.source)
     return task
 
 
