@@ -43,9 +43,17 @@ class CommandParser(OneLineErrorParser):
         return super().parse_known_args(args, namespace)
 
     def error(self, message: str):
+        given = self._given[:self._given.index("--")] if "--" in self._given else self._given
         if message.startswith("the following arguments are required"):
-            given = self._given[:self._given.index("--")] if "--" in self._given else self._given
             message = next((f"unrecognized arguments: {a}" for a in [self._unknown_flag(given)] if a), message)
+        missing = re.fullmatch(r"argument (?P<flags>[^:]+): expected one argument", message)
+        if missing:
+            # argparse takes a value that begins with '-' (``--pair -1,0``) for a flag
+            for flag in missing["flags"].split("/"):
+                after = given[given.index(flag) + 1:given.index(flag) + 2] if flag in given else []
+                if after and after[0].startswith("-"):
+                    message += f"; {after[0]} begins with '-', as a flag does: give it as {flag}={after[0]}"
+                    break
         super().error(message)
 
     def _unknown_flag(self, given: list) -> str | None:

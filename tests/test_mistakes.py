@@ -89,12 +89,16 @@ CASES = [
     ("etar-bench figures DIR", 2, "DIR/report.json: missing (is DIR a finished run's folder?)"),
     # etar-bench sweep, demo, export, certs, router
     ("etar-bench sweep scenarios/smoke.yaml --workers 0 --out DIR/sweep", 2, "--workers must be >= 1, got 0"),
+    ("etar-bench sweep scenarios/smoke.yaml --param reproduce[5].count=1 --out DIR/sweep", 2,
+     "reproduce[5].count: the scenario has 1 reproduce stage(s), index 0..0, got 5"),
     ("etar-bench sweep scenarios/smoke.yaml --out FILE", 2, "--out FILE: FILE is a file; --out names the sweep's folder"),
     ("etar-bench sweep scenarios/smoke.yaml --out SWEEP_DIR", 2, "--out SWEEP_DIR: SWEEP_DIR already holds a sweep "
                                                                   "(sweep.json); choose another folder, or --replace"),
     ("etar-bench sweep scenarios/smoke.yaml --out RUN_DIR --replace", 2,
      "--out RUN_DIR: RUN_DIR holds a run (its report, recordings or model), not a sweep; choose another folder"),
     ("etar-bench compare RUN_DIR --seeds 100000000", 2, "--seeds must be 1..1000, got 100000000"),
+    ("etar-bench compare RUN_DIR --pair -1,0", 2,
+     "--pair: expected one value; -1,0 begins with '-', as a flag does: give it as --pair=-1,0"),
     ("etar-bench sweep scenarios/smoke.yaml --param cell.sensor_noise=, --out DIR/sweep", 2,
      "--param 'cell.sensor_noise=,': no values"),
     ("etar-bench sweep scenarios/smoke.yaml --param cell.sensor_noise=[1, --out DIR/sweep", 2,

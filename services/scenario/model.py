@@ -230,8 +230,9 @@ def _assign(data: dict, path: str, value: Any) -> None:
         refuse(f"the scenario has no {m['kind']} stage")
     if m["index"] is not None:
         i = int(m["index"])
-        if i >= len(stages):
-            refuse(f"the scenario has {len(stages)} {m['kind']} stage(s)")
+        if i >= len(stages):  # the index is at fault, not the value
+            raise ScenarioError(f"the scenario has {len(stages)} {m['kind']} stage(s), index 0..{len(stages) - 1}",
+                                path=path, value=i)
         stages = [stages[i]]
     for stage in stages:
         stage[m["kind"]] = dict(stage[m["kind"]] or {}, **{rest: value})
