@@ -25,6 +25,11 @@ class StepArrays:
     features: np.ndarray  # (T-1, d+1) transition features phi_t
 
 
+# no state or force in any unit comes near it; squared and summed over thousands of samples,
+# a value past ~1e150 overflows float64 and the fit ends in LAPACK's errors
+MAX_MAGNITUDE = 1e100
+
+
 def check_demonstration(states, forces, *, index: int = 0, n: int | None = None, m: int | None = None):
     """Return float64, C-contiguous copies of one demonstration or raise.
 
@@ -53,6 +58,13 @@ def check_demonstration(states, forces, *, index: int = 0, n: int | None = None,
             raise DemonstrationError(
                 f"{where}: {name}[{t}, {c}] is {float(arr[t, c])}; "
                 f"{len(bad)} non-finite value(s) in all (sensor dropout? remove or interpolate them)"
+            )
+        huge = np.argwhere(np.abs(arr) > MAX_MAGNITUDE)
+        if huge.size:
+            t, c = huge[0]
+            raise DemonstrationError(
+                f"{where}: {name}[{t}, {c}] is {float(arr[t, c]):g}; values past {MAX_MAGNITUDE:g} overflow the "
+                "fit's sums of squares (wrong units?)"
             )
         arrays.append(arr)
     s, f = arrays

@@ -165,6 +165,8 @@ CASES = [
     ("etar learn ARRAY.npz --out DIR/m.json", 2, "ARRAY.npz: not a .npz archive (a single array?)"),
     ("etar learn COMPLEX.npz --out DIR/m.json", 2, "COMPLEX.npz: states is complex (complex128); expected real "
                                                    "numbers"),
+    ("etar learn HUGE.npz --out DIR/m.json", 2, "HUGE.npz: states[0, 0] is 1e+200; values past 1e+100 overflow the "
+                                                "fit's sums of squares (wrong units?)"),
     ("etar learn LABELS.npz --out DIR/m.json", 2, "LABELS.npz: field 'phases' has 10 labels; expected one per "
                                                   "sample (50) or per step (49)"),
     ("etar learn DEMO.npz DTX.npz --out DIR/m.json", 2, "DTX.npz: field 'dt' must be a sample period > 0 s (or "
@@ -222,8 +224,10 @@ def placeholders(base: Path) -> dict:
         (p[key] / "report.txt").write_text("a report\n")
     np.savez(base / "demo.npz", states=np.zeros((50, 3)), forces=np.zeros((50, 3)))
     p["DEMO.npz"] = base / "demo.npz"
-    # demonstrations with complex states, with 10 true labels for 50 samples, sampled at 50 Hz, with a dt of 'x'
-    for name, extra in (("COMPLEX", dict(states=np.zeros((50, 3), complex))), ("LABELS", dict(phases=np.zeros(10, int))),
+    # demonstrations with complex states, with states of 1e200, with 10 true labels for 50 samples, sampled at
+    # 50 Hz, with a dt of 'x'
+    for name, extra in (("COMPLEX", dict(states=np.zeros((50, 3), complex))), ("HUGE", dict(states=np.full((50, 3), 1e200))),
+                        ("LABELS", dict(phases=np.zeros(10, int))),
                         ("DT2", dict(dt=0.02)), ("DTX", dict(dt="x"))):
         p[f"{name}.npz"] = base / f"{name.lower()}.npz"
         np.savez(p[f"{name}.npz"], **{"states": np.zeros((50, 3)), "forces": np.zeros((50, 3)), **extra})
