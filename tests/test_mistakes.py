@@ -30,6 +30,11 @@ CASES = [
     ("etar-bench run scenarios/smoke.yaml --out FILE", 2, "--out FILE: FILE is a file; --out names the run's folder"),
     ("etar-bench run scenarios/smoke.yaml --out RUN_DIR", 2,
      "--out RUN_DIR: RUN_DIR already holds a run; choose another folder, or --replace to remove that run first"),
+    ("etar-bench run scenarios/smoke.yaml --out SWEEP_DIR --replace", 2,
+     "--out SWEEP_DIR: SWEEP_DIR is a sweep's folder (SWEEP_DIR/sweep.json); choose a folder of the run's own"),
+    ("etar-bench run scenarios/smoke.yaml --out SWEEP_DIR/runs", 2,
+     "--out SWEEP_DIR/runs: SWEEP_DIR/runs is part of a sweep's folder (SWEEP_DIR/sweep.json); choose a folder of "
+     "the run's own"),
     ("etar-bench run scenarios/smoke.yaml --ready-timeout -5", 2,
      "--ready-timeout must be a number of seconds > 0, got -5.0"),
     ("etar-bench run NO_MODEL.yaml", 2, "NO_MODEL.yaml: model: the model file does not exist, got 'DIR/nosuch.json'"),

@@ -25,6 +25,10 @@ RUN_PRODUCTS = ("report.json", "report.txt", "report.html", "report.html.error",
                 "comparison.json", BAGS_DIR)
 # the files that say a folder holds a run
 RUN_MARKERS = ("report.json", SCENARIO_FILE, "recordings", "model.json")
+# what a sweep writes into its --out (services.run.sweep; one folder holds one sweep, as one holds one run),
+# the first the file that says a folder holds a sweep
+SWEEP_PRODUCTS = ("sweep.json", "table.csv", "table.json", "comparison.txt", "scenarios", "runs")
+SWEEP_FILE = SWEEP_PRODUCTS[0]
 
 
 def kept_recordings(run_dir) -> bool:
@@ -38,11 +42,24 @@ def holds_a_run(folder: Path) -> bool:
     return any((folder / name).exists() for name in RUN_MARKERS)
 
 
+def _sweep_of(folder: Path) -> Path | None:
+    """The sweep's folder that ``folder`` is, or is a part of (its runs, its scenarios); else None."""
+    if (folder / SWEEP_FILE).exists():
+        return folder
+    if folder.name in SWEEP_PRODUCTS and (folder.parent / SWEEP_FILE).exists():
+        return folder.parent
+    return None
+
+
 def check_run_folder(folder: Path, flag_value, *, replace: bool) -> bool:
     """Whether ``folder`` holds a run that ``prepare_run_folder`` would remove (``replace``);
     a ValueError naming ``--out`` if it cannot take a new run.  Changes nothing."""
     if folder.exists() and not folder.is_dir():
         raise ValueError(f"--out {flag_value}: {folder} is a file; --out names the run's folder")
+    sweep = _sweep_of(folder)
+    if sweep is not None:  # --replace removes a run, never a sweep or a part of one
+        raise ValueError(f"--out {flag_value}: {folder} is {'a' if sweep == folder else 'part of a'} sweep's "
+                         f"folder ({sweep / SWEEP_FILE}); choose a folder of the run's own")
     if not folder.exists() or not holds_a_run(folder):
         return False
     if not replace:

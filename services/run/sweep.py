@@ -53,7 +53,7 @@ from pathlib import Path
 
 import yaml
 
-from services.results.folder import holds_a_run
+from services.results.folder import SWEEP_FILE, SWEEP_PRODUCTS, holds_a_run
 from services.scenario import Scenario, ScenarioError
 from services.scenario.loading import StrictLoader
 from services.runtime.files import write_file, write_via
@@ -188,8 +188,6 @@ def write_scenarios(specs: list[RunSpec], out: Path) -> None:
         write_file(out / "scenarios" / f"{spec.name}.yaml", spec.scenario.to_yaml())
 
 
-# what a sweep writes into its --out (one folder holds one sweep, as one holds one run)
-SWEEP_PRODUCTS = ("sweep.json", "table.csv", "table.json", "comparison.txt", "scenarios", "runs")
 
 
 def _prepare(out_dir: Path, flag_value, replace: bool) -> None:
@@ -450,7 +448,7 @@ def _tabulate_interrupted(stop: SweepInterrupted, specs, out_dir: Path, scenario
                    not_started=not_started, table=None if csv_path is None else str(csv_path))
     if stop.cancelled is not None:
         summary["cancelled_on_cluster"] = cancelled
-    write_file(out_dir / "sweep.json", json.dumps(summary, indent=1) + "\n")
+    write_file(out_dir / SWEEP_FILE, json.dumps(summary, indent=1) + "\n")
     return summary
 
 
@@ -586,5 +584,5 @@ def sweep(scenario: Scenario, parameters: list, *, repeats: int, out: str, recor
                    workers=workers, cluster=cluster, learn_threads=threads, engine=engine,
                    table=str(csv_path), plots=[str(p) for p in pngs],
                    comparison=str(out_dir / "comparison.txt") if comparison else None)
-    write_file(out_dir / "sweep.json", json.dumps(summary, indent=1) + "\n")
+    write_file(out_dir / SWEEP_FILE, json.dumps(summary, indent=1) + "\n")
     return summary
