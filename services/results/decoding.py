@@ -229,12 +229,16 @@ class TopicColumns:
         self.text: dict[int, dict] = {}  # message index -> {field: known text value}
 
     def append(self, log_time_ns: int, values: dict) -> None:
-        at = len(self.log_time)
+        self.add(log_time_ns, [values[name] for name in self.names],
+                 {k: v for k, v in values.items() if k not in self.names})
+
+    def add(self, log_time_ns: int, row, text: dict | None = None) -> None:
+        """One message: its log time, its fields in ``names``' order, its known text values."""
+        if text:
+            self.text[len(self.log_time)] = text
         self.log_time.append(log_time_ns)
-        for column, name in zip(self.columns, self.names):
-            column.append(values[name])
-        if len(values) > len(self.names):
-            self.text[at] = {k: v for k, v in values.items() if k not in self.names}
+        for column, value in zip(self.columns, row):
+            column.append(value)
 
     def column(self, name: str) -> array:
         """The values of field ``name``, in the order the messages were added."""
@@ -257,6 +261,9 @@ class TopicColumns:
             if i in text:
                 values.update(text[i])
             yield row[0], values
+
+
+_UNSEEN = object()  # a topic decoded_messages has not planned for yet
 
 
 def decoded_messages(ep) -> tuple[dict, int]:
@@ -291,19 +298,11 @@ def decoded_messages(ep) -> tuple[dict, int]:
             columns = per.get(topic)
             if columns is None:
                 columns = per[topic] = TopicColumns(names)
-            at = len(columns.log_time)
-            columns.log_time.append(msg.log_time_ns)
-            for column, v in zip(columns.columns, row):
-                column.append(v)
-            for name, known in texts:
-                if d.get(name) in known:
-                    columns.text.setdefault(at, {})[name] = d[name]
+            columns.add(msg.log_time_ns, row, {name: d[name] for name, known in texts if d.get(name) in known}
+                        if texts else None)
             continue
         bad += 1
     return per, bad
-
-
-_UNSEEN = object()
 
 
 def episode_links(decoded: dict) -> dict:
