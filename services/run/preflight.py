@@ -62,8 +62,8 @@ def _stored_model(scenario: Scenario) -> LearnedTask:
     labeler = LABELERS.get(scenario.world)
     # which true phase each learned one is: the reproductions are scored by it (a phase the
     # world does not have scores every estimate wrong, as a model of another world would)
-    unknown = sorted((k, v) for k, v in (task.phase_to_truth or {}).items()
-                     if labeler is not None and v >= len(labeler.names))
+    unknown = [] if labeler is None else sorted((k, v) for k, v in (task.phase_to_truth or {}).items()
+                                                if v >= len(labeler.names))
     if unknown:
         k, v = unknown[0]
         raise ScenarioError(f"the model matches its phase {k} to true phase {v}; the {scenario.world} world's true "
