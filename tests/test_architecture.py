@@ -138,15 +138,20 @@ def test_a_service_process_imports_its_own_node_only():
     loads; its node's own start-up is not covered): its node's module and none of the other
     roles' (their imports cost every process of a run a second or more: services.nodes),
     MuJoCo only in the robot, the cell's compiled kernels only in the robot and the sensor
-    (a reader of the Net F/T's wire needs robot_sim.ati.rdt, not the sensor model)."""
+    (a reader of the Net F/T's wire needs robot_sim.ati.rdt, not the sensor model), and no
+    numba at all in the roles that compile nothing (its import and the kernels it loads were
+    a second of every such process's start): nor in an in-process run's MCAP writer helper."""
     probe = ("import json, sys\nfrom services.cli.roles import build_parser\nbuild_parser(sys.argv[1])\n"
              "print(json.dumps({'nodes': [m for m in sys.modules if m.startswith('services.nodes.')],"
-             " 'mujoco': 'mujoco' in sys.modules,"
+             " 'mujoco': 'mujoco' in sys.modules, 'numba': 'numba' in sys.modules,"
              " 'kernels': any(m in sys.modules for m in ('robot_sim.world.physics', 'robot_sim.krc.law', 'robot_sim.ati.sensor'))}))\n")
     roles = tuple(ROLES)
     # one process per role, all at once: the test's cost is one start-up, not seven
     probes = {role: subprocess.Popen([sys.executable, "-c", probe, role], cwd=ROOT, stdout=subprocess.PIPE,
                                      stderr=subprocess.PIPE, text=True) for role in roles}
+    # what the helper imports: its module, and the recorder's opener it is sent (VisualRecordings)
+    helper = subprocess.Popen([sys.executable, "-c", "import sys, services.recordings.offload, services.foxglove.tap; "
+                               "print('numba' in sys.modules)"], cwd=ROOT, stdout=subprocess.PIPE, text=True)
     for role, proc in probes.items():
         stdout, stderr = proc.communicate(timeout=120)
         assert proc.returncode == 0, stderr[-2000:]
@@ -156,6 +161,9 @@ def test_a_service_process_imports_its_own_node_only():
         assert f"services.nodes.{role}" in loaded["nodes"], loaded
         assert loaded["mujoco"] == (role == "robot"), f"{role}: MuJoCo loaded: {loaded['mujoco']}"
         assert loaded["kernels"] == (role in ("robot", "ft_sensor")), f"{role}: the cell's kernels loaded: {loaded}"
+        if role in ("recorder", "foxglove_bridge", "ros2"):
+            assert not loaded["numba"], f"the {role} program imports numba"
+    assert helper.communicate(timeout=120)[0].strip() == "False", "the MCAP writer helper imports numba"
 
 
 def test_robot_sim_is_in_parts_with_few_modules_at_its_top():

@@ -40,7 +40,6 @@ from dataclasses import dataclass
 import orjson
 
 from robot_sim.cycle import FRI_CYCLE_NS
-from robot_sim.wire.fri_datagrams import decode_command, decode_measurement, record_fields
 
 # The estimator's period on simulated time: every tenth FRI cycle, the 100 Hz at which the
 # thesis sampled its demonstrations.  The learner's samples and the estimator's updates are
@@ -559,6 +558,10 @@ STRIDES = {m.topic: m.period_ns // FRI_CYCLE_NS for m in MESSAGES.values()
 
 def datagram_fields(data: bytes, direction: str) -> dict:
     """FRI_DATAGRAM's ``bytes`` and ``decoded`` for the datagram ``data``."""
+    # here, not at the top: the datagrams' decoders bring the FRI link's compiled kernels (numba), which a
+    # process that only carries or records messages never needs
+    from robot_sim.wire.fri_datagrams import decode_command, decode_measurement, record_fields
+
     record = decode_measurement(data) if direction == "measurement" else decode_command(data)
     return {"bytes": base64.b64encode(data).decode("ascii"), "decoded": _finite_or_none(record_fields(record))}
 

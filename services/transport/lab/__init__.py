@@ -7,23 +7,25 @@ wire (``ros2_wire``)."""
 
 from __future__ import annotations
 
-from robot_sim.wire.fri_udp import host_port
-
 
 def edges(role: str, config, clock, session=None) -> dict:
     """The keyword arguments that give ``role``'s node its lab links for ``config``: each a
     factory the node calls with what the link hands back to it.  ``session``: the service's
-    Zenoh session (None in one process), which ROS 2's wire shares."""
+    Zenoh session (None in one process), which ROS 2's wire shares.  The links' modules are
+    imported where one is asked for: robot_sim.wire brings the FRI packets' compiled kernels
+    (numba, a second of a process's start), which a service without a lab link never uses."""
     if role == "robot" and config.wire == "udp":
         from services.transport.lab.robot_krc import RobotKrcOverUdp
 
         return {"fri_udp": lambda cell: RobotKrcOverUdp(cell, config, clock)}
     if role == "impedance_commander" and config.fri_listen:
+        from robot_sim.wire.fri_udp import host_port
         from services.transport.lab.fri_remote import FriRemoteSocket
 
         return {"fri_remote": lambda on_measurement: FriRemoteSocket(
             host_port(config.fri_listen, "fri_listen", listen=True), on_measurement, clock.now_ns)}
     if role == "phase_estimator" and config.netft:
+        from robot_sim.wire.fri_udp import host_port
         from services.transport.lab.netft_client import NetFtStream
 
         return {"netft_stream": lambda on_wrench: NetFtStream(host_port(config.netft, "netft"),
