@@ -17,6 +17,9 @@ from tests.services.recordings.test_recording import mixed_messages, write_episo
 
 
 def _pid_and_square(x):
+    import sys
+
+    sys.stdout.write(f"piece {x} said this without a newline;")  # held in the process's buffer
     return os.getpid(), x * x
 
 
@@ -47,11 +50,15 @@ def _gone(pid: int, within_s: float = 5.0) -> bool:
     return True
 
 
-def test_a_pool_runs_the_pieces_in_other_processes_and_returns_them_in_order():
+def test_a_pool_runs_the_pieces_in_other_processes_and_returns_them_in_order(capfd):
     with process_map(2) as pool_map:
         results = list(pool_map(_pid_and_square, range(8)))
     assert [sq for _, sq in results] == [x * x for x in range(8)]
     assert os.getpid() not in {pid for pid, _ in results}
+    # they left without the interpreter's teardown (``_exit_without_teardown``), what they wrote said
+    assert all(_gone(pid) for pid, _ in results)
+    out = capfd.readouterr().out
+    assert all(f"piece {x} said this" in out for x in range(8)), out
     with process_map(1) as plain:
         assert plain is map
 
