@@ -277,6 +277,10 @@ class Supervisor:
         escalation.  Their exit codes."""
         if self.attach:
             return {}
+        # from here on a token that goes away is the shutdown asked for, not a loss: counted lost,
+        # a service that failed on its way out (an exit code, a signal) was left out of the run's
+        # verdict (``runner._unclean_exits`` leaves the lost ones to the error their loss made)
+        self.watched = set()
         for p in self.processes:
             if p.name in self.lost and p.alive():
                 try:

@@ -120,6 +120,24 @@ def test_garbage_is_dropped_and_counted_valid_messages_are_answered(ft_sensor):
     sub.undeclare()
 
 
+def test_a_service_that_exits_when_asked_is_not_lost_and_its_exit_code_is_kept(tmp_path):
+    """The runner's verdict on how the services ended (``runner._unclean_exits``) leaves out
+    the lost ones; a service's token going away once it is asked to shut down is not a loss,
+    or a service failing on its way out (an exit code, a signal) would pass unseen."""
+    endpoint = f"tcp/127.0.0.1:{launch.free_port()}"
+    session = open_session(ZenohOptions(listen=(endpoint,)))
+    run_id = f"stop-{int(time.time() * 1000)}"
+    supervisor = launch.Supervisor(session, run_id, tmp_path)
+    try:
+        supervisor.start({"recorder": ["--run-id", run_id, "--connect", endpoint, "--out-dir", str(tmp_path)]}, 60)
+        codes = supervisor.stop(lambda: request(session, run_id, "recorder", "shutdown", timeout=5.0))
+        time.sleep(0.5)  # a token's deletion still in flight would count now
+        assert codes == {"recorder": 0} and supervisor.lost == {}, (codes, supervisor.lost)
+    finally:
+        supervisor.close()
+        session.close()
+
+
 def test_free_ports_are_below_the_ephemeral_range_distinct_and_bindable():
     """A port handed out is one no outgoing connection can be given before its user binds
     it (the kernel picks those from the ephemeral range), of the kind asked for."""
