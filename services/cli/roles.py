@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import os
 import re
 import sys
 
@@ -104,4 +105,9 @@ if __name__ == "__main__":
         print(f"services.cli.roles: error: ROLE {sys.argv[1] if len(sys.argv) > 1 else ''}: expected one of "
               f"{', '.join(ROLES)} (python -m services.cli.roles ROLE [flags])", file=sys.stderr)
         sys.exit(2)
-    sys.exit(main(sys.argv[1], sys.argv[2:]))
+    code = main(sys.argv[1], sys.argv[2:])
+    # the node closed, its Zenoh session too (``run_node``): what is left is the interpreter's
+    # teardown of numba's, MuJoCo's and Zenoh's modules, which the run waits for to end
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
