@@ -252,7 +252,7 @@ def _figure(run_dir: Path, demo: dict, truth, K: int, evals) -> Path:
 
 def comparison_over_seeds(rows: list[dict]) -> list[str] | None:
     """ETAR against STAR over a sweep's runs (one per data seed, its rows as
-    ``services.run.sweep.by_model_rows`` gives them): ``verdict`` on each figure's mean and
+    ``services.run.sweep_table.by_model_rows`` gives them): ``verdict`` on each figure's mean and
     spread over the runs, for each swept value on its own (a sweep over the sensor's noise
     compares the models at each noise level, never across them)."""
     rows = [r for r in rows if r.get("param model") in ("ETAR", "STAR") and not r.get("error")]

@@ -214,6 +214,58 @@ def _children(pid: int) -> list[int]:
     return out
 
 
+def _sweep_until_a_run_ends(tmp_path, values: str, popen=subprocess.Popen):
+    """A local sweep of the stored model's reproduction over ``values`` of its start
+    perturbation on two workers, started and read until its first run has finished: the
+    process, the lines it said, its folder."""
+    scenario_file = tmp_path / "repro.yaml"
+    scenario_file.write_text(reproduction_scenario().to_yaml())
+    out = tmp_path / "sweep"
+    sweeper = popen(
+        [sys.executable, "-m", "services.cli.bench", "sweep", str(scenario_file), "--param",
+         f"reproduce.start_perturbation={values}", "--workers", "2", "--record", "summary",
+         "--out", str(out)], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        start_new_session=True)
+    said = []
+    for line in sweeper.stderr:
+        said.append(line)
+        if re.search(rf"\[1/{len(values.split(','))}, ", line):
+            break
+    return sweeper, said, out
+
+
+def _spawned_workers(pid: int) -> list[int]:
+    """``pid``'s pool workers (multiprocessing's spawn_main), not its resource tracker."""
+    return [p for p in _children(pid)
+            if b"spawn_main" in Path(f"/proc/{p}/cmdline").read_bytes()]
+
+
+@pytest.mark.slow
+def test_a_sweep_whose_worker_is_killed_runs_what_it_left_again_and_loses_nothing(tmp_path):
+    """A worker killed mid-run (the OOM killer, a kill -9) breaks the whole pool: every run
+    not finished fails with BrokenProcessPool, the other worker's too.  The sweep says so in
+    one line and runs those again in a new pool, into their folders: all four rows, exit 0.
+    Before, it ended in a BrokenProcessPool traceback with no table and no sweep.json."""
+    sweeper, said, out = _sweep_until_a_run_ends(tmp_path, "0.005,0.01,0.015,0.02")
+    try:
+        workers = _spawned_workers(sweeper.pid)
+        assert len(workers) == 2, (workers, "".join(said))
+        os.kill(workers[0], signal.SIGKILL)
+        code = sweeper.wait(timeout=120)
+        said += sweeper.stderr.readlines()
+    finally:
+        if sweeper.poll() is None:
+            os.killpg(sweeper.pid, signal.SIGKILL)
+    text = "".join(said)
+    assert code == 0 and "Traceback" not in text, (code, text)
+    assert re.search(r"sweep: a worker process died \(BrokenProcessPool: .*\); the \d run\(s\) it left unfinished "
+                     r"start again in a new pool", text), text
+    rows = json.loads((out / "table.json").read_text())
+    assert sorted(r["run"] for r in rows) == ["run000", "run001", "run002", "run003"]
+    assert all(r["error"] is None for r in rows), rows
+    assert json.loads((out / "sweep.json").read_text())["runs"] == 4
+
+
 @pytest.mark.slow
 @pytest.mark.serial
 @pytest.mark.parametrize("how", ["SIGTERM to the sweep", "Ctrl-C to its group"])
@@ -222,20 +274,9 @@ def test_an_interrupted_sweep_keeps_what_finished_and_leaves_no_worker(tmp_path,
     the sweep exits 130 in one line, no worker outlives it, nothing starts after the signal,
     the finished runs are tabulated with sweep.json marked incomplete, and each run that was
     under way has its partial report."""
-    scenario_file = tmp_path / "repro.yaml"
-    scenario_file.write_text(reproduction_scenario().to_yaml())
-    out = tmp_path / "sweep"
-    sweeper = support.popen_as_from_a_terminal(
-        [sys.executable, "-m", "services.cli.bench", "sweep", str(scenario_file), "--param",
-         "reproduce.start_perturbation=0.005,0.01,0.015,0.02,0.025,0.03", "--workers", "2", "--record", "summary",
-         "--out", str(out)], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-        start_new_session=True)
-    said = []
+    sweeper, said, out = _sweep_until_a_run_ends(tmp_path, "0.005,0.01,0.015,0.02,0.025,0.03",
+                                                  popen=support.popen_as_from_a_terminal)
     try:
-        for line in sweeper.stderr:
-            said.append(line)
-            if re.search(r"\[1/6, ", line):
-                break
         workers = _children(sweeper.pid)
         assert len(workers) >= 2, (workers, "".join(said))
         if how.startswith("SIGTERM"):

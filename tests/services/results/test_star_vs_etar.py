@@ -6,7 +6,7 @@ import pytest
 from services.results.compare import comparison_over_seeds, paired, verdict
 from services.scenario.checks import ScenarioError
 from services.scenario.loading import load_scenario
-from services.run.sweep import by_model_rows
+from services.run.sweep_table import by_model_rows
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[3]
