@@ -236,8 +236,14 @@ def _sweep_until_a_run_ends(tmp_path, values: str, popen=subprocess.Popen):
 
 def _spawned_workers(pid: int) -> list[int]:
     """``pid``'s pool workers (multiprocessing's spawn_main), not its resource tracker."""
-    return [p for p in _children(pid)
-            if b"spawn_main" in Path(f"/proc/{p}/cmdline").read_bytes()]
+    found = []
+    for p in _children(pid):
+        try:
+            if b"spawn_main" in Path(f"/proc/{p}/cmdline").read_bytes():
+                found.append(p)
+        except OSError:  # gone since it was listed
+            pass
+    return found
 
 
 @pytest.mark.slow
