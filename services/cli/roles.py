@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import functools
-import os
 import re
 import sys
 
@@ -106,8 +105,6 @@ if __name__ == "__main__":
               f"{', '.join(ROLES)} (python -m services.cli.roles ROLE [flags])", file=sys.stderr)
         sys.exit(2)
     code = main(sys.argv[1], sys.argv[2:])
-    # the node closed, its Zenoh session too (``run_node``): what is left is the interpreter's
-    # teardown of numba's, MuJoCo's and Zenoh's modules, which the run waits for to end
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(code)
+    from services.runtime.threads import exit_without_teardown
+
+    exit_without_teardown(code)  # the node and its Zenoh session are closed (``run_node``)

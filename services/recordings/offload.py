@@ -253,8 +253,6 @@ if __name__ == "__main__":
         sys.exit("python -m services.recordings.offload --writer-process FD: the MCAP writer of an in-process run, "
                  "replying on FD (started by services.recordings.offload.WriterProcess, not by hand)")
     _writer_main(sys.stdin.buffer, os.fdopen(int(sys.argv[2]), "wb"))
-    # every file is finished and closed (``_writer_main``): the interpreter's own teardown, a
-    # fifth of a second here, is time the run's end waits for (``WriterProcess.close``)
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(0)
+    from services.runtime.threads import exit_without_teardown
+
+    exit_without_teardown()  # every file is finished and closed (``_writer_main``)

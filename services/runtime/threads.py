@@ -51,12 +51,17 @@ def _spawning(pool_map, fn, *iterables):
         signal.pthread_sigmask(signal.SIG_SETMASK, before)
 
 
-def _exit_without_teardown() -> None:
-    """A pool's process once its work is over (atexit: after multiprocessing has flushed its
-    output and ended its own exit handling, before the interpreter's teardown): gone at once.
-    The teardown of the modules a piece of work brings (numba, scipy, mujoco) took 0.3-0.5 s,
-    which the run's ``pool.shutdown()`` waited for (at its learn stage's end and its own)."""
-    os._exit(0)
+def exit_without_teardown(code: int = 0) -> None:
+    """End this process now with ``code``, its output flushed, skipping the interpreter's
+    teardown of the modules its work brought (numba, SciPy, MuJoCo, Zenoh: 0.2-1.0 s, which
+    whoever waits for the process to end waits for too).  For a process whose files and
+    sessions are already closed: a pool's process (atexit, ``_worker_start``), the MCAP
+    writer helper and a service process (their ``__main__``)."""
+    import sys
+
+    for stream in (sys.stdout, sys.stderr):
+        stream.flush()
+    os._exit(code)
 
 
 def _worker_start(idle: bool = False) -> None:
@@ -65,7 +70,7 @@ def _worker_start(idle: bool = False) -> None:
 
     import numba
 
-    atexit.register(_exit_without_teardown)
+    atexit.register(exit_without_teardown)
 
     numba.set_num_threads(1)
     # Ctrl-C is the runner's to handle: it ends the pool, a worker needs no traceback of its own.

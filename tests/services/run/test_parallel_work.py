@@ -55,7 +55,7 @@ def test_a_pool_runs_the_pieces_in_other_processes_and_returns_them_in_order(cap
         results = list(pool_map(_pid_and_square, range(8)))
     assert [sq for _, sq in results] == [x * x for x in range(8)]
     assert os.getpid() not in {pid for pid, _ in results}
-    # they left without the interpreter's teardown (``_exit_without_teardown``), what they wrote said
+    # they left without the interpreter's teardown (``exit_without_teardown``), what they wrote said
     assert all(_gone(pid) for pid, _ in results)
     out = capfd.readouterr().out
     assert all(f"piece {x} said this" in out for x in range(8)), out
