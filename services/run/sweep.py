@@ -62,7 +62,6 @@ from services.run.sweep_table import by_model_rows, plot, write_table
 RECORD = ("full", "summary", "none")
 
 
-
 class SweepError(ValueError):
     """A sweep that cannot be run, saying which parameter or value is at fault."""
 
@@ -129,6 +128,10 @@ class RunSpec:
     @property
     def seed(self) -> int:
         return self.scenario.seed
+
+    def row(self, **figures) -> dict:
+        """Its row of the sweep's table: the run, its parameters and seed, then ``figures``."""
+        return dict(run=self.name, **{f"param {k}": v for k, v in self.params.items()}, seed=self.seed, **figures)
 
     def options(self):
         """The run's options: in one process, no figures, one learner process.  Foxglove's
@@ -216,7 +219,7 @@ def run_one(spec: RunSpec) -> dict:
 
     t0 = time.monotonic()
     lines = []
-    row = dict(run=spec.name, **{f"param {k}": v for k, v in spec.params.items()}, seed=spec.seed)
+    row = spec.row()
     if _STOPPING:  # the sweep was interrupted: nothing starts after the signal
         return dict(row, error=f"not started: the sweep was interrupted ({_STOPPING})", interrupted="not started",
                     signal=_STOPPING, wall_s=0.0)
@@ -412,8 +415,7 @@ def execute(specs: list[RunSpec], workers: int, cluster: str | None, say=print) 
                 say(f"sweep: a worker process died again ({died}): the {len(unfinished)} run(s) it left unfinished "
                     "are failed rows")
                 for spec in unfinished:
-                    done(spec, dict(run=spec.name, **{f"param {k}": v for k, v in spec.params.items()},
-                                    seed=spec.seed, error=f"its worker process died twice ({died})", wall_s=0.0))
+                    done(spec, spec.row(error=f"its worker process died twice ({died})", wall_s=0.0))
                 break
             say(f"sweep: a worker process died ({died}); the {len(unfinished)} run(s) it left unfinished start "
                 "again in a new pool")
